@@ -1,0 +1,1 @@
+"""Pure numpy estimation algorithms for MagStation (no I/O, no server imports)."""

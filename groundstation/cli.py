@@ -1,0 +1,215 @@
+"""`magstation` command line: serve, calibrate, analyze, simulate, info.
+
+Errors are one line on stderr and a non-zero exit code, never a traceback (set
+MAGSTATION_DEBUG=1 to see one).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable, Iterator
+
+from .ingest import IngestError, read_log
+from .samples import FlightLog
+
+RECORDINGS_DIR = Path(__file__).resolve().parent.parent / "recordings"
+DEMO_RECORDING = RECORDINGS_DIR / "demo.tlog"
+
+
+class CliError(Exception):
+    """A user-facing failure: printed as one line, exit code 1."""
+
+
+@contextmanager
+def progress_bar(label: str) -> Iterator[Callable[[float], None] | None]:
+    """A tqdm bar on a terminal (fraction 0..1 in), nothing when output is piped."""
+    if not sys.stderr.isatty():
+        yield None
+        return
+    from tqdm import tqdm
+
+    with tqdm(total=1000, desc=label, unit="‰", leave=False, file=sys.stderr) as bar:
+        def update(fraction: float) -> None:
+            bar.update(max(0, int(fraction * 1000) - bar.n))
+        yield update
+
+
+def load_log(path: str | Path) -> FlightLog:
+    with progress_bar(f"reading {Path(path).name}") as progress:
+        log = read_log(path, progress)
+    for warning, count in log.warnings.items():
+        print(f"warning: {Path(path).name}: {warning} ({count})", file=sys.stderr)
+    return log
+
+
+def _write_json(path: str, obj: object) -> None:
+    Path(path).write_text(json.dumps(obj, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+
+
+# ------------------------------------------------------------------------------------ commands
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from .ingest import summarize_rates
+
+    log = load_log(args.file)
+    tables = {"magnetometer": log.mag, "IMU": log.imu, "attitude": log.attitude, "GPS": log.gps}
+    print(f"{args.file}")
+    print(f"  duration        {log.duration_s:.1f} s")
+    print(f"  autopilot       {log.autopilot or 'unknown'}")
+    for name, table in tables.items():
+        if len(table) > 1:
+            span = table[-1, 0] - table[0, 0]
+            rate = (len(table) - 1) / span if span > 0 else 0.0
+            print(f"  {name:<15} {len(table)} samples, {rate:.1f} Hz")
+        else:
+            print(f"  {name:<15} none")
+    if len(log.mag) and log.mag_calibration_applied is not None:
+        state = "already calibrated by the autopilot" if log.mag_calibration_applied else "raw"
+        print(f"  mag field       {state}")
+    rtk = bool(len(log.gps) and (log.gps[:, 7] >= 5).any())
+    print(f"  RTK             {'yes' if rtk else 'no'}")
+    print(f"  mission         {len(log.mission)} waypoints" if log.mission else "  mission         none")
+    print(f"  parameters      {len(log.params)}")
+    print("  messages:")
+    for mtype, count, rate in summarize_rates(log)[: args.top]:
+        print(f"    {mtype:<28} {count:>8}  {rate:8.2f} Hz")
+    for warning, count in log.warnings.items():
+        print(f"  warning: {warning} ({count})")
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from .calibration_job import calibrate_log, error_result, format_summary
+
+    results = []
+    for file in args.files:
+        try:
+            result = calibrate_log(load_log(file))
+        except IngestError as err:
+            result = error_result(file, str(err))
+        results.append(result)
+        print(format_summary(result))
+    if args.json:
+        _write_json(args.json, {"results": results})
+    return 0 if all(r["status"] == "ok" for r in results) else 1
+
+
+def _load_calibration(path: str) -> dict:
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as err:
+        raise CliError(f"{path}: not a readable calibration JSON ({err})") from err
+    candidates = data.get("results", [data]) if isinstance(data, dict) else []
+    for result in candidates:
+        if isinstance(result, dict) and result.get("status") == "ok":
+            return result
+    raise CliError(f"{path}: holds no calibration with status 'ok'")
+
+
+def cmd_analyze(args: argparse.Namespace) -> int:
+    from .analysis import analyze_log, format_report, write_csv
+    from .mission import read_mission
+
+    calibration = _load_calibration(args.calibration) if args.calibration else None
+    mission = read_mission(args.mission) if args.mission else None
+    log = load_log(args.file)
+    with progress_bar("analyzing"):
+        report, columns = analyze_log(log, calibration=calibration, mission=mission)
+    print(format_report(report))
+    if args.json:
+        _write_json(args.json, report)
+    if args.csv:
+        write_csv(args.csv, columns)
+    return 0
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from .simulate import SCENARIOS, simulate
+
+    if args.scenario not in SCENARIOS:
+        raise CliError(f"unknown scenario '{args.scenario}' (choose from {', '.join(SCENARIOS)})")
+    sim = simulate(args.scenario, seed=args.seed)
+    sim.write(args.out)
+    print(f"wrote {args.out} ({len(sim.messages)} messages) and its truth JSON")
+    return 0
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from .server import serve
+
+    replay = Path(args.replay) if args.replay else None
+    if args.connect is None and replay is None:
+        if not DEMO_RECORDING.is_file():
+            raise CliError(f"no source given and the demo recording {DEMO_RECORDING} is missing")
+        replay = DEMO_RECORDING
+    if replay is not None and not replay.is_file():
+        raise CliError(f"{replay}: no such file")
+    if args.host not in ("127.0.0.1", "localhost", "::1") and not args.allow_remote:
+        raise CliError(f"refusing to bind {args.host}: the station listens on loopback unless "
+                       "--allow-remote is given")
+    serve(connect=args.connect, replay=replay, speed=args.speed, host=args.host, port=args.port,
+          viser_port=args.viser_port, allow_remote=args.allow_remote)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="magstation", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("serve", help="run the ground station (web page + 3-D view)")
+    source = p.add_mutually_exclusive_group()
+    source.add_argument("--connect", metavar="URL",
+                        help="live link: udpin:0.0.0.0:14550, tcp:HOST:PORT or /dev/ttyUSB0,57600")
+    source.add_argument("--replay", metavar="FILE", help="replay a log (.tlog .bin .ulg .csv)")
+    p.add_argument("--speed", type=float, default=1.0, help="replay speed factor (default 1)")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--viser-port", type=int, default=8080)
+    p.add_argument("--allow-remote", action="store_true", help="allow binding a non-loopback host")
+    p.set_defaults(func=cmd_serve)
+
+    p = sub.add_parser("calibrate", help="magnetometer calibration from one or more logs")
+    p.add_argument("files", nargs="+", metavar="FILE")
+    p.add_argument("--json", metavar="OUT")
+    p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("analyze", help="heading, velocity split and interference detection")
+    p.add_argument("file", metavar="FILE")
+    p.add_argument("--calibration", metavar="CAL.json")
+    p.add_argument("--mission", metavar="FILE", help=".waypoints, .plan or a log with a mission")
+    p.add_argument("--json", metavar="OUT")
+    p.add_argument("--csv", metavar="OUT")
+    p.set_defaults(func=cmd_analyze)
+
+    p = sub.add_parser("simulate", help="write a simulated flight as a .tlog (+ truth JSON)")
+    p.add_argument("scenario")
+    p.add_argument("--out", required=True, metavar="FILE.tlog")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("info", help="what is in a log")
+    p.add_argument("file", metavar="FILE")
+    p.add_argument("--top", type=int, default=25, help="message types to list")
+    p.set_defaults(func=cmd_info)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (IngestError, CliError, OSError, ValueError) as err:
+        if os.environ.get("MAGSTATION_DEBUG"):
+            raise
+        print(f"magstation: error: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

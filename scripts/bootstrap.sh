@@ -1,0 +1,14 @@
+# Sourced by ./run and ./test: create or refresh .venv with the project installed.
+# Usage: bootstrap_venv [EXTRAS]   (e.g. bootstrap_venv test)
+bootstrap_venv() {
+  local extras="${1:-}" stamp=".venv/.installed${extras:+-$extras}"
+  if [ ! -x .venv/bin/python ]; then
+    python3 -m venv .venv
+  fi
+  # Reinstall only when pyproject.toml changed since the last install.
+  if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+    .venv/bin/python -m pip install -q --upgrade pip
+    .venv/bin/python -m pip install -q -e ".${extras:+[$extras]}"
+    touch "$stamp"
+  fi
+}

@@ -1,0 +1,116 @@
+"""Mission readers, replay pacing, CLI behaviour and the estimators' purity rule."""
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import groundstation  # noqa: F401
+from groundstation.cli import main
+from groundstation.ingest import IngestError, read_log
+from groundstation.mission import read_mission
+from groundstation.replay import Replayer
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "tests" / "data"
+ROUTE = [pytest.approx((30.26, 120.12, 20.0)), pytest.approx((30.261, 120.121, 20.0))]
+
+
+@pytest.mark.parametrize("name", ["mission.waypoints", "mission.plan", "reference.tlog", "reference.bin"])
+def test_mission_from_every_source(name):
+    assert read_mission(DATA / name) == ROUTE
+
+
+def test_mission_errors(tmp_path):
+    bad = tmp_path / "x.waypoints"
+    bad.write_text("not a mission\n")
+    with pytest.raises(IngestError, match="QGC WPL"):
+        read_mission(bad)
+    with pytest.raises(IngestError, match="at least two waypoints"):
+        read_mission(DATA / "mag.csv")
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_replay_paces_pauses_seeks_and_changes_speed():
+    clock = FakeClock()
+    rep = Replayer(read_log(DATA / "reference.tlog"), speed=2.0, clock=clock)
+    first = rep.due()
+    assert all(s.t_s <= 0.0 for s in first)
+    clock.now += 1.0  # 2 s of log at speed 2
+    got = rep.due()
+    assert got and max(s.t_s for s in got) <= 2.0 and rep.samples[rep.index].t_s > 2.0
+    rep.pause()
+    clock.now += 10
+    assert rep.due() == [] and rep.position_s == pytest.approx(2.0)
+    rep.resume()
+    rep.set_speed(1.0)
+    clock.now += 0.5
+    assert max(s.t_s for s in rep.due()) <= 2.5
+    rep.seek(8.0)
+    assert rep.samples[rep.index].t_s >= 8.0
+    clock.now += 100
+    rest = rep.due()
+    assert rest and rep.finished and min(s.t_s for s in rest) >= 8.0
+
+
+def test_replay_loops_and_unpaced_iteration():
+    clock = FakeClock()
+    log = read_log(DATA / "reference.tlog")
+    rep = Replayer(log, speed=1000.0, loop=True, clock=clock)
+    clock.now += 1.0
+    rep.due()
+    assert rep.loops == 1 and rep.index == 0
+    assert len(list(Replayer(log))) == len(rep.samples)
+
+
+def test_cli_info(capsys):
+    assert main(["info", str(DATA / "reference.tlog")]) == 0
+    out = capsys.readouterr().out
+    assert "ardupilot" in out and "RTK             yes" in out and "2 waypoints" in out
+    assert "SCALED_IMU" in out
+
+
+def test_cli_errors_are_one_line_without_traceback():
+    proc = subprocess.run([sys.executable, "-m", "groundstation.cli", "info", str(DATA / "garbage.tlog")],
+                          capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 1
+    assert proc.stderr.strip().startswith("magstation: error:") and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_cli_warns_about_damage_and_goes_on(capsys):
+    assert main(["info", str(DATA / "corrupt.tlog")]) == 0
+    assert "corrupt packets skipped" in capsys.readouterr().err
+
+
+def test_serve_refuses_non_loopback_without_flag(capsys):
+    assert main(["serve", "--host", "0.0.0.0", "--replay", str(DATA / "reference.tlog")]) == 1
+    assert "--allow-remote" in capsys.readouterr().err
+
+
+def test_estimators_are_pure():
+    """estimators/ never imports I/O or server code."""
+    forbidden = {"groundstation", "fastapi", "viser", "pymavlink", "uvicorn", "pyulog", "socket",
+                 "requests", "httpx"}
+    for path in (ROOT / "estimators").glob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module]
+            for name in names:
+                assert name.split(".")[0] not in forbidden, f"{path.name} imports {name}"
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "open":
+                pytest.fail(f"{path.name} opens files")
