@@ -1,0 +1,118 @@
+"""LiveLink over real loopback sockets: UDP and TCP, stream requests, recording, garbage."""
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import pytest
+
+import groundstation  # noqa: F401
+from groundstation.ingest import LiveLink, read_log
+from groundstation.mavlink import TlogWriter, mavlink2 as m
+from groundstation.samples import MagSample, StatusSample
+
+
+def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def vehicle_packets(enc: m.MAVLink, k: int) -> list[bytes]:
+    hb = m.MAVLink_heartbeat_message(2, 3, 81, 0, 4, 3)
+    imu = m.MAVLink_scaled_imu_message(1000 + 20 * k, 0, 0, -1000, 0, 0, 0, 200 + k, -50, 400)
+    return [bytes(hb.pack(enc)), bytes(imu.pack(enc))]
+
+
+def poll_until(link: LiveLink, predicate, timeout_s: float = 5.0) -> list:
+    got: list = []
+    deadline = time.time() + timeout_s
+    while time.time() < deadline and not predicate(got):
+        got += link.poll()
+        time.sleep(0.01)
+    return got
+
+
+def decode_all(parser: m.MAVLink, data: bytes) -> list:
+    try:
+        return parser.parse_buffer(data) or []
+    except m.MAVError:
+        return []
+
+
+def test_udp_link_requests_streams_falls_back_and_records(tmp_path):
+    port = free_port()
+    recorder = TlogWriter(tmp_path / "session.tlog")
+    link = LiveLink(f"udpin:127.0.0.1:{port}", recorder=recorder)
+    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    vehicle.settimeout(0.05)
+    enc = m.MAVLink(None, srcSystem=1, srcComponent=1)
+    parser = m.MAVLink(None)
+    parser.robust_parsing = True
+    received: list = []
+    try:
+        vehicle.sendto(b"\x00garbage datagram\xff" * 3, ("127.0.0.1", port))
+        deadline = time.time() + 6
+        samples: list = []
+        k = 0
+        while time.time() < deadline:
+            for pkt in vehicle_packets(enc, k):
+                vehicle.sendto(pkt, ("127.0.0.1", port))
+            k += 1
+            samples += link.poll()
+            try:
+                while True:
+                    received += decode_all(parser, vehicle.recv(4096))
+            except (socket.timeout, BlockingIOError):
+                pass
+            if any(msg.get_type() == "REQUEST_DATA_STREAM" for msg in received):
+                break
+            time.sleep(0.02)
+    finally:
+        vehicle.close()
+        link.close()
+        recorder.close()
+    types = [msg.get_type() for msg in received]
+    assert "HEARTBEAT" in types  # the station's GCS heartbeat
+    intervals = [msg for msg in received if msg.get_type() == "COMMAND_LONG" and msg.command == 511]
+    assert {int(msg.param1) for msg in intervals} >= {m.MAVLINK_MSG_ID_SCALED_IMU, m.MAVLINK_MSG_ID_ATTITUDE}
+    assert intervals[0].param2 == pytest.approx(20000)  # 50 Hz
+    assert "REQUEST_DATA_STREAM" in types  # no COMMAND_ACK came, so it fell back
+    mags = [s for s in samples if isinstance(s, MagSample)]
+    assert mags and mags[0].mag_body_mG == (200.0, -50.0, 400.0)
+    assert any(isinstance(s, StatusSample) and "link up" in s.text for s in samples)
+    assert link.bad_packets >= 1
+    recorded = read_log(tmp_path / "session.tlog")
+    assert len(recorded.mag) == len(mags)
+
+
+def test_tcp_link_and_loss_is_reported():
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    port = server.getsockname()[1]
+    stop = threading.Event()
+
+    def vehicle() -> None:
+        conn, _ = server.accept()
+        enc = m.MAVLink(None, srcSystem=1, srcComponent=1)
+        for k in range(25):
+            conn.sendall(b"".join(vehicle_packets(enc, k)))
+            time.sleep(0.02)
+        stop.wait(5)
+        conn.close()
+
+    thread = threading.Thread(target=vehicle, daemon=True)
+    thread.start()
+    link = LiveLink(f"tcp:127.0.0.1:{port}")
+    link.LOST_AFTER_S = 0.5
+    try:
+        got = poll_until(link, lambda g: sum(isinstance(s, MagSample) for s in g) >= 25)
+        assert sum(isinstance(s, MagSample) for s in got) == 25
+        lost = poll_until(link, lambda g: any(isinstance(s, StatusSample) and "lost" in s.text for s in g))
+        assert any("link lost" in s.text for s in lost if isinstance(s, StatusSample))
+    finally:
+        stop.set()
+        link.close()
+        server.close()
