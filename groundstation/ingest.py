@@ -93,7 +93,8 @@ class MavlinkDecoder:
         self.vehicle_sysid: int | None = None
         self.start_unix_s: float | None = None
         self.warnings: Counter = Counter()
-        self._mission_frame_ok: dict[int, bool] = {}
+        self._last_gps_raw_t = -math.inf
+        self._last_fix_type = 3
         self._handlers: dict[str, Callable] = {
             "HEARTBEAT": self._heartbeat,
             "RAW_IMU": self._scaled_imu(0),
@@ -104,6 +105,7 @@ class MavlinkDecoder:
             "ATTITUDE": self._attitude,
             "ATTITUDE_QUATERNION": self._attitude_quaternion,
             "GPS_RAW_INT": self._gps_raw_int,
+            "GLOBAL_POSITION_INT": self._global_position_int,
             "MISSION_ITEM_INT": self._mission_item,
             "MISSION_ITEM": self._mission_item,
             "PARAM_VALUE": self._param_value,
@@ -194,12 +196,22 @@ class MavlinkDecoder:
         return [AttitudeSample(self._t(msg, arrival_s), *_euler_from_quaternion(*(v / norm for v in q)))]
 
     def _gps_raw_int(self, msg, t: float) -> list[Sample]:
+        self._last_gps_raw_t = t
+        self._last_fix_type = int(msg.fix_type)
         if msg.fix_type < 2 or (msg.lat == 0 and msg.lon == 0):
             return []
         speed = msg.vel * 0.01 if msg.vel != 65535 else math.nan
         course = math.radians(msg.cog * 0.01) if msg.cog != 65535 else math.nan
         vel = (speed * math.cos(course), speed * math.sin(course), math.nan)
         return [GpsSample(t, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3, vel, int(msg.fix_type))]
+
+    def _global_position_int(self, msg, arrival_s: float) -> list[Sample]:
+        """The autopilot's fused position: used only when no GPS_RAW_INT came for 3 s."""
+        t = self._t(msg, arrival_s)
+        if t - self._last_gps_raw_t < 3.0 or (msg.lat == 0 and msg.lon == 0):
+            return []
+        vel = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
+        return [GpsSample(t, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3, vel, self._last_fix_type)]
 
     def _mission_item(self, msg, t: float) -> list[Sample]:
         if msg.command != MAV_CMD_NAV_WAYPOINT:

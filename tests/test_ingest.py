@@ -150,6 +150,16 @@ def test_decoder_ignores_gcs_and_converts_scaled_imu_units():
     assert dec.decode(other, 2.0) == []
 
 
+def test_global_position_int_only_when_gps_raw_int_is_absent():
+    dec = MavlinkDecoder()
+    pos = m.MAVLink_global_position_int_message(1000, 302600000, 1201200000, 50000, 20000, 150, -80, 10, 0)
+    got = dec.decode(pos, 1.0)
+    assert got[0].vel_ned_mps == pytest.approx((1.5, -0.8, 0.1)) and got[0].alt_m == pytest.approx(50.0)
+    raw = m.MAVLink_gps_raw_int_message(0, 6, 302600000, 1201200000, 50000, 80, 120, 200, 9000, 18)
+    assert dec.decode(raw, 1.1)[0].fix_type == 6
+    assert dec.decode(pos, 1.2) == []  # raw GPS is preferred while it flows
+
+
 def test_iter_samples_is_time_ordered_and_complete():
     log = read_log(DATA / "reference.tlog")
     samples = list(iter_samples(log))
