@@ -139,8 +139,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from .server import serve
-
     replay = Path(args.replay) if args.replay else None
     if args.connect is None and replay is None:
         if not DEMO_RECORDING.is_file():
@@ -151,6 +149,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.host not in ("127.0.0.1", "localhost", "::1") and not args.allow_remote:
         raise CliError(f"refusing to bind {args.host}: the station listens on loopback unless "
                        "--allow-remote is given")
+    from .server import serve
+
     serve(connect=args.connect, replay=replay, speed=args.speed, host=args.host, port=args.port,
           viser_port=args.viser_port, allow_remote=args.allow_remote)
     return 0
