@@ -1,0 +1,228 @@
+"""Autopilot compass-calibration parameter conventions (ArduPilot COMPASS_*, PX4 CAL_MAGn_*).
+
+Our calibration:  m_cal = C · (m_raw − b)   (field in mG, C dimensionless).
+
+ArduPilot (AP_Compass_Backend::correct_field, read in the ArduPilot source):
+    the driver first rotates the sensor reading into the body frame (COMPASS_ORIENT, board
+    orientation), then  corrected = M · (SCALE · (rot_raw + OFS)),
+    M = [[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z], [ODI_Y, ODI_Z, DIA_Z]],
+    OFS in mG and *added*; SCALE (COMPASS_SCALE) used only when set (> 0); DIA all zero means 1.
+    Motor compensation (COMPASS_MOT_*) is not modelled here.
+    Our "raw" for ArduPilot is rot_raw (orientation applied, calibration not), so
+    OFS = −b,  M = S (symmetric part of C),  SCALE = 1.  COMPASS_ORIENT is left as it is.
+
+PX4 (calibration::Magnetometer::Correct in the PX4 source):
+    corrected = R · (S · (raw − off)),  raw and off in gauss, S = [[XSCALE, XODIAG, YODIAG],
+    [XODIAG, YSCALE, ZODIAG], [YODIAG, ZODIAG, ZSCALE]], R from CAL_MAGn_ROT (enum; 100 =
+    custom CAL_MAGn_ROLL/PITCH/YAW in degrees; −1 = internal sensor: board rotation
+    SENS_BOARD_ROT with SENS_BOARD_X/Y/Z_OFF).  Power compensation (CAL_MAGn_*COMP) is ignored.
+    Our "raw" for PX4 is R·raw (body-aligned, uncalibrated): raw_ours = R S⁻¹ Rᵀ m_corr + R off.
+    Export: off = Rᵀ b / 1000 (gauss), S = Rᵀ C_sym R, so R·S·(raw − off) = C_sym (raw_ours − b).
+
+If C is not symmetric (misalignment estimated), C = R_mis · S (``polar_decomposition``):
+S goes to DIA/ODI or SCALE/ODIAG, R_mis is reported separately (misalignment) and is *not*
+folded silently into the symmetric parameters.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from estimators.calibration import dcm_body_to_ned, polar_decomposition
+
+MG_PER_GAUSS = 1000.0
+
+# PX4 / ArduPilot rotation enum -> (roll, pitch, yaw) in degrees; both share 0..37.
+_ROTATIONS_DEG = [
+    (0, 0, 0), (0, 0, 45), (0, 0, 90), (0, 0, 135), (0, 0, 180), (0, 0, 225), (0, 0, 270), (0, 0, 315),
+    (180, 0, 0), (180, 0, 45), (180, 0, 90), (180, 0, 135), (0, 180, 0), (180, 0, 225), (180, 0, 270),
+    (180, 0, 315), (90, 0, 0), (90, 0, 45), (90, 0, 90), (90, 0, 135), (270, 0, 0), (270, 0, 45),
+    (270, 0, 90), (270, 0, 135), (0, 90, 0), (0, 270, 0), (0, 180, 90), (0, 180, 270), (90, 90, 0),
+    (180, 90, 0), (270, 90, 0), (90, 180, 0), (270, 180, 0), (90, 270, 0), (180, 270, 0), (270, 270, 0),
+    (90, 180, 90), (90, 0, 270),
+]
+
+
+def rotation_enum_matrix(rot: int, custom_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """Rotation matrix of a PX4/ArduPilot ``Rotation`` enum (v' = R v, R = Rz(yaw) Ry(pitch) Rx(roll)).
+    100 = custom roll/pitch/yaw.  Raises ValueError for enums not in the table."""
+    rot = int(rot)
+    if rot == 100:
+        rpy = custom_rpy_deg
+    elif 0 <= rot < len(_ROTATIONS_DEG):
+        rpy = _ROTATIONS_DEG[rot]
+    else:
+        raise ValueError(f"unsupported rotation enum {rot}")
+    r, p, y = np.radians(rpy)
+    R = dcm_body_to_ned(r, p, y)
+    return np.where(np.abs(R) < 1e-12, 0.0, R)
+
+
+def detect_autopilot(params: dict[str, float]) -> str | None:
+    if any(k.startswith("COMPASS_") for k in params):
+        return "ardupilot"
+    if any(k.startswith("CAL_MAG") for k in params):
+        return "px4"
+    return None
+
+
+# ------------------------------------------------------------------------------------ ArduPilot
+
+def ardupilot_matrix(params: dict[str, float], instance: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
+    """(OFS mG, M, SCALE) of compass ``instance`` (0 = COMPASS_OFS_*, 1 = COMPASS_OFS2_* ...)."""
+    n = "" if instance == 0 else str(instance + 1)
+    ofs = np.array([float(params.get(f"COMPASS_OFS{n}_{a}", 0.0)) for a in "XYZ"])
+    dia = np.array([float(params.get(f"COMPASS_DIA{n}_{a}", 0.0)) for a in "XYZ"])
+    odi = np.array([float(params.get(f"COMPASS_ODI{n}_{a}", 0.0)) for a in "XYZ"])
+    if np.all(dia == 0):
+        dia = np.ones(3)
+    M = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
+    scale = float(params.get(f"COMPASS_SCALE{n}", 0.0))
+    return ofs, M, (scale if scale > 0 else 1.0)
+
+
+def apply_ardupilot(raw_mG: np.ndarray, params: dict[str, float], instance: int = 0) -> np.ndarray:
+    """ArduPilot's correction: M · (SCALE · (raw + OFS))."""
+    ofs, M, scale = ardupilot_matrix(params, instance)
+    return (scale * (np.asarray(raw_mG, float) + ofs)) @ M.T
+
+
+def unapply_ardupilot(corrected_mG: np.ndarray, params: dict[str, float], instance: int = 0) -> np.ndarray:
+    """Inverse of ``apply_ardupilot``: raw = M⁻¹ corrected / SCALE − OFS."""
+    ofs, M, scale = ardupilot_matrix(params, instance)
+    return np.asarray(corrected_mG, float) @ np.linalg.inv(M).T / scale - ofs
+
+
+def ardupilot_params_from_calibration(offsets_mG: np.ndarray, matrix: np.ndarray, instance: int = 0
+                                      ) -> dict[str, float]:
+    """COMPASS_OFS/DIA/ODI/SCALE for m_cal = S (raw − b); the rotation part of a non-symmetric
+    C is dropped here (report it as misalignment)."""
+    _, S = polar_decomposition(matrix)
+    n = "" if instance == 0 else str(instance + 1)
+    b = np.asarray(offsets_mG, float)
+    out: dict[str, float] = {}
+    for i, a in enumerate("XYZ"):
+        out[f"COMPASS_OFS{n}_{a}"] = float(-b[i])
+    for i, a in enumerate("XYZ"):
+        out[f"COMPASS_DIA{n}_{a}"] = float(S[i, i])
+    out[f"COMPASS_ODI{n}_X"] = float(S[0, 1])
+    out[f"COMPASS_ODI{n}_Y"] = float(S[0, 2])
+    out[f"COMPASS_ODI{n}_Z"] = float(S[1, 2])
+    out[f"COMPASS_SCALE{n}"] = 1.0
+    return out
+
+
+# ------------------------------------------------------------------------------------------ PX4
+
+def px4_slot(params: dict[str, float], device_id: int | None = None) -> int:
+    """Calibration slot n of CAL_MAGn_*: the one whose CAL_MAGn_ID matches ``device_id`` or
+    CAL_MAG_PRIME, else 0."""
+    want = device_id if device_id is not None else params.get("CAL_MAG_PRIME")
+    if want:
+        for n in range(4):
+            if int(params.get(f"CAL_MAG{n}_ID", -1)) == int(want):
+                return n
+    return 0
+
+
+def px4_rotation(params: dict[str, float], slot: int = 0) -> np.ndarray:
+    rot = int(params.get(f"CAL_MAG{slot}_ROT", -1))
+    if rot < 0:  # internal sensor: board rotation
+        R = rotation_enum_matrix(int(params.get("SENS_BOARD_ROT", 0)))
+        off = np.radians([float(params.get(f"SENS_BOARD_{a}_OFF", 0.0)) for a in "XYZ"])
+        return dcm_body_to_ned(*off) @ R
+    custom = tuple(float(params.get(f"CAL_MAG{slot}_{a}", 0.0)) for a in ("ROLL", "PITCH", "YAW"))
+    return rotation_enum_matrix(rot, custom)
+
+
+def px4_matrix(params: dict[str, float], slot: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(offsets gauss, S, R) of slot n."""
+    p = lambda k, d: float(params.get(f"CAL_MAG{slot}_{k}", d))
+    off = np.array([p("XOFF", 0.0), p("YOFF", 0.0), p("ZOFF", 0.0)])
+    d = [p("XSCALE", 1.0), p("YSCALE", 1.0), p("ZSCALE", 1.0)]
+    o = [p("XODIAG", 0.0), p("YODIAG", 0.0), p("ZODIAG", 0.0)]
+    S = np.array([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
+    return off, S, px4_rotation(params, slot)
+
+
+def apply_px4(raw_sensor_mG: np.ndarray, params: dict[str, float], slot: int = 0) -> np.ndarray:
+    """PX4's correction on a sensor-frame reading: R · S · (raw − off), in mG."""
+    off, S, R = px4_matrix(params, slot)
+    return (np.asarray(raw_sensor_mG, float) / MG_PER_GAUSS - off) @ (R @ S).T * MG_PER_GAUSS
+
+
+def unapply_px4(corrected_mG: np.ndarray, params: dict[str, float], slot: int = 0) -> np.ndarray:
+    """Recover body-aligned raw (R · raw_sensor, mG) from PX4-corrected samples:
+    R (S⁻¹ Rᵀ m + off)."""
+    off, S, R = px4_matrix(params, slot)
+    m = np.asarray(corrected_mG, float) / MG_PER_GAUSS
+    raw_sensor = m @ (np.linalg.inv(S) @ R.T).T + off
+    return raw_sensor @ R.T * MG_PER_GAUSS
+
+
+def px4_params_from_calibration(offsets_mG: np.ndarray, matrix: np.ndarray, slot: int = 0,
+                                rotation: np.ndarray | None = None) -> dict[str, float]:
+    """CAL_MAGn_{X,Y,Z}OFF (gauss), *SCALE, *ODIAG for m_cal = S (raw_body − b), raw_body = R raw_sensor.
+    The rotation part of a non-symmetric C is dropped (report it as misalignment)."""
+    _, S = polar_decomposition(matrix)
+    R = np.eye(3) if rotation is None else np.asarray(rotation, float)
+    off = R.T @ np.asarray(offsets_mG, float) / MG_PER_GAUSS
+    Ss = R.T @ S @ R
+    out: dict[str, float] = {}
+    for i, a in enumerate("XYZ"):
+        out[f"CAL_MAG{slot}_{a}OFF"] = float(off[i])
+    for i, a in enumerate("XYZ"):
+        out[f"CAL_MAG{slot}_{a}SCALE"] = float(Ss[i, i])
+    out[f"CAL_MAG{slot}_XODIAG"] = float(Ss[0, 1])
+    out[f"CAL_MAG{slot}_YODIAG"] = float(Ss[0, 2])
+    out[f"CAL_MAG{slot}_ZODIAG"] = float(Ss[1, 2])
+    return out
+
+
+# ------------------------------------------------------------------------------------- generic
+
+def unapply_onboard_calibration(mag_mG: np.ndarray, params: dict[str, float], autopilot: str | None = None,
+                                applied: bool | None = None) -> tuple[np.ndarray, str]:
+    """Log samples -> body-aligned raw samples, with a one-line note of what was done.
+
+    ``applied`` is FlightLog.mag_calibration_applied: True (corrected field: un-apply), False
+    (raw sensor output: PX4 sensor_mag is only rotated into the body frame by CAL_MAGn_ROT /
+    board rotation), None (unknown: un-apply when calibration parameters are present).
+    """
+    ap = autopilot or detect_autopilot(params)
+    if applied is False:
+        if ap == "px4" and any(k.startswith("CAL_MAG") for k in params):
+            slot = px4_slot(params)
+            R = px4_rotation(params, slot)
+            return np.asarray(mag_mG, float) @ R.T, f"raw sensor samples rotated to body frame (CAL_MAG{slot})"
+        return np.asarray(mag_mG, float), "raw sensor samples"
+    if ap == "ardupilot" and any(k.startswith("COMPASS_OFS") for k in params):
+        ofs, M, scale = ardupilot_matrix(params)
+        return unapply_ardupilot(mag_mG, params), (
+            f"un-applied ArduPilot COMPASS_OFS {np.round(ofs, 1).tolist()} mG, DIA/ODI, SCALE {scale:g}")
+    if ap == "px4" and any(k.startswith("CAL_MAG") for k in params):
+        slot = px4_slot(params)
+        off, S, R = px4_matrix(params, slot)
+        return unapply_px4(mag_mG, params, slot), (
+            f"un-applied PX4 CAL_MAG{slot} offsets {np.round(off * MG_PER_GAUSS, 1).tolist()} mG and scale matrix")
+    return np.asarray(mag_mG, float), "no onboard calibration parameters found; samples used as raw"
+
+
+def export_params(offsets_mG: np.ndarray, matrix: np.ndarray, params: dict[str, float] | None = None
+                  ) -> tuple[dict[str, float], dict[str, float]]:
+    """(ArduPilot params, PX4 params) for a calibration in the body-aligned raw frame; the PX4 slot
+    and sensor rotation follow the log's parameters when given."""
+    params = params or {}
+    ap = ardupilot_params_from_calibration(offsets_mG, matrix)
+    slot = px4_slot(params) if any(k.startswith("CAL_MAG") for k in params) else 0
+    try:
+        R = px4_rotation(params, slot) if any(k.startswith("CAL_MAG") for k in params) else np.eye(3)
+    except ValueError:
+        R = np.eye(3)
+    return ap, px4_params_from_calibration(offsets_mG, matrix, slot, R)
+
+
+def format_param_file(values: dict[str, float], style: str = "comma") -> str:
+    """``NAME,VALUE`` lines (style "comma", MAVProxy/ArduPilot .param) or ``NAME VALUE``
+    (style "space", Mission Planner)."""
+    sep = "," if style == "comma" else " "
+    return "".join(f"{k}{sep}{v:.7g}\n" for k, v in sorted(values.items()))
