@@ -1,0 +1,231 @@
+"""Tilt-compensated magnetic heading, true heading, velocity split and the heading chain (seed 000 sec. 2).
+
+Chain per IMU sample (seed 000 sec. 2.1–2.2):
+  1. gravity vector filter (accelerometer + gyro, eq. 9 form) → roll φ, pitch θ;
+  2. field vector filter (calibrated magnetometer + gyro, eq. 9/10) → Ĥ^b;
+  3. eqs. (11)–(12) project Ĥ^b onto the horizontal plane, eq. (13) gives the magnetic heading in
+     all four quadrants (we use atan2(−H_Y, H_X), wrapped to [0, 2π), which is eq. (13) case by
+     case); true heading ψ = ψ_m + α with α the declination (WMM, estimators.geomag).
+  4. GPS NED velocity split into forward/lateral with the heading (seed 000 sec. 3.3).
+
+``run_heading_chain`` (batch, replay) and ``HeadingChain`` (per sample, live) give the same numbers.
+Units: rad internally, mG, rad/s, m/s^2; body FRD, navigation NED; headings clockwise from north.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field as dc_field
+
+import numpy as np
+
+from estimators.attitude import (FieldVectorFilter, GravityVectorFilter, VectorFilterSettings,
+                                 roll_pitch_from_specific_force, run_vector_filter)
+
+__all__ = [
+    "tilt_compensated_heading_rad", "split_velocity", "wrap_angle_deg", "wrap_angle_rad",
+    "HeadingChainSettings", "HeadingChainResult", "HeadingState", "HeadingChain", "run_heading_chain",
+]
+
+TWO_PI = 2.0 * np.pi
+
+
+def wrap_angle_deg(angle_deg):
+    """Wrap to (−180, 180] degrees (vectorised)."""
+    a = np.mod(np.asarray(angle_deg, dtype=float) + 180.0, 360.0) - 180.0
+    return np.where(a == -180.0, 180.0, a)
+
+
+def wrap_angle_rad(angle_rad):
+    """Wrap to (−π, π] radians (vectorised)."""
+    a = np.mod(np.asarray(angle_rad, dtype=float) + np.pi, TWO_PI) - np.pi
+    return np.where(a == -np.pi, np.pi, a)
+
+
+def tilt_compensated_heading_rad(mag_body_mG, roll_rad, pitch_rad):
+    """Magnetic heading [rad, 0..2π) from a body-frame field and roll/pitch (seed 000 eqs. 11–13).
+
+    H_X = H_x cos θ + H_y sin θ sin φ + H_z sin θ cos φ      (11)
+    H_Y = H_y cos φ − H_z sin φ                              (12)
+    ψ_m = atan2(−H_Y, H_X) mod 2π                            (13, all quadrants)
+    Vectorised: mag (..., 3), roll/pitch (...).
+    """
+    m = np.asarray(mag_body_mG, dtype=float)
+    r = np.asarray(roll_rad, dtype=float)
+    p = np.asarray(pitch_rad, dtype=float)
+    sr, cr, sp, cp = np.sin(r), np.cos(r), np.sin(p), np.cos(p)
+    hx = m[..., 0] * cp + m[..., 1] * sp * sr + m[..., 2] * sp * cr
+    hy = m[..., 1] * cr - m[..., 2] * sr
+    return np.mod(np.arctan2(-hy, hx), TWO_PI)
+
+
+def split_velocity(vel_north_mps, vel_east_mps, heading_rad):
+    """Forward/lateral (right positive) velocity from NED velocity and heading (seed 000 sec. 3.3)."""
+    vn = np.asarray(vel_north_mps, dtype=float)
+    ve = np.asarray(vel_east_mps, dtype=float)
+    h = np.asarray(heading_rad, dtype=float)
+    c, s = np.cos(h), np.sin(h)
+    return vn * c + ve * s, -vn * s + ve * c
+
+
+@dataclass(frozen=True)
+class HeadingChainSettings:
+    field: VectorFilterSettings = dc_field(default_factory=lambda: VectorFilterSettings(gain_per_s=0.5))
+    gravity: VectorFilterSettings = dc_field(default_factory=lambda: VectorFilterSettings(gain_per_s=0.2))
+
+
+@dataclass
+class HeadingChainResult:
+    """Arrays on the IMU time base (length N). Headings in [0, 2π).
+
+    ``valid``: both filters initialised and a magnetometer sample held (before that the angles are 0).
+    """
+    t_s: np.ndarray
+    roll_rad: np.ndarray
+    pitch_rad: np.ndarray
+    yaw_rad: np.ndarray            # filter heading (magnetic) from Ĥ^b
+    mag_heading_rad: np.ndarray    # raw tilt-compensated magnetic heading of the latest mag sample
+    heading_true_rad: np.ndarray   # yaw_rad + declination
+    field_body_mG: np.ndarray      # Ĥ^b (N, 3)
+    valid: np.ndarray
+
+
+@dataclass
+class HeadingState:
+    t_s: float
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    mag_heading_rad: float
+    heading_true_rad: float
+    valid: bool
+
+
+def _clean_time(t: np.ndarray) -> np.ndarray:
+    """Running maximum of the finite times (same rule as the per-sample filters)."""
+    t = np.asarray(t, dtype=float)
+    if len(t) == 0:
+        return t.copy()
+    tt = np.where(np.isfinite(t), t, -np.inf)
+    tt[0] = t[0] if np.isfinite(t[0]) else 0.0
+    return np.maximum.accumulate(tt)
+
+
+def _held(meas_t: np.ndarray, meas_v: np.ndarray, t_clean: np.ndarray, timeout_s: float):
+    """Latest finite measurement at or before each step (zero-order hold) and whether it is fresh."""
+    ok = np.isfinite(meas_t) & np.all(np.isfinite(meas_v), axis=1)
+    # a sample older than one already received is ignored (as the per-sample filters do)
+    prev = np.maximum.accumulate(np.where(ok, meas_t, -np.inf))
+    ok &= meas_t >= np.r_[-np.inf, prev[:-1]]
+    mt, mv = meas_t[ok], meas_v[ok]
+    order = np.argsort(mt, kind="stable")
+    mt, mv = mt[order], mv[order]
+    idx = np.searchsorted(mt, t_clean, side="right") - 1
+    exists = idx >= 0
+    idx_c = np.maximum(idx, 0)
+    if len(mt) == 0:
+        return np.zeros((len(t_clean), 3)), np.zeros(len(t_clean), bool), exists
+    m = np.where(exists[:, None], mv[idx_c], 0.0)
+    have = exists & ((t_clean - mt[idx_c]) <= timeout_s)
+    return m, have, exists
+
+
+def _reinit_flags(have: np.ndarray, gap: np.ndarray) -> np.ndarray:
+    """First step with a measurement after the start and after each gap."""
+    seg = np.cumsum(gap)
+    reinit = np.zeros(len(have), bool)
+    hi = np.flatnonzero(have)
+    if len(hi):
+        _, first = np.unique(seg[hi], return_index=True)
+        reinit[hi[first]] = True
+    return reinit
+
+
+def _vector_filter_batch(t_clean, gyro, meas_t, meas_v, s: VectorFilterSettings):
+    dt = np.diff(t_clean, prepend=t_clean[:1])
+    gap = dt > s.max_gap_s
+    dt = np.where(gap, 0.0, dt)
+    m, have, _ = _held(meas_t, meas_v, t_clean, s.hold_timeout_s)
+    reinit = _reinit_flags(have, gap)
+    x = run_vector_filter(dt, gyro, m, have, reinit, s.gain_per_s)
+    inited = np.maximum.accumulate(reinit) if len(reinit) else reinit
+    return x, inited
+
+
+def _outputs(grav, field_b, mag_held, mag_exists, inited, decl):
+    valid = inited & mag_exists
+    roll, pitch = roll_pitch_from_specific_force(grav)
+    yaw = tilt_compensated_heading_rad(field_b, roll, pitch)
+    mag_heading = tilt_compensated_heading_rad(mag_held, roll, pitch)
+    true = np.mod(yaw + np.radians(decl), TWO_PI)
+    return tuple(np.where(valid, a, 0.0) for a in (roll, pitch, yaw, mag_heading, true)) + (valid,)
+
+
+def run_heading_chain(imu: np.ndarray, mag_cal: np.ndarray, declination_deg=0.0,
+                      settings: HeadingChainSettings | None = None) -> HeadingChainResult:
+    """Batch heading/attitude chain on the IMU time base (seed 000 sec. 2).
+
+    imu: (N, 7) [t_s, gx, gy, gz rad/s, ax, ay, az m/s^2];  mag_cal: (M, 4) [t_s, mx, my, mz mG]
+    (calibrated);  declination_deg: scalar or (N,).  Non-finite rows are skipped (see
+    estimators.attitude), outputs are always finite.
+    """
+    s = settings or HeadingChainSettings()
+    imu = np.asarray(imu, dtype=float).reshape(-1, 7)
+    mag_cal = np.asarray(mag_cal, dtype=float).reshape(-1, 4)
+    t = _clean_time(imu[:, 0])
+    gyro = imu[:, 1:4]
+    gyro = np.where(np.all(np.isfinite(gyro), axis=1)[:, None], gyro, 0.0)
+    grav, g_init = _vector_filter_batch(t, gyro, imu[:, 0], imu[:, 4:7], s.gravity)
+    field_b, f_init = _vector_filter_batch(t, gyro, mag_cal[:, 0], mag_cal[:, 1:4], s.field)
+    mag_held, _, mag_exists = _held(mag_cal[:, 0], mag_cal[:, 1:4], t, np.inf)
+    decl = np.broadcast_to(np.nan_to_num(np.asarray(declination_deg, dtype=float)), t.shape)
+    roll, pitch, yaw, mh, true, valid = _outputs(grav, field_b, mag_held, mag_exists, g_init & f_init, decl)
+    return HeadingChainResult(t, roll, pitch, yaw, mh, true, field_b, valid)
+
+
+class HeadingChain:
+    """Per-sample heading chain for the live path; same numbers as ``run_heading_chain``.
+
+    Feed samples in time order: ``update_mag`` for each calibrated magnetometer sample (before an
+    IMU sample with the same time), ``update_imu`` for each IMU sample, which returns the state.
+    """
+
+    def __init__(self, declination_deg: float = 0.0, settings: HeadingChainSettings | None = None):
+        self.settings = settings or HeadingChainSettings()
+        self.declination_deg = float(declination_deg)
+        self.field_filter = FieldVectorFilter(self.settings.field)
+        self.gravity_filter = GravityVectorFilter(self.settings.gravity)
+        self._mag = np.zeros(3)
+        self._mag_seen = False
+
+    def update_mag(self, t_s: float, mag_cal_mG) -> None:
+        m = np.asarray(mag_cal_mG, dtype=float)
+        if m.shape == (3,) and np.all(np.isfinite(m)) and np.isfinite(t_s) and t_s >= self.field_filter._meas_t:
+            self.field_filter.set_measurement(t_s, m)
+            self._mag = m.copy()
+            self._mag_seen = True
+
+    def update_imu(self, t_s: float, gyro_rad_s, accel_mps2) -> HeadingState:
+        a = np.asarray(accel_mps2, dtype=float)
+        if np.isfinite(t_s):
+            self.gravity_filter.set_measurement(t_s, a)
+        gx, gy, gz = self.gravity_filter.update(t_s, gyro_rad_s)
+        fb = self.field_filter.update(t_s, gyro_rad_s)
+        decl = self.declination_deg if math.isfinite(self.declination_deg) else 0.0
+        roll = math.atan2(-gy, -gz)                           # = roll_pitch_from_specific_force
+        pitch = math.atan2(gx, math.hypot(gy, gz))
+        yaw = _heading_scalar(fb, roll, pitch)
+        mh = _heading_scalar(self._mag, roll, pitch)
+        true = (yaw + math.radians(decl)) % TWO_PI
+        valid = self.gravity_filter.initialised and self.field_filter.initialised and self._mag_seen
+        if not valid:
+            roll = pitch = yaw = mh = true = 0.0
+        return HeadingState(float(self.gravity_filter._t), roll, pitch, yaw, mh, true, bool(valid))
+
+
+def _heading_scalar(m, roll: float, pitch: float) -> float:
+    """tilt_compensated_heading_rad for one sample in plain floats (live path)."""
+    mx, my, mz = (float(v) for v in m)
+    sr, cr, sp, cp = math.sin(roll), math.cos(roll), math.sin(pitch), math.cos(pitch)
+    hx = mx * cp + my * sp * sr + mz * sp * cr
+    hy = my * cr - mz * sr
+    return math.atan2(-hy, hx) % TWO_PI
