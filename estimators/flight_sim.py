@@ -1,0 +1,634 @@
+"""Closed-loop multirotor flight simulator with magnetic interference (seed 002 section 2).
+
+Pure numpy (no I/O); ``groundstation.simulate`` turns the result into MAVLink messages.
+
+Physics (seed 002 section 2):
+  * translation, eq. (1)/(3): p' = v, v' = g e3 − (f/m) R e3 + drag·(wind − v); altitude held,
+    so the horizontal acceleration comes from the tilt of the thrust.
+  * the autopilot turns a desired horizontal acceleration into roll/pitch with its *estimated*
+    yaw ψ̂, eq. (4); the airframe however sits at its true yaw ψ, so the produced acceleration is
+    the desired one rotated by Δψ = ψ̂ − ψ, eq. (5).  The autopilot's INS also rotates its
+    accelerometer by ψ̂ before blending with GPS, so its velocity/position estimate drifts
+    sideways when ψ̂ is wrong; the position controller then steers the true track off the line.
+  * ψ̂ comes from the autopilot's own gyro/magnetometer complementary filter (seed 000 eq. 9/10,
+    ``estimators.attitude.FieldVectorFilter``) followed by tilt compensation (seed 000 eq. 11-13).
+
+Sensors: magnetometer m_raw = A (m_body + m_motor) + b + m_interf + noise (soft iron +
+misalignment A, hard iron b, motor-current field m_motor = c I(thrust) fixed in the body,
+interference on a sensor axis), gyro with bias, accelerometer (specific force), GPS (RTK fix 6
+with cm noise or 3-D fix 3 with metre-level correlated error).  Frames: NED navigation,
+FRD body, local tangent plane at the origin.  Units: m, m/s, rad, mG.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimators.attitude import run_vector_filter
+from estimators.detection import lla_from_ned, ned_from_lla  # noqa: F401  (re-exported)
+from estimators.heading import tilt_compensated_heading_rad, wrap_angle_rad
+
+
+G = 9.80665
+
+__all__ = ["Interference", "MagModel", "SimConfig", "SimResult", "run", "ned_from_lla", "lla_from_ned",
+           "euler_to_dcm", "G"]
+
+
+# --------------------------------------------------------------------------- geometry helpers
+def euler_to_dcm(roll, pitch, yaw) -> np.ndarray:
+    """Body (FRD) -> NED rotation matrices (..., 3, 3), ZYX Euler angles (seed 002 eq. 1)."""
+    cr, sr = np.cos(roll), np.sin(roll)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    r = np.empty(np.shape(roll) + (3, 3))
+    r[..., 0, 0] = cp * cy
+    r[..., 0, 1] = sr * sp * cy - cr * sy
+    r[..., 0, 2] = cr * sp * cy + sr * sy
+    r[..., 1, 0] = cp * sy
+    r[..., 1, 1] = sr * sp * sy + cr * cy
+    r[..., 1, 2] = cr * sp * sy - sr * cy
+    r[..., 2, 0] = -sp
+    r[..., 2, 1] = sr * cp
+    r[..., 2, 2] = cr * cp
+    return r
+
+
+def dcm_to_euler(r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    roll = np.arctan2(r[..., 2, 1], r[..., 2, 2])
+    pitch = -np.arcsin(np.clip(r[..., 2, 0], -1, 1))
+    yaw = np.arctan2(r[..., 1, 0], r[..., 0, 0])
+    return roll, pitch, yaw
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def _gauss_markov(rng: np.random.Generator, n: int, dt: float, sigma: float, tau_s: float, dims: int) -> np.ndarray:
+    """First-order Gauss-Markov process (stationary, std sigma, correlation time tau)."""
+    out = np.zeros((n, dims))
+    if sigma <= 0 or n == 0:
+        return out
+    a = math.exp(-dt / tau_s)
+    w = rng.normal(0.0, sigma * math.sqrt(1 - a * a), (n, dims))
+    x = rng.normal(0.0, sigma, dims)
+    # x_k = a x_{k-1} + w_k, evaluated blockwise with powers of a (vectorised, exact)
+    blk = 256
+    powers = a ** np.arange(1, blk + 1)
+    for s in range(0, n, blk):
+        ww = w[s:s + blk]
+        m = len(ww)
+        idx = np.arange(m)
+        # lower-triangular convolution within the block
+        lag = idx[:, None] - idx[None, :]
+        kern = np.where(lag >= 0, a ** np.clip(lag, 0, None), 0.0)
+        out[s:s + m] = kern @ ww + powers[:m, None] * x
+        x = out[s + m - 1]
+    return out
+
+
+# --------------------------------------------------------------------------- models
+@dataclass
+class Interference:
+    """External field added on the magnetometer's sensor axes [mG].
+
+    kind: "none" | "ramp" (rise at rate_mG_s for rise_s, hold hold_s, fall at the same rate)
+          | "bump" (smooth rise-then-fall, peak amplitude_mG over duration_s, seed 002 sim.)
+          | "step" (amplitude_mG from onset for duration_s).
+    axis: unit vector in the sensor frame (seed 002 flight tests: +Y).
+    """
+    kind: str = "none"
+    onset_s: float = 60.0
+    axis: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    rate_mG_s: float = 0.0
+    rise_s: float = 20.0
+    hold_s: float = 10.0
+    amplitude_mG: float = 0.0
+    duration_s: float = 30.0
+
+    @property
+    def end_s(self) -> float | None:
+        if self.kind == "none":
+            return None
+        if self.kind == "ramp":
+            return self.onset_s + 2 * self.rise_s + self.hold_s
+        return self.onset_s + self.duration_s
+
+    def magnitude_mG(self, t_s: np.ndarray) -> np.ndarray:
+        t = np.asarray(t_s, dtype=float) - self.onset_s
+        if self.kind == "ramp":
+            peak = self.rate_mG_s * self.rise_s
+            up = np.clip(t, 0, self.rise_s) * self.rate_mG_s
+            down = np.clip(t - self.rise_s - self.hold_s, 0, self.rise_s) * self.rate_mG_s
+            return np.where(t > 0, np.minimum(up, peak) - down, 0.0)
+        if self.kind == "bump":
+            x = np.clip(t / self.duration_s, 0, 1)
+            return self.amplitude_mG * np.sin(np.pi * x) ** 2
+        if self.kind == "step":
+            return np.where((t >= 0) & (t < self.duration_s), self.amplitude_mG, 0.0)
+        return np.zeros_like(t)
+
+    def field_sensor_mG(self, t_s: np.ndarray) -> np.ndarray:
+        ax = np.asarray(self.axis, dtype=float)
+        ax = ax / np.linalg.norm(ax)
+        return self.magnitude_mG(t_s)[:, None] * ax[None, :]
+
+
+@dataclass
+class MagModel:
+    """m_raw = A (m_body + c·I) + b + interference + noise (issue 3 model; seed 004)."""
+    matrix: np.ndarray = field(default_factory=lambda: np.eye(3))       # A (soft iron · misalignment)
+    offsets_mG: np.ndarray = field(default_factory=lambda: np.zeros(3))  # b (hard iron)
+    misalignment_deg: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    noise_mG: float = 2.0
+    motor_mG_per_A: np.ndarray = field(default_factory=lambda: np.zeros(3))  # body-fixed, per amp
+    hover_current_A: float = 20.0
+
+    @staticmethod
+    def random(rng: np.random.Generator, offset_mG: float = 150.0, soft: float = 0.05,
+               misalign_deg: float = 2.0) -> "MagModel":
+        s = np.eye(3) + np.diag(rng.uniform(-soft, soft, 3))
+        off = rng.uniform(-soft / 2, soft / 2, 3)
+        s[0, 1] = s[1, 0] = off[0]
+        s[0, 2] = s[2, 0] = off[1]
+        s[1, 2] = s[2, 1] = off[2]
+        mis = rng.uniform(-misalign_deg, misalign_deg, 3)
+        rot = euler_to_dcm(*np.radians(mis)).T   # body -> sensor
+        return MagModel(matrix=s @ rot, offsets_mG=rng.uniform(-offset_mG, offset_mG, 3), misalignment_deg=mis)
+
+
+@dataclass
+class SimConfig:
+    """Everything a run needs.  ``kind``: "dance" | "headings" | "mission"."""
+    kind: str = "mission"
+    seed: int = 0
+    duration_s: float = 300.0
+    rate_hz: float = 50.0
+    gps_rate_hz: float = 10.0
+    origin_lat_deg: float = 30.26
+    origin_lon_deg: float = 120.12
+    ground_alt_m: float = 20.0
+    flight_alt_m: float = 20.0            # above ground
+    field_ned_mG: np.ndarray = field(default_factory=lambda: np.array([336.6, -35.8, 353.5]))
+    declination_deg: float = -6.07
+    mag: MagModel = field(default_factory=MagModel)
+    interference: Interference = field(default_factory=Interference)
+    gyro_bias_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    gyro_noise_rad_s: float = 0.004
+    accel_noise_mps2: float = 0.15
+    rtk: bool = True
+    gps_outage: tuple[float, float] | None = None
+    # mission
+    leg_bearing_deg: float = 30.0
+    leg_length_m: float = 400.0
+    speed_mps: float = 6.0
+    hover_s: float = 20.0
+    mean_wind_mps: tuple[float, float] = (1.5, -1.0)     # NE
+    gust_sigma_mps: float = 0.3
+    gust_tau_s: float = 2.0
+    vertical_gust_sigma_mps2: float = 0.8
+    drag_per_s: float = 0.45
+    autopilot_mag_gain_per_s: float = 0.5
+    autopilot_motor_comp: float = 0.8      # fraction of the motor field the autopilot compensates
+    pos_gain_per_s: float = 0.25           # cross/along-track position P gain (gentle line tracking)
+    vel_gain_per_s: float = 0.8            # velocity P gain
+    vel_int_gain_per_s2: float = 0.2      # velocity I gain
+    # dance / headings
+    dance_rate_deg_s: float = 45.0
+    heading_hold_s: float = 5.0
+
+
+@dataclass
+class SimResult:
+    """Time series on the 50 Hz step grid (t_s from 0) plus GPS rows at the GPS rate."""
+    t_s: np.ndarray
+    roll_rad: np.ndarray            # truth
+    pitch_rad: np.ndarray
+    yaw_rad: np.ndarray
+    est_roll_rad: np.ndarray        # autopilot estimate (ATTITUDE)
+    est_pitch_rad: np.ndarray
+    est_yaw_rad: np.ndarray
+    gyro_rad_s: np.ndarray          # measured (N,3)
+    accel_mps2: np.ndarray          # measured specific force (N,3)
+    mag_raw_mG: np.ndarray          # measured (N,3), sensor frame
+    body_rate_rad_s: np.ndarray     # truth
+    pos_ned_m: np.ndarray           # truth (N,3)
+    vel_ned_mps: np.ndarray         # truth
+    est_pos_ned_m: np.ndarray       # autopilot estimate
+    est_vel_ned_mps: np.ndarray
+    interference_mG: np.ndarray     # (N,3) sensor frame
+    motor_current_A: np.ndarray
+    gps_idx: np.ndarray             # indices into the step grid where GPS rows are
+    gps_pos_ned_m: np.ndarray
+    gps_vel_ned_mps: np.ndarray
+    gps_fix_type: np.ndarray
+    cross_track_m: np.ndarray       # truth distance to the A-B line (NaN when no mission)
+    mission_ned_m: np.ndarray | None = None   # (2,3) A, B
+    events: list = field(default_factory=list)
+
+
+# --------------------------------------------------------------------------- attitude profiles
+def _integrate_rates(rates: np.ndarray, dt: float, r0: np.ndarray) -> np.ndarray:
+    """Body rates (N,3) -> DCMs (N,3,3) by exact per-step rotation (Rodrigues)."""
+    n = len(rates)
+    out = np.empty((n, 3, 3))
+    r = r0.copy()
+    th = rates * dt
+    ang = np.linalg.norm(th, axis=1)
+    for i in range(n):
+        out[i] = r
+        a = ang[i]
+        if a > 0:
+            k = th[i] / a
+            kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+            r = r @ (np.eye(3) + math.sin(a) * kx + (1 - math.cos(a)) * kx @ kx)
+    return out
+
+
+def _dance_rates(cfg: SimConfig, rng: np.random.Generator) -> tuple[np.ndarray, list]:
+    """Calibration dance: full turns about X, then Y, then Z, then a tumble; pauses between."""
+    dt = 1.0 / cfg.rate_hz
+    w = math.radians(cfg.dance_rate_deg_s)
+    turn_s = 2 * math.pi / w
+    segs: list[tuple[str, float, np.ndarray]] = [("still", 5.0, np.zeros(3))]
+    for axis, name in ((0, "x"), (1, "y"), (2, "z")):
+        rate = np.zeros(3)
+        rate[axis] = w
+        segs += [(f"turn_{name}", turn_s, rate), ("still", 3.0, np.zeros(3))]
+    tumble_total = max(0.0, cfg.duration_s - sum(s[1] for s in segs) - 3.0)
+    n_tumble = max(1, int(tumble_total // 4.0))
+    for _ in range(n_tumble):
+        d = rng.normal(size=3)
+        segs.append(("tumble", tumble_total / n_tumble, w * d / np.linalg.norm(d)))
+    segs.append(("still", 3.0, np.zeros(3)))
+    rates, events, t0 = [], [], 0.0
+    for name, dur, rate in segs:
+        k = int(round(dur / dt))
+        rates.append(np.repeat(rate[None, :], k, axis=0))
+        if name != "still":
+            events.append({"kind": name, "start_s": round(t0, 3), "end_s": round(t0 + k * dt, 3)})
+        t0 += k * dt
+    return np.concatenate(rates), events
+
+
+def _headings_profile(cfg: SimConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]:
+    """Seed 000 table 1: 8 headings 45° apart, at each level then rolled −20° (smooth moves)."""
+    dt = 1.0 / cfg.rate_hz
+    hold = cfg.heading_hold_s
+    move = 2.0
+    t = 2.0
+    events = []
+    pts = [(0.0, 0.0, 0.0)]   # (t, roll, yaw) key points; moves between them are smoothstep
+    for i in range(8):
+        yaw = math.radians(45.0 * i)
+        if i:
+            pts.append((t, 0.0, yaw - math.radians(45)))
+            t += move
+        pts.append((t, 0.0, yaw))
+        events.append({"kind": "hold", "heading_deg": 45.0 * i, "roll_deg": 0.0, "start_s": t + 0.5, "end_s": t + hold})
+        t += hold
+        pts.append((t, 0.0, yaw))
+        t += move
+        pts.append((t, math.radians(-20), yaw))
+        events.append({"kind": "hold", "heading_deg": 45.0 * i, "roll_deg": -20.0, "start_s": t + 0.5, "end_s": t + hold})
+        t += hold
+        pts.append((t, math.radians(-20), yaw))
+        t += move
+        pts.append((t, 0.0, yaw))
+    t_end = t + 2.0
+    pts.append((t_end, 0.0, pts[-1][2]))
+    n = int(round(t_end / dt))
+    ts = np.arange(n) * dt
+    kt = np.array([p[0] for p in pts])
+    kr = np.array([p[1] for p in pts])
+    ky = np.array([p[2] for p in pts])
+    j = np.clip(np.searchsorted(kt, ts, side="right") - 1, 0, len(kt) - 2)
+    span = np.maximum(kt[j + 1] - kt[j], 1e-9)
+    x = np.clip((ts - kt[j]) / span, 0, 1)
+    s = x * x * (3 - 2 * x)
+    roll = kr[j] + (kr[j + 1] - kr[j]) * s
+    yaw = ky[j] + (ky[j + 1] - ky[j]) * s
+    return ts, roll, yaw, events
+
+
+# --------------------------------------------------------------------------- main entry
+def run(cfg: SimConfig) -> SimResult:
+    rng = np.random.default_rng(cfg.seed)
+    if cfg.kind == "mission":
+        return _run_mission(cfg, rng)
+    return _run_static(cfg, rng)
+
+
+def _sensors_common(cfg, rng, t, dcm, rates, acc_ned, current_A):
+    n = len(t)
+    field_body = np.einsum("nji,j->ni", dcm, cfg.field_ned_mG)
+    motor = current_A[:, None] * np.asarray(cfg.mag.motor_mG_per_A)[None, :]
+    interf = cfg.interference.field_sensor_mG(t)
+    mag = (field_body + motor) @ cfg.mag.matrix.T + cfg.mag.offsets_mG + interf
+    mag += rng.normal(0, cfg.mag.noise_mG, (n, 3))
+    # gyro sample i = body rate over the step (i-1 -> i); rates[i] is the rate over (i -> i+1)
+    prev = np.vstack([np.zeros((1, 3)), rates[:-1]])
+    gyro = prev + cfg.gyro_bias_rad_s + rng.normal(0, cfg.gyro_noise_rad_s, (n, 3))
+    f_ned = acc_ned - np.array([0.0, 0.0, G])
+    accel = np.einsum("nji,nj->ni", dcm, f_ned) + rng.normal(0, cfg.accel_noise_mps2, (n, 3))
+    return mag, gyro, accel, interf
+
+
+def _gps_errors(cfg, rng, n):
+    """GPS rows (every step-th grid step): position/velocity errors and fix type.
+
+    RTK (fix 6): 1.2 cm white + 0.8 cm slowly wandering; 3-D fix (fix 3): 0.3 m white + 1.2 m
+    Gauss-Markov (30 s).  During ``gps_outage`` the fix type is 1 (no fix)."""
+    dt = 1.0 / cfg.rate_hz
+    step = max(1, int(round(cfg.rate_hz / cfg.gps_rate_hz)))
+    idx = np.arange(0, n, step)
+    m = len(idx)
+    if cfg.rtk:
+        err = rng.normal(0, 0.012, (m, 3)) + _gauss_markov(rng, m, step * dt, 0.008, 20.0, 3)
+        verr = rng.normal(0, 0.03, (m, 3))
+        fix = np.full(m, 6)
+    else:
+        err = rng.normal(0, 0.3, (m, 3)) + _gauss_markov(rng, m, step * dt, 1.2, 30.0, 3)
+        verr = rng.normal(0, 0.12, (m, 3))
+        fix = np.full(m, 3)
+    if cfg.gps_outage is not None:
+        t = idx * dt
+        fix[(t >= cfg.gps_outage[0]) & (t < cfg.gps_outage[1])] = 1
+    return idx, step, err, verr, fix
+
+
+def _autopilot_corrected_field(cfg, mag_raw, motor_body):
+    """The field the autopilot's heading filter sees: its own calibration (exact) and partial
+    motor-current compensation applied to the raw magnetometer."""
+    a_inv = np.linalg.inv(cfg.mag.matrix)
+    return (mag_raw - cfg.mag.offsets_mG) @ a_inv.T - cfg.autopilot_motor_comp * motor_body
+
+
+def _run_static(cfg: SimConfig, rng) -> SimResult:
+    dt = 1.0 / cfg.rate_hz
+    if cfg.kind == "dance":
+        rates, events = _dance_rates(cfg, rng)
+        r0 = euler_to_dcm(0.0, 0.0, math.radians(cfg.leg_bearing_deg))
+        dcm = _integrate_rates(rates, dt, r0)
+        n = len(rates)
+        t = np.arange(n) * dt
+        roll, pitch, yaw = dcm_to_euler(dcm)
+    else:
+        t, roll, yaw, events = _headings_profile(cfg)
+        # headings are absolute (from true north)
+        n = len(t)
+        pitch = np.zeros(n)
+        dcm = euler_to_dcm(roll, pitch, yaw)
+        # body rates from Euler rates (pitch = 0): p = roll', q = yaw' sin(roll), r = yaw' cos(roll)
+        droll = np.gradient(roll, dt)
+        dyaw = np.gradient(yaw, dt)
+        rates = np.stack([droll, dyaw * np.sin(roll), dyaw * np.cos(roll)], axis=1)
+    current = np.zeros(n)
+    mag, gyro, accel, interf = _sensors_common(cfg, rng, t, dcm, rates, np.zeros((n, 3)), current)
+    # autopilot estimate: roll/pitch near truth, yaw from its field-vector filter on corrected mag
+    est_roll = roll + rng.normal(0, 0.002, n)
+    est_pitch = pitch + rng.normal(0, 0.002, n)
+    m_cor = _autopilot_corrected_field(cfg, mag, np.zeros((n, 3)))
+    dts = np.diff(t, prepend=t[0])
+    reinit = np.zeros(n, bool)
+    reinit[0] = True
+    hb = run_vector_filter(dts, gyro, m_cor, np.ones(n, bool), reinit, cfg.autopilot_mag_gain_per_s)
+    est_yaw = wrap_angle_rad(tilt_compensated_heading_rad(hb, est_roll, est_pitch) + math.radians(cfg.declination_deg))
+    pos = np.zeros((n, 3))
+    pos[:, 2] = -1.0   # held about 1 m above the ground
+    vel = np.zeros((n, 3))
+    gidx, _, gerr, gverr, gfix = _gps_errors(cfg, rng, n)
+    gpos, gvel = pos[gidx] + gerr, vel[gidx] + gverr
+    return SimResult(t, roll, pitch, yaw, est_roll, est_pitch, est_yaw, gyro, accel, mag, rates,
+                     pos, vel, pos.copy(), vel.copy(), interf, current, gidx, gpos, gvel, gfix,
+                     np.full(n, np.nan), None, events)
+
+
+def _mission_profile(cfg: SimConfig):
+    """Legs A->B->A->... at cfg.speed until the duration; returns a function t -> (s_target, v_ff, leg)."""
+    v, amax = cfg.speed_mps, 1.0
+    t_acc = v / amax
+    leg_t = cfg.leg_length_m / v + t_acc          # trapezoid duration
+    turn_t = 8.0                                   # hover + yaw turn at the leg ends
+    legs = []
+    t = cfg.hover_s
+    while t + leg_t <= cfg.duration_s - 2.0:
+        legs.append((t, t + leg_t))
+        t += leg_t + turn_t
+    return legs, leg_t, t_acc
+
+
+def _run_mission(cfg: SimConfig, rng) -> SimResult:
+    dt = 1.0 / cfg.rate_hz
+    n = int(round(cfg.duration_s * cfg.rate_hz))
+    t = np.arange(n) * dt
+    brg = math.radians(cfg.leg_bearing_deg)
+    u = np.array([math.cos(brg), math.sin(brg)])
+    a_pt = np.array([0.0, 0.0])
+    b_pt = a_pt + cfg.leg_length_m * u
+    legs, leg_t, t_acc = _mission_profile(cfg)
+    v, amax = cfg.speed_mps, 1.0
+
+    # target along-track position s(t) and feed-forward speed along u (sign per leg)
+    s_tgt = np.zeros(n)
+    v_ff = np.zeros(n)
+    yaw_cmd = np.full(n, brg)
+    s_now, direction = 0.0, 1.0
+    for k, (t0, t1) in enumerate(legs):
+        direction = 1.0 if k % 2 == 0 else -1.0
+        tau = np.clip(t - t0, 0, leg_t)
+        # trapezoid distance covered
+        dist = np.where(tau < t_acc, 0.5 * amax * tau ** 2,
+                        np.where(tau < leg_t - t_acc, 0.5 * amax * t_acc ** 2 + v * (tau - t_acc),
+                                 cfg.leg_length_m - 0.5 * amax * (leg_t - tau) ** 2))
+        spd = np.where(tau < t_acc, amax * tau, np.where(tau < leg_t - t_acc, v, amax * (leg_t - tau)))
+        sel = t >= t0
+        start = 0.0 if direction > 0 else cfg.leg_length_m
+        s_tgt[sel] = start + direction * dist[sel]
+        v_ff[sel] = np.where((t[sel] <= t1), direction * spd[sel], 0.0)
+        # yaw: face along the leg from the leg's start until the next leg
+        yaw_cmd[sel] = brg if direction > 0 else _wrap(brg + math.pi)
+
+    wind = np.asarray(cfg.mean_wind_mps)[None, :] + _gauss_markov(rng, n, dt, cfg.gust_sigma_mps, cfg.gust_tau_s, 2)
+    wz = _gauss_markov(rng, n, dt, cfg.vertical_gust_sigma_mps2, 0.5, 1)[:, 0]
+    gps_idx, gps_step, gerr, gverr, gfix = _gps_errors(cfg, rng, n)
+    m = len(gps_idx)
+    gps_valid_step = np.zeros(n, bool)
+    gps_valid_step[gps_idx[gfix >= 3]] = True
+    gps_row = np.full(n, -1)
+    gps_row[gps_idx] = np.arange(m)
+
+    gyro_noise = rng.normal(0, cfg.gyro_noise_rad_s, (n, 3)) + cfg.gyro_bias_rad_s
+    mag_noise = rng.normal(0, cfg.mag.noise_mG, (n, 3))
+    acc_noise = rng.normal(0, cfg.accel_noise_mps2, (n, 3))
+    att_noise = rng.normal(0, 0.002, (n, 2))
+    interf = cfg.interference.field_sensor_mG(t)
+    A = cfg.mag.matrix
+    a_inv = np.linalg.inv(A)
+    off = cfg.mag.offsets_mG
+    cmot = np.asarray(cfg.mag.motor_mG_per_A, dtype=float)
+    fned = cfg.field_ned_mG
+    decl = math.radians(cfg.declination_deg)
+
+    out = {k: np.zeros((n, 3)) for k in ("rates", "gyro", "acc", "mag", "pos", "vel", "epos", "evel")}
+    out_att = np.zeros((n, 6))
+    current = np.zeros(n)
+
+    # The autopilot's field-vector filter (seed 000 eq. 9/10) runs inside the closed loop, so it is
+    # stepped here with plain floats, using exactly the discretisation of
+    # estimators.attitude (x' = (1 - g) R(-w dt) x + g m, g = 1 - exp(-k dt)); the per-sample
+    # FieldVectorFilter costs ~0.2 ms a step, too slow for a 15,000-step closed loop.
+    # tests/test_simulate.py checks the two agree on the same inputs.
+    g_ap = -math.expm1(-cfg.autopilot_mag_gain_per_s * dt)
+    A = [list(map(float, row)) for row in cfg.mag.matrix]
+    Ai = [list(map(float, row)) for row in a_inv]
+    offx, offy, offz = map(float, off)
+    cmx, cmy, cmz = map(float, cmot)
+    fN, fE, fD = map(float, fned)
+    comp = cfg.autopilot_motor_comp
+    pn = pe = 0.0
+    vn = ve = 0.0
+    roll = pitch = 0.0
+    yaw = brg
+    epn = epe = evn = eve = 0.0
+    # start in a steady hover: the velocity integrator already holds the mean wind
+    int_n = -cfg.drag_per_s * float(cfg.mean_wind_mps[0])
+    int_e = -cfg.drag_per_s * float(cfg.mean_wind_mps[1])
+    alt = -cfg.flight_alt_m
+    kp, kv, ki = cfg.pos_gain_per_s, cfg.vel_gain_per_s, cfg.vel_int_gain_per_s2
+    k_gv, k_gp = 0.6, 0.8          # autopilot INS blending gains toward GPS velocity / position
+    tau_att = 0.15
+    yaw_rate_max = math.radians(40.0)
+    gdt = gps_step * dt
+    hx = hy = hz = None            # autopilot filter state (body field estimate)
+    p_b = q_b = r_b = 0.0
+    rates_o, gyro_o, acc_o, mag_o = out["rates"], out["gyro"], out["acc"], out["mag"]
+    pos_o, vel_o, epos_o, evel_o = out["pos"], out["vel"], out["epos"], out["evel"]
+    gn, mn, an_, atn = gyro_noise.tolist(), mag_noise.tolist(), acc_noise.tolist(), att_noise.tolist()
+    itf = interf.tolist()
+    wind_l, wz_l = wind.tolist(), wz.tolist()
+    s_l, vff_l, ycmd_l = s_tgt.tolist(), v_ff.tolist(), yaw_cmd.tolist()
+    ux, uy = float(u[0]), float(u[1])
+    cos, sin, atan2, hypot = math.cos, math.sin, math.atan2, math.hypot
+    for i in range(n):
+        # ---------------- truth attitude, forces and sensors at this step
+        cr, sr, cp, sp = cos(roll), sin(roll), cos(pitch), sin(pitch)
+        cy, sy = cos(yaw), sin(yaw)
+        r00, r01, r02 = cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy
+        r10, r11, r12 = cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy
+        r20, r21, r22 = -sp, sr * cp, cr * cp
+        thrust = (G - wz_l[i]) / max(r22, 0.5)      # altitude held; vertical gusts countered by thrust
+        cur = cfg.mag.hover_current_A * (thrust / G) ** 1.5
+        current[i] = cur
+        w = wind_l[i]
+        an = -thrust * r02 + cfg.drag_per_s * (w[0] - vn)     # eq. (1): tilted thrust + drag
+        ae = -thrust * r12 + cfg.drag_per_s * (w[1] - ve)
+        fd = -G                                               # specific force f = a - g (NED)
+        ab = (r00 * an + r10 * ae + r20 * fd + an_[i][0],
+              r01 * an + r11 * ae + r21 * fd + an_[i][1],
+              r02 * an + r12 * ae + r22 * fd + an_[i][2])
+        mbx = r00 * fN + r10 * fE + r20 * fD + cur * cmx
+        mby = r01 * fN + r11 * fE + r21 * fD + cur * cmy
+        mbz = r02 * fN + r12 * fE + r22 * fD + cur * cmz
+        q = itf[i]
+        mx = A[0][0] * mbx + A[0][1] * mby + A[0][2] * mbz + offx + q[0] + mn[i][0]
+        my = A[1][0] * mbx + A[1][1] * mby + A[1][2] * mbz + offy + q[1] + mn[i][1]
+        mz = A[2][0] * mbx + A[2][1] * mby + A[2][2] * mbz + offz + q[2] + mn[i][2]
+        mag_o[i] = (mx, my, mz)
+        acc_o[i] = ab
+        gx, gy, gz = p_b + gn[i][0], q_b + gn[i][1], r_b + gn[i][2]   # gyro: rates of the last step
+        gyro_o[i] = (gx, gy, gz)
+        # ---------------- autopilot: corrected field, field-vector filter, tilt heading (+ declination)
+        dx, dy, dz = mx - offx, my - offy, mz - offz
+        cx = Ai[0][0] * dx + Ai[0][1] * dy + Ai[0][2] * dz - comp * cur * cmx
+        cyy = Ai[1][0] * dx + Ai[1][1] * dy + Ai[1][2] * dz - comp * cur * cmy
+        cz = Ai[2][0] * dx + Ai[2][1] * dy + Ai[2][2] * dz - comp * cur * cmz
+        if hx is None:
+            hx, hy, hz = cx, cyy, cz
+        else:
+            tx, ty, tz = gx * dt, gy * dt, gz * dt
+            ang = math.sqrt(tx * tx + ty * ty + tz * tz)
+            if ang < 1e-4:
+                sc, vs = 1.0 - ang * ang / 6.0, 0.5 - ang * ang / 24.0
+            else:
+                sc, vs = sin(ang) / ang, (1.0 - cos(ang)) / (ang * ang)
+            ca = cos(ang)
+            dot = tx * hx + ty * hy + tz * hz
+            kx, ky, kz = ty * hz - tz * hy, tz * hx - tx * hz, tx * hy - ty * hx
+            hx = (1 - g_ap) * (ca * hx - sc * kx + vs * dot * tx) + g_ap * cx
+            hy = (1 - g_ap) * (ca * hy - sc * ky + vs * dot * ty) + g_ap * cyy
+            hz = (1 - g_ap) * (ca * hz - sc * kz + vs * dot * tz) + g_ap * cz
+        er, ep = roll + atn[i][0], pitch + atn[i][1]
+        cer, ser, cep, sep = cos(er), sin(er), cos(ep), sin(ep)
+        Hx = hx * cep + hy * sep * ser + hz * sep * cer         # seed 000 eq. (11)
+        Hy = hy * cer - hz * ser                                # eq. (12)
+        yaw_est = _wrap(atan2(-Hy, Hx) + decl)                  # eq. (13) + declination
+        out_att[i] = (roll, pitch, yaw, er, ep, yaw_est)
+        # INS: accelerometer rotated to NED with the *estimated* attitude, blended with GPS
+        ce, se = cos(yaw_est), sin(yaw_est)
+        e00, e01, e02 = cep * ce, ser * sep * ce - cer * se, cer * sep * ce + ser * se
+        e10, e11, e12 = cep * se, ser * sep * se + cer * ce, cer * sep * se - ser * ce
+        evn += (e00 * ab[0] + e01 * ab[1] + e02 * ab[2]) * dt
+        eve += (e10 * ab[0] + e11 * ab[1] + e12 * ab[2]) * dt
+        if gps_valid_step[i]:
+            rr = gps_row[i]
+            evn += k_gv * (vn + gverr[rr, 0] - evn) * gdt
+            eve += k_gv * (ve + gverr[rr, 1] - eve) * gdt
+            epn += k_gp * (pn + gerr[rr, 0] - epn) * gdt
+            epe += k_gp * (pe + gerr[rr, 1] - epe) * gdt
+        epn += evn * dt
+        epe += eve * dt
+        epos_o[i] = (epn, epe, alt)
+        evel_o[i] = (evn, eve, 0.0)
+        # ---------------- position controller toward the moving target on the line
+        st = s_l[i]
+        vf = vff_l[i]
+        vsp_n = vf * ux + kp * (st * ux - epn)
+        vsp_e = vf * uy + kp * (st * uy - epe)
+        spd = hypot(vsp_n, vsp_e)
+        vmax = cfg.speed_mps + 2.0
+        if spd > vmax:
+            vsp_n, vsp_e = vsp_n * vmax / spd, vsp_e * vmax / spd
+        en, ee = vsp_n - evn, vsp_e - eve
+        int_n = min(max(int_n + ki * en * dt, -3.0), 3.0)
+        int_e = min(max(int_e + ki * ee * dt, -3.0), 3.0)
+        adn, ade = kv * en + int_n, kv * ee + int_e
+        amag = hypot(adn, ade)
+        if amag > 5.0:
+            adn, ade = adn * 5.0 / amag, ade * 5.0 / amag
+        # seed 002 eq. (4): desired tilt from the desired acceleration with the *estimated* yaw
+        a_fwd = ce * adn + se * ade
+        a_rgt = -se * adn + ce * ade
+        pitch_d = -atan2(a_fwd, G)
+        roll_d = atan2(a_rgt * cos(pitch_d), G)
+        yrate = min(max(1.5 * _wrap(ycmd_l[i] - yaw_est), -yaw_rate_max), yaw_rate_max)
+        # ---------------- integrate the truth (attitude first-order, Euler kinematics -> body rates)
+        droll = (roll_d - roll) / tau_att
+        dpitch = (pitch_d - pitch) / tau_att
+        p_b = droll - yrate * sp
+        q_b = dpitch * cr + yrate * cp * sr
+        r_b = -dpitch * sr + yrate * cp * cr
+        rates_o[i] = (p_b, q_b, r_b)
+        pos_o[i] = (pn, pe, alt)
+        vel_o[i] = (vn, ve, 0.0)
+        roll += droll * dt
+        pitch += dpitch * dt
+        yaw = _wrap(yaw + yrate * dt)
+        vn += an * dt
+        ve += ae * dt
+        pn += vn * dt
+        pe += ve * dt
+    # gyro sample i = body rate over the step (i-1 -> i), the convention of the heading filters
+    gyro_log = out["gyro"]
+    pos, vel = out["pos"], out["vel"]
+    d = np.abs((pos[:, 0] - a_pt[0]) * u[1] - (pos[:, 1] - a_pt[1]) * u[0])
+    gpos = pos[gps_idx] + gerr
+    gvel = vel[gps_idx] + gverr
+    mission = np.array([[a_pt[0], a_pt[1], alt], [b_pt[0], b_pt[1], alt]])
+    events = [{"kind": "leg", "start_s": round(a, 3), "end_s": round(b, 3)} for a, b in legs]
+    return SimResult(t, out_att[:, 0], out_att[:, 1], out_att[:, 2], out_att[:, 3], out_att[:, 4], out_att[:, 5],
+                     gyro_log, out["acc"], out["mag"], out["rates"], pos, vel, out["epos"], out["evel"], interf,
+                     current, gps_idx, gpos, gvel, gfix, d, mission, events)

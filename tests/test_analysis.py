@@ -1,0 +1,208 @@
+"""`analyze` (groundstation/analysis.py) end to end: simulated tlog -> read_log -> analyze_log."""
+from __future__ import annotations
+
+import copy
+import csv
+
+import numpy as np
+import pytest
+
+from groundstation.analysis import CSV_COLUMNS, LiveAnalyzer, analyze_log, format_report, write_csv
+from groundstation.calibration_job import calibrate_log
+from groundstation.ingest import iter_samples, read_log
+from groundstation.samples import FlightLog
+from groundstation.simulate import simulate
+
+SEED = 7
+REPORT_KEYS = {"file", "duration_s", "calibration", "declination_deg", "inclination_deg", "field_strength_mG",
+               "rtk", "mission", "max_cross_track_m", "alarms", "first_alarm_s", "interference_detected"}
+
+
+@pytest.fixture(scope="module")
+def tmp(tmp_path_factory):
+    return tmp_path_factory.mktemp("analysis")
+
+
+@pytest.fixture(scope="module")
+def cal(tmp):
+    result = calibrate_log(read_log(simulate("calibration", SEED).write(tmp / "cal.tlog")))
+    assert result["status"] == "ok"
+    return result
+
+
+@pytest.fixture(scope="module")
+def slow(tmp):
+    sim = simulate("mission-slow", SEED)
+    return sim, read_log(sim.write(tmp / "slow.tlog"))
+
+
+@pytest.fixture(scope="module")
+def slow_report(slow, cal):
+    return analyze_log(slow[1], cal)
+
+
+def test_slow_ramp_detected_within_target(slow, slow_report):
+    sim, log = slow
+    report, _ = slow_report
+    assert REPORT_KEYS <= set(report)
+    onset = sim.truth["interference"]["onset_s"]
+    assert report["interference_detected"] is True
+    assert 0.0 <= report["first_alarm_s"] - onset <= 7.0
+    first = next(a for a in report["alarms"] if a["kind"] == "combined")
+    assert first["evidence_at_start"] and set(first["evidence_at_start"]) <= {
+        "heading_difference", "path_deviation", "field_anomaly"}
+    assert report["rtk"] is True and report["path_test"] == "on"
+    assert report["max_cross_track_m"] > 1.0
+    a, b = sim.truth["mission"]["A"], sim.truth["mission"]["B"]
+    assert report["mission"]["A"] == pytest.approx(a[:2], abs=1e-6)
+    assert report["mission"]["B"] == pytest.approx(b[:2], abs=1e-6)
+    wmm = sim.truth["earth_field"]
+    assert report["declination_deg"] == pytest.approx(wmm["declination_deg"], abs=0.05)
+    assert report["field_strength_mG"] == pytest.approx(wmm["field_strength_mG"], abs=1.0)
+    assert report["calibration_applied"] is True
+    for a in report["alarms"]:
+        assert a["kind"] in ("heading_difference", "path_deviation", "field_anomaly", "combined")
+        assert a["end_s"] is None or a["end_s"] >= a["start_s"]
+    assert "ALARM" in format_report(report)
+
+
+def test_fast_ramp_detected_within_target(tmp, cal):
+    sim = simulate("mission-fast", SEED + 1, duration_s=100.0)
+    report, _ = analyze_log(read_log(sim.write(tmp / "fast.tlog")), cal)
+    onset = sim.truth["interference"]["onset_s"]
+    assert 0.0 <= report["first_alarm_s"] - onset <= 4.0
+
+
+def test_clean_flight_no_combined_alarm(tmp, cal):
+    sim = simulate("mission-clean", SEED, duration_s=200.0)
+    report, cols = analyze_log(read_log(sim.write(tmp / "clean.tlog")), cal)
+    assert report["interference_detected"] is False and report["first_alarm_s"] is None
+    assert not [a for a in report["alarms"] if a["kind"] == "combined"]
+    assert report["max_cross_track_m"] < 1.0
+    assert cols["alarm"].sum() == 0
+    # heading and velocity split track the truth (to within the compass deviation of the motor-current
+    # field, which the motors-off calibration dance cannot see: several degrees, opposite on the way back)
+    r = sim.result
+    hdg = np.interp(cols["t_s"], r.t_s, np.unwrap(r.yaw_rad))
+    err = np.degrees(np.angle(np.exp(1j * (np.radians(cols["heading_true_deg"]) - hdg))))
+    ok = np.isfinite(err) & (cols["t_s"] > 20)
+    assert np.median(np.abs(err[ok])) < 10.0
+    fwd = np.nanmedian(cols["v_forward_mps"][(cols["t_s"] > 40) & (cols["t_s"] < 80)])
+    assert fwd == pytest.approx(6.0, abs=0.5)
+
+
+def test_non_rtk_never_raises_path_alarms(tmp, cal):
+    sim = simulate("mission-slow", SEED, rtk=False)
+    report, cols = analyze_log(read_log(sim.write(tmp / "slow-3d.tlog")), cal)
+    assert report["rtk"] is False
+    assert report["path_test"].startswith("untrusted")
+    assert not [a for a in report["alarms"] if a["kind"] == "path_deviation"]
+    for a in report["alarms"]:
+        if a["kind"] == "combined":
+            assert "path_deviation" not in a["evidence"]
+    assert report["interference_detected"] is True          # the magnetic evidence still works
+    assert np.isfinite(cols["cross_track_m"]).any()          # distance still reported
+
+
+def test_missing_mission_turns_path_test_off(slow, cal):
+    log = copy.copy(slow[1])
+    log.mission = []
+    report, cols = analyze_log(log, cal)
+    assert report["path_test"] == "off: no mission"
+    assert report["mission"] is None and report["max_cross_track_m"] is None
+    assert np.all(np.isnan(cols["cross_track_m"]))
+    assert not [a for a in report["alarms"] if a["kind"] == "path_deviation"]
+    # a mission given explicitly (e.g. --mission) switches it back on
+    m = slow[0].truth["mission"]
+    report2, _ = analyze_log(log, cal, mission=[tuple(m["A"]), tuple(m["B"])])
+    assert report2["path_test"] == "on" and report2["max_cross_track_m"] > 1.0
+
+
+def test_csv_columns(slow_report, tmp):
+    report, cols = slow_report
+    path = write_csv(tmp / "out.csv", cols)
+    with open(path) as f:
+        rows = list(csv.reader(f))
+    assert tuple(rows[0]) == CSV_COLUMNS
+    assert len(rows) - 1 == len(cols["t_s"])
+    alarm = [r[-1] for r in rows[1:]]
+    assert set(alarm) <= {"0", "1"} and "1" in alarm
+
+
+def test_without_calibration_and_bad_input(slow):
+    log = copy.copy(slow[1])
+    report, _ = analyze_log(log, None)
+    assert report["calibration"] is None and report["calibration_applied"] is False
+    bad = copy.copy(slow[1])
+    bad.mag = bad.mag.copy()
+    bad.imu = bad.imu.copy()
+    bad.mag[100:140, 1:] = np.nan
+    bad.imu[500:520, 1:4] = np.nan
+    report, cols = analyze_log(bad, None)
+    assert report["duration_s"] > 0
+    empty, cols0 = analyze_log(FlightLog(source="empty"), None)
+    assert empty["alarms"] == [] and empty["interference_detected"] is False
+    assert empty["path_test"].startswith("off") and len(cols0["t_s"]) == 0
+
+
+def test_live_analyzer_matches_batch(slow, cal, slow_report):
+    report, cols = slow_report
+    live = LiveAnalyzer(calibration=cal, mission=slow[1].mission, start_unix_s=slow[1].start_unix_s)
+    first = None
+    for s in iter_samples(slow[1]):
+        live.on_sample(s)
+        if first is None and live.alarm_active:
+            first = live.last_step.t_s
+            kinds = list(live.alarm_kinds)
+    assert first is not None and kinds
+    assert first == pytest.approx(report["first_alarm_s"], abs=1.0)
+
+
+def test_detector_batch_equals_per_sample_on_a_flight(slow, cal):
+    from estimators.detection import InterferenceDetector, detect
+
+    from groundstation.analysis import detection_inputs
+    x = detection_inputs(slow[1], cal)
+    keys = ("t", "e", "d", "trusted", "strength", "incl", "heading", "yaw_rate")
+    batch = detect(*(x[k] for k in keys))
+    det = InterferenceDetector()
+    steps = [det.update(*row) for row in zip(*(np.asarray(x[k]).tolist() for k in keys))]
+    assert np.array_equal([s.combined for s in steps], batch.combined)
+    assert batch.combined.any()
+    assert [s.evidence for s in steps] == [batch.evidence_at(i) for i in range(len(steps))]
+
+
+def test_real_arducopter_telemetry_log():
+    """Real ArduCopter flight at Canberra (dronekit example): telemetry-rate IMU (~3 Hz), no mission."""
+    from pathlib import Path
+    path = Path("/work/shared/data/dronekit/flight_replay_flight.tlog")
+    if not path.exists():
+        pytest.skip("real log not available")
+    report, cols = analyze_log(read_log(path))
+    assert report["declination_deg"] == pytest.approx(12.6, abs=0.5)          # Canberra
+    assert report["heading_test"].startswith("off: IMU rate")
+    assert report["path_test"] == "off: no mission"
+    assert report["measured_field_strength_mG"] == pytest.approx(report["field_strength_mG"], rel=0.05)
+    assert report["interference_detected"] is False                            # a normal flight
+    assert len(cols["t_s"]) > 1000
+
+
+def test_onboard_calibration_is_unapplied_before_ours(slow, cal, slow_report):
+    """An ArduPilot log carries the onboard-corrected field: analyze un-applies COMPASS_* before
+    applying the (raw-referenced) calibration, and with no calibration uses the onboard one."""
+    from groundstation.autopilot_params import apply_ardupilot
+    log = copy.copy(slow[1])
+    onboard = {"COMPASS_OFS_X": -50.0, "COMPASS_OFS_Y": 20.0, "COMPASS_OFS_Z": 35.0,
+               "COMPASS_DIA_X": 1.02, "COMPASS_DIA_Y": 0.98, "COMPASS_DIA_Z": 1.0,
+               "COMPASS_ODI_X": 0.01, "COMPASS_ODI_Y": 0.0, "COMPASS_ODI_Z": -0.01}
+    log.params = {**log.params, **onboard}
+    log.mag = log.mag.copy()
+    log.mag[:, 1:4] = apply_ardupilot(slow[1].mag[:, 1:4], log.params)
+    report, cols = analyze_log(log, cal)
+    ref, ref_cols = slow_report
+    assert report["first_alarm_s"] == pytest.approx(ref["first_alarm_s"], abs=0.05)
+    np.testing.assert_allclose(cols["mag_heading_deg"], ref_cols["mag_heading_deg"], atol=1e-6)
+    uncal, _ = analyze_log(slow[1], None)                 # identity onboard calibration: raw sensor
+    assert uncal["field_test"].startswith("off")
+    onb, _ = analyze_log(log, None)                       # onboard offsets present: field test runs
+    assert onb["field_test"] == "on"
