@@ -1,0 +1,223 @@
+"""The session hub: wizard against known truth, replay controls, live link robustness
+(drops, garbage, recording), parameter writes confirmed by echo."""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from conftest import DANCE_TRUTH, free_udp_port, rotation_dance_messages
+from groundstation.fake_vehicle import FakeVehicle, compress_time
+from groundstation.ingest import MavlinkDecoder, read_log
+from groundstation.mavlink import TlogWriter
+from groundstation.session import Session, SessionError, validate_connection_string
+
+
+def wait_for(cond, timeout=10.0, step=0.05):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(step)
+    return False
+
+
+def feed(session: Session, messages) -> None:
+    """Decode messages as the live link would and push them through the hub (no network)."""
+    dec = MavlinkDecoder()
+    t0 = messages[0][0]
+    with session._lock:
+        for unix, msg in messages:
+            for s in dec.decode(msg, unix - t0):
+                session._process(s)
+            session._after_batch()
+
+
+def test_wizard_steps_and_result_match_truth(tmp_path):
+    session = Session(tmp_path)
+    session.wizard_start()
+    msgs = rotation_dance_messages()
+    steps_seen = []
+    dec = MavlinkDecoder()
+    t0 = msgs[0][0]
+    for unix, msg in msgs:
+        with session._lock:
+            for s in dec.decode(msg, unix - t0):
+                session._process(s)
+            session._after_batch()
+            step = session.wizard.step
+        if not steps_seen or steps_seen[-1] != step:
+            steps_seen.append(step)
+    assert steps_seen == ["x", "y", "z", "tumble", "done"]
+    snap = session.snapshot()["wizard"]
+    assert snap["state"] == "result"
+    assert all(snap["progress_deg"][a] >= 360 for a in "xyz")
+    res = snap["result"]
+    assert res["status"] == "ok", res
+    np.testing.assert_allclose(res["offsets_mG"], DANCE_TRUTH["offsets_mG"], atol=5.0)
+    # C (A m + b - b) ~ m: C A ~ identity (up to the misalignment rotation, small here)
+    np.testing.assert_allclose(np.asarray(res["matrix"]) @ DANCE_TRUTH["A"], np.eye(3), atol=0.03)
+    assert res["coverage"] >= 0.5
+    assert res["heading_error_deg"] is not None and res["heading_error_deg"] < 1.0
+    assert abs(res["field_strength_mG"] - np.linalg.norm(DANCE_TRUTH["field_ned_mG"])) < 10
+
+
+def test_wizard_warns_when_turning_too_fast_and_reset_clears(tmp_path):
+    session = Session(tmp_path)
+    session.wizard_start()
+    fast = [(t, compress_time(m, 4.0)) for t, m in rotation_dance_messages(turn_s=6.0, tumble_s=0.5)[:200]]
+    feed(session, fast)
+    assert any("too fast" in w for w in session.snapshot()["wizard"]["warnings"])
+    session.wizard_reset()
+    w = session.snapshot()["wizard"]
+    assert w["state"] == "idle" and w["samples"] == 0 and w["warnings"] == []
+
+
+def test_accept_without_result_is_refused(tmp_path):
+    session = Session(tmp_path)
+    with pytest.raises(SessionError):
+        session.wizard_accept()
+
+
+def test_connection_strings_validated():
+    assert validate_connection_string("udpin:127.0.0.1:14550")
+    assert validate_connection_string("/dev/ttyUSB0,57600")
+    for bad in ("", "http://evil", "udpin:host", "file:/etc/passwd", "udpin:1.2.3.4:99999"):
+        with pytest.raises(SessionError):
+            validate_connection_string(bad)
+
+
+def test_recording_names_only(tmp_path):
+    (tmp_path / "a.tlog").write_bytes(b"")
+    session = Session(tmp_path)
+    assert session.resolve_recording("a.tlog") == (tmp_path / "a.tlog").resolve()
+    for bad in ("../a.tlog", "/etc/passwd", "sub/a.tlog", "a.txt", "missing.tlog", ".hidden.tlog"):
+        with pytest.raises(SessionError):
+            session.resolve_recording(bad)
+
+
+def _write_tlog(path, messages):
+    with TlogWriter(path) as w:
+        for unix, m in messages:
+            w.write_message(m, unix)
+    return path
+
+
+def test_replay_pause_seek_speed(tmp_path):
+    path = _write_tlog(tmp_path / "dance.tlog", rotation_dance_messages(turn_s=2.0, tumble_s=2.0))
+    session = Session(tmp_path)
+    session.start_replay(path, speed=4.0)
+    assert wait_for(lambda: session.snapshot()["rx_count"] > 50)
+    session.replay_pause(True)
+    time.sleep(0.1)
+    n = session.snapshot()["rx_count"]
+    time.sleep(0.3)
+    assert session.snapshot()["rx_count"] == n          # paused: nothing new
+    session.replay_seek(6.0)
+    r = session.snapshot()["replay"]
+    assert r["paused"] and abs(r["t_s"] - 6.0) < 0.05
+    session.replay_speed(20.0)
+    session.replay_pause(False)
+    assert wait_for(lambda: session.snapshot()["replay"]["finished"], timeout=5)
+    with pytest.raises(SessionError):
+        session.replay_seek(1e6)
+    with pytest.raises(SessionError):
+        session.replay_speed(0.0)
+    session.close()
+
+
+def test_live_link_drop_garbage_and_recording(tmp_path):
+    """The link drops and returns (station says so), garbage datagrams arrive, and the
+    recording holds every packet the vehicle put on the wire."""
+    port = free_udp_port()
+    msgs = rotation_dance_messages(turn_s=2.0, tumble_s=3.0)     # 9 s of data
+    session = Session(tmp_path)
+    session.connect(f"udpin:127.0.0.1:{port}")
+    fv = FakeVehicle(msgs, port, speed=1.0).start()
+    try:
+        assert wait_for(lambda: session.snapshot()["source"]["link"] == "up", timeout=5)
+        rng = np.random.default_rng(1)
+        for _ in range(50):                       # garbage, incl. a fake MAVLink start byte
+            fv.send_raw(bytes([0xFD]) + rng.bytes(int(rng.integers(1, 300))))
+        time.sleep(0.5)
+        fv.set_link(False)
+        assert wait_for(lambda: session.snapshot()["source"]["link"] == "lost", timeout=6)
+        fv.set_link(True)
+        assert wait_for(lambda: session.snapshot()["source"]["link"] == "up", timeout=3)
+        texts = [e["text"] for e in session.snapshot()["events"]]
+        assert any("link lost" in t for t in texts)
+        assert any("link restored" in t for t in texts)
+        assert fv.finished.wait(15)
+        time.sleep(0.5)
+        rec = session.snapshot()["source"]["recording"]
+    finally:
+        fv.stop()
+        session.close()
+    log = read_log(tmp_path / rec)
+    assert log.message_counts["SCALED_IMU"] == fv.delivered["SCALED_IMU"]
+    assert log.message_counts["ATTITUDE"] == fv.delivered["ATTITUDE"]
+
+
+def test_param_write_confirmed_and_failure_listed(tmp_path):
+    port = free_udp_port()
+    msgs = rotation_dance_messages(turn_s=2.0, tumble_s=10.0)
+    session = Session(tmp_path, record_live=False)
+    session.connect(f"udpin:127.0.0.1:{port}")
+    session.wizard_start()
+    fv = FakeVehicle(msgs, port, speed=4.0, autopilot="px4", params={"CAL_MAG0_XOFF": 0.0},
+                     reject_params={"CAL_MAG0_YOFF"}).start()
+    try:
+        assert wait_for(lambda: session.snapshot()["wizard"]["state"] == "result", timeout=20)
+        assert session.snapshot()["source"]["autopilot"] == "px4"
+        pw = session.wizard_accept()
+        assert pw["state"] == "writing" and pw["autopilot"] == "px4"
+        assert wait_for(lambda: session.snapshot()["wizard"]["param_write"]["state"] != "writing", timeout=10)
+        pw = session.snapshot()["wizard"]["param_write"]
+        result = session.snapshot()["wizard"]["result"]
+    finally:
+        fv.stop()
+        session.close()
+    assert pw["state"] == "failed"
+    assert pw["failed"] == ["CAL_MAG0_YOFF"] and "CAL_MAG0_YOFF" in pw["message"]
+    sent = result["px4_params"]
+    assert len(pw["confirmed"]) == len(sent) - 1
+    assert abs(fv.params["CAL_MAG0_XOFF"] - sent["CAL_MAG0_XOFF"]) < 1e-6
+    # retried: the rejected name was sent more than once
+    assert sum(1 for n, _ in fv.param_sets if n == "CAL_MAG0_YOFF") >= 2
+
+
+def test_two_clients_start_wizard_once(tmp_path):
+    session = Session(tmp_path)
+    barrier = threading.Barrier(2)
+
+    def start():
+        barrier.wait()
+        session.wizard_start()
+
+    threads = [threading.Thread(target=start) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    feed(session, rotation_dance_messages()[:300])
+    before = session.snapshot()["wizard"]["samples"]
+    session.wizard_start()                       # a late third press joins, does not restart
+    w = session.snapshot()["wizard"]
+    assert w["state"] == "running" and w["samples"] == before > 50
+    assert sum("calibration started" in e["text"] for e in session.snapshot()["events"]) == 1
+
+
+def test_station_reads_vehicle_params_on_link_up(tmp_path):
+    port = free_udp_port()
+    session = Session(tmp_path, record_live=False)
+    session.connect(f"udpin:127.0.0.1:{port}")
+    fv = FakeVehicle(rotation_dance_messages(turn_s=1.0, tumble_s=1.0), port,
+                     params={"COMPASS_OFS_X": 12.5, "COMPASS_DIA_X": 1.02}).start()
+    try:
+        assert wait_for(lambda: session.params.get("COMPASS_OFS_X") == 12.5, timeout=5)
+        assert session.params.get("COMPASS_DIA_X") == pytest.approx(1.02)
+    finally:
+        fv.stop()
+        session.close()

@@ -1,0 +1,60 @@
+// Shared by the pages: REST helper and the state WebSocket (reconnects by itself).
+"use strict";
+
+async function api(method, path, body) {
+  const opts = { method, headers: {} };
+  if (body !== undefined) { opts.headers["Content-Type"] = "application/json"; opts.body = JSON.stringify(body); }
+  const res = await fetch(path, opts);
+  const text = await res.text();
+  let data = null;
+  try { data = text ? JSON.parse(text) : null; } catch (e) { data = text; }
+  if (!res.ok) throw new Error((data && data.detail) ? (typeof data.detail === "string" ? data.detail : JSON.stringify(data.detail)) : res.statusText);
+  return data;
+}
+
+function connectState(onState, onLink) {
+  // Renders only the newest state: if the page falls behind (slow machine, hidden tab), queued
+  // pushes are skipped instead of being drawn one by one, so the view never lags the station.
+  let ws = null, retry = 500, latest = null, scheduled = false;
+  function draw() {
+    scheduled = false;
+    try { onState(JSON.parse(latest)); } catch (e) { console.error(e); }
+  }
+  function open() {
+    ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
+    ws.onopen = () => { retry = 500; onLink(true); };
+    ws.onmessage = (ev) => {
+      latest = ev.data;
+      ws.send("ack");   // flow control: the station sends the next state once we have this one
+      if (!scheduled) { scheduled = true; setTimeout(draw, 0); }
+    };
+    ws.onclose = () => { onLink(false); setTimeout(open, retry); retry = Math.min(retry * 2, 5000); };
+  }
+  open();
+}
+
+// camera: "initialCameraPosition=x,y,z&initialCameraLookAt=x,y,z" (viser world, see scene.py)
+async function setupViewer(frameId, camera) {
+  try {
+    const h = await api("GET", "/api/health");
+    if (h.viser_port) document.getElementById(frameId).src = location.protocol + "//" + location.hostname + ":" +
+      h.viser_port + "/" + (camera ? "?" + camera : "");
+  } catch (e) { console.error(e); }
+}
+
+function fmt(v, digits = 1, unit = "") {
+  return (v === null || v === undefined || Number.isNaN(v)) ? "—" : Number(v).toFixed(digits) + unit;
+}
+
+function escapeHtml(s) {
+  return String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
+}
+
+function linkText(s) {
+  const src = s.source;
+  if (src.kind === "none") return "no source";
+  let t = src.kind + ": " + src.name;
+  if (src.kind === "live") t += " — link " + src.link + (s.rx_age_s !== null ? " (last packet " + fmt(s.rx_age_s, 1) + " s ago)" : "");
+  if (src.autopilot) t += " — " + src.autopilot;
+  return t;
+}
