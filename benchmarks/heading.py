@@ -23,11 +23,12 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
-from estimators.attitude import dcm_body_to_ned  # noqa: E402
+from estimators.rotations import dcm_body_to_ned  # noqa: E402
 from estimators.calibration import RlsEllipsoidCalibrator, apply_calibration  # noqa: E402
 from estimators.geomag import earth_field  # noqa: E402
-from estimators.heading import HeadingChain, run_heading_chain, wrap_angle_deg  # noqa: E402
-from estimators.ins_gps import (InsGpsSettings, run_ins_gps,  # noqa: E402
+from estimators.heading import HeadingChain, run_heading_chain  # noqa: E402
+from estimators.rotations import wrap_angle_deg  # noqa: E402
+from estimators.ins_gps import (InsGpsSettings, attitude_errors_deg, run_ins_gps,  # noqa: E402
                                 simulate_manoeuvring_flight)
 
 G = 9.80665
@@ -111,16 +112,6 @@ def static_protocol(sensors: int, seed: int = 0):
 
 
 # ----------------------------------------------------------------------------- 2. GPS outage
-
-def attitude_errors_deg(res, tr):
-    """Total attitude error angle and heading error [deg] on the IMU time base."""
-    ce = dcm_body_to_ned(res.roll_rad, res.pitch_rad, res.yaw_rad)
-    ct = dcm_body_to_ned(tr.roll_rad, tr.pitch_rad, tr.yaw_rad)
-    d = np.einsum("nij,nik->njk", ct, ce)
-    ang = np.degrees(np.arccos(np.clip((np.trace(d, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
-    hd = np.degrees(np.angle(np.exp(1j * (res.yaw_rad - tr.yaw_rad))))
-    return ang, hd
-
 
 def outage_case(case: str, seeds: list[int], duration_s: float, outage: tuple[float, float], rate_hz: float):
     b = np.radians(0.5)

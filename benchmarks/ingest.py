@@ -117,7 +117,7 @@ def main() -> None:
             floor, n_msgs = bare_pymavlink_parse_s(files["tlog"])
             floor_s = min(floor_s, floor)
             tlog_s = min(tlog_s, timed_read(files["tlog"], 1)[0])
-        print(f"\n| reader | file MB | read s | samples | samples/s | vs bare pymavlink |")
+        print("\n| reader | file MB | read s | samples | samples/s | vs bare pymavlink |")
         print("|---|---|---|---|---|---|")
         print(f"| pymavlink bare parse (tlog) | {files['tlog'].stat().st_size / 1e6:.1f} | {floor_s:.2f} "
               f"| {n_msgs} msgs | {n_msgs / floor_s:,.0f} msgs/s | 1.00x |")

@@ -36,7 +36,6 @@ import numpy as np
 __all__ = [
     "VectorFilterSettings", "FieldVectorFilter", "GravityVectorFilter",
     "step_coefficients", "run_vector_filter", "roll_pitch_from_specific_force",
-    "dcm_body_to_ned", "euler_from_dcm",
 ]
 
 
@@ -259,22 +258,3 @@ class GravityVectorFilter(_VectorComplementaryFilter):
     def roll_pitch_rad(self) -> tuple[float, float]:
         r, p = roll_pitch_from_specific_force(self.estimate)
         return float(r), float(p)
-
-
-def dcm_body_to_ned(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
-    """C_b^n (…, 3, 3) from ZYX Euler angles (yaw, then pitch, then roll); vectorised."""
-    r, p, y = (np.asarray(a, dtype=float) for a in (roll_rad, pitch_rad, yaw_rad))
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return np.stack([
-        np.stack([cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy], -1),
-        np.stack([cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy], -1),
-        np.stack([-sp, sr * cp, cr * cp], -1)], -2)
-
-
-def euler_from_dcm(c_body_to_ned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(roll, pitch, yaw) [rad] from C_b^n (…, 3, 3); yaw in (−π, π]."""
-    c = np.asarray(c_body_to_ned, dtype=float)
-    roll = np.arctan2(c[..., 2, 1], c[..., 2, 2])
-    pitch = -np.arcsin(np.clip(c[..., 2, 0], -1.0, 1.0))
-    yaw = np.arctan2(c[..., 1, 0], c[..., 0, 0])
-    return roll, pitch, yaw

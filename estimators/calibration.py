@@ -40,11 +40,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimators.rotations import dcm_body_to_ned, rotation_from_vector_rad, rotation_to_vector_deg
+
 __all__ = [
     "RlsEllipsoidCalibrator", "seed000_solve_batch", "seed000_params_from_c", "refine_seed000_batch",
     "RlsGeneralEllipsoid", "EllipsoidFit", "fit_ellipsoid_robust",
-    "MisalignmentFit", "estimate_misalignment", "dcm_body_to_ned", "combine_calibration",
-    "apply_calibration", "polar_decomposition", "rotation_to_vector_deg", "rotation_from_vector_rad",
+    "MisalignmentFit", "estimate_misalignment", "combine_calibration",
+    "apply_calibration", "polar_decomposition",
     "fit_ellipse_2d", "sphere_coverage", "coverage_cells", "rotation_progress_deg",
     "planarity_ratio", "simulate_ellipsoid_samples", "random_rotation",
 ]
@@ -430,45 +432,6 @@ def apply_calibration(mag_raw_mG: np.ndarray, offsets_mG: np.ndarray, matrix: np
 # ---------------------------------------------------------------------------------------------
 # Seed 004 step 2 and 3: misalignment, combination
 # ---------------------------------------------------------------------------------------------
-
-def dcm_body_to_ned(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
-    """C_b^n = Rz(yaw) Ry(pitch) Rx(roll) (NED/FRD, ZYX Euler); vectorised -> (..., 3, 3)."""
-    cr, sr = np.cos(roll_rad), np.sin(roll_rad)
-    cp, sp = np.cos(pitch_rad), np.sin(pitch_rad)
-    cy, sy = np.cos(yaw_rad), np.sin(yaw_rad)
-    return np.stack([
-        np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
-        np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
-        np.stack([-sp, cp * sr, cp * cr], -1)], -2)
-
-
-def rotation_from_vector_rad(phi: np.ndarray) -> np.ndarray:
-    """Rodrigues: rotation matrix of rotation vector phi (rad)."""
-    phi = np.asarray(phi, float)
-    th = float(np.linalg.norm(phi))
-    K = np.array([[0, -phi[2], phi[1]], [phi[2], 0, -phi[0]], [-phi[1], phi[0], 0]])
-    if th < 1e-12:
-        return np.eye(3) + K
-    K = K / th
-    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
-
-
-def rotation_to_vector_deg(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (deg) of a rotation matrix; for small angles = (φx, φy, φz) of R ≈ I + [φ×]."""
-    R = np.asarray(R, float)
-    cos_t = np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)
-    th = np.arccos(cos_t)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if th < 1e-9:
-        return np.degrees(w / 2)
-    if np.pi - th < 1e-6:  # 180°: axis from the symmetric part
-        Bm = (R + np.eye(3)) / 2
-        axis = np.sqrt(np.maximum(np.diag(Bm), 0))
-        i = int(np.argmax(axis))
-        axis = Bm[i] / max(axis[i], 1e-12)
-        return np.degrees(axis / np.linalg.norm(axis) * th)
-    return np.degrees(w * th / (2 * np.sin(th)))
-
 
 def polar_decomposition(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """C = R · S with R a proper rotation and S symmetric (S = Rᵀ C; positive definite when det C > 0).

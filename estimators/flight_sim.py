@@ -28,41 +28,17 @@ import numpy as np
 
 from estimators.attitude import run_vector_filter
 from estimators.detection import lla_from_ned, ned_from_lla  # noqa: F401  (re-exported)
-from estimators.heading import tilt_compensated_heading_rad, wrap_angle_rad
+from estimators.heading import tilt_compensated_heading_rad
+from estimators.rotations import dcm_body_to_ned, euler_from_dcm, wrap_angle_rad
 
 
 G = 9.80665
 
 __all__ = ["Interference", "MagModel", "SimConfig", "SimResult", "run", "ned_from_lla", "lla_from_ned",
-           "euler_to_dcm", "G"]
+           "G"]
 
 
 # --------------------------------------------------------------------------- geometry helpers
-def euler_to_dcm(roll, pitch, yaw) -> np.ndarray:
-    """Body (FRD) -> NED rotation matrices (..., 3, 3), ZYX Euler angles (seed 002 eq. 1)."""
-    cr, sr = np.cos(roll), np.sin(roll)
-    cp, sp = np.cos(pitch), np.sin(pitch)
-    cy, sy = np.cos(yaw), np.sin(yaw)
-    r = np.empty(np.shape(roll) + (3, 3))
-    r[..., 0, 0] = cp * cy
-    r[..., 0, 1] = sr * sp * cy - cr * sy
-    r[..., 0, 2] = cr * sp * cy + sr * sy
-    r[..., 1, 0] = cp * sy
-    r[..., 1, 1] = sr * sp * sy + cr * cy
-    r[..., 1, 2] = cr * sp * sy - sr * cy
-    r[..., 2, 0] = -sp
-    r[..., 2, 1] = sr * cp
-    r[..., 2, 2] = cr * cp
-    return r
-
-
-def dcm_to_euler(r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    roll = np.arctan2(r[..., 2, 1], r[..., 2, 2])
-    pitch = -np.arcsin(np.clip(r[..., 2, 0], -1, 1))
-    yaw = np.arctan2(r[..., 1, 0], r[..., 0, 0])
-    return roll, pitch, yaw
-
-
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
@@ -156,7 +132,7 @@ class MagModel:
         s[0, 2] = s[2, 0] = off[1]
         s[1, 2] = s[2, 1] = off[2]
         mis = rng.uniform(-misalign_deg, misalign_deg, 3)
-        rot = euler_to_dcm(*np.radians(mis)).T   # body -> sensor
+        rot = dcm_body_to_ned(*np.radians(mis)).T   # body -> sensor
         return MagModel(matrix=s @ rot, offsets_mG=rng.uniform(-offset_mG, offset_mG, 3), misalignment_deg=mis)
 
 
@@ -371,17 +347,17 @@ def _run_static(cfg: SimConfig, rng) -> SimResult:
     dt = 1.0 / cfg.rate_hz
     if cfg.kind == "dance":
         rates, events = _dance_rates(cfg, rng)
-        r0 = euler_to_dcm(0.0, 0.0, math.radians(cfg.leg_bearing_deg))
+        r0 = dcm_body_to_ned(0.0, 0.0, math.radians(cfg.leg_bearing_deg))
         dcm = _integrate_rates(rates, dt, r0)
         n = len(rates)
         t = np.arange(n) * dt
-        roll, pitch, yaw = dcm_to_euler(dcm)
+        roll, pitch, yaw = euler_from_dcm(dcm)
     else:
         t, roll, yaw, events = _headings_profile(cfg)
         # headings are absolute (from true north)
         n = len(t)
         pitch = np.zeros(n)
-        dcm = euler_to_dcm(roll, pitch, yaw)
+        dcm = dcm_body_to_ned(roll, pitch, yaw)
         # body rates from Euler rates (pitch = 0): p = roll', q = yaw' sin(roll), r = yaw' cos(roll)
         droll = np.gradient(roll, dt)
         dyaw = np.gradient(yaw, dt)
@@ -436,7 +412,7 @@ def _run_mission(cfg: SimConfig, rng) -> SimResult:
     s_tgt = np.zeros(n)
     v_ff = np.zeros(n)
     yaw_cmd = np.full(n, brg)
-    s_now, direction = 0.0, 1.0
+    direction = 1.0
     for k, (t0, t1) in enumerate(legs):
         direction = 1.0 if k % 2 == 0 else -1.0
         tau = np.clip(t - t0, 0, leg_t)

@@ -18,27 +18,16 @@ from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
+from estimators.rotations import TWO_PI
+
 from estimators.attitude import (FieldVectorFilter, GravityVectorFilter, VectorFilterSettings,
                                  roll_pitch_from_specific_force, run_vector_filter)
 
 __all__ = [
-    "tilt_compensated_heading_rad", "split_velocity", "wrap_angle_deg", "wrap_angle_rad",
+    "tilt_compensated_heading_rad", "split_velocity",
     "HeadingChainSettings", "HeadingChainResult", "HeadingState", "HeadingChain", "run_heading_chain",
 ]
 
-TWO_PI = 2.0 * np.pi
-
-
-def wrap_angle_deg(angle_deg):
-    """Wrap to (−180, 180] degrees (vectorised)."""
-    a = np.mod(np.asarray(angle_deg, dtype=float) + 180.0, 360.0) - 180.0
-    return np.where(a == -180.0, 180.0, a)
-
-
-def wrap_angle_rad(angle_rad):
-    """Wrap to (−π, π] radians (vectorised)."""
-    a = np.mod(np.asarray(angle_rad, dtype=float) + np.pi, TWO_PI) - np.pi
-    return np.where(a == -np.pi, np.pi, a)
 
 
 def tilt_compensated_heading_rad(mag_body_mG, roll_rad, pitch_rad):

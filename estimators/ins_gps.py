@@ -35,30 +35,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.attitude import dcm_body_to_ned, euler_from_dcm, roll_pitch_from_specific_force
+from estimators.attitude import roll_pitch_from_specific_force
+from estimators.rotations import dcm_body_to_ned, euler_from_dcm, rotation_from_vector_rad, skew, wrap_angle_deg
 from estimators.heading import tilt_compensated_heading_rad
 
 __all__ = ["InsGpsSettings", "InsGpsFilter", "InsGpsState", "InsGpsResult", "run_ins_gps",
            "MODE_INIT", "MODE_GPS", "MODE_FIELD_FEEDBACK", "MODE_OPEN_LOOP", "MODE_NAMES",
-           "FlightTruth", "simulate_manoeuvring_flight"]
+           "FlightTruth", "simulate_manoeuvring_flight", "attitude_errors_deg"]
 
 MODE_INIT, MODE_GPS, MODE_FIELD_FEEDBACK, MODE_OPEN_LOOP = 0, 1, 2, 3
 NX = 18   # ψ, δv, δp, δb_g, δb_a, δH^n
 MODE_NAMES = {0: "init", 1: "gps", 2: "field_feedback", 3: "open_loop"}
 GRAVITY_MPS2 = 9.80665
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def _rot(phi: np.ndarray) -> np.ndarray:
-    """exp([phi ×]) (Rodrigues)."""
-    a = float(np.linalg.norm(phi))
-    k = _skew(phi)
-    if a < 1e-8:
-        return np.eye(3) + k + 0.5 * k @ k
-    return np.eye(3) + np.sin(a) / a * k + (1.0 - np.cos(a)) / (a * a) * k @ k
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -199,14 +187,13 @@ class InsGpsFilter:
         PHt = self.P @ H.T
         S = H @ PHt + R
         K = np.linalg.solve(S, PHt.T).T
-        dx = K @ z
         self._correct(K, H, R, z)
 
     def _kalman_mag(self) -> None:
         """Magnetometer update while GPS is good: z = H_m − Ĉᵀ Ĥ^n = Ĉᵀ[Ĥ^n×] ψ + Ĉᵀ δH^n."""
         H = np.zeros((3, NX))
         Ct = self.C.T
-        H[:, 0:3] = Ct @ _skew(self.field_ned)
+        H[:, 0:3] = Ct @ skew(self.field_ned)
         H[:, 15:18] = Ct
         R = np.eye(3) * self.s.mag_sigma_mG ** 2
         z = self._mag - Ct @ self.field_ned
@@ -219,7 +206,7 @@ class InsGpsFilter:
         IKH = self._eye - K @ H
         self.P = IKH @ self.P @ IKH.T + K @ R @ K.T     # Joseph form
         self.P = 0.5 * (self.P + self.P.T)
-        self.C = _rot(dx[0:3]) @ self.C
+        self.C = rotation_from_vector_rad(dx[0:3]) @ self.C
         self.v += dx[3:6]
         self.p += dx[6:9]
         self.bg += dx[9:12]
@@ -266,11 +253,11 @@ class InsGpsFilter:
         a_n = f_n + np.array([0.0, 0.0, GRAVITY_MPS2])
         self.p = self.p + self.v * dt + 0.5 * a_n * dt * dt
         self.v = self.v + a_n * dt
-        self.C = C0 @ _rot(w * dt)
+        self.C = C0 @ rotation_from_vector_rad(w * dt)
         # error-state covariance (seed 003 eqs. 1-3), first-order transition
         F = self._F
         F[0:3, 9:12] = -C0
-        F[3:6, 0:3] = -_skew(f_n)
+        F[3:6, 0:3] = -skew(f_n)
         F[3:6, 12:15] = -C0
         Phi = self._eye + F * dt
         self.P = Phi @ self.P @ Phi.T
@@ -355,6 +342,16 @@ def run_ins_gps(imu: np.ndarray, gps_ned: np.ndarray, mag: np.ndarray,
 # --------------------------------------------------------------------------------------------
 # Truth generator for tests and benchmarks
 # --------------------------------------------------------------------------------------------
+def attitude_errors_deg(estimate: "InsGpsResult", truth: "FlightTruth") -> tuple[np.ndarray, np.ndarray]:
+    """(total attitude error angle, heading error) [deg] per IMU step: the angle of the rotation
+    C_true^T · C_est, and ψ̂ − ψ wrapped to (−180, 180]."""
+    c_est = dcm_body_to_ned(estimate.roll_rad, estimate.pitch_rad, estimate.yaw_rad)
+    c_true = dcm_body_to_ned(truth.roll_rad, truth.pitch_rad, truth.yaw_rad)
+    d = np.einsum("nij,nik->njk", c_true, c_est)
+    angle_deg = np.degrees(np.arccos(np.clip((np.trace(d, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    return angle_deg, wrap_angle_deg(np.degrees(estimate.yaw_rad - truth.yaw_rad))
+
+
 @dataclass
 class FlightTruth:
     imu: np.ndarray        # (N,7) measured

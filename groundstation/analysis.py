@@ -24,7 +24,8 @@ import numpy as np
 from estimators.detection import (DetectionSettings, InterferenceDetector, alarm_intervals, cross_track_m,
                                   detect, field_inclination_deg, ned_from_lla)
 from estimators.geomag import decimal_year_from_unix, earth_field
-from estimators.heading import HeadingChain, run_heading_chain, split_velocity, wrap_angle_rad
+from estimators.heading import HeadingChain, run_heading_chain, split_velocity
+from estimators.rotations import wrap_angle_rad
 
 from .autopilot_params import unapply_onboard_calibration
 from .samples import AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, ParamSample, StatusSample
@@ -332,7 +333,7 @@ def format_report(report: dict) -> str:
         lines.append(f"  ALARM {a['start_s']}–{a['end_s'] if a['end_s'] is not None else 'end'} s, "
                      f"evidence: {', '.join(a.get('evidence', []))}, peak score {a['peak']}")
     if others:
-        lines.append(f"single-test alarms: " + ", ".join(
+        lines.append("single-test alarms: " + ", ".join(
             f"{a['kind']}@{a['start_s']}s" for a in others[:12]) + (" ..." if len(others) > 12 else ""))
     return "\n".join(lines)
 

@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimators.calibration import dcm_body_to_ned, polar_decomposition
+from estimators.calibration import polar_decomposition
+from estimators.rotations import dcm_body_to_ned
 
 MG_PER_GAUSS = 1000.0
 

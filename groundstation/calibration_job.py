@@ -18,21 +18,13 @@ from estimators.calibration import (apply_calibration, combine_calibration, esti
 from estimators.geomag import EarthField, decimal_year_from_unix, earth_field
 from groundstation.autopilot_params import (detect_autopilot, export_params, format_param_file,
                                             unapply_onboard_calibration)
-from groundstation.samples import FlightLog
+from groundstation.samples import FlightLog, finite_or_none
 
 MIN_SAMPLES = 50
 MIN_PLANARITY = 0.10       # sqrt(λmin/λmax) of the raw samples; a single rotation plane is ~0
 MIN_COVERAGE = 0.25        # fraction of the ~100 equal-area direction cells
 MAX_AXIS_RATIO = 2.5       # largest/smallest singular value of C: beyond that the fit is not credible
 MAX_MISALIGNMENT_RESIDUAL_DEG = 10.0
-
-
-def _f(x) -> float | None:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
 
 
 def _empty_result(source: str) -> dict:
@@ -115,7 +107,7 @@ def _calibrate(log: FlightLog, result: dict) -> dict:
     if field_note:
         notes.append(field_note)
     if field is not None:
-        result["expected_field_mG"] = _f(field.field_strength_mG)
+        result["expected_field_mG"] = finite_or_none(field.field_strength_mG)
 
     def insufficient(why: str) -> dict:
         result.update(status="insufficient_coverage", message="; ".join([why] + notes))
@@ -128,7 +120,7 @@ def _calibrate(log: FlightLog, result: dict) -> dict:
         return insufficient(f"samples are nearly planar (thickness ratio {planarity:.3f}): "
                             "rotate the vehicle about all three axes")
     fit = fit_ellipsoid_robust(raw)
-    result["condition_number"] = _f(fit.condition_number)
+    result["condition_number"] = finite_or_none(fit.condition_number)
     if not fit.ok:
         return insufficient(fit.reason)
     cal = apply_calibration(raw[fit.inliers], fit.offsets_mG, fit.matrix)
@@ -162,11 +154,11 @@ def _calibrate(log: FlightLog, result: dict) -> dict:
     if field is not None:
         notes.append(f"fitted field {fit.field_strength_mG:.0f} mG vs WMM {field.field_strength_mG:.0f} mG")
     result.update(status="ok", message="; ".join(notes),
-                  offsets_mG=[_f(v) for v in fit.offsets_mG],
-                  matrix=[[_f(v) for v in row] for row in C],
-                  field_strength_mG=_f(fit.field_strength_mG), residual_rms_mG=_f(fit.residual_rms_mG),
-                  ardupilot_params={k: _f(v) for k, v in ap.items()},
-                  px4_params={k: _f(v) for k, v in px4.items()})
+                  offsets_mG=[finite_or_none(v) for v in fit.offsets_mG],
+                  matrix=[[finite_or_none(v) for v in row] for row in C],
+                  field_strength_mG=finite_or_none(fit.field_strength_mG), residual_rms_mG=finite_or_none(fit.residual_rms_mG),
+                  ardupilot_params={k: finite_or_none(v) for k, v in ap.items()},
+                  px4_params={k: finite_or_none(v) for k, v in px4.items()})
     return result
 
 

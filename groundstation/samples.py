@@ -11,6 +11,7 @@ Internal units (converted once, at ingest, never again):
 """
 from __future__ import annotations
 
+import math
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Union
@@ -78,6 +79,15 @@ class StatusSample:
 
 
 Sample = Union[MagSample, ImuSample, AttitudeSample, GpsSample, ParamSample, MissionSample, StatusSample]
+
+
+def finite_or_none(x) -> float | None:
+    """``float(x)`` when it is a finite number, else None (JSON has no NaN)."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
 
 
 def _empty(cols: int) -> np.ndarray:

@@ -28,6 +28,7 @@ from estimators.geomag import decimal_year_from_unix, earth_field
 
 from .analysis import LiveAnalyzer
 from .mavlink import mavlink2
+from .samples import finite_or_none
 from .samples import (AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, MissionSample,
                       ParamSample, Sample, StatusSample)
 
@@ -66,14 +67,6 @@ def local_ne_m(lat: float, lon: float, origin: tuple[float, float]) -> tuple[flo
 
 def _deg(rad: float | None) -> float | None:
     return None if rad is None or not math.isfinite(rad) else math.degrees(rad)
-
-
-def _f(x) -> float | None:
-    try:
-        x = float(x)
-    except (TypeError, ValueError):
-        return None
-    return x if math.isfinite(x) else None
 
 
 class _Growing:
@@ -286,7 +279,7 @@ class CalibrationWizard:
             "samples": int(self.mag.n),
             "rls_offsets_mG": None if est is None else [round(float(v), 1) for v in est[0]],
             "rls_field_mG": None if est is None else round(est[2], 1),
-            "expected_field_mG": _f(self.expected_field_mG),
+            "expected_field_mG": finite_or_none(self.expected_field_mG),
             "warnings": self.live_warnings(),
             "result": self.result,
             "param_write": self.param_write,
@@ -306,8 +299,8 @@ def _heading_error_estimate(result: dict, gps: np.ndarray) -> float | None:
     H_horizontal = F cos(inclination) from WMM at the first fix, else the fitted F with a
     mid-latitude 60 deg inclination.  A worst-case-direction bound, not a measurement.
     """
-    r = _f(result.get("residual_rms_mG"))
-    field = _f(result.get("expected_field_mG")) or _f(result.get("field_strength_mG"))
+    r = finite_or_none(result.get("residual_rms_mG"))
+    field = finite_or_none(result.get("expected_field_mG")) or finite_or_none(result.get("field_strength_mG"))
     if r is None or not field:
         return None
     incl = 60.0
@@ -770,7 +763,7 @@ class Session:
         self.stack.on_sample(s)
         det = self.stack.detector
         if det is not None and isinstance(s, ImuSample):
-            self._alarm_update(bool(det.alarm_active), list(det.alarm_kinds or []), _f(det.peak))
+            self._alarm_update(bool(det.alarm_active), list(det.alarm_kinds or []), finite_or_none(det.peak))
         if isinstance(s, GpsSample) and math.isfinite(s.lat_deg) and math.isfinite(s.lon_deg):
             if self.origin is None:
                 self.origin = (s.lat_deg, s.lon_deg) if self.stack.line is None else tuple(self.stack.line["a"])
@@ -955,14 +948,14 @@ class Session:
                     "t_s": round(min(r.position_s, r.duration_s), 2), "duration_s": round(r.duration_s, 2),
                     "paused": r.paused, "speed": r.speed, "finished": r.finished, "loop": r.loop},
                 "vehicle": {
-                    "roll_deg": _f(_deg(st.roll)), "pitch_deg": _f(_deg(st.pitch)),
-                    "yaw_deg": _f(_deg(st.yaw)),
-                    "ap_roll_deg": _f(_deg(st.ap[0])), "ap_pitch_deg": _f(_deg(st.ap[1])),
-                    "ap_yaw_deg": _f(_deg(st.ap[2])),
-                    "heading_mag_deg": _f(st.heading_mag_deg), "heading_att_deg": _f(st.heading_att_deg),
-                    "v_forward_mps": _f(st.v_forward), "v_lateral_mps": _f(st.v_lateral),
-                    "cross_track_m": _f(st.cross_track_m), "field_mG": _f(st.field_mG),
-                    "lat_deg": _f(st.lat), "lon_deg": _f(st.lon), "fix_type": int(st.fix_type),
+                    "roll_deg": finite_or_none(_deg(st.roll)), "pitch_deg": finite_or_none(_deg(st.pitch)),
+                    "yaw_deg": finite_or_none(_deg(st.yaw)),
+                    "ap_roll_deg": finite_or_none(_deg(st.ap[0])), "ap_pitch_deg": finite_or_none(_deg(st.ap[1])),
+                    "ap_yaw_deg": finite_or_none(_deg(st.ap[2])),
+                    "heading_mag_deg": finite_or_none(st.heading_mag_deg), "heading_att_deg": finite_or_none(st.heading_att_deg),
+                    "v_forward_mps": finite_or_none(st.v_forward), "v_lateral_mps": finite_or_none(st.v_lateral),
+                    "cross_track_m": finite_or_none(st.cross_track_m), "field_mG": finite_or_none(st.field_mG),
+                    "lat_deg": finite_or_none(st.lat), "lon_deg": finite_or_none(st.lon), "fix_type": int(st.fix_type),
                 },
                 "alarm": {"active": st.alarm_active, "evidence": list(st.alarm_kinds),
                           "since_s": self.alarms[-1]["start_s"] if st.alarm_active and self.alarms else None},

@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from estimators.attitude import (FieldVectorFilter, GravityVectorFilter, VectorFilterSettings,
-                                 dcm_body_to_ned, euler_from_dcm, roll_pitch_from_specific_force)
+                                 roll_pitch_from_specific_force)
+from estimators.rotations import dcm_body_to_ned, euler_from_dcm
 
 
 def test_constant_rotation_without_measurement_is_exact():

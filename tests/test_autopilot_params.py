@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimators.calibration import apply_calibration, polar_decomposition, rotation_from_vector_rad
+from estimators.calibration import apply_calibration, polar_decomposition
+from estimators.rotations import rotation_from_vector_rad
 from groundstation.autopilot_params import (apply_ardupilot, apply_px4, ardupilot_params_from_calibration,
                                             detect_autopilot, export_params, format_param_file, px4_params_from_calibration,
                                             px4_rotation, px4_slot, rotation_enum_matrix, unapply_ardupilot,

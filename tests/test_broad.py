@@ -11,7 +11,8 @@ import pathlib
 import numpy as np
 import pytest
 
-from estimators.heading import run_heading_chain, wrap_angle_deg
+from estimators.heading import run_heading_chain
+from estimators.rotations import wrap_angle_deg
 
 h5py = pytest.importorskip("h5py")
 TRIAL = pathlib.Path("/work/shared/data/broad/02_undisturbed_slow_rotation_B.hdf5")

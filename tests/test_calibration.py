@@ -9,10 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from estimators.rotations import dcm_body_to_ned, rotation_from_vector_rad
 from estimators.calibration import (RlsEllipsoidCalibrator, RlsGeneralEllipsoid, apply_calibration,
-                                    combine_calibration, dcm_body_to_ned, estimate_misalignment,
+                                    combine_calibration, estimate_misalignment,
                                     fit_ellipse_2d, fit_ellipsoid_robust, planarity_ratio, random_rotation,
-                                    refine_seed000_batch, rotation_from_vector_rad, rotation_progress_deg,
+                                    refine_seed000_batch, rotation_progress_deg,
                                     seed000_solve_batch,
                                     simulate_ellipsoid_samples, sphere_coverage)
 from estimators.geomag import earth_field

@@ -2,9 +2,8 @@
 import numpy as np
 import pytest
 
-from estimators.attitude import dcm_body_to_ned
-from estimators.heading import (HeadingChain, run_heading_chain, split_velocity,
-                                tilt_compensated_heading_rad, wrap_angle_deg, wrap_angle_rad)
+from estimators.heading import HeadingChain, run_heading_chain, split_velocity, tilt_compensated_heading_rad
+from estimators.rotations import dcm_body_to_ned, wrap_angle_deg, wrap_angle_rad
 
 H_NED = np.array([210.0, 25.0, 430.0])       # mG, inclination ~64 deg
 

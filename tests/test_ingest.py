@@ -2,7 +2,6 @@
 make_test_logs.py) and the real public logs in ../shared/data."""
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np

@@ -2,20 +2,10 @@
 import numpy as np
 import pytest
 
-from estimators.attitude import dcm_body_to_ned
 from estimators.ins_gps import (MODE_FIELD_FEEDBACK, MODE_GPS, MODE_OPEN_LOOP, InsGpsFilter, InsGpsSettings,
-                                run_ins_gps, simulate_manoeuvring_flight)
+                                attitude_errors_deg, run_ins_gps, simulate_manoeuvring_flight)
 
 B = np.radians(0.5)
-
-
-def _errors(res, tr):
-    ce = dcm_body_to_ned(res.roll_rad, res.pitch_rad, res.yaw_rad)
-    ct = dcm_body_to_ned(tr.roll_rad, tr.pitch_rad, tr.yaw_rad)
-    d = np.einsum("nij,nik->njk", ct, ce)
-    ang = np.degrees(np.arccos(np.clip((np.trace(d, axis1=1, axis2=2) - 1) / 2, -1, 1)))
-    hd = np.degrees(np.angle(np.exp(1j * (res.yaw_rad - tr.yaw_rad))))
-    return ang, hd
 
 
 def _decl(tr):
@@ -41,7 +31,7 @@ def test_gps_mode_tracks_truth_and_estimates_the_field(step_flight, step_runs):
     tr, res = step_flight, step_runs["seed"]
     pre = (tr.t_s > 10.0) & (tr.t_s < 40.0)
     assert np.all(res.mode[pre] == MODE_GPS)
-    ang, hd = _errors(res, tr)
+    ang, hd = attitude_errors_deg(res, tr)
     assert ang[pre].max() < 1.5 and np.abs(hd[pre]).max() < 1.5
     assert np.linalg.norm(res.pos_ned_m[pre] - tr.pos_ned_m[pre], axis=1).max() < 3.0
     assert np.linalg.norm(res.vel_ned_mps[pre] - tr.vel_ned_mps[pre], axis=1).max() < 0.5
@@ -69,7 +59,7 @@ def test_outage_and_recovery_switch_modes(step_flight, step_runs):
 def test_field_feedback_beats_open_loop_in_outage(step_flight, step_runs):
     tr = step_flight
     inside = (tr.t_s >= 40.0) & (tr.t_s < 120.0)
-    rms = {k: np.sqrt(np.mean(_errors(r, tr)[0][inside] ** 2)) for k, r in step_runs.items()}
+    rms = {k: np.sqrt(np.mean(attitude_errors_deg(r, tr)[0][inside] ** 2)) for k, r in step_runs.items()}
     # measured (seed 1): open loop 30°, seed-003 field feedback 13°, + gravity on the field line 6.4°
     assert rms["open"] > 20.0
     assert rms["seed"] < 0.6 * rms["open"]
