@@ -21,9 +21,17 @@ which holds the attitude instead of letting it drift open loop.  When GPS return
 (the gyro-bias change learnt in the outage) is moved into b̂_g and the Kalman filter takes over.
 
 The field alone does not observe rotations about the field line (a gyro-bias change along it
-drifts freely).  ``gravity_kp_per_s`` > 0 adds that one missing axis from the gravity-vector
+drifts freely), so the fixed-gain PI law (``feedback_law="pi"``, seed 003 as published) cannot
+stop that drift.  The default ``feedback_law="kalman"`` feeds back the same field-vector error
+through the Kalman gain instead: in the outage the filter keeps its magnetometer update with Ĥ^n
+held as the set-point, allows the gyro bias to change (its covariance is widened by
+``outage_gyro_bias_sigma_rad_s`` at the outage start and walks faster), and corrects the gyro
+rates with the estimated bias, ω = ω_m − b̂_g.  Because ψ' = −C_b^n δb_g couples the bias to the
+attitude error, a manoeuvring vehicle (its body axes turning relative to the field) makes the
+whole bias observable, and with it the drift about the field line that PI never sees.
+``gravity_kp_per_s`` > 0 (PI law only) instead adds the missing axis from the gravity-vector
 error (accelerometer vs. −g), an extension to seed 003, off by default: manoeuvre accelerations
-corrupt it (benchmarks/heading.py shows both sides).
+corrupt it and the high inclination magnifies that into heading (benchmarks/heading.py shows it).
 
 Mode per step: 0 = initialising, 1 = GPS (Kalman), 2 = field-vector feedback, 3 = open loop.
 Pure numpy; units m, m/s, m/s^2, rad, rad/s, mG; body FRD, navigation NED.
@@ -69,9 +77,12 @@ class InsGpsSettings:
     field_walk_mG: float = 0.05              # random walk of the NED field states, mG per sqrt(s)
     init_field_sigma_frac: float = 0.005     # prior on the field (horizontal direction ~0.7°: WMM)
     field_feedback: bool = True              # False: open-loop INS during outages (for comparison)
-    feedback_kp_per_s: float = 0.5           # K_P [rad/s per rad of vector error]
-    feedback_ki_per_s2: float = 0.02         # K_I
+    feedback_kp_per_s: float = 0.5           # "pi": K_P [rad/s per rad of vector error]
+    feedback_ki_per_s2: float = 0.02         # "pi": K_I
     gravity_kp_per_s: float = 0.0            # gravity help for the field-line axis (0 = seed 003 only)
+    feedback_law: str = "kalman"             # "kalman" (default) or "pi" (seed 003's fixed gains)
+    outage_gyro_bias_sigma_rad_s: float = 0.001  # "kalman": bias change allowed at the outage start
+    outage_gyro_bias_walk: float = 1e-4      # "kalman": bias random walk in outage, rad/s per sqrt(s)
     declination_deg: float = 0.0             # initial heading from the magnetometer + declination
     init_attitude_sigma_rad: float = 0.03
     init_yaw_sigma_rad: float = 0.1
@@ -112,6 +123,8 @@ class InsGpsFilter:
 
     def __init__(self, settings: InsGpsSettings | None = None):
         self.s = settings or InsGpsSettings()
+        if self.s.feedback_law not in ("kalman", "pi"):
+            raise ValueError(f"feedback_law must be 'kalman' or 'pi', not {self.s.feedback_law!r}")
         self.C = np.eye(3)                 # C_b^n
         self.v = np.zeros(3)
         self.p = np.zeros(3)
@@ -149,11 +162,18 @@ class InsGpsFilter:
         v = np.asarray(vel_ned_mps, dtype=float)
         if not (np.isfinite(t_s) and np.all(np.isfinite(p)) and np.all(np.isfinite(v))):
             return
+        returning = self._nav_ok and float(t_s) - self._gps_t > self.s.gps_timeout_s
         self._gps_t = float(t_s)
         if not self._attitude_ok:
             return
-        if not self._nav_ok:
+        if not self._nav_ok or returning:
+            # first fix, or GPS back after an outage: take position and velocity from GPS and drop
+            # their (outage-grown) correlations, so a large innovation cannot tip the attitude
             self.p, self.v, self._nav_ok = p.copy(), v.copy(), True
+            self.P[3:9, :] = 0.0
+            self.P[:, 3:9] = 0.0
+            self.P[3:6, 3:6] = np.eye(3) * self.s.gps_vel_sigma_mps ** 2
+            self.P[6:9, 6:9] = np.eye(3) * self.s.gps_pos_sigma_m ** 2
             return
         self._kalman_gps(p, v)
 
@@ -189,12 +209,14 @@ class InsGpsFilter:
         K = np.linalg.solve(S, PHt.T).T
         self._correct(K, H, R, z)
 
-    def _kalman_mag(self) -> None:
-        """Magnetometer update while GPS is good: z = H_m − Ĉᵀ Ĥ^n = Ĉᵀ[Ĥ^n×] ψ + Ĉᵀ δH^n."""
+    def _kalman_mag(self, field_is_setpoint: bool = False) -> None:
+        """Magnetometer update: z = H_m − Ĉᵀ Ĥ^n = Ĉᵀ[Ĥ^n×] ψ + Ĉᵀ δH^n.  While GPS is good the
+        field states are estimated; in an outage (``field_is_setpoint``) Ĥ^n is held fixed."""
         H = np.zeros((3, NX))
         Ct = self.C.T
         H[:, 0:3] = Ct @ skew(self.field_ned)
-        H[:, 15:18] = Ct
+        if not field_is_setpoint:
+            H[:, 15:18] = Ct
         R = np.eye(3) * self.s.mag_sigma_mG ** 2
         z = self._mag - Ct @ self.field_ned
         PHt = self.P @ H.T
@@ -238,6 +260,8 @@ class InsGpsFilter:
         if new_mode != self.mode:
             if self.mode == MODE_FIELD_FEEDBACK:              # leaving the outage: keep what was learnt
                 self.bg -= s.feedback_ki_per_s2 * self.integral
+            if new_mode == MODE_FIELD_FEEDBACK and s.feedback_law == "kalman":
+                self.P[9:12, 9:12] += np.eye(3) * s.outage_gyro_bias_sigma_rad_s ** 2
             self.integral = np.zeros(3)
             self.mode = new_mode
         if dt == 0.0:
@@ -245,7 +269,8 @@ class InsGpsFilter:
 
         w = w_m - self.bg
         f = f_m - self.ba
-        if self.mode == MODE_FIELD_FEEDBACK:
+        kalman_outage = self.mode == MODE_FIELD_FEEDBACK and s.feedback_law == "kalman"
+        if self.mode == MODE_FIELD_FEEDBACK and not kalman_outage:
             w = w + self._feedback(f, mag_ok, dt)
 
         C0 = self.C
@@ -262,10 +287,13 @@ class InsGpsFilter:
         Phi = self._eye + F * dt
         self.P = Phi @ self.P @ Phi.T
         self.P[np.diag_indices(NX)] += self._q_dt2 * (dt * dt) + self._q_dt * dt
+        if kalman_outage:
+            self.P[9:12, 9:12] += np.eye(3) * (s.outage_gyro_bias_walk ** 2 * dt)
 
-        if self.mode == MODE_GPS and mag_ok and self._mag_t >= self._mag_used_t + s.mag_update_interval_s:
-            self._mag_used_t = self._mag_t                      # Earth field in NED while GPS is good
-            self._kalman_mag()
+        if ((self.mode == MODE_GPS or kalman_outage) and mag_ok
+                and self._mag_t >= self._mag_used_t + s.mag_update_interval_s):
+            self._mag_used_t = self._mag_t
+            self._kalman_mag(field_is_setpoint=kalman_outage)
         if int(t * 10) % 50 == 0:                             # keep C orthonormal
             u, _, vt = np.linalg.svd(self.C)
             self.C = u @ vt

@@ -632,6 +632,30 @@ STREAMED_MESSAGES = ("SCALED_IMU", "RAW_IMU", "ATTITUDE", "GPS_RAW_INT", "GLOBAL
                      "HIGHRES_IMU")
 
 
+def _drop_partial_packets_between_datagrams(conn) -> None:
+    """UDP carries whole MAVLink packets per datagram, so an incomplete packet left in the
+    parser when the next datagram arrives can only be garbage: drop it, or the parser would
+    complete it with the next (good) packet's bytes and lose that packet to a CRC error.
+    (Wraps pymavlink's mavudp.recv; serial/TCP streams are left alone.)"""
+    from pymavlink import mavutil
+
+    if not isinstance(conn, mavutil.mavudp):
+        return
+    parser = conn.mav
+    raw_recv = conn.recv
+
+    def recv(n=None):
+        data = raw_recv(n)
+        if data and 0 < parser.buf_len() < parser.expected_length:
+            parser.buf = bytearray()
+            parser.buf_index = 0
+            parser.expected_length = mavlink2.HEADER_LEN_V1 + 2
+            parser.have_prefix_error = False
+        return data
+
+    conn.recv = recv
+
+
 class LiveLink:
     """A live MAVLink link through a pymavlink connection string.
 
@@ -655,6 +679,7 @@ class LiveLink:
                 robust_parsing=True, autoreconnect=True, dialect="ardupilotmega")
         except Exception as err:
             raise IngestError(f"cannot open link '{url}': {err}") from err
+        _drop_partial_packets_between_datagrams(self.mav)
         self.recorder = recorder
         self.decoder = MavlinkDecoder()
         self.t0_unix = time.time()

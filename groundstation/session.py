@@ -542,7 +542,6 @@ class Session:
                 recorder.close()
                 path.unlink(missing_ok=True)
             raise SessionError(str(err)) from err
-        _guard_udp_datagrams(link.mav)
         with self._lock:
             self._reset_flight_state()
             self.link, self.recorder, self.recording_path = link, recorder, path
@@ -1045,30 +1044,6 @@ def _calibration_from_log(log: FlightLog) -> dict | None:
     except Exception:
         return None
     return _jsonable(result) if result.get("status") == "ok" else None
-
-
-def _guard_udp_datagrams(conn) -> None:
-    """UDP carries whole MAVLink packets per datagram, so an incomplete packet left in the
-    parser when the next datagram arrives can only be garbage: drop it, or the parser would
-    complete it with the next (good) packet's bytes and lose that packet to a CRC error.
-    (Wraps pymavlink's mavudp.recv; serial/TCP streams are left alone.)"""
-    from pymavlink import mavutil
-
-    if not isinstance(conn, mavutil.mavudp):
-        return
-    parser = conn.mav
-    raw_recv = conn.recv
-
-    def recv(n=None):
-        data = raw_recv(n)
-        if data and 0 < parser.buf_len() < parser.expected_length:
-            parser.buf = bytearray()
-            parser.buf_index = 0
-            parser.expected_length = mavlink2.HEADER_LEN_V1 + 2
-            parser.have_prefix_error = False
-        return data
-
-    conn.recv = recv
 
 
 def _same_float(a: float, b: float) -> bool:

@@ -23,12 +23,13 @@ def step_flight():
 def step_runs(step_flight):
     tr = step_flight
     return {name: run_ins_gps(tr.imu, tr.gps_ned, tr.mag, InsGpsSettings(declination_deg=_decl(tr), **kw))
-            for name, kw in (("open", dict(field_feedback=False)), ("seed", dict()),
-                             ("gravity", dict(gravity_kp_per_s=0.2)))}
+            for name, kw in (("open", dict(field_feedback=False)), ("kalman", dict()),
+                             ("pi", dict(feedback_law="pi")),
+                             ("gravity", dict(feedback_law="pi", gravity_kp_per_s=0.2)))}
 
 
 def test_gps_mode_tracks_truth_and_estimates_the_field(step_flight, step_runs):
-    tr, res = step_flight, step_runs["seed"]
+    tr, res = step_flight, step_runs["kalman"]
     pre = (tr.t_s > 10.0) & (tr.t_s < 40.0)
     assert np.all(res.mode[pre] == MODE_GPS)
     ang, hd = attitude_errors_deg(res, tr)
@@ -42,7 +43,8 @@ def test_outage_and_recovery_switch_modes(step_flight, step_runs):
     tr = step_flight
     inside = (tr.t_s >= 41.0) & (tr.t_s < 120.0)
     after = tr.t_s >= 121.0
-    assert np.all(step_runs["seed"].mode[inside] == MODE_FIELD_FEEDBACK)
+    assert np.all(step_runs["kalman"].mode[inside] == MODE_FIELD_FEEDBACK)
+    assert np.all(step_runs["pi"].mode[inside] == MODE_FIELD_FEEDBACK)
     assert np.all(step_runs["open"].mode[inside] == MODE_OPEN_LOOP)
     for res in step_runs.values():
         assert np.all(res.mode[after] == MODE_GPS)
@@ -60,17 +62,20 @@ def test_field_feedback_beats_open_loop_in_outage(step_flight, step_runs):
     tr = step_flight
     inside = (tr.t_s >= 40.0) & (tr.t_s < 120.0)
     rms = {k: np.sqrt(np.mean(attitude_errors_deg(r, tr)[0][inside] ** 2)) for k, r in step_runs.items()}
-    # measured (seed 1): open loop 30°, seed-003 field feedback 13°, + gravity on the field line 6.4°
+    heading_max = {k: np.abs(attitude_errors_deg(r, tr)[1][inside]).max() for k, r in step_runs.items()}
+    # measured (seed 1): RMS open loop 30°, seed-003 PI 13°, PI + gravity 6.4°, Kalman feedback 1.6°
     assert rms["open"] > 20.0
-    assert rms["seed"] < 0.6 * rms["open"]
+    assert rms["pi"] < 0.6 * rms["open"]
     assert rms["gravity"] < 0.3 * rms["open"]
+    assert rms["kalman"] < rms["open"] / 3.0 and rms["kalman"] < 0.5 * rms["pi"]
+    assert heading_max["kalman"] < 0.25 * heading_max["open"]
 
 
 def test_feedback_removes_an_attitude_error_perpendicular_to_the_field():
     # static vehicle; after a GPS phase the GPS stops and the attitude is knocked off by 5°
     h_ned = np.array([200.0, 15.0, 440.0])
     f = InsGpsFilter(InsGpsSettings(declination_deg=float(np.degrees(np.arctan2(15, 200))),
-                                    feedback_kp_per_s=0.5, feedback_ki_per_s2=0.02))
+                                    feedback_law="pi", feedback_kp_per_s=0.5, feedback_ki_per_s2=0.02))
     acc = np.array([0.0, 0.0, -9.80665])
     for i in range(700):                                  # 5 s with GPS at 10 Hz, then 2 s without
         t = i * 0.01
