@@ -139,11 +139,12 @@ class Scene:
         sc.add_box("/vehicle/nose", color=(230, 80, 40), dimensions=(0.25, 0.25, 0.2), position=(0.85, 0, 0))
         self.ghost = sc.add_frame("/ghost", show_axes=False, position=tuple(VEHICLE_AT))
         sc.add_box("/ghost/body", color=(200, 200, 200), dimensions=(1.6, 0.5, 0.15), opacity=0.35)
-        sc.add_label("/vehicle_label", "vehicle (estimate; ghost = autopilot)", position=tuple(VEHICLE_AT + [0, 0, 1.4]))
+        sc.add_label("/vehicle_label", "vehicle (grey ghost: autopilot)", position=tuple(VEHICLE_AT + [0, 0, 1.4]))
 
-        sc.add_label("/cal_label", "calibration: raw (colour = residual) + fitted ellipsoid",
-                     position=tuple(CAL_CENTER + [0, 0, 1.6]))
-        sc.add_label("/sphere_label", "corrected", position=tuple(SPHERE_CENTER + [0, 0, 1.6]))
+        self.cal_labels = [
+            sc.add_label("/cal_label", "raw field + fitted ellipsoid", position=tuple(CAL_CENTER + [0, 0, 1.6]),
+                         visible=False),
+            sc.add_label("/sphere_label", "corrected", position=tuple(SPHERE_CENTER + [0, 0, 1.6]), visible=False)]
         sc.add_line_segments("/sphere_ref", UNIT_SPHERE, colors=(150, 150, 150), thickness=1.0,
                              thickness_units="screen", position=tuple(SPHERE_CENTER))
         empty = np.zeros((1, 3), dtype=np.float32)
@@ -155,7 +156,8 @@ class Scene:
                                               thickness=1.5, thickness_units="screen",
                                               position=tuple(CAL_CENTER), visible=False)
 
-        sc.add_label("/route_label", "route vs preset line (blue); red: alarm; cross-track exaggerated", position=tuple(ROUTE_CENTER + [0, 0, 1.0]))
+        self.route_label = sc.add_label("/route_label", "route vs preset line (blue), red: alarm",
+                                        position=tuple(ROUTE_CENTER + [0, 0, 1.0]))
         seg0 = np.zeros((1, 2, 3), dtype=np.float32)
         self.route = sc.add_point_cloud("/route", empty, colors=(30, 30, 30), point_size=0.05,
                                         point_shape="circle", position=tuple(ROUTE_CENTER), visible=False)
@@ -215,7 +217,15 @@ class Scene:
                 abs(math.remainder(a - b, 2 * math.pi)) for a, b in zip(ap, (roll, pitch, yaw))) > math.radians(2)
             self.ghost.visible = differs
         self._update_cloud(d["cloud"], d["fit"])
-        self._update_route(d["route"], d["line"], d["origin"])
+        for label in self.cal_labels:
+            label.visible = self.cloud.visible
+        # the calibration clouds stand in front of the route: hide the route while calibrating
+        if d["calibrating"]:
+            self.route.visible = self.line.visible = self.route_label.visible = False
+            self._route_key = None
+        else:
+            self.route_label.visible = True
+            self._update_route(d["route"], d["line"], d["origin"])
         self._update_plots(d["history"])
 
     def _update_cloud(self, cloud: np.ndarray, fit: dict | None) -> None:

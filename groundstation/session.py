@@ -22,6 +22,7 @@ import numpy as np
 
 from estimators.calibration import (RlsEllipsoidCalibrator, apply_calibration, rotation_progress_deg,
                                     sphere_coverage)
+from estimators.detection import cross_track_m, ned_from_lla
 from estimators.heading import split_velocity
 
 from estimators.geomag import decimal_year_from_unix, earth_field
@@ -58,11 +59,9 @@ class SessionError(Exception):
 # ------------------------------------------------------------------------------- small helpers
 
 def local_ne_m(lat: float, lon: float, origin: tuple[float, float]) -> tuple[float, float]:
-    """North/east metres of (lat, lon) from ``origin`` (equirectangular; fine over kilometres)."""
-    r = 6_378_137.0
-    north = math.radians(lat - origin[0]) * r
-    east = math.radians(lon - origin[1]) * r * math.cos(math.radians(origin[0]))
-    return north, east
+    """North/east metres of (lat, lon) from ``origin`` (the detector's local tangent plane)."""
+    n, e = ned_from_lla(lat, lon, origin[0], origin[1])
+    return float(n), float(e)
 
 
 def _deg(rad: float | None) -> float | None:
@@ -415,10 +414,9 @@ def _cross_track_m(lat: float, lon: float, line: dict) -> float:
     a, b = line["a"], line["b"]
     bn, be = local_ne_m(b[0], b[1], (a[0], a[1]))
     pn, pe = local_ne_m(lat, lon, (a[0], a[1]))
-    length = math.hypot(bn, be)
-    if length < 1e-6:
-        return math.hypot(pn, pe)
-    return (bn * pe - be * pn) / length   # signed: + right of A->B
+    # seed 002 eq. (6), signed here (+ right of A->B) so the live plot shows the side
+    d = float(cross_track_m(np.array([pn, pe, 0.0]), np.zeros(3), np.array([bn, be, 0.0]))[0])
+    return math.copysign(d, bn * pe - be * pn)
 
 
 # ------------------------------------------------------------------------------------- sources
@@ -993,6 +991,7 @@ class Session:
                 "origin": self.origin,
                 "alarm": self.stack.alarm_active,
                 "alarm_text": ", ".join(self.stack.alarm_kinds),
+                "calibrating": w.state != "idle",
                 "history": np.array(self.history, dtype=float).reshape(-1, 6),
             }
 
