@@ -6,6 +6,8 @@ convention as MAVLink ATTITUDE).  All angles in radians unless the name says ``_
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 TWO_PI = 2.0 * np.pi
@@ -47,14 +49,20 @@ def euler_from_dcm(c_body_to_ned: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     return roll, pitch, yaw
 
 
-def rotation_from_vector_rad(phi: np.ndarray) -> np.ndarray:
-    """exp([φ ×]) by Rodrigues' formula: R = I + sin a/a·K + (1 − cos a)/a²·K², a = |φ|."""
-    phi = np.asarray(phi, dtype=float)
-    a = float(np.linalg.norm(phi))
-    k = skew(phi)
-    if a < 1e-8:
-        return np.eye(3) + k + 0.5 * k @ k
-    return np.eye(3) + np.sin(a) / a * k + (1.0 - np.cos(a)) / (a * a) * k @ k
+def rotation_from_vector_rad(phi) -> np.ndarray:
+    """exp([φ ×]) by Rodrigues' formula: R = I + (sin a/a)·K + ((1 − cos a)/a²)·K², a = |φ|,
+    K = [φ ×]; Taylor series of both coefficients for small a.  Written out in scalars: the INS
+    calls it at every IMU step."""
+    x, y, z = (float(v) for v in phi)
+    a2 = x * x + y * y + z * z
+    if a2 < 1e-6:
+        s, c = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0
+    else:
+        a = math.sqrt(a2)
+        s, c = math.sin(a) / a, (1.0 - math.cos(a)) / a2
+    return np.array([[1.0 - c * (y * y + z * z), c * x * y - s * z, c * x * z + s * y],
+                     [c * x * y + s * z, 1.0 - c * (x * x + z * z), c * y * z - s * x],
+                     [c * x * z - s * y, c * y * z + s * x, 1.0 - c * (x * x + y * y)]])
 
 
 def rotation_to_vector_deg(R: np.ndarray) -> np.ndarray:

@@ -25,6 +25,7 @@ from estimators.detection import (DetectionSettings, InterferenceDetector, alarm
                                   detect, field_inclination_deg, ned_from_lla)
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import HeadingChain, run_heading_chain, split_velocity
+from estimators.ins_gps import MODE_NAMES, InsGpsSettings, run_ins_gps
 from estimators.rotations import wrap_angle_rad
 
 from .autopilot_params import unapply_onboard_calibration
@@ -35,6 +36,9 @@ __all__ = ["analyze_log", "detection_inputs", "write_csv", "format_report", "Liv
 CSV_COLUMNS = ("t_s", "roll_deg", "pitch_deg", "yaw_deg", "mag_heading_deg", "heading_true_deg",
                "v_forward_mps", "v_lateral_mps", "cross_track_m", "alarm")
 GPS_TIMEOUT_S = 1.0
+OUTAGE_MIN_S = 2.0          # a longer gap between good GPS fixes (fix_type >= 3) is an outage
+INS_LEAD_S = 60.0           # the INS/GPS filter runs from this long before each outage ...
+INS_TAIL_S = 10.0           # ... to this long after it
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -206,9 +210,69 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
 
     yaw_rate = _rotation_rate(imu[:, 1:4]) if n else np.zeros(0)
     heading = np.where(valid, chain.yaw_rad, np.nan)
-    return dict(t=t, e=e, d=d, trusted=trusted, strength=strength, incl=incl, heading=heading,
+    return dict(t=t, e=e, d=d, trusted=trusted, strength=strength, incl=incl, heading=heading, mag_cal=mag_cal,
                 yaw_rate=yaw_rate, ef=ef, pos=pos, chain=chain, valid=valid, g=g, d_gps=d_gps, legs=legs,
                 rtk=rtk, path_test=path_test, heading_test=heading_test, field_test=field_test, imu_rate_hz=imu_rate, cal=cal)
+
+
+def gps_outages(t_gps_fix: np.ndarray, t_start: float, t_end: float) -> list[tuple[float, float | None]]:
+    """(start_s, end_s or None) of gaps longer than OUTAGE_MIN_S between good GPS fixes, counting
+    a log that ends without GPS; fixes that never came are not an outage."""
+    t = np.sort(np.asarray(t_gps_fix, dtype=float))
+    if not len(t):
+        return []
+    gaps = np.flatnonzero(np.diff(t) > OUTAGE_MIN_S)
+    out: list[tuple[float, float | None]] = [(float(t[i]), float(t[i + 1])) for i in gaps]
+    if t_end - t[-1] > OUTAGE_MIN_S:
+        out.append((float(t[-1]), None))
+    return out
+
+
+def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float) -> dict:
+    """GPS outages and what the seed-003 INS/GPS filter made of each: it runs from INS_LEAD_S
+    before the outage (to learn gyro biases and the Earth field with GPS) through the outage to
+    INS_TAIL_S after it, once holding the attitude with field-vector feedback and once open loop
+    (gyro integration with the biases learnt before the outage); each heading is compared with
+    the autopilot's own.  Both are reported because neither is always better: the feedback bounds
+    an unknown gyro-bias change, but a body-fixed field (motor current) that the Earth-field
+    set-point absorbed before the outage pulls it off after a turn (see README, Known limits)."""
+    imu = np.asarray(log.imu, dtype=float).reshape(-1, 7)
+    g = np.asarray(log.gps, dtype=float).reshape(-1, 8)
+    good = (g[:, 7] >= 3) & np.all(np.isfinite(g[:, 0:4]), axis=1)
+    if not len(imu) or not good.any():
+        return {"ins_gps": "off: " + ("no IMU data" if not len(imu) else "no 3-D GPS fix in the log"),
+                "gps_outages": []}
+    g = g[good]
+    n_m, e_m = ned_from_lla(g[:, 1], g[:, 2], g[0, 1], g[0, 2])
+    pos_ned = np.c_[n_m, e_m, g[0, 3] - g[:, 3]]
+    vel_ned = g[:, 4:7].copy()
+    if len(g) > 1:      # a velocity the receiver did not report (GPS_RAW_INT has no vD): from positions
+        for k in range(3):
+            vel_ned[:, k] = np.where(np.isfinite(vel_ned[:, k]), vel_ned[:, k], np.gradient(pos_ned[:, k], g[:, 0]))
+    gps_ned = np.c_[g[:, 0], pos_ned, vel_ned]
+    att = np.asarray(log.attitude, dtype=float).reshape(-1, 4)
+    laws = {"field_feedback": InsGpsSettings(declination_deg=declination_deg),
+            "open_loop": InsGpsSettings(declination_deg=declination_deg, field_feedback=False)}
+    outages = []
+    for start, end in gps_outages(g[:, 0], float(imu[0, 0]), float(imu[-1, 0])):
+        stop = (end if end is not None else float(imu[-1, 0])) + INS_TAIL_S
+        pick = lambda a: a[(a[:, 0] >= start - INS_LEAD_S) & (a[:, 0] <= stop)]  # noqa: E731
+        entry = {"start_s": _r(start, 2), "end_s": _r(end, 2),
+                 "duration_s": _r((end if end is not None else float(imu[-1, 0])) - start, 2),
+                 "ins_mode": None, "ins_vs_autopilot_heading_deg": {}}
+        for law, settings in laws.items():
+            res = run_ins_gps(pick(imu), pick(gps_ned), pick(mag_cal), settings)
+            inside = (res.t_s > start + GPS_TIMEOUT_S) & (res.t_s < (end if end is not None else np.inf))
+            if law == "field_feedback" and inside.any():
+                entry["ins_mode"] = MODE_NAMES[int(np.bincount(res.mode[inside]).argmax())]
+            ap_yaw = _hold(att[:, 0], att[:, 3], res.t_s, 0.5) if len(att) else np.full(len(res.t_s), np.nan)
+            diff = np.degrees(np.abs(wrap_angle_rad(res.yaw_rad - ap_yaw)))[inside]
+            entry["ins_vs_autopilot_heading_deg"][law] = (
+                {"median": _r(np.nanmedian(diff), 2), "max": _r(np.nanmax(diff), 2)}
+                if np.isfinite(diff).any() else None)
+        outages.append(entry)
+    return {"ins_gps": "on: seed-003 INS/GPS over each outage (field-vector feedback and open loop)",
+            "gps_outages": outages}
 
 
 def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list | None = None,
@@ -286,6 +350,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "alarms": alarms,
         "first_alarm_s": combined[0]["start_s"] if combined else None,
         "interference_detected": bool(combined),
+        "navigation": _navigation(log, x["mag_cal"], ef.declination_deg if ef else 0.0),
         "detection": {
             "heading_sigma_deg": _r(det.heading_sigma_deg), "heading_threshold_deg": _r(settings.sigma_k * det.heading_sigma_deg),
             "learn_s": settings.learn_s, "path_threshold_m": settings.path_threshold_m,
@@ -325,6 +390,12 @@ def format_report(report: dict) -> str:
     if report.get("mission"):
         m = report["mission"]
         lines.append(f"mission A {m['A']} -> B {m['B']};  max cross-track {report.get('max_cross_track_m')} m")
+    nav = report.get("navigation") or {}
+    for o in nav.get("gps_outages", []):
+        cmp = "; ".join(f"{law.replace('_', ' ')} median {v['median']}°, max {v['max']}°"
+                        for law, v in (o.get("ins_vs_autopilot_heading_deg") or {}).items() if v)
+        lines.append(f"GPS outage {o['start_s']}–{o['end_s'] if o['end_s'] is not None else 'end'} s "
+                     f"({o['duration_s']} s): INS/GPS mode {o['ins_mode']}; heading vs autopilot: {cmp}")
     comb = [a for a in report.get("alarms", []) if a["kind"] == "combined"]
     others = [a for a in report.get("alarms", []) if a["kind"] != "combined"]
     lines.append(f"interference detected: {'YES' if report.get('interference_detected') else 'no'}"

@@ -24,6 +24,7 @@ def step_runs(step_flight):
     tr = step_flight
     return {name: run_ins_gps(tr.imu, tr.gps_ned, tr.mag, InsGpsSettings(declination_deg=_decl(tr), **kw))
             for name, kw in (("open", dict(field_feedback=False)), ("kalman", dict()),
+                             ("kalman_fast", dict(outage_gyro_bias_sigma_rad_s=0.001, outage_field_walk_mG=0.0)),
                              ("pi", dict(feedback_law="pi")),
                              ("gravity", dict(feedback_law="pi", gravity_kp_per_s=0.2)))}
 
@@ -63,12 +64,14 @@ def test_field_feedback_beats_open_loop_in_outage(step_flight, step_runs):
     inside = (tr.t_s >= 40.0) & (tr.t_s < 120.0)
     rms = {k: np.sqrt(np.mean(attitude_errors_deg(r, tr)[0][inside] ** 2)) for k, r in step_runs.items()}
     heading_max = {k: np.abs(attitude_errors_deg(r, tr)[1][inside]).max() for k, r in step_runs.items()}
-    # measured (seed 1): RMS open loop 30°, seed-003 PI 13°, PI + gravity 6.4°, Kalman feedback 1.6°
+    # measured (seed 1): RMS open loop 30°, seed-003 PI 13°, PI + gravity 6.3°, Kalman with the
+    # robust defaults 16°, Kalman tuned for a bias step (widened bias, fixed set-point) 1.7°
     assert rms["open"] > 20.0
     assert rms["pi"] < 0.6 * rms["open"]
     assert rms["gravity"] < 0.3 * rms["open"]
-    assert rms["kalman"] < rms["open"] / 3.0 and rms["kalman"] < 0.5 * rms["pi"]
-    assert heading_max["kalman"] < 0.25 * heading_max["open"]
+    assert rms["kalman"] < 0.7 * rms["open"]
+    assert rms["kalman_fast"] < rms["open"] / 3.0 and rms["kalman_fast"] < 0.5 * rms["pi"]
+    assert heading_max["kalman_fast"] < 0.25 * heading_max["open"]
 
 
 def test_feedback_removes_an_attitude_error_perpendicular_to_the_field():
