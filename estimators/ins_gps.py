@@ -32,9 +32,10 @@ into Ĥ^n and turns with the vehicle, so after a turn the field error pulls the 
 ``outage_field_walk_mG`` lets Ĥ^n drift slowly in the outage so the filter does not chase it, and
 ``outage_gyro_bias_sigma_rad_s`` (widening the bias covariance at the outage start) is 0: both
 trade the fastest learning of a sudden bias change for robustness.  Measured: on the idealised
-benchmark flight (no body-fixed field) an unseen 0.5°/s bias step is held to RMS 2-7° with
-sigma 0.001 and no walk, 21-28° with the defaults (open loop 35°); on simulated missions with a
-motor-current field that turn 180° in the outage, sigma 0.001 put the heading 21-27° (median)
+benchmark flight (no body-fixed field) an unseen 0.5°/s bias step gives an attitude error of
+RMS 7° with sigma 0.001 and no walk, 25° with the defaults (open loop 35°; 5-seed means,
+benchmarks/heading.py); on simulated missions with a
+motor-current field that turn 180° in the outage, sigma 0.001 put the heading 21-57° (median)
 from the autopilot's, the defaults 1.0-2.5° (PI 0.5-7.3°, open loop 1.1-2.8°).
 ``gravity_kp_per_s`` > 0 (PI law only) instead adds the missing axis from the gravity-vector
 error (accelerometer vs. −g), an extension to seed 003, off by default: manoeuvre accelerations

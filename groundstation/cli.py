@@ -68,7 +68,13 @@ def cmd_info(args: argparse.Namespace) -> int:
         else:
             print(f"  {name:<15} none")
     if len(log.mag) and log.mag_calibration_applied is not None:
-        state = "already calibrated by the autopilot" if log.mag_calibration_applied else "raw"
+        ofs = [log.params.get(f"COMPASS_OFS_{axis}") for axis in "XYZ"]
+        if not log.mag_calibration_applied:
+            state = "raw sensor output"
+        elif all(v == 0.0 for v in ofs):
+            state = "corrected by the autopilot, but COMPASS_OFS_* are 0 (never calibrated)"
+        else:
+            state = "already calibrated by the autopilot"
         print(f"  mag field       {state}")
     rtk = bool(len(log.gps) and (log.gps[:, 7] >= 5).any())
     print(f"  RTK             {'yes' if rtk else 'no'}")
