@@ -215,20 +215,27 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
                 rtk=rtk, path_test=path_test, heading_test=heading_test, field_test=field_test, imu_rate_hz=imu_rate, cal=cal)
 
 
-def gps_outages(t_gps_fix: np.ndarray, t_start: float, t_end: float) -> list[tuple[float, float | None]]:
-    """(start_s, end_s or None) of gaps longer than OUTAGE_MIN_S between good GPS fixes, counting
-    a log that ends without GPS; fixes that never came are not an outage."""
+def gps_outages(t_gps_fix: np.ndarray, t_imu: np.ndarray) -> list[tuple[float, float | None]]:
+    """(start_s, end_s or None when the log ends without GPS) of gaps longer than OUTAGE_MIN_S
+    between good GPS fixes while the IMU kept streaming (a gap in all the data is a telemetry
+    dropout, not a GPS outage; fixes that never came are not an outage either)."""
     t = np.sort(np.asarray(t_gps_fix, dtype=float))
-    if not len(t):
+    ti = np.sort(np.asarray(t_imu, dtype=float))
+    if not len(t) or not len(ti):
         return []
-    gaps = np.flatnonzero(np.diff(t) > OUTAGE_MIN_S)
-    out: list[tuple[float, float | None]] = [(float(t[i]), float(t[i + 1])) for i in gaps]
-    if t_end - t[-1] > OUTAGE_MIN_S:
-        out.append((float(t[-1]), None))
+    out: list[tuple[float, float | None]] = []
+    gaps = [(float(t[k]), float(t[k + 1])) for k in np.flatnonzero(np.diff(t) > OUTAGE_MIN_S)]
+    if ti[-1] - t[-1] > OUTAGE_MIN_S:
+        gaps.append((float(t[-1]), None))
+    for start, end in gaps:
+        stop = end if end is not None else float(ti[-1])
+        inside = ti[(ti > start) & (ti < stop)]
+        if len(inside) and np.diff(np.r_[start, inside, stop]).max() <= OUTAGE_MIN_S:
+            out.append((start, end))
     return out
 
 
-def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float) -> dict:
+def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float, imu_rate_hz: float) -> dict:
     """GPS outages and what the seed-003 INS/GPS filter made of each: it runs from INS_LEAD_S
     before the outage (to learn gyro biases and the Earth field with GPS) through the outage to
     INS_TAIL_S after it, once holding the attitude with field-vector feedback and once open loop
@@ -243,6 +250,13 @@ def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float) -> 
         return {"ins_gps": "off: " + ("no IMU data" if not len(imu) else "no 3-D GPS fix in the log"),
                 "gps_outages": []}
     g = g[good]
+    found = gps_outages(g[:, 0], imu[:, 0])
+    min_rate = DetectionSettings().min_imu_rate_hz
+    if imu_rate_hz < min_rate:      # telemetry-rate IMU: strapdown integration is meaningless
+        return {"ins_gps": f"off: IMU rate {imu_rate_hz:.1f} Hz < {min_rate:g} Hz",
+                "gps_outages": [{"start_s": _r(a, 2), "end_s": _r(b, 2),
+                                 "duration_s": _r((b if b is not None else float(imu[-1, 0])) - a, 2),
+                                 "ins_mode": None, "ins_vs_autopilot_heading_deg": None} for a, b in found]}
     n_m, e_m = ned_from_lla(g[:, 1], g[:, 2], g[0, 1], g[0, 2])
     pos_ned = np.c_[n_m, e_m, g[0, 3] - g[:, 3]]
     vel_ned = g[:, 4:7].copy()
@@ -254,7 +268,7 @@ def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float) -> 
     laws = {"field_feedback": InsGpsSettings(declination_deg=declination_deg),
             "open_loop": InsGpsSettings(declination_deg=declination_deg, field_feedback=False)}
     outages = []
-    for start, end in gps_outages(g[:, 0], float(imu[0, 0]), float(imu[-1, 0])):
+    for start, end in found:
         stop = (end if end is not None else float(imu[-1, 0])) + INS_TAIL_S
         pick = lambda a: a[(a[:, 0] >= start - INS_LEAD_S) & (a[:, 0] <= stop)]  # noqa: E731
         entry = {"start_s": _r(start, 2), "end_s": _r(end, 2),
@@ -350,7 +364,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "alarms": alarms,
         "first_alarm_s": combined[0]["start_s"] if combined else None,
         "interference_detected": bool(combined),
-        "navigation": _navigation(log, x["mag_cal"], ef.declination_deg if ef else 0.0),
+        "navigation": _navigation(log, x["mag_cal"], ef.declination_deg if ef else 0.0, x["imu_rate_hz"]),
         "detection": {
             "heading_sigma_deg": _r(det.heading_sigma_deg), "heading_threshold_deg": _r(settings.sigma_k * det.heading_sigma_deg),
             "learn_s": settings.learn_s, "path_threshold_m": settings.path_threshold_m,
@@ -395,7 +409,8 @@ def format_report(report: dict) -> str:
         cmp = "; ".join(f"{law.replace('_', ' ')} median {v['median']}°, max {v['max']}°"
                         for law, v in (o.get("ins_vs_autopilot_heading_deg") or {}).items() if v)
         lines.append(f"GPS outage {o['start_s']}–{o['end_s'] if o['end_s'] is not None else 'end'} s "
-                     f"({o['duration_s']} s): INS/GPS mode {o['ins_mode']}; heading vs autopilot: {cmp}")
+                     f"({o['duration_s']} s): " + (f"INS/GPS mode {o['ins_mode']}; heading vs autopilot: {cmp or 'n/a'}"
+                                                   if o["ins_mode"] else f"INS/GPS {nav.get('ins_gps')}"))
     comb = [a for a in report.get("alarms", []) if a["kind"] == "combined"]
     others = [a for a in report.get("alarms", []) if a["kind"] != "combined"]
     lines.append(f"interference detected: {'YES' if report.get('interference_detected') else 'no'}"

@@ -13,6 +13,8 @@ import pytest
 from groundstation.mavlink import mavlink2
 
 ARTIFACTS = Path(__file__).resolve().parent / "artifacts"
+# the real public logs: ../shared/data beside the checkout (tests that need them skip without)
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--use-gl=swiftshader", "--enable-unsafe-swiftshader",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync",

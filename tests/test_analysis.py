@@ -12,6 +12,7 @@ from groundstation.calibration_job import calibrate_log
 from groundstation.ingest import iter_samples, read_log
 from groundstation.samples import FlightLog
 from groundstation.simulate import simulate
+from conftest import SHARED_DATA
 
 SEED = 7
 REPORT_KEYS = {"file", "duration_s", "calibration", "declination_deg", "inclination_deg", "field_strength_mG",
@@ -174,8 +175,7 @@ def test_detector_batch_equals_per_sample_on_a_flight(slow, cal):
 
 def test_real_arducopter_telemetry_log():
     """Real ArduCopter flight at Canberra (dronekit example): telemetry-rate IMU (~3 Hz), no mission."""
-    from pathlib import Path
-    path = Path("/work/shared/data/dronekit/flight_replay_flight.tlog")
+    path = SHARED_DATA / "dronekit" / "flight_replay_flight.tlog"
     if not path.exists():
         pytest.skip("real log not available")
     report, cols = analyze_log(read_log(path))
@@ -230,3 +230,25 @@ def test_gps_outage_is_bridged_by_the_ins_gps_filter(tmp, cal, slow_report):
     assert hd["field_feedback"]["median"] < 4.0 and hd["field_feedback"]["max"] < 8.0
     assert "GPS outage" in format_report(report)
     assert slow_report[0]["navigation"]["gps_outages"] == []     # GPS all the way: nothing to bridge
+
+
+def test_gps_outages_need_the_imu_to_keep_streaming():
+    from groundstation.analysis import gps_outages
+    t_imu = np.arange(0.0, 100.0, 0.02)
+    t_gps = np.r_[np.arange(0.0, 30.0, 0.2), np.arange(50.0, 80.0, 0.2)]
+    # GPS lost 29.8-50 s with the IMU streaming, and gone for good from 79.8 s
+    assert gps_outages(t_gps, t_imu) == [(pytest.approx(29.8), pytest.approx(50.0)), (pytest.approx(79.8), None)]
+    # the same GPS gap inside a gap of all the data (telemetry dropout) is not an outage
+    dropout = t_imu[(t_imu < 31.0) | (t_imu > 49.0)]
+    assert gps_outages(t_gps, dropout[dropout < 80.0]) == []
+    assert gps_outages(np.array([]), t_imu) == []
+
+
+def test_real_tlog_telemetry_dropout_is_not_a_gps_outage():
+    """The dronekit ArduCopter tlog loses all telemetry for 19 s at 235 s (radio), not only GPS."""
+    path = SHARED_DATA / "dronekit" / "flight_replay_flight.tlog"
+    if not path.exists():
+        pytest.skip("real logs not available")
+    report, _ = analyze_log(read_log(path))
+    assert report["navigation"]["gps_outages"] == []
+    assert report["navigation"]["ins_gps"].startswith("off: IMU rate")    # telemetry-rate IMU

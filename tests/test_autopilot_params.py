@@ -1,7 +1,6 @@
 """ArduPilot / PX4 compass parameter conventions: export, apply with the autopilot's formula, round trip."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +12,8 @@ from groundstation.autopilot_params import (apply_ardupilot, apply_px4, ardupilo
                                             px4_rotation, px4_slot, rotation_enum_matrix, unapply_ardupilot,
                                             unapply_onboard_calibration, unapply_px4)
 
-PX4_LOGS = Path("/work/shared/data/px4-pyulog")
+from conftest import SHARED_DATA
+PX4_LOGS = SHARED_DATA / "px4-pyulog"
 
 
 def _sym(rng):

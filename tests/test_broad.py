@@ -6,18 +6,16 @@ navigation NED.  The optical ENU frame's north is not magnetic north, so heading
 after removing one constant offset.  Measured (2026-11): tilt error RMS 1.3°, max 3.2°;
 heading RMS 1.0°, max 3.9° for |pitch| < 70° (heading is undefined near ±90° pitch).
 """
-import pathlib
 
 import numpy as np
 import pytest
 
 from estimators.heading import run_heading_chain
 from estimators.rotations import wrap_angle_deg
+from conftest import SHARED_DATA
 
 h5py = pytest.importorskip("h5py")
-TRIAL = pathlib.Path("/work/shared/data/broad/02_undisturbed_slow_rotation_B.hdf5")
-if not TRIAL.exists():
-    TRIAL = pathlib.Path(__file__).resolve().parents[2] / "shared/data/broad/02_undisturbed_slow_rotation_B.hdf5"
+TRIAL = SHARED_DATA / "broad" / "02_undisturbed_slow_rotation_B.hdf5"
 
 
 def _dcm_from_quat(q):

@@ -19,9 +19,10 @@ from estimators.calibration import (RlsEllipsoidCalibrator, RlsGeneralEllipsoid,
 from estimators.geomag import earth_field
 from groundstation.calibration_job import calibrate_log, format_summary, write_param_file
 from groundstation.samples import FlightLog
+from conftest import SHARED_DATA
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = Path("/work/shared/data")
+DATA = SHARED_DATA
 F = 500.0
 
 

@@ -11,11 +11,10 @@ import groundstation  # noqa: F401
 from groundstation.ingest import IngestError, MavlinkDecoder, iter_samples, read_log
 from groundstation.mavlink import mavlink2 as m
 from groundstation.samples import ImuSample, MagSample
+from conftest import SHARED_DATA
 
 DATA = Path(__file__).parent / "data"
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
-if not SHARED.is_dir():  # CI clones main next to shared/
-    SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+SHARED = SHARED_DATA
 needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason="../shared/data not present")
 
 
