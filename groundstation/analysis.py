@@ -186,6 +186,8 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
         e = np.full(n, np.nan)
         heading_test = (f"off: IMU rate {imu_rate:.1f} Hz < {settings.min_imu_rate_hz:g} Hz"
                         if n else "off: no IMU data")
+    if not len(mag):
+        heading_test = field_test = "off: no magnetometer data in the log"
     strength = np.where(steep, np.nan, strength)
     incl = np.where(steep, np.nan, incl)
     if field_test != "on" or not n:

@@ -603,7 +603,9 @@ READERS: dict[str, Callable[[Path, Callable[[float], None] | None], FlightLog]] 
 
 def read_log(path: str | os.PathLike, progress: Callable[[float], None] | None = None) -> FlightLog:
     """Read any supported log into a FlightLog.  Raises IngestError with a one-line message
-    when nothing usable can be read (missing file, unknown type, no magnetometer at all)."""
+    when nothing usable can be read (missing file, unknown type, no readable messages).  A log
+    without magnetometer samples is returned (``info`` still describes it); the commands that
+    need the field say so."""
     path = Path(path)
     reader = READERS.get(path.suffix.lower())
     if reader is None:

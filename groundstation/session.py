@@ -601,6 +601,9 @@ class Session:
             if log.mission and len(log.mission) >= 2:
                 self.set_line(log.mission[0][:2], log.mission[-1][:2], "mission")
             self.event(f"replaying {path.name} ({replayer.duration_s:.0f} s) at x{speed:g}")
+            if not len(log.mag):
+                self.event(f"{path.name} has no magnetometer samples: no heading, calibration or "
+                           "interference tests for this log", level="warning")
             self._start_worker(self._run_replay, log)
             self._changed()
 

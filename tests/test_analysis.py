@@ -252,3 +252,13 @@ def test_real_tlog_telemetry_dropout_is_not_a_gps_outage():
     report, _ = analyze_log(read_log(path))
     assert report["navigation"]["gps_outages"] == []
     assert report["navigation"]["ins_gps"].startswith("off: IMU rate")    # telemetry-rate IMU
+
+
+def test_log_without_magnetometer_says_so(slow):
+    log = copy.copy(slow[1])
+    log.mag = np.zeros((0, 4))
+    report, columns = analyze_log(log)
+    assert report["heading_test"] == report["field_test"] == "off: no magnetometer data in the log"
+    # the path test alone never raises the combined alarm (it needs heading or field evidence)
+    assert report["path_test"] == "on" and report["interference_detected"] is False
+    assert len(columns["t_s"]) == len(log.imu)
