@@ -108,7 +108,7 @@ class InsGpsSettings:
     init_gyro_bias_sigma_rad_s: float = 0.005
     init_accel_bias_sigma_mps2: float = 0.1
     max_dt_s: float = 0.1                    # longer IMU gaps are not integrated
-    covariance_interval_s: float = 0.05      # error covariance propagated in blocks of this length
+    covariance_interval_s: float = 0.1       # error covariance propagated in blocks of this length
 
 
 @dataclass
@@ -174,9 +174,11 @@ class InsGpsFilter:
 
     # -- measurements -------------------------------------------------------------------------
     def update_mag(self, t_s: float, mag_body_mG) -> None:
-        m = _finite3(mag_body_mG)
+        self._set_mag(float(t_s), _finite3(mag_body_mG))
+
+    def _set_mag(self, t_s: float, m: np.ndarray | None) -> None:
         if m is not None and math.isfinite(t_s) and m @ m > 1.0:
-            self._mag, self._mag_t = m, float(t_s)
+            self._mag, self._mag_t = m, t_s
 
     def update_gps(self, t_s: float, pos_ned_m, vel_ned_mps) -> None:
         p = np.asarray(pos_ned_m, dtype=float)
@@ -261,15 +263,14 @@ class InsGpsFilter:
 
     def update_imu(self, t_s: float, gyro_rad_s, accel_mps2) -> InsGpsState:
         """One IMU step (gyro rad/s, specific force m/s², body FRD); returns the state after it."""
-        self._step(t_s, gyro_rad_s, accel_mps2)
+        self._step(float(t_s), _finite3(gyro_rad_s), _finite3(accel_mps2))
         return self.state()
 
-    def _step(self, t_s: float, gyro_rad_s, accel_mps2) -> None:
+    def _step(self, t_s: float, w_m: np.ndarray | None, f_m: np.ndarray | None) -> None:
+        """One IMU step with inputs already checked: finite 3-vectors or None."""
         s = self.s
-        w_m = _finite3(gyro_rad_s)
-        f_m = _finite3(accel_mps2)
         good_w, good_f = w_m is not None, f_m is not None
-        t = float(t_s) if math.isfinite(t_s) else None
+        t = t_s if math.isfinite(t_s) else None
         if t is None or (self.t is not None and t < self.t):
             return                                    # unusable time: no step
         dt = 0.0 if self.t is None else t - self.t
@@ -375,35 +376,40 @@ class InsGpsFilter:
 
 
 def run_ins_gps(imu: np.ndarray, gps_ned: np.ndarray, mag: np.ndarray,
-                settings: InsGpsSettings | None = None) -> InsGpsResult:
+                settings: InsGpsSettings | None = None, filt: InsGpsFilter | None = None) -> InsGpsResult:
     """Run ``InsGpsFilter`` over a whole log (per sample: the filter is sequential by nature).
 
     imu (N,7) [t, gx, gy, gz, ax, ay, az];  gps_ned (G,7) [t, pN, pE, pD m, vN, vE, vD m/s];
     mag (M,4) [t, mx, my, mz mG] calibrated.  Measurements with t equal to an IMU sample are
-    applied before it.  Returns arrays on the IMU time base.
+    applied before it.  Returns arrays on the IMU time base.  ``filt``: continue this filter
+    (it is advanced in place) instead of starting a new one with ``settings``.
     """
     imu = np.asarray(imu, dtype=float).reshape(-1, 7)
     gps_ned = np.asarray(gps_ned, dtype=float).reshape(-1, 7)
     mag = np.asarray(mag, dtype=float).reshape(-1, 4)
-    f = InsGpsFilter(settings)
-    events = ([(t, 0, i) for i, t in enumerate(mag[:, 0]) if np.isfinite(t)]
-              + [(t, 1, i) for i, t in enumerate(gps_ned[:, 0]) if np.isfinite(t)])
+    f = filt if filt is not None else InsGpsFilter(settings)
+    events = ([(t, 0, i) for i, t in enumerate(mag[:, 0].tolist()) if math.isfinite(t)]
+              + [(t, 1, i) for i, t in enumerate(gps_ned[:, 0].tolist()) if math.isfinite(t)])
     events.sort()
+    mag_ok = np.all(np.isfinite(mag[:, 1:4]), axis=1)       # input checks vectorised up front
+    gyro_ok = np.all(np.isfinite(imu[:, 1:4]), axis=1)
+    accel_ok = np.all(np.isfinite(imu[:, 4:7]), axis=1)
+    t_imu = imu[:, 0].tolist()
     n = len(imu)
     mode = np.zeros(n, dtype=int)
     dcm = np.zeros((n, 3, 3))
     vel, pos, bg, fld = (np.zeros((n, 3)) for _ in range(4))
     j = 0
     for i in range(n):
-        ti = imu[i, 0]
-        while np.isfinite(ti) and j < len(events) and events[j][0] <= ti:
-            _, kind, k = events[j]
+        ti = t_imu[i]
+        while j < len(events) and events[j][0] <= ti:
+            te, kind, k = events[j]
             if kind == 0:
-                f.update_mag(mag[k, 0], mag[k, 1:4])
+                f._set_mag(te, mag[k, 1:4].copy() if mag_ok[k] else None)
             else:
-                f.update_gps(gps_ned[k, 0], gps_ned[k, 1:4], gps_ned[k, 4:7])
+                f.update_gps(te, gps_ned[k, 1:4], gps_ned[k, 4:7])
             j += 1
-        f._step(ti, imu[i, 1:4], imu[i, 4:7])
+        f._step(ti, imu[i, 1:4].copy() if gyro_ok[i] else None, imu[i, 4:7].copy() if accel_ok[i] else None)
         mode[i], dcm[i], vel[i], pos[i], bg[i], fld[i] = f.mode, f.C, f.v, f.p, f.bg, f.field_ned
     roll, pitch, yaw = euler_from_dcm(dcm)
     return InsGpsResult(imu[:, 0].copy(), mode, roll, pitch, np.mod(yaw, 2 * np.pi), vel, pos, bg, fld)

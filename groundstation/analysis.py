@@ -14,7 +14,9 @@ FlightLog into arrays on one time base, looks up the WMM and formats the results
 """
 from __future__ import annotations
 
+import copy
 import csv
+import dataclasses
 import math
 import time
 from pathlib import Path
@@ -25,7 +27,7 @@ from estimators.detection import (DetectionSettings, InterferenceDetector, alarm
                                   detect, field_inclination_deg, ned_from_lla)
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import HeadingChain, run_heading_chain, split_velocity
-from estimators.ins_gps import MODE_NAMES, InsGpsSettings, run_ins_gps
+from estimators.ins_gps import MODE_NAMES, InsGpsFilter, InsGpsSettings, run_ins_gps
 from estimators.rotations import wrap_angle_rad
 
 from .autopilot_params import unapply_onboard_calibration
@@ -267,17 +269,22 @@ def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float, imu
             vel_ned[:, k] = np.where(np.isfinite(vel_ned[:, k]), vel_ned[:, k], np.gradient(pos_ned[:, k], g[:, 0]))
     gps_ned = np.c_[g[:, 0], pos_ned, vel_ned]
     att = np.asarray(log.attitude, dtype=float).reshape(-1, 4)
-    laws = {"field_feedback": InsGpsSettings(declination_deg=declination_deg),
-            "open_loop": InsGpsSettings(declination_deg=declination_deg, field_feedback=False)}
+    settings = InsGpsSettings(declination_deg=declination_deg)
     outages = []
     for start, end in found:
         stop = (end if end is not None else float(imu[-1, 0])) + INS_TAIL_S
-        pick = lambda a: a[(a[:, 0] >= start - INS_LEAD_S) & (a[:, 0] <= stop)]  # noqa: E731
         entry = {"start_s": _r(start, 2), "end_s": _r(end, 2),
                  "duration_s": _r((end if end is not None else float(imu[-1, 0])) - start, 2),
                  "ins_mode": None, "ins_vs_autopilot_heading_deg": {}}
-        for law, settings in laws.items():
-            res = run_ins_gps(pick(imu), pick(gps_ned), pick(mag_cal), settings)
+        # one run with GPS up to the outage, then two branches from the same state
+        lead = InsGpsFilter(settings)
+        before = lambda a: a[(a[:, 0] >= start - INS_LEAD_S) & (a[:, 0] <= start)]  # noqa: E731
+        after = lambda a: a[(a[:, 0] > start) & (a[:, 0] <= stop)]  # noqa: E731
+        run_ins_gps(before(imu), before(gps_ned), before(mag_cal), filt=lead)
+        for law in ("field_feedback", "open_loop"):
+            branch = copy.deepcopy(lead)
+            branch.s = dataclasses.replace(settings, field_feedback=law == "field_feedback")
+            res = run_ins_gps(after(imu), after(gps_ned), after(mag_cal), filt=branch)
             inside = (res.t_s > start + GPS_TIMEOUT_S) & (res.t_s < (end if end is not None else np.inf))
             if law == "field_feedback" and inside.any():
                 entry["ins_mode"] = MODE_NAMES[int(np.bincount(res.mode[inside]).argmax())]
