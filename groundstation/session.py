@@ -27,7 +27,7 @@ from estimators.heading import split_velocity
 
 from estimators.geomag import decimal_year_from_unix, earth_field
 
-from .analysis import LiveAnalyzer
+from .analysis import OUTAGE_MIN_S, LiveAnalyzer
 from .mavlink import mavlink2
 from .samples import finite_or_none
 from .samples import (AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, MissionSample,
@@ -457,6 +457,8 @@ class Session:
         self._last_hist_t = -math.inf
         self._param_waiters: dict[str, list] = {}
         self._primary: dict[str, int] = {}
+        self._last_fix_t: float | None = None
+        self._gps_lost = False
         self._log_mission: list | None = None
         self._start_unix_s: float | None = None
         self.log_calibration: dict | None = None
@@ -517,6 +519,8 @@ class Session:
         self.alarms = []
         self._primary: dict[str, int] = {}
         self.t_s = 0.0
+        self._last_fix_t: float | None = None     # last 3-D GPS fix (t_s), for outage events
+        self._gps_lost = False
 
     def connect(self, url: str) -> None:
         """Open a live link (pymavlink connection string) and record it to recordings/."""
@@ -764,6 +768,7 @@ class Session:
         det = self.stack.detector
         if det is not None and isinstance(s, ImuSample):
             self._alarm_update(bool(det.alarm_active), list(det.alarm_kinds or []), finite_or_none(det.peak))
+        self._watch_gps(s)
         if isinstance(s, GpsSample) and math.isfinite(s.lat_deg) and math.isfinite(s.lon_deg):
             if self.origin is None:
                 self.origin = (s.lat_deg, s.lon_deg) if self.stack.line is None else tuple(self.stack.line["a"])
@@ -774,6 +779,20 @@ class Session:
             st = self.stack
             self.history.append((s.t_s, st.heading_mag_deg, st.heading_att_deg, st.v_forward,
                                  st.v_lateral, st.cross_track_m))
+
+    def _watch_gps(self, s: Sample) -> None:
+        """Events when the 3-D GPS fix goes away while the IMU keeps streaming, and comes back
+        (the same rule as ``analyze``'s GPS outages)."""
+        if isinstance(s, GpsSample) and s.fix_type >= 3 and math.isfinite(s.lat_deg):
+            if self._gps_lost:
+                self.event(f"GPS fix back after {s.t_s - self._last_fix_t:.1f} s")
+                self._gps_lost = False
+            self._last_fix_t = s.t_s
+        elif (isinstance(s, ImuSample) and not self._gps_lost and self._last_fix_t is not None
+              and s.t_s - self._last_fix_t > OUTAGE_MIN_S):
+            self._gps_lost = True
+            self.event(f"GPS fix lost (last 3-D fix at {self._last_fix_t:.1f} s): the position and "
+                       "path-deviation test are stale", "warning")
 
     def _after_batch(self) -> None:
         """Wizard completion, once per batch."""

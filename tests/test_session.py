@@ -221,3 +221,20 @@ def test_station_reads_vehicle_params_on_link_up(tmp_path):
     finally:
         fv.stop()
         session.close()
+
+
+def test_gps_fix_lost_and_back_events(tmp_path):
+    from groundstation.samples import GpsSample, ImuSample
+    session = Session(tmp_path, record_live=False)
+    with session._lock:
+        for k in range(1000):                         # 20 s at 50 Hz; GPS at 5 Hz except 6-14 s
+            t = k * 0.02
+            session._process(ImuSample(t, (0.0, 0.0, 0.0), (0.0, 0.0, -9.81)))
+            if k % 10 == 0 and not 6.0 < t < 14.0:
+                session._process(GpsSample(t, 30.26, 120.12, 20.0, (0.0, 0.0, 0.0), 6))
+    texts = [e["text"] for e in session.events]
+    lost = [x for x in texts if x.startswith("GPS fix lost")]
+    back = [x for x in texts if x.startswith("GPS fix back")]
+    assert len(lost) == 1 and "last 3-D fix at 6.0 s" in lost[0]
+    assert len(back) == 1 and "after 8.0 s" in back[0]
+    session.close()
