@@ -89,6 +89,9 @@ def test_replayed_interference_shows_alarm_and_red_route(station, page, artifact
     page.wait_for_selector("#alarm-banner.alarm", timeout=10_000)
     banner = page.locator("#alarm-banner").inner_text()
     assert "ALARM" in banner
+    # a mission log without a calibration dance: the page says the headings are uncorrected
+    assert not httpx.get(station.url + "/api/state").json()["calibration_in_use"]
+    assert page.locator("#v-cal").inner_text().startswith("none")
     deadline = time.monotonic() + 5
     while station.scene.red_segments == 0 and time.monotonic() < deadline:
         time.sleep(0.1)

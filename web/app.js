@@ -19,6 +19,7 @@ function render(s) {
   $("v-vel").textContent = fmt(v.v_forward_mps, 2, " m/s") + " / " + fmt(v.v_lateral_mps, 2, " m/s");
   $("v-xt").textContent = fmt(v.cross_track_m, 2, " m");
   $("v-field").textContent = fmt(v.field_mG, 0, " mG");
+  $("v-cal").textContent = s.calibration_in_use ? "in use" : "none: headings from the uncorrected field";
   $("v-pos").textContent = v.lat_deg === null ? "—" : fmt(v.lat_deg, 6) + ", " + fmt(v.lon_deg, 6) + " / fix " + v.fix_type;
   const r = s.replay;
   $("replay-controls").hidden = !r;
