@@ -269,6 +269,7 @@ def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float, imu
             vel_ned[:, k] = np.where(np.isfinite(vel_ned[:, k]), vel_ned[:, k], np.gradient(pos_ned[:, k], g[:, 0]))
     gps_ned = np.c_[g[:, 0], pos_ned, vel_ned]
     att = np.asarray(log.attitude, dtype=float).reshape(-1, 4)
+    battery = np.asarray(log.battery, dtype=float).reshape(-1, 2)   # motor current: motor-field states
     settings = InsGpsSettings(declination_deg=declination_deg)
     outages = []
     for start, end in found:
@@ -280,11 +281,11 @@ def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float, imu
         lead = InsGpsFilter(settings)
         before = lambda a: a[(a[:, 0] >= start - INS_LEAD_S) & (a[:, 0] <= start)]  # noqa: E731
         after = lambda a: a[(a[:, 0] > start) & (a[:, 0] <= stop)]  # noqa: E731
-        run_ins_gps(before(imu), before(gps_ned), before(mag_cal), filt=lead)
+        run_ins_gps(before(imu), before(gps_ned), before(mag_cal), filt=lead, current=before(battery))
         for law in ("field_feedback", "open_loop"):
             branch = copy.deepcopy(lead)
             branch.s = dataclasses.replace(settings, field_feedback=law == "field_feedback")
-            res = run_ins_gps(after(imu), after(gps_ned), after(mag_cal), filt=branch)
+            res = run_ins_gps(after(imu), after(gps_ned), after(mag_cal), filt=branch, current=after(battery))
             inside = (res.t_s > start + GPS_TIMEOUT_S) & (res.t_s < (end if end is not None else np.inf))
             if law == "field_feedback" and inside.any():
                 entry["ins_mode"] = MODE_NAMES[int(np.bincount(res.mode[inside]).argmax())]

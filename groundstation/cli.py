@@ -56,7 +56,8 @@ def cmd_info(args: argparse.Namespace) -> int:
     from .ingest import summarize_rates
 
     log = load_log(args.file)
-    tables = {"magnetometer": log.mag, "IMU": log.imu, "attitude": log.attitude, "GPS": log.gps}
+    tables = {"magnetometer": log.mag, "IMU": log.imu, "attitude": log.attitude, "GPS": log.gps,
+              "battery current": log.battery}
     print(f"{args.file}")
     print(f"  duration        {log.duration_s:.1f} s")
     print(f"  autopilot       {log.autopilot or 'unknown'}")

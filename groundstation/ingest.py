@@ -23,7 +23,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from .mavlink import mavlink2
-from .samples import (AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, MissionSample,
+from .samples import (AttitudeSample, BatterySample, FlightLog, GpsSample, ImuSample, MagSample, MissionSample,
                       ParamSample, Sample, StatusSample)
 
 G_MPS2 = 9.80665
@@ -116,6 +116,7 @@ class MavlinkDecoder:
                 "mag_cal_report", lambda m: f"compass {m.compass_id}: status {m.cal_status}, "
                                             f"fitness {m.fitness:.1f}"),
             "SYSTEM_TIME": self._system_time,
+            "SYS_STATUS": self._sys_status,
         }
 
     def _t(self, msg, arrival_s: float) -> float:
@@ -230,6 +231,12 @@ class MavlinkDecoder:
     def _status(kind: str, text: Callable) -> Callable:
         return lambda msg, t: [StatusSample(t, kind, str(text(msg)))]
 
+    def _sys_status(self, msg, t: float) -> list[Sample]:
+        """current_battery is in cA (10 mA); -1 means the autopilot does not measure it."""
+        if msg.current_battery < 0:
+            return []
+        return [BatterySample(t, msg.current_battery * 0.01)]
+
     def _system_time(self, msg, t: float) -> list[Sample]:
         if self.start_unix_s is None and msg.time_unix_usec > 1e15:
             self.start_unix_s = msg.time_unix_usec * 1e-6 - t
@@ -251,7 +258,7 @@ class _LogBuilder:
 
     def __init__(self, source: str) -> None:
         self.log = FlightLog(source=source)
-        self.rows: dict[str, list] = {"mag": [], "imu": [], "attitude": [], "gps": []}
+        self.rows: dict[str, list] = {"mag": [], "imu": [], "attitude": [], "gps": [], "battery": []}
         self.mission: dict[int, tuple[float, float, float]] = {}
 
     def add(self, s: Sample) -> None:
@@ -263,6 +270,8 @@ class _LogBuilder:
             self.rows["attitude"].append((s.t_s, s.roll_rad, s.pitch_rad, s.yaw_rad))
         elif isinstance(s, GpsSample):
             self.rows["gps"].append((s.t_s, s.lat_deg, s.lon_deg, s.alt_m, *s.vel_ned_mps, s.fix_type))
+        elif isinstance(s, BatterySample):
+            self.rows["battery"].append((s.t_s, s.current_A))
         elif isinstance(s, ParamSample):
             self.log.params[s.name] = s.value
         elif isinstance(s, MissionSample):
@@ -276,8 +285,8 @@ class _LogBuilder:
         log = self.log
         tables = {"mag": _primary_instance(np.asarray(self.rows["mag"], dtype=float).reshape(-1, 5)),
                   "imu": _primary_instance(np.asarray(self.rows["imu"], dtype=float).reshape(-1, 8)),
-                  "attitude": self.rows["attitude"], "gps": self.rows["gps"]}
-        widths = {"mag": 4, "imu": 7, "attitude": 4, "gps": 8}
+                  "attitude": self.rows["attitude"], "gps": self.rows["gps"], "battery": self.rows["battery"]}
+        widths = {"mag": 4, "imu": 7, "attitude": 4, "gps": 8, "battery": 2}
         for name, rows in tables.items():
             arr = np.asarray(rows, dtype=float).reshape(-1, widths[name])
             setattr(log, name, _clean_table(arr, name, log.warnings))
@@ -444,7 +453,7 @@ def _read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Fli
     log.autopilot = "ardupilot"
     t0_us: float | None = None
     gps_week_ms: tuple[float, float, float] | None = None
-    wanted = {"MAG", "MAG2", "MAG3", "IMU", "ATT", "GPS", "PARM", "CMD"}
+    wanted = {"MAG", "MAG2", "MAG3", "IMU", "ATT", "GPS", "PARM", "CMD", "BAT"}
     while True:
         try:
             m = reader.recv_match(type=wanted)
@@ -484,6 +493,8 @@ def _read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Fli
                     gps_week_ms = (m.GWk, m.GMS, t)
             elif mtype == "CMD" and m.CId == MAV_CMD_NAV_WAYPOINT:
                 builder.add(MissionSample(t, int(m.CNum), m.Lat, m.Lng, m.Alt))
+            elif mtype == "BAT" and int(getattr(m, "Inst", getattr(m, "Instance", 0))) == 0:
+                builder.add(BatterySample(t, float(m.Curr)))          # A
         except (AttributeError, TypeError, ValueError) as err:
             log.warnings[f"undecodable {mtype}: {type(err).__name__}"] += 1
         if progress is not None and sum(log.message_counts.values()) % 20000 == 0:
@@ -538,6 +549,10 @@ def _read_ulog(path: Path, progress: Callable[[float], None] | None) -> FlightLo
     if imu is not None:
         log.imu = np.column_stack([tcol(imu)] + [imu[f"gyro_rad[{i}]"] for i in range(3)]
                                   + [imu[f"accelerometer_m_s2[{i}]"] for i in range(3)])
+    bat = _ulog_table(ulog, "battery_status")
+    if bat is not None and "current_a" in bat:
+        table = np.column_stack([tcol(bat), bat["current_a"]]).astype(float)
+        log.battery = table[table[:, 1] >= 0]       # -1: not measured
     att = _ulog_table(ulog, "vehicle_attitude")
     if att is not None:
         w, x, y, z = (att[f"q[{i}]"].astype(float) for i in range(4))
@@ -560,7 +575,7 @@ def _read_ulog(path: Path, progress: Callable[[float], None] | None) -> FlightLo
         if utc is not None and np.any(utc > 1e15):
             i = int(np.argmax(utc > 1e15))
             log.start_unix_s = float(utc[i]) * 1e-6 - float(tcol(gps)[i])
-    for name in ("mag", "imu", "attitude", "gps"):
+    for name in ("mag", "imu", "attitude", "gps", "battery"):
         setattr(log, name, _clean_table(getattr(log, name), name, log.warnings))
     return log
 

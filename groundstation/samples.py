@@ -71,6 +71,14 @@ class MissionSample:
 
 
 @dataclass(slots=True)
+class BatterySample:
+    """Battery current [A] (SYS_STATUS current_battery): the motor current, whose magnetic field
+    the magnetometer sees."""
+    t_s: float
+    current_A: float
+
+
+@dataclass(slots=True)
 class StatusSample:
     """Anything else worth showing: HEARTBEAT autopilot, STATUSTEXT, MAG_CAL_* ..."""
     t_s: float
@@ -78,7 +86,8 @@ class StatusSample:
     text: str
 
 
-Sample = Union[MagSample, ImuSample, AttitudeSample, GpsSample, ParamSample, MissionSample, StatusSample]
+Sample = Union[MagSample, ImuSample, AttitudeSample, GpsSample, BatterySample, ParamSample, MissionSample,
+               StatusSample]
 
 
 def finite_or_none(x) -> float | None:
@@ -104,12 +113,14 @@ class FlightLog:
       imu:       [t_s, gx, gy, gz rad/s, ax, ay, az m/s^2]  (primary instance only)
       attitude:  [t_s, roll_rad, pitch_rad, yaw_rad]
       gps:       [t_s, lat_deg, lon_deg, alt_m, vn, ve, vd m/s, fix_type]
+      battery:   [t_s, current_A]
     """
     source: str
     mag: np.ndarray = field(default_factory=lambda: _empty(4))
     imu: np.ndarray = field(default_factory=lambda: _empty(7))
     attitude: np.ndarray = field(default_factory=lambda: _empty(4))
     gps: np.ndarray = field(default_factory=lambda: _empty(8))
+    battery: np.ndarray = field(default_factory=lambda: _empty(2))
     params: dict[str, float] = field(default_factory=dict)
     mission: list[tuple[float, float, float]] = field(default_factory=list)  # (lat, lon, alt)
     start_unix_s: float | None = None   # wall-clock time of t_s = 0 when known (WMM date)

@@ -284,6 +284,10 @@ def _pack(cfg: fs.SimConfig, r: fs.SimResult, start_unix: float, boot_offset: fl
         out.append((u + 2e-4, _M.MAVLink_attitude_message(
             int(boot_ms[i]), float(r.est_roll_rad[i]), float(r.est_pitch_rad[i]), float(yaw_est[i]),
             float(est_rate[i, 0]), float(est_rate[i, 1]), float(est_rate[i, 2]))))
+    # 10 Hz SYS_STATUS: battery voltage and the motor current (cA), whose field the compass sees
+    for i in range(0, n, max(1, int(round(cfg.rate_hz / 10.0)))):
+        out.append((start_unix + t[i] + 3e-4, _M.MAVLink_sys_status_message(
+            0, 0, 0, 300, 15200, int(round(r.motor_current_A[i] * 100.0)), 70, 0, 0, 0, 0, 0, 0)))
     # GPS rows (GPS_RAW_INT + GLOBAL_POSITION_INT)
     gi = r.gps_idx
     glat, glon = fs.lla_from_ned(r.gps_pos_ned_m[:, 0], r.gps_pos_ned_m[:, 1], lat0, lon0)

@@ -10,7 +10,7 @@ import pytest
 import groundstation  # noqa: F401
 from groundstation.ingest import IngestError, MavlinkDecoder, iter_samples, read_log
 from groundstation.mavlink import mavlink2 as m
-from groundstation.samples import ImuSample, MagSample
+from groundstation.samples import BatterySample, ImuSample, MagSample
 from conftest import SHARED_DATA
 
 DATA = Path(__file__).parent / "data"
@@ -158,6 +158,15 @@ def test_global_position_int_only_when_gps_raw_int_is_absent():
     assert dec.decode(pos, 1.2) == []  # raw GPS is preferred while it flows
 
 
+def test_sys_status_battery_current_in_amps():
+    dec = MavlinkDecoder()
+    status = m.MAVLink_sys_status_message(0, 0, 0, 300, 15200, 1234, 70, 0, 0, 0, 0, 0, 0)
+    [got] = dec.decode(status, 2.0)
+    assert isinstance(got, BatterySample) and got.current_A == pytest.approx(12.34) and got.t_s == 2.0
+    unmeasured = m.MAVLink_sys_status_message(0, 0, 0, 300, 15200, -1, 70, 0, 0, 0, 0, 0, 0)
+    assert dec.decode(unmeasured, 3.0) == []
+
+
 def test_iter_samples_is_time_ordered_and_complete():
     log = read_log(DATA / "reference.tlog")
     samples = list(iter_samples(log))
@@ -177,6 +186,9 @@ def test_real_arducopter_tlog_with_radio_corruption():
     assert 400 < np.median(strength) < 750
     assert abs(np.median(log.gps[:, 1]) + 35.36) < 0.1 and abs(np.median(log.gps[:, 2]) - 149.16) < 0.1
     assert "COMPASS_OFS_X" in log.params
+    # SYS_STATUS current: ~0.4 A on the ground, ~17 A hovering
+    assert len(log.battery) > 2000
+    assert np.percentile(log.battery[:, 1], 5) < 1.0 and log.battery[:, 1].max() > 10.0
 
 
 @needs_shared
