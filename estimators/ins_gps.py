@@ -191,7 +191,6 @@ class InsGpsFilter:
         self._mag_t = -np.inf
         self._mag_used_t = -np.inf
         self._gps_t = -np.inf
-        self._gps_pending = None
         self._attitude_ok = False
         self._nav_ok = False
         self._cov_dt, self._cov_f_dt, self._cov_q_dt2 = 0.0, np.zeros(3), 0.0
@@ -209,9 +208,13 @@ class InsGpsFilter:
         if math.isfinite(t_s) and math.isfinite(current_A) and current_A >= 0.0:
             self._current_A, self._current_t = float(current_A), float(t_s)
 
+    def _held_current(self) -> float | None:
+        """The battery current at the latest magnetometer sample, None when there is none recent."""
+        return self._current_A if self._mag_t - self._current_t <= self.s.current_timeout_s else None
+
     def _mag_bias(self) -> np.ndarray:
         """Body-frame field that is not the Earth's: d^b + c·I (zero when not estimated)."""
-        current = self._current_A if self._mag_t - self._current_t <= self.s.current_timeout_s else None
+        current = self._held_current()
         return self.body_field + (self.motor_field * current if current is not None else 0.0)
 
     def update_gps(self, t_s: float, pos_ned_m, vel_ned_mps) -> None:
@@ -262,33 +265,30 @@ class InsGpsFilter:
         H[0:3, 6:9] = np.eye(3)
         H[3:6, 3:6] = np.eye(3)
         R = np.diag([s.gps_pos_sigma_m ** 2] * 3 + [s.gps_vel_sigma_mps ** 2] * 3)
-        z = np.r_[p_meas - self.p, v_meas - self.v]
-        self._propagate_covariance()
-        PHt = self.P @ H.T
-        S = H @ PHt + R
-        K = np.linalg.solve(S, PHt.T).T
-        self._correct(K, H, R, z)
+        self._update(H, R, np.r_[p_meas - self.p, v_meas - self.v])
 
     def _kalman_mag(self, field_is_setpoint: bool = False) -> None:
-        """Magnetometer update: z = H_m − Ĉᵀ Ĥ^n = Ĉᵀ[Ĥ^n×] ψ + Ĉᵀ δH^n.  While GPS is good the
-        field states are estimated; in an outage (``field_is_setpoint``) Ĥ^n is held fixed."""
+        """Magnetometer update: z = H_m − Ĉᵀ Ĥ^n − d^b − c·I = Ĉᵀ[Ĥ^n×] ψ + Ĉᵀ δH^n + δd^b + I δc.
+        While GPS is good the field states are estimated; in an outage (``field_is_setpoint``)
+        Ĥ^n is held fixed."""
         H = np.zeros((3, NX))
         Ct = self.C.T
         H[:, 0:3] = Ct @ skew(self.field_ned)
         if not field_is_setpoint:
             H[:, 15:18] = Ct
         H[:, 18:21] = np.eye(3)
-        current = self._current_A if self._mag_t - self._current_t <= self.s.current_timeout_s else None
+        current = self._held_current()
         if current is not None:
             H[:, 21:24] = np.eye(3) * current
         R = np.eye(3) * self.s.mag_sigma_mG ** 2
-        z = self._mag - Ct @ self.field_ned - self._mag_bias()
+        self._update(H, R, self._mag - Ct @ self.field_ned - self._mag_bias())
+
+    def _update(self, H: np.ndarray, R: np.ndarray, z: np.ndarray) -> None:
+        """Kalman measurement update z = H δx + v, v ~ N(0, R), on the covariance propagated up to
+        now; the estimated error δx is folded into the nominal state."""
         self._propagate_covariance()
         PHt = self.P @ H.T
         K = np.linalg.solve(H @ PHt + R, PHt.T).T
-        self._correct(K, H, R, z)
-
-    def _correct(self, K, H, R, z) -> None:
         dx = K @ z
         IKH = self._eye - K @ H
         self.P = IKH @ self.P @ IKH.T + K @ R @ K.T     # Joseph form
