@@ -30,8 +30,9 @@ from estimators.heading import HeadingChain, run_heading_chain, split_velocity
 from estimators.ins_gps import MODE_NAMES, InsGpsFilter, InsGpsSettings, run_ins_gps
 from estimators.rotations import wrap_angle_rad
 
-from .autopilot_params import unapply_onboard_calibration
-from .samples import AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, ParamSample, StatusSample
+from .autopilot_params import ardupilot_never_calibrated, unapply_onboard_calibration
+from .samples import (AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, ParamSample, StatusSample,
+                      finite_or_none)
 
 __all__ = ["analyze_log", "detection_inputs", "write_csv", "format_report", "LiveAnalyzer", "CSV_COLUMNS", "mission_legs"]
 
@@ -112,11 +113,7 @@ def _field_reference(log: FlightLog):
 def _uncalibrated(log: FlightLog) -> bool:
     """The log's field is the raw sensor output: raw samples (PX4 sensor_mag), or ArduPilot with
     COMPASS_OFS_* all zero (never calibrated; a calibrated compass has non-zero offsets)."""
-    if getattr(log, "mag_calibration_applied", None) is False:
-        return True
-    p = log.params
-    ofs = [p.get(f"COMPASS_OFS_{a}") for a in "XYZ"]
-    return all(v is not None for v in ofs) and all(v == 0.0 for v in ofs)
+    return getattr(log, "mag_calibration_applied", None) is False or ardupilot_never_calibrated(log.params)
 
 
 def _too_steep(roll_rad, pitch_rad, settings: DetectionSettings):
@@ -131,10 +128,8 @@ def _rotation_rate(gyro_rad_s: np.ndarray) -> np.ndarray:
 
 
 def _r(x, nd=3):
-    if x is None:
-        return None
-    x = float(x)
-    return round(x, nd) if math.isfinite(x) else None
+    v = finite_or_none(x)
+    return None if v is None else round(v, nd)
 
 
 # ------------------------------------------------------------------------------ batch
@@ -239,7 +234,8 @@ def gps_outages(t_gps_fix: np.ndarray, t_imu: np.ndarray) -> list[tuple[float, f
     return out
 
 
-def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float, imu_rate_hz: float) -> dict:
+def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float, imu_rate_hz: float,
+                settings: DetectionSettings) -> dict:
     """GPS outages and what the seed-003 INS/GPS filter made of each: it runs from INS_LEAD_S
     before the outage (to learn gyro biases and the Earth field with GPS) through the outage to
     INS_TAIL_S after it, once holding the attitude with field-vector feedback and once open loop
@@ -254,13 +250,15 @@ def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float, imu
         return {"ins_gps": "off: " + ("no IMU data" if not len(imu) else "no 3-D GPS fix in the log"),
                 "gps_outages": []}
     g = g[good]
+    t_last = float(imu[-1, 0])
     found = gps_outages(g[:, 0], imu[:, 0])
-    min_rate = DetectionSettings().min_imu_rate_hz
-    if imu_rate_hz < min_rate:      # telemetry-rate IMU: strapdown integration is meaningless
-        return {"ins_gps": f"off: IMU rate {imu_rate_hz:.1f} Hz < {min_rate:g} Hz",
-                "gps_outages": [{"start_s": _r(a, 2), "end_s": _r(b, 2),
-                                 "duration_s": _r((b if b is not None else float(imu[-1, 0])) - a, 2),
-                                 "ins_mode": None, "ins_vs_autopilot_heading_deg": None} for a, b in found]}
+    outages = [{"start_s": _r(start, 2), "end_s": _r(end, 2),
+                "duration_s": _r((end if end is not None else t_last) - start, 2),
+                "ins_mode": None, "ins_vs_autopilot_heading_deg": None}
+               for start, end in found]
+    if imu_rate_hz < settings.min_imu_rate_hz:   # telemetry-rate IMU: strapdown integration is meaningless
+        return {"ins_gps": f"off: IMU rate {imu_rate_hz:.1f} Hz < {settings.min_imu_rate_hz:g} Hz",
+                "gps_outages": outages}
     n_m, e_m = ned_from_lla(g[:, 1], g[:, 2], g[0, 1], g[0, 2])
     pos_ned = np.c_[n_m, e_m, g[0, 3] - g[:, 3]]
     vel_ned = g[:, 4:7].copy()
@@ -270,21 +268,18 @@ def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float, imu
     gps_ned = np.c_[g[:, 0], pos_ned, vel_ned]
     att = np.asarray(log.attitude, dtype=float).reshape(-1, 4)
     battery = np.asarray(log.battery, dtype=float).reshape(-1, 2)   # motor current: motor-field states
-    settings = InsGpsSettings(declination_deg=declination_deg)
-    outages = []
-    for start, end in found:
-        stop = (end if end is not None else float(imu[-1, 0])) + INS_TAIL_S
-        entry = {"start_s": _r(start, 2), "end_s": _r(end, 2),
-                 "duration_s": _r((end if end is not None else float(imu[-1, 0])) - start, 2),
-                 "ins_mode": None, "ins_vs_autopilot_heading_deg": {}}
+    ins_settings = InsGpsSettings(declination_deg=declination_deg)
+    for entry, (start, end) in zip(outages, found):
+        stop = (end if end is not None else t_last) + INS_TAIL_S
+        entry["ins_vs_autopilot_heading_deg"] = {}
         # one run with GPS up to the outage, then two branches from the same state
-        lead = InsGpsFilter(settings)
+        lead = InsGpsFilter(ins_settings)
         before = lambda a: a[(a[:, 0] >= start - INS_LEAD_S) & (a[:, 0] <= start)]  # noqa: E731
         after = lambda a: a[(a[:, 0] > start) & (a[:, 0] <= stop)]  # noqa: E731
         run_ins_gps(before(imu), before(gps_ned), before(mag_cal), filt=lead, current=before(battery))
         for law in ("field_feedback", "open_loop"):
             branch = copy.deepcopy(lead)
-            branch.s = dataclasses.replace(settings, field_feedback=law == "field_feedback")
+            branch.s = dataclasses.replace(ins_settings, field_feedback=law == "field_feedback")
             res = run_ins_gps(after(imu), after(gps_ned), after(mag_cal), filt=branch, current=after(battery))
             inside = (res.t_s > start + GPS_TIMEOUT_S) & (res.t_s < (end if end is not None else np.inf))
             if law == "field_feedback" and inside.any():
@@ -294,7 +289,6 @@ def _navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float, imu
             entry["ins_vs_autopilot_heading_deg"][law] = (
                 {"median": _r(np.nanmedian(diff), 2), "max": _r(np.nanmax(diff), 2)}
                 if np.isfinite(diff).any() else None)
-        outages.append(entry)
     return {"ins_gps": "on: seed-003 INS/GPS over each outage (field-vector feedback and open loop)",
             "gps_outages": outages}
 
@@ -374,7 +368,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "alarms": alarms,
         "first_alarm_s": combined[0]["start_s"] if combined else None,
         "interference_detected": bool(combined),
-        "navigation": _navigation(log, x["mag_cal"], ef.declination_deg if ef else 0.0, x["imu_rate_hz"]),
+        "navigation": _navigation(log, x["mag_cal"], ef.declination_deg if ef else 0.0, x["imu_rate_hz"], settings),
         "detection": {
             "heading_sigma_deg": _r(det.heading_sigma_deg), "heading_threshold_deg": _r(settings.sigma_k * det.heading_sigma_deg),
             "learn_s": settings.learn_s, "path_threshold_m": settings.path_threshold_m,

@@ -68,6 +68,13 @@ def detect_autopilot(params: dict[str, float]) -> str | None:
 
 # ------------------------------------------------------------------------------------ ArduPilot
 
+def ardupilot_never_calibrated(params: dict[str, float]) -> bool:
+    """COMPASS_OFS_X/Y/Z all present and 0: the compass was never calibrated (a calibrated one
+    has non-zero offsets), so ArduPilot's 'corrected' field is the raw sensor output."""
+    ofs = [params.get(f"COMPASS_OFS_{a}") for a in "XYZ"]
+    return all(v is not None and v == 0.0 for v in ofs)
+
+
 def ardupilot_matrix(params: dict[str, float], instance: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
     """(OFS mG, M, SCALE) of compass ``instance`` (0 = COMPASS_OFS_*, 1 = COMPASS_OFS2_* ...)."""
     n = "" if instance == 0 else str(instance + 1)

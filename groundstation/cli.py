@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator
 
+from .autopilot_params import ardupilot_never_calibrated
 from .ingest import IngestError, read_log
 from .samples import FlightLog
 
@@ -69,10 +70,9 @@ def cmd_info(args: argparse.Namespace) -> int:
         else:
             print(f"  {name:<15} none")
     if len(log.mag) and log.mag_calibration_applied is not None:
-        ofs = [log.params.get(f"COMPASS_OFS_{axis}") for axis in "XYZ"]
         if not log.mag_calibration_applied:
             state = "raw sensor output"
-        elif all(v == 0.0 for v in ofs):
+        elif ardupilot_never_calibrated(log.params):
             state = "corrected by the autopilot, but COMPASS_OFS_* are 0 (never calibrated)"
         else:
             state = "already calibrated by the autopilot"
