@@ -47,11 +47,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimators.calibration import (RlsEllipsoidCalibrator, RlsGeneralEllipsoid, apply_calibration,  # noqa: E402
                                     combine_calibration, estimate_misalignment,
-                                    fit_ellipse_2d, fit_ellipsoid_robust, random_rotation,
+                                    fit_ellipse_2d, fit_ellipsoid_robust,
                                     refine_seed000_batch, seed000_solve_batch)
 from estimators.geomag import earth_field  # noqa: E402
 from estimators.heading import tilt_compensated_heading_rad  # noqa: E402
 from estimators.rotations import dcm_body_to_ned, wrap_angle_deg  # noqa: E402
+from groundstation.sim.truth import random_rotation  # noqa: E402
 
 try:
     from tqdm import tqdm

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from groundstation.analysis import analyze_log  # noqa: E402
 from groundstation.calibration_job import calibrate_log  # noqa: E402
 from groundstation.ingest import read_log  # noqa: E402
-from groundstation.simulate import simulate  # noqa: E402
+from groundstation.sim.scenarios import simulate  # noqa: E402
 
 SEED_TABLE1 = {"threshold": [63.23 - 60.79, 60.22 - 56.29, 63.10 - 59.51, 61.10 - 57.26, 61.64 - 59.13],
                "path": [76.33 - 60.79, 67.76 - 56.29, 71.32 - 59.51, 70.11 - 57.26, 66.23 - 59.13]}

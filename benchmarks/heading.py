@@ -32,8 +32,8 @@ from estimators.calibration import RlsEllipsoidCalibrator, apply_calibration  # 
 from estimators.geomag import earth_field  # noqa: E402
 from estimators.heading import HeadingChain, run_heading_chain  # noqa: E402
 from estimators.rotations import wrap_angle_deg  # noqa: E402
-from estimators.ins_gps import (InsGpsSettings, attitude_errors_deg, run_ins_gps,  # noqa: E402
-                                simulate_manoeuvring_flight)
+from estimators.ins_gps import InsGpsSettings, attitude_errors_deg, run_ins_gps  # noqa: E402
+from groundstation.sim.truth import simulate_manoeuvring_flight  # noqa: E402
 
 G = 9.80665
 

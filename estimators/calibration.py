@@ -29,7 +29,6 @@ Contents
   M_cal = C_total · (M_0 − M_b).
 * ``fit_ellipse_2d`` — the horizontal-plane 2-D ellipse baseline of seed 000 table 1 (benchmark only).
 * Quality: ``sphere_coverage``, ``rotation_progress_deg``, ``planarity_ratio``.
-* ``simulate_ellipsoid_samples`` — minimal generator of raw samples with known A and b (tests, benchmark).
 
 Units: field in mG (any consistent unit works), angles rad unless the name says deg.
 Frames: NED navigation, FRD body.  Pure numpy, no I/O.
@@ -48,7 +47,7 @@ __all__ = [
     "MisalignmentFit", "estimate_misalignment", "combine_calibration",
     "apply_calibration", "polar_decomposition",
     "fit_ellipse_2d", "sphere_coverage", "coverage_cells", "rotation_progress_deg",
-    "planarity_ratio", "simulate_ellipsoid_samples", "random_rotation",
+    "planarity_ratio",
 ]
 
 
@@ -577,31 +576,3 @@ def planarity_ratio(mag_raw_mG: np.ndarray) -> float:
 # ---------------------------------------------------------------------------------------------
 # Simulation helper (tests / benchmark)
 # ---------------------------------------------------------------------------------------------
-
-def random_rotation(rng: np.random.Generator, max_angle_rad: float | None = None) -> np.ndarray:
-    """Uniform random rotation, or a random axis with angle U[0, max_angle_rad]."""
-    if max_angle_rad is None:
-        q = rng.normal(size=4)
-        q /= np.linalg.norm(q)
-        w, x, y, z = q
-        return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    return rotation_from_vector_rad(axis * rng.uniform(0, max_angle_rad))
-
-
-def simulate_ellipsoid_samples(n: int, field_strength_mG: float, offsets_mG: np.ndarray, A: np.ndarray,
-                               noise_sigma_mG: float, rng: np.random.Generator,
-                               directions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Raw samples m_raw = A·m_body + b + noise with m_body = F·u, u uniform on the sphere
-    (or the given unit ``directions`` (n, 3)).  Returns (m_raw (n, 3), m_body (n, 3))."""
-    if directions is None:
-        u = rng.normal(size=(n, 3))
-        u /= np.linalg.norm(u, axis=1, keepdims=True)
-    else:
-        u = np.asarray(directions, float)
-    body = field_strength_mG * u
-    raw = body @ np.asarray(A, float).T + np.asarray(offsets_mG, float) + rng.normal(scale=noise_sigma_mG, size=body.shape)
-    return raw, body

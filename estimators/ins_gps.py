@@ -57,7 +57,6 @@ corrupt it and the high inclination magnifies that into heading (benchmarks/head
 
 Mode per step: 0 = initialising, 1 = GPS (Kalman), 2 = field-vector feedback, 3 = open loop.
 Pure numpy; units m, m/s, m/s^2, rad, rad/s, mG; body FRD, navigation NED.
-``simulate_manoeuvring_flight`` is a small self-contained truth generator for tests/benchmarks.
 """
 from __future__ import annotations
 
@@ -72,7 +71,7 @@ from estimators.heading import tilt_compensated_heading_rad
 
 __all__ = ["InsGpsSettings", "InsGpsFilter", "InsGpsState", "InsGpsResult", "run_ins_gps",
            "MODE_INIT", "MODE_GPS", "MODE_FIELD_FEEDBACK", "MODE_OPEN_LOOP", "MODE_NAMES",
-           "FlightTruth", "simulate_manoeuvring_flight", "attitude_errors_deg"]
+           "attitude_errors_deg"]
 
 MODE_INIT, MODE_GPS, MODE_FIELD_FEEDBACK, MODE_OPEN_LOOP = 0, 1, 2, 3
 NX = 24   # ψ, δv, δp, δb_g, δb_a, δH^n, δd^b (body-fixed field), δc (motor field per amp)
@@ -463,9 +462,9 @@ def run_ins_gps(imu: np.ndarray, gps_ned: np.ndarray, mag: np.ndarray,
 
 
 # --------------------------------------------------------------------------------------------
-# Truth generator for tests and benchmarks
+# Scoring against truth (generators: groundstation.sim.truth)
 # --------------------------------------------------------------------------------------------
-def attitude_errors_deg(estimate: "InsGpsResult", truth: "FlightTruth") -> tuple[np.ndarray, np.ndarray]:
+def attitude_errors_deg(estimate: "InsGpsResult", truth) -> tuple[np.ndarray, np.ndarray]:
     """(total attitude error angle, heading error) [deg] per IMU step: the angle of the rotation
     C_true^T · C_est, and ψ̂ − ψ wrapped to (−180, 180]."""
     c_est = dcm_body_to_ned(estimate.roll_rad, estimate.pitch_rad, estimate.yaw_rad)
@@ -473,91 +472,3 @@ def attitude_errors_deg(estimate: "InsGpsResult", truth: "FlightTruth") -> tuple
     d = np.einsum("nij,nik->njk", c_true, c_est)
     angle_deg = np.degrees(np.arccos(np.clip((np.trace(d, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
     return angle_deg, wrap_angle_deg(np.degrees(estimate.yaw_rad - truth.yaw_rad))
-
-
-@dataclass
-class FlightTruth:
-    imu: np.ndarray        # (N,7) measured
-    gps_ned: np.ndarray    # (G,7) measured, rows inside the outage removed
-    mag: np.ndarray        # (M,4) measured (calibrated: no hard/soft iron)
-    t_s: np.ndarray        # truth on the IMU time base
-    roll_rad: np.ndarray
-    pitch_rad: np.ndarray
-    yaw_rad: np.ndarray
-    pos_ned_m: np.ndarray
-    vel_ned_mps: np.ndarray
-    field_ned_mG: np.ndarray
-    outage: tuple[float, float] | None
-
-
-def _euler_and_rates(t):
-    """Smooth manoeuvring attitude (rad) and its time derivative."""
-    roll = 0.25 * np.sin(0.13 * t + 0.5) + 0.10 * np.sin(0.37 * t)
-    droll = 0.25 * 0.13 * np.cos(0.13 * t + 0.5) + 0.10 * 0.37 * np.cos(0.37 * t)
-    pitch = 0.15 * np.sin(0.09 * t) + 0.08 * np.sin(0.29 * t + 1.0)
-    dpitch = 0.15 * 0.09 * np.cos(0.09 * t) + 0.08 * 0.29 * np.cos(0.29 * t + 1.0)
-    yaw = 1.0 + 1.5 * np.sin(0.04 * t) + 0.8 * np.sin(0.11 * t)
-    dyaw = 1.5 * 0.04 * np.cos(0.04 * t) + 0.8 * 0.11 * np.cos(0.11 * t)
-    return roll, pitch, yaw, droll, dpitch, dyaw
-
-
-def _trajectory(t, scale: float = 1.0):
-    """Position, velocity, acceleration (NED) of a smooth manoeuvring path (amplitudes × scale)."""
-    comps = [((300.0, 0.02, 0.0), (40.0, 0.10, 0.0)), ((200.0, 0.03, 1.0), (30.0, 0.13, 0.0)),
-             ((5.0, 0.07, 0.0),)]
-    p, v, a = (np.zeros((len(t), 3)) for _ in range(3))
-    for i, terms in enumerate(comps):
-        for amp, w, ph in terms:
-            amp = amp * scale
-            p[:, i] += amp * np.sin(w * t + ph)
-            v[:, i] += amp * w * np.cos(w * t + ph)
-            a[:, i] -= amp * w * w * np.sin(w * t + ph)
-    p[:, 2] -= 50.0
-    return p, v, a
-
-
-def simulate_manoeuvring_flight(duration_s: float = 200.0, imu_rate_hz: float = 100.0,
-                                gps_rate_hz: float = 5.0, mag_rate_hz: float = 50.0,
-                                field_ned_mG=(200.0, 15.0, 440.0), outage: tuple[float, float] | None = None,
-                                gyro_bias_rad_s=(0.0, 0.0, 0.0), outage_gyro_bias_rad_s=(0.0, 0.0, 0.0),
-                                gyro_noise_rad_s: float = 0.003, accel_noise_mps2: float = 0.03,
-                                mag_noise_mG: float = 1.5, gps_pos_sigma_m: float = 1.0,
-                                gps_vel_sigma_mps: float = 0.1, path_scale: float = 1.0, seed: int = 0) -> FlightTruth:
-    """Measured IMU/GPS/mag of a manoeuvring flight with known truth.
-
-    IMU samples are the rates/specific force at the middle of each sample interval.
-    ``outage_gyro_bias_rad_s`` is added to the gyro bias during the outage (an unmodelled bias
-    change the Kalman filter has not seen).  GPS rows inside the outage are removed.
-    """
-    rng = np.random.default_rng(seed)
-    dt = 1.0 / imu_rate_hz
-    t = np.arange(0.0, duration_s, dt)
-    tm = np.maximum(t - 0.5 * dt, 0.0)
-    r, p, y, dr, dp, dy = _euler_and_rates(tm)
-    wx = dr - dy * np.sin(p)
-    wy = dp * np.cos(r) + dy * np.cos(p) * np.sin(r)
-    wz = -dp * np.sin(r) + dy * np.cos(p) * np.cos(r)
-    C = dcm_body_to_ned(r, p, y)
-    _, _, acc = _trajectory(tm, path_scale)
-    f_n = acc - np.array([0.0, 0.0, GRAVITY_MPS2])
-    f_b = np.einsum("nji,nj->ni", C, f_n)
-    bias = np.broadcast_to(np.asarray(gyro_bias_rad_s, float), (len(t), 3)).copy()
-    if outage is not None:
-        inside = (t >= outage[0]) & (t < outage[1])
-        bias[inside] += np.asarray(outage_gyro_bias_rad_s, float)
-    imu = np.c_[t, np.c_[wx, wy, wz] + bias + rng.normal(0, gyro_noise_rad_s, (len(t), 3)),
-                f_b + rng.normal(0, accel_noise_mps2, (len(t), 3))]
-    rt, pt, yt, *_ = _euler_and_rates(t)
-    Ct = dcm_body_to_ned(rt, pt, yt)
-    pos, vel, _ = _trajectory(t, path_scale)
-    h_n = np.asarray(field_ned_mG, float)
-    step = int(round(imu_rate_hz / mag_rate_hz))
-    mi = np.arange(0, len(t), step)
-    mag = np.c_[t[mi], np.einsum("nji,j->ni", Ct[mi], h_n) + rng.normal(0, mag_noise_mG, (len(mi), 3))]
-    gstep = int(round(imu_rate_hz / gps_rate_hz))
-    gi = np.arange(0, len(t), gstep)
-    gps = np.c_[t[gi], pos[gi] + rng.normal(0, gps_pos_sigma_m, (len(gi), 3)),
-                vel[gi] + rng.normal(0, gps_vel_sigma_mps, (len(gi), 3))]
-    if outage is not None:
-        gps = gps[(gps[:, 0] < outage[0]) | (gps[:, 0] >= outage[1])]
-    return FlightTruth(imu, gps, mag, t, rt, pt, np.mod(yt, 2 * np.pi), pos, vel, h_n, outage)

@@ -135,7 +135,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from .simulate import SCENARIOS, simulate
+    from .sim.scenarios import SCENARIOS, simulate
 
     if args.scenario not in SCENARIOS:
         raise CliError(f"unknown scenario '{args.scenario}' (choose from {', '.join(SCENARIOS)})")

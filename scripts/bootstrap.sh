@@ -1,7 +1,9 @@
 # Sourced by ./run and ./test: create or refresh .venv with the project installed.
 # Usage: bootstrap_venv [EXTRAS]   (e.g. bootstrap_venv test)
 bootstrap_venv() {
-  local extras="${1:-}" stamp=".venv/.installed${extras:+-$extras}"
+  # two statements: in one `local a=.. b=$a`, $a would expand before a is set
+  local extras="${1:-}"
+  local stamp=".venv/.installed${extras:+-$extras}"
   if [ ! -x .venv/bin/python ]; then
     python3 -m venv .venv
   fi

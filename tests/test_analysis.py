@@ -11,7 +11,7 @@ from groundstation.analysis import CSV_COLUMNS, LiveAnalyzer, analyze_log, forma
 from groundstation.calibration_job import calibrate_log
 from groundstation.ingest import iter_samples, read_log
 from groundstation.samples import FlightLog
-from groundstation.simulate import simulate
+from groundstation.sim.scenarios import simulate
 from conftest import SHARED_DATA
 
 SEED = 7

@@ -9,8 +9,8 @@ import httpx
 import pytest
 
 from conftest import free_udp_port
-from groundstation.fake_vehicle import FakeVehicle
-from groundstation.simulate import simulate
+from groundstation.sim.fake_vehicle import FakeVehicle
+from groundstation.sim.scenarios import simulate
 
 
 def _console_errors(page) -> list[str]:

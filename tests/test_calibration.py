@@ -12,13 +12,14 @@ import pytest
 from estimators.rotations import dcm_body_to_ned, rotation_from_vector_rad
 from estimators.calibration import (RlsEllipsoidCalibrator, RlsGeneralEllipsoid, apply_calibration,
                                     combine_calibration, estimate_misalignment,
-                                    fit_ellipse_2d, fit_ellipsoid_robust, planarity_ratio, random_rotation,
+                                    fit_ellipse_2d, fit_ellipsoid_robust, planarity_ratio,
                                     refine_seed000_batch, rotation_progress_deg,
                                     seed000_solve_batch,
-                                    simulate_ellipsoid_samples, sphere_coverage)
+                                    sphere_coverage)
 from estimators.geomag import earth_field
 from groundstation.calibration_job import calibrate_log, format_summary, write_param_file
 from groundstation.samples import FlightLog
+from groundstation.sim.truth import random_rotation, simulate_ellipsoid_samples
 from conftest import SHARED_DATA
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from estimators.ins_gps import (MODE_FIELD_FEEDBACK, MODE_GPS, MODE_OPEN_LOOP, InsGpsFilter, InsGpsSettings,
-                                attitude_errors_deg, run_ins_gps, simulate_manoeuvring_flight)
+                                attitude_errors_deg, run_ins_gps)
+from groundstation.sim.truth import simulate_manoeuvring_flight
 
 B = np.radians(0.5)
 

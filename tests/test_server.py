@@ -9,7 +9,7 @@ import pytest
 import websockets.sync.client as ws_client
 
 from conftest import free_udp_port
-from groundstation.simulate import simulate
+from groundstation.sim.scenarios import simulate
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from conftest import DANCE_TRUTH, free_udp_port, rotation_dance_messages
-from groundstation.fake_vehicle import FakeVehicle, compress_time
+from groundstation.sim.fake_vehicle import FakeVehicle, compress_time
 from groundstation.ingest import MavlinkDecoder, read_log
 from groundstation.mavlink import TlogWriter
 from groundstation.session import Session, SessionError, validate_connection_string

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 
-from estimators import flight_sim as fs
+from groundstation.sim import flight_sim as fs
 from estimators.attitude import run_vector_filter
 from estimators.heading import tilt_compensated_heading_rad
-from groundstation.simulate import SCENARIOS, _config, simulate, truth_path
+from groundstation.sim.scenarios import SCENARIOS, _config, simulate, truth_path
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,6 @@
 """Closed-loop multirotor flight simulator with magnetic interference (seed 002 section 2).
 
-Pure numpy (no I/O); ``groundstation.simulate`` turns the result into MAVLink messages.
+Pure numpy (no I/O); ``groundstation.sim.scenarios`` turns the result into MAVLink messages.
 
 Physics (seed 002 section 2):
   * translation, eq. (1)/(3): p' = v, v' = g e3 − (f/m) R e3 + drag·(wind − v); altitude held,

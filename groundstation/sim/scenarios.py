@@ -1,13 +1,13 @@
 """Simulated flights written as real MAVLink `.tlog` files (issue 5).
 
 ``simulate(scenario, seed=0, **overrides) -> Simulation``: runs the closed-loop physics of
-``estimators.flight_sim`` and packs the result into pymavlink message objects exactly as an
+``groundstation.sim.flight_sim`` and packs the result into pymavlink message objects exactly as an
 ArduPilot multirotor would send them (units per the MAVLink XML: SCALED_IMU acc mG, gyro mrad/s,
 mag mgauss; GPS_RAW_INT degE7 / mm / cm/s / cdeg; ...).  ``Simulation.write(path)`` writes the
 tlog and a truth JSON beside it (``<stem>.truth.json``).
 
-    python -m groundstation.simulate mission-slow --seed 3 --out /tmp/slow.tlog
-    python -m groundstation.simulate --make-recordings        # regenerate recordings/
+    python -m groundstation.sim.scenarios mission-slow --seed 3 --out /tmp/slow.tlog
+    python -m groundstation.sim.scenarios --make-recordings        # regenerate recordings/
 """
 from __future__ import annotations
 
@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from estimators import flight_sim as fs
+from . import flight_sim as fs
 from estimators.geomag import decimal_year_from_unix, earth_field
 
-from .mavlink import TlogWriter, mavlink2
+from ..mavlink import TlogWriter, mavlink2
 
 __all__ = ["SCENARIOS", "Simulation", "simulate", "make_recordings", "truth_path"]
 
@@ -336,7 +336,7 @@ def make_recordings(directory: str | Path = RECORDINGS_DIR) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m groundstation.simulate", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m groundstation.sim.scenarios", description=__doc__.split("\n")[0])
     ap.add_argument("scenario", nargs="?", choices=SCENARIOS)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", help="output .tlog (default <scenario>-<seed>.tlog)")
