@@ -1,7 +1,7 @@
 """Interference detection benchmark (issue 5), beside seed 002 tables 1 and 2.
 
 Each run is end to end: simulate -> write .tlog -> read_log -> calibrate (the same seed's
-calibration dance, groundstation.calibration_job) -> analyze_log.
+calibration dance, groundstation.jobs.calibrate) -> analyze_log.
 
     .venv/bin/python benchmarks/detection.py            # 10 seeds (default)
     .venv/bin/python benchmarks/detection.py --seeds 20
@@ -23,9 +23,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from groundstation.analysis import analyze_log  # noqa: E402
-from groundstation.calibration_job import calibrate_log  # noqa: E402
-from groundstation.ingest import read_log  # noqa: E402
+from groundstation.jobs.analyze import analyze_log  # noqa: E402
+from groundstation.jobs.calibrate import calibrate_log  # noqa: E402
+from groundstation.io.logs import read_log  # noqa: E402
 from groundstation.sim.scenarios import simulate  # noqa: E402
 
 SEED_TABLE1 = {"threshold": [63.23 - 60.79, 60.22 - 56.29, 63.10 - 59.51, 61.10 - 57.26, 61.64 - 59.13],

@@ -19,8 +19,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests" / "data"))
 
 import groundstation  # noqa: E402,F401
-from groundstation.ingest import read_log  # noqa: E402
-from groundstation.mavlink import TlogWriter, mavlink2 as m  # noqa: E402
+from groundstation.io.logs import read_log  # noqa: E402
+from groundstation.io.mavlink import TlogWriter, mavlink2 as m  # noqa: E402
 
 START_UNIX = 1_780_000_000.0
 

@@ -47,7 +47,7 @@ def free_port(kind=socket.SOCK_STREAM) -> int:
 
 def run_station(recordings: str, viser: bool) -> None:
     """Child process: start the station and print its ports as one JSON line."""
-    from groundstation.server import Station
+    from groundstation.station.app import Station
 
     st = Station(port=0, viser_port=free_port() if viser else None, recordings_dir=recordings)
     st.start()
@@ -71,7 +71,7 @@ class Vehicle(threading.Thread):
 
     def __init__(self, port: int, imu_hz: float, duration_s: float) -> None:
         super().__init__(daemon=True)
-        from groundstation.mavlink import mavlink2, new_encoder
+        from groundstation.io.mavlink import mavlink2, new_encoder
         self.m = mavlink2
         self.enc = new_encoder(1, 1)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

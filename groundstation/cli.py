@@ -13,11 +13,12 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator
 
-from .autopilot_params import ardupilot_never_calibrated
-from .ingest import IngestError, read_log
-from .samples import FlightLog
+from groundstation.io.params import ardupilot_never_calibrated
+from groundstation.io.errors import IngestError
+from groundstation.io.logs import read_log
+from groundstation.samples import FlightLog
 
-RECORDINGS_DIR = Path(__file__).resolve().parent.parent / "recordings"
+from groundstation.paths import RECORDINGS_DIR
 DEMO_RECORDING = RECORDINGS_DIR / "demo.tlog"
 
 
@@ -54,7 +55,7 @@ def _write_json(path: str, obj: object) -> None:
 # ------------------------------------------------------------------------------------ commands
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from .ingest import summarize_rates
+    from groundstation.io.logs import summarize_rates
 
     log = load_log(args.file)
     tables = {"magnetometer": log.mag, "IMU": log.imu, "attitude": log.attitude, "GPS": log.gps,
@@ -90,7 +91,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from .calibration_job import calibrate_log, error_result, format_summary
+    from groundstation.jobs.calibrate import calibrate_log, error_result, format_summary
 
     results = []
     for file in args.files:
@@ -118,8 +119,8 @@ def _load_calibration(path: str) -> dict:
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
-    from .analysis import analyze_log, format_report, write_csv
-    from .mission import read_mission
+    from groundstation.jobs.analyze import analyze_log, format_report, write_csv
+    from groundstation.io.mission import read_mission
 
     calibration = _load_calibration(args.calibration) if args.calibration else None
     mission = read_mission(args.mission) if args.mission else None
@@ -156,7 +157,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.host not in ("127.0.0.1", "localhost", "::1") and not args.allow_remote:
         raise CliError(f"refusing to bind {args.host}: the station listens on loopback unless "
                        "--allow-remote is given")
-    from .server import serve
+    from groundstation.station.app import serve
 
     serve(connect=args.connect, replay=replay, speed=args.speed, host=args.host, port=args.port,
           viser_port=args.viser_port, allow_remote=args.allow_remote)

@@ -127,7 +127,7 @@ class FlightLog:
     autopilot: str | None = None        # "ardupilot" | "px4" | None
     # True when the mag table already has the autopilot's own calibration applied (ArduPilot
     # RAW_IMU/SCALED_IMU/MAG, PX4 vehicle_magnetometer); False for raw sensor output (PX4
-    # sensor_mag, CSV dumps); None when unknown.  See groundstation.autopilot_params.
+    # sensor_mag, CSV dumps); None when unknown.  See groundstation.io.params.
     mag_calibration_applied: bool | None = None
     message_counts: Counter = field(default_factory=Counter)
     warnings: Counter = field(default_factory=Counter)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from groundstation.mavlink import mavlink2
+from groundstation.io.mavlink import mavlink2
 
 ARTIFACTS = Path(__file__).resolve().parent / "artifacts"
 # the real public logs: ../shared/data beside the checkout (tests that need them skip without)
@@ -103,7 +103,7 @@ def recordings_dir(tmp_path) -> Path:
 
 @pytest.fixture
 def station(recordings_dir):
-    from groundstation.server import Station
+    from groundstation.station.app import Station
     st = Station(port=0, viser_port=free_tcp_port(), recordings_dir=recordings_dir).start()
     yield st
     st.close()
@@ -111,7 +111,7 @@ def station(recordings_dir):
 
 @pytest.fixture
 def station_no_viser(recordings_dir):
-    from groundstation.server import Station
+    from groundstation.station.app import Station
     st = Station(port=0, viser_port=None, recordings_dir=recordings_dir).start()
     yield st
     st.close()

@@ -7,9 +7,9 @@ import csv
 import numpy as np
 import pytest
 
-from groundstation.analysis import CSV_COLUMNS, LiveAnalyzer, analyze_log, format_report, write_csv
-from groundstation.calibration_job import calibrate_log
-from groundstation.ingest import iter_samples, read_log
+from groundstation.jobs.analyze import CSV_COLUMNS, LiveAnalyzer, analyze_log, format_report, write_csv
+from groundstation.jobs.calibrate import calibrate_log
+from groundstation.io.logs import iter_samples, read_log
 from groundstation.samples import FlightLog
 from groundstation.sim.scenarios import simulate
 from conftest import SHARED_DATA
@@ -162,7 +162,7 @@ def test_live_analyzer_matches_batch(slow, cal, slow_report):
 def test_detector_batch_equals_per_sample_on_a_flight(slow, cal):
     from estimators.detection import InterferenceDetector, detect
 
-    from groundstation.analysis import detection_inputs
+    from groundstation.jobs.analyze import detection_inputs
     x = detection_inputs(slow[1], cal)
     keys = ("t", "e", "d", "trusted", "strength", "incl", "heading", "yaw_rate")
     batch = detect(*(x[k] for k in keys))
@@ -190,7 +190,7 @@ def test_real_arducopter_telemetry_log():
 def test_onboard_calibration_is_unapplied_before_ours(slow, cal, slow_report):
     """An ArduPilot log carries the onboard-corrected field: analyze un-applies COMPASS_* before
     applying the (raw-referenced) calibration, and with no calibration uses the onboard one."""
-    from groundstation.autopilot_params import apply_ardupilot
+    from groundstation.io.params import apply_ardupilot
     log = copy.copy(slow[1])
     onboard = {"COMPASS_OFS_X": -50.0, "COMPASS_OFS_Y": 20.0, "COMPASS_OFS_Z": 35.0,
                "COMPASS_DIA_X": 1.02, "COMPASS_DIA_Y": 0.98, "COMPASS_DIA_Z": 1.0,
@@ -233,7 +233,7 @@ def test_gps_outage_is_bridged_by_the_ins_gps_filter(tmp, cal, slow_report):
 
 
 def test_gps_outages_need_the_imu_to_keep_streaming():
-    from groundstation.analysis import gps_outages
+    from groundstation.jobs.analyze import gps_outages
     t_imu = np.arange(0.0, 100.0, 0.02)
     t_gps = np.r_[np.arange(0.0, 30.0, 0.2), np.arange(50.0, 80.0, 0.2)]
     # GPS lost 29.8-50 s with the IMU streaming, and gone for good from 79.8 s

@@ -7,7 +7,7 @@ import pytest
 
 from estimators.calibration import apply_calibration, polar_decomposition
 from estimators.rotations import rotation_from_vector_rad
-from groundstation.autopilot_params import (apply_ardupilot, apply_px4, ardupilot_params_from_calibration,
+from groundstation.io.params import (apply_ardupilot, apply_px4, ardupilot_params_from_calibration,
                                             detect_autopilot, export_params, format_param_file, px4_params_from_calibration,
                                             px4_rotation, px4_slot, rotation_enum_matrix, unapply_ardupilot,
                                             unapply_onboard_calibration, unapply_px4)

@@ -17,7 +17,7 @@ from estimators.calibration import (RlsEllipsoidCalibrator, RlsGeneralEllipsoid,
                                     seed000_solve_batch,
                                     sphere_coverage)
 from estimators.geomag import earth_field
-from groundstation.calibration_job import calibrate_log, format_summary, write_param_file
+from groundstation.jobs.calibrate import calibrate_log, format_summary, write_param_file
 from groundstation.samples import FlightLog
 from groundstation.sim.truth import random_rotation, simulate_ellipsoid_samples
 from conftest import SHARED_DATA
@@ -282,7 +282,7 @@ def test_coverage_and_rotation_progress():
 
 def test_real_px4_logs_are_insufficient_not_invented():
     pytest.importorskip("pyulog")
-    from groundstation.ingest import read_log
+    from groundstation.io.logs import read_log
     for name in ("sample_px4_events.ulg", "sample_log_small.ulg"):
         path = DATA / "px4-pyulog" / name
         if not path.exists():
@@ -304,7 +304,7 @@ def test_benchmark_quick_smoke():
 
 
 def test_error_result_shape():
-    from groundstation.calibration_job import error_result
+    from groundstation.jobs.calibrate import error_result
     r = error_result("x.tlog", "unreadable")
     assert r["status"] == "error" and r["message"] == "unreadable" and r["file"] == "x.tlog"
     assert set(calibrate_log(FlightLog(source="e"))) == set(r)

@@ -10,9 +10,10 @@ import pytest
 
 import groundstation  # noqa: F401
 from groundstation.cli import main
-from groundstation.ingest import IngestError, read_log
-from groundstation.mission import read_mission
-from groundstation.replay import Replayer
+from groundstation.io.errors import IngestError
+from groundstation.io.logs import read_log
+from groundstation.io.mission import read_mission
+from groundstation.io.replay import Replayer
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"

@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 import groundstation  # noqa: F401
-from groundstation.ingest import IngestError, MavlinkDecoder, iter_samples, read_log
-from groundstation.mavlink import mavlink2 as m
+from groundstation.io.errors import IngestError
+from groundstation.io.decode import MavlinkDecoder
+from groundstation.io.logs import iter_samples, read_log
+from groundstation.io.mavlink import mavlink2 as m
 from groundstation.samples import BatterySample, ImuSample, MagSample
 from conftest import SHARED_DATA
 
@@ -51,7 +53,7 @@ def test_reference_logs_have_known_values_in_internal_units(name):
 
 def test_tlog_uses_vehicle_boot_clock_not_arrival_jitter(tmp_path):
     """Packets arriving in bursts keep their boot-clock spacing."""
-    from groundstation.mavlink import TlogWriter
+    from groundstation.io.mavlink import TlogWriter
 
     path = tmp_path / "bursty.tlog"
     with TlogWriter(path) as w:

@@ -8,8 +8,9 @@ import time
 import pytest
 
 import groundstation  # noqa: F401
-from groundstation.ingest import LiveLink, read_log
-from groundstation.mavlink import TlogWriter, mavlink2 as m
+from groundstation.io.link import LiveLink
+from groundstation.io.logs import read_log
+from groundstation.io.mavlink import TlogWriter, mavlink2 as m
 from groundstation.samples import MagSample, StatusSample
 
 

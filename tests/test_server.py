@@ -40,7 +40,7 @@ def test_health_state_docs_and_pages(client):
 
 
 def test_binds_loopback_only_unless_allowed(recordings_dir):
-    from groundstation.server import Station
+    from groundstation.station.app import Station
     with pytest.raises(ValueError):
         Station(host="0.0.0.0", port=0, viser_port=None, recordings_dir=recordings_dir)
 
@@ -152,8 +152,8 @@ def test_scene_decimates_50k_points_and_orients_vehicle(recordings_dir):
     import numpy as np
 
     from conftest import free_tcp_port
-    from groundstation.scene import CLOUD_DISPLAY_POINTS, S_FLIP, Scene, attitude_wxyz
-    from groundstation.session import Session
+    from groundstation.station.scene import CLOUD_DISPLAY_POINTS, S_FLIP, Scene, attitude_wxyz
+    from groundstation.station.hub.session import Session
 
     # attitude: yaw 90 deg (nose east) puts the model's nose on viser -y (east); roll 90 puts
     # its right wing (viser -y) down (-z)

@@ -10,9 +10,12 @@ import pytest
 
 from conftest import DANCE_TRUTH, free_udp_port, rotation_dance_messages
 from groundstation.sim.fake_vehicle import FakeVehicle, compress_time
-from groundstation.ingest import MavlinkDecoder, read_log
-from groundstation.mavlink import TlogWriter
-from groundstation.session import Session, SessionError, validate_connection_string
+from groundstation.io.decode import MavlinkDecoder
+from groundstation.io.logs import read_log
+from groundstation.io.mavlink import TlogWriter
+from groundstation.io.errors import IngestError
+from groundstation.io.link import validate_connection_string
+from groundstation.station.hub.session import Session, SessionError
 
 
 def wait_for(cond, timeout=10.0, step=0.05):
@@ -85,7 +88,7 @@ def test_connection_strings_validated():
     assert validate_connection_string("udpin:127.0.0.1:14550")
     assert validate_connection_string("/dev/ttyUSB0,57600")
     for bad in ("", "http://evil", "udpin:host", "file:/etc/passwd", "udpin:1.2.3.4:99999"):
-        with pytest.raises(SessionError):
+        with pytest.raises(IngestError):
             validate_connection_string(bad)
 
 

@@ -16,7 +16,7 @@ import threading
 import time
 from typing import Iterable
 
-from ..mavlink import mavlink2, new_encoder
+from groundstation.io.mavlink import mavlink2, new_encoder
 
 AUTOPILOT_IDS = {"ardupilot": mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, "px4": mavlink2.MAV_AUTOPILOT_PX4}
 

@@ -23,7 +23,8 @@ import numpy as np
 from . import flight_sim as fs
 from estimators.geomag import decimal_year_from_unix, earth_field
 
-from ..mavlink import TlogWriter, mavlink2
+from groundstation.io.mavlink import TlogWriter, mavlink2
+from groundstation.paths import RECORDINGS_DIR
 
 __all__ = ["SCENARIOS", "Simulation", "simulate", "make_recordings", "truth_path"]
 
@@ -33,7 +34,6 @@ SCENARIOS = ("calibration", "static-headings", "mission-clean", "mission-slow", 
 ORIGIN = (30.26, 120.12, 20.0)              # near Hangzhou: lat, lon, ground alt AMSL [m]
 START_UNIX_S = float(calendar.timegm((2026, 6, 15, 2, 0, 0)))   # 2026-06-15 02:00 UTC
 BOOT_OFFSET_S = 12.0                        # the autopilot booted this long before the log starts
-RECORDINGS_DIR = Path(__file__).resolve().parent.parent / "recordings"
 
 _M = mavlink2
 

@@ -18,7 +18,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent.parent))
 
 import groundstation  # noqa: E402,F401  (selects MAVLink 2 before pymavlink loads)
-from groundstation.mavlink import TlogWriter, mavlink2 as m  # noqa: E402
+from groundstation.io.mavlink import TlogWriter, mavlink2 as m  # noqa: E402
 
 START_UNIX = 1_780_000_000.0  # 2026-05-28
 DURATION_S = 10.0

@@ -11,8 +11,8 @@ import bisect
 import time
 from typing import Callable, Iterator
 
-from .ingest import iter_samples
-from .samples import FlightLog, Sample
+from groundstation.io.logs import iter_samples
+from groundstation.samples import FlightLog, Sample
 
 
 class Replayer:

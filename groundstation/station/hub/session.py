@@ -1,7 +1,7 @@
 """The session hub: one source (live link or replay) -> estimation stack per sample -> state.
 
 One worker thread reads the source, feeds every sample through the estimators (calibration
-wizard in ``groundstation.wizard``, heading chain, interference detection), and keeps the state
+wizard in ``groundstation.station.wizard``, heading chain, interference detection), and keeps the state
 under a lock.  Readers
 (the WebSocket pusher, the viser scene, REST) take snapshots; ``add_listener`` callbacks are
 called from the worker thread after each batch, so pushers can wake up without polling.
@@ -25,11 +25,11 @@ from estimators.calibration import apply_calibration
 from estimators.detection import cross_track_m, ned_from_lla
 from estimators.heading import split_velocity
 
-from .analysis import OUTAGE_MIN_S, LiveAnalyzer
-from .mavlink import mavlink2
-from .samples import (AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, MissionSample,
+from groundstation.jobs.analyze import OUTAGE_MIN_S, LiveAnalyzer
+from groundstation.io.mavlink import mavlink2
+from groundstation.samples import (AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, MissionSample,
                       ParamSample, Sample, StatusSample, finite_or_none)
-from .wizard import CalibrationWizard, GrowingTable, jsonable
+from groundstation.station.wizard import CalibrationWizard, GrowingTable, jsonable
 
 RECORDING_SUFFIXES = (".tlog", ".bin", ".ulg", ".csv")
 ROUTE_MAX_POINTS = 20_000
@@ -56,7 +56,7 @@ def _deg(rad: float | None) -> float | None:
 class EstimationStack:
     """Per-sample heading chain and interference detection for the live view.
 
-    The pipeline is groundstation.analysis.LiveAnalyzer (heading chain of seed 000 sec. 2,
+    The pipeline is groundstation.jobs.analyze.LiveAnalyzer (heading chain of seed 000 sec. 2,
     detector of seed 002), the per-sample twin of ``magstation analyze``, so live and batch
     agree.  This class adds what the display needs: the autopilot's attitude, forward/lateral
     velocity, signed cross-track, field strength.
@@ -165,7 +165,7 @@ class Session:
         self.link = None
         self.recorder = None
         self.recording_path: Path | None = None
-        self.replay = None   # groundstation.replay.Replayer while replaying
+        self.replay = None   # groundstation.io.replay.Replayer while replaying
         self.replay_path: Path | None = None
         self.rx_count = 0
         self.rx_last_unix: float | None = None
@@ -247,10 +247,14 @@ class Session:
 
     def connect(self, url: str) -> None:
         """Open a live link (pymavlink connection string) and record it to recordings/."""
-        from .ingest import IngestError, LiveLink
-        from .mavlink import TlogWriter
+        from groundstation.io.errors import IngestError
+        from groundstation.io.link import LiveLink, validate_connection_string
+        from groundstation.io.mavlink import TlogWriter
 
-        url = validate_connection_string(url)
+        try:
+            url = validate_connection_string(url)
+        except IngestError as err:
+            raise SessionError(str(err)) from err
         self._stop_source()
         recorder = None
         path = None
@@ -300,8 +304,9 @@ class Session:
 
     def start_replay(self, path: str | Path, speed: float = 1.0, loop: bool = False) -> None:
         """Replay a log paced at real time x speed (any format read_log understands)."""
-        from .ingest import IngestError, read_log
-        from .replay import Replayer
+        from groundstation.io.errors import IngestError
+        from groundstation.io.logs import read_log
+        from groundstation.io.replay import Replayer
 
         path = Path(path)
         try:
@@ -762,8 +767,9 @@ class Session:
             line = self.stack.line
         if path is None:
             raise SessionError("no session to analyse: connect or replay first")
-        from .analysis import analyze_log
-        from .ingest import IngestError, read_log
+        from groundstation.jobs.analyze import analyze_log
+        from groundstation.io.errors import IngestError
+        from groundstation.io.logs import read_log
         try:
             log = read_log(path)
         except IngestError as err:
@@ -779,7 +785,7 @@ class Session:
 def _calibration_from_log(log: FlightLog) -> dict | None:
     """A replayed log that contains a calibration dance calibrates its own magnetometer
     (calibrate_log on the whole log; None unless the fit is 'ok')."""
-    from .calibration_job import calibrate_log
+    from groundstation.jobs.calibrate import calibrate_log
 
     if len(log.mag) < 200:
         return None
@@ -810,20 +816,3 @@ def _json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
     return str(o)
-
-
-def validate_connection_string(url: str) -> str:
-    """Accept pymavlink connection strings we support: udpin/udp/udpout/tcp/tcpin and serial."""
-    url = (url or "").strip()
-    prefixes = ("udpin:", "udp:", "udpout:", "tcp:", "tcpin:")
-    if url.startswith(prefixes):
-        rest = url.split(":", 1)[1]
-        host, _, port = rest.rpartition(":")
-        if host and port.isdigit() and 0 < int(port) < 65536:
-            return url
-    elif url.startswith("/dev/") or (url.upper().startswith("COM") and url[3:].split(",")[0].isdigit()):
-        dev, _, baud = url.partition(",")
-        if not baud or baud.isdigit():
-            return url
-    raise SessionError(f"'{url}' is not a supported connection string "
-                       "(udpin:HOST:PORT, tcp:HOST:PORT, /dev/ttyUSB0,57600)")

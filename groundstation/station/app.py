@@ -20,10 +20,9 @@ from fastapi.responses import FileResponse, PlainTextResponse, RedirectResponse,
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
 
-from .session import Session, SessionError
+from groundstation.station.hub.session import Session, SessionError
 
-WEB_DIR = Path(__file__).resolve().parent.parent / "web"
-DEFAULT_RECORDINGS = Path(__file__).resolve().parent.parent / "recordings"
+from groundstation.paths import RECORDINGS_DIR as DEFAULT_RECORDINGS, WEB_DIR
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 MIN_PUSH_INTERVAL_S = 0.02     # <= 50 pushes/s per client
 MAX_PUSH_GAP_S = 0.5           # >= 2 pushes/s even when nothing changes (ages, liveness)
@@ -323,7 +322,7 @@ def create_app(session: Session, viser_port: int | None = None) -> FastAPI:
         params = result.get(f"{ap}_params") or {}
         if not params:
             raise HTTPException(404, detail=f"the result has no {ap} parameters")
-        from .autopilot_params import format_param_file
+        from groundstation.io.params import format_param_file
         text = format_param_file(params)
         return PlainTextResponse(text, headers={
             "Content-Disposition": f'attachment; filename="magstation-{ap}.param"'})
@@ -362,7 +361,7 @@ def create_app(session: Session, viser_port: int | None = None) -> FastAPI:
     def analysis_csv() -> Response:
         try:
             _, table = guard(session.analysis)
-            from .analysis import write_csv
+            from groundstation.jobs.analyze import write_csv
         except ImportError as err:
             raise HTTPException(503, detail=f"analysis not available: {err}") from err
         with tempfile.TemporaryDirectory() as tmp:
@@ -446,7 +445,7 @@ class Station:
         self.session = Session(recordings_dir, record_live=record_live)
         self.scene = None
         if viser_port is not None:
-            from .scene import Scene
+            from groundstation.station.scene import Scene
             self.scene = Scene(self.session, host=host, port=viser_port)
         self.viser_port = self.scene.port if self.scene else None
         self.app = create_app(self.session, self.viser_port)

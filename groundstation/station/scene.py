@@ -22,7 +22,7 @@ import numpy as np
 import viser
 from viser import uplot
 
-from .session import Session
+from groundstation.station.hub.session import Session
 
 UPDATE_HZ = 15.0
 CLOUD_DISPLAY_POINTS = 6000
@@ -273,7 +273,7 @@ class Scene:
         self._route_key = key
         pts_ne = route[:, 1:3]
         if line is not None and origin is not None:
-            from .session import local_ne_m
+            from groundstation.station.hub.session import local_ne_m
             a = np.array(local_ne_m(line["a"][0], line["a"][1], origin))
             b = np.array(local_ne_m(line["b"][0], line["b"][1], origin))
             length = float(np.linalg.norm(b - a)) or 1.0

@@ -16,7 +16,7 @@ import numpy as np
 from estimators.calibration import (apply_calibration, combine_calibration, estimate_misalignment,
                                     fit_ellipsoid_robust, planarity_ratio, sphere_coverage)
 from estimators.geomag import EarthField, decimal_year_from_unix, earth_field
-from groundstation.autopilot_params import (detect_autopilot, export_params, format_param_file,
+from groundstation.io.params import (detect_autopilot, export_params, format_param_file,
                                             unapply_onboard_calibration)
 from groundstation.samples import FlightLog, finite_or_none
 

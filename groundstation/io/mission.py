@@ -8,7 +8,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .ingest import MAV_CMD_NAV_WAYPOINT, IngestError, read_log
+from .decode import MAV_CMD_NAV_WAYPOINT
+from .errors import IngestError
+from .logs import read_log
 
 Waypoint = tuple[float, float, float]
 

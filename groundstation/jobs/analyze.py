@@ -30,8 +30,8 @@ from estimators.heading import HeadingChain, run_heading_chain, split_velocity
 from estimators.ins_gps import MODE_NAMES, InsGpsFilter, InsGpsSettings, run_ins_gps
 from estimators.rotations import wrap_angle_rad
 
-from .autopilot_params import ardupilot_never_calibrated, unapply_onboard_calibration
-from .samples import (AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, ParamSample, StatusSample,
+from groundstation.io.params import ardupilot_never_calibrated, unapply_onboard_calibration
+from groundstation.samples import (AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, ParamSample, StatusSample,
                       finite_or_none)
 
 __all__ = ["analyze_log", "detection_inputs", "write_csv", "format_report", "LiveAnalyzer", "CSV_COLUMNS", "mission_legs"]

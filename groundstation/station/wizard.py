@@ -3,7 +3,7 @@
 The wizard collects raw magnetometer, IMU, attitude and GPS samples while the operator turns the
 vehicle about X, Y and Z and tumbles it, shows live progress (degrees per axis from the gyro,
 sphere coverage, the seed-000 RLS fit converging) and warnings, and at the end runs the batch
-calibration of ``groundstation.calibration_job`` to give the issue-3 result object.
+calibration of ``groundstation.jobs.calibrate`` to give the issue-3 result object.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import numpy as np
 from estimators.calibration import RlsEllipsoidCalibrator, rotation_progress_deg, sphere_coverage
 from estimators.geomag import decimal_year_from_unix, earth_field
 
-from .samples import AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, Sample, finite_or_none
+from groundstation.samples import AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, Sample, finite_or_none
 
 MAX_CLOUD_POINTS = 200_000      # raw mag points kept for the fit (display decimates further)
 WIZARD_STEPS = ("x", "y", "z", "tumble")
@@ -65,7 +65,7 @@ class CalibrationWizard:
     Steps: full turn about X, then Y, then Z, then a tumble until the sphere is covered.  A
     step counts degrees turned about its own axis from the gyro (|omega_axis| dt), so a turn
     done early (before its step) still counts.  The live fit is the seed 000 RLS ellipsoid
-    (per sample); at the end the robust fit of groundstation.calibration_job runs on the
+    (per sample); at the end the robust fit of groundstation.jobs.calibrate runs on the
     collected samples and gives the result object of issue 3.
     """
 
@@ -213,7 +213,7 @@ class CalibrationWizard:
                         gps=self.gps.view().copy(), params=dict(params), autopilot=autopilot,
                         start_unix_s=time.time() - self._last_t)
         try:
-            from .calibration_job import calibrate_log
+            from groundstation.jobs.calibrate import calibrate_log
             result = calibrate_log(log)
         except ImportError:
             result = {"status": "error", "message": "calibration module not available yet"}

@@ -1,0 +1,228 @@
+"""MAVLink messages -> typed samples (units per the MAVLink XML, converted once, here).
+
+Shared by the .tlog reader and the live link: ``MavlinkDecoder.decode(msg, arrival_s)``.
+"""
+from __future__ import annotations
+
+import math
+from collections import Counter
+from typing import Callable
+
+from ..samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, MagSample, MissionSample,
+                       ParamSample, Sample, StatusSample)
+
+__all__ = ["MavlinkDecoder", "G_MPS2", "MG_PER_GAUSS", "MG_PER_UT", "MAV_CMD_NAV_WAYPOINT",
+           "MAV_CMD_SET_MESSAGE_INTERVAL"]
+
+G_MPS2 = 9.80665
+MG_PER_GAUSS = 1000.0
+MG_PER_UT = 10.0  # 1 uT = 10 mG
+
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+MAV_AUTOPILOT_PX4 = 12
+MAV_TYPE_GCS = 6
+MAV_CMD_NAV_WAYPOINT = 16
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+
+
+
+def _finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+def _euler_from_quaternion(w: float, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """ZYX Euler angles (roll, pitch, yaw) in rad of a body-to-NED quaternion."""
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+class _BootClock:
+    """Maps a message's time_boot_ms onto the log's time base.
+
+    Radio links deliver packets in bursts, so arrival times jitter by tens of ms; the
+    vehicle's boot clock does not.  t = boot_s + offset, where offset is the smallest
+    (arrival - boot) seen so far (a packet never arrives before it is sent).  A reboot
+    (boot time going back) or a drift beyond 2 s re-anchors the offset.
+    """
+
+    def __init__(self) -> None:
+        self.offset_s: float | None = None
+        self.last_boot_s = -math.inf
+
+    def __call__(self, boot_ms: float, arrival_s: float) -> float:
+        boot_s = boot_ms * 1e-3
+        candidate = arrival_s - boot_s
+        if (self.offset_s is None or boot_s < self.last_boot_s - 1.0
+                or abs(candidate - self.offset_s) > 2.0):
+            self.offset_s = candidate
+        elif candidate < self.offset_s:
+            self.offset_s = candidate
+        self.last_boot_s = boot_s
+        return boot_s + self.offset_s
+
+
+class MavlinkDecoder:
+    """Turns pymavlink message objects into samples, with units exactly as the MAVLink XML says.
+
+    SCALED_IMU/2/3 and ArduPilot's RAW_IMU: acc mG (milli-g), gyro mrad/s, mag mgauss.
+    HIGHRES_IMU: acc m/s^2, gyro rad/s, mag gauss.  ATTITUDE: rad.  GPS_RAW_INT: degE7, mm,
+    cm/s, cdeg.  Messages from a GCS (our own heartbeats echoed, other ground stations) are
+    ignored.
+    """
+
+    def __init__(self) -> None:
+        self.clock = _BootClock()
+        self.autopilot: str | None = None
+        self.vehicle_sysid: int | None = None
+        self.start_unix_s: float | None = None
+        self.warnings: Counter = Counter()
+        self._last_gps_raw_t = -math.inf
+        self._last_fix_type = 3
+        self._handlers: dict[str, Callable] = {
+            "HEARTBEAT": self._heartbeat,
+            "RAW_IMU": self._scaled_imu(0),
+            "SCALED_IMU": self._scaled_imu(10),
+            "SCALED_IMU2": self._scaled_imu(11),
+            "SCALED_IMU3": self._scaled_imu(12),
+            "HIGHRES_IMU": self._highres_imu,
+            "ATTITUDE": self._attitude,
+            "ATTITUDE_QUATERNION": self._attitude_quaternion,
+            "GPS_RAW_INT": self._gps_raw_int,
+            "GLOBAL_POSITION_INT": self._global_position_int,
+            "MISSION_ITEM_INT": self._mission_item,
+            "MISSION_ITEM": self._mission_item,
+            "PARAM_VALUE": self._param_value,
+            "STATUSTEXT": self._status("statustext", lambda m: m.text),
+            "MAG_CAL_PROGRESS": self._status(
+                "mag_cal_progress", lambda m: f"compass {m.compass_id}: {m.completion_pct}%"),
+            "MAG_CAL_REPORT": self._status(
+                "mag_cal_report", lambda m: f"compass {m.compass_id}: status {m.cal_status}, "
+                                            f"fitness {m.fitness:.1f}"),
+            "SYSTEM_TIME": self._system_time,
+            "SYS_STATUS": self._sys_status,
+        }
+
+    def _t(self, msg, arrival_s: float) -> float:
+        boot_ms = getattr(msg, "time_boot_ms", None)
+        return arrival_s if boot_ms is None else self.clock(boot_ms, arrival_s)
+
+    def decode(self, msg, arrival_s: float) -> list[Sample]:
+        """Samples carried by one message; ``arrival_s`` is its time on the log's time base."""
+        handler = self._handlers.get(msg.get_type())
+        if handler is None:
+            return []
+        if msg.get_type() != "HEARTBEAT" and self._from_gcs(msg):
+            return []
+        try:
+            return handler(msg, arrival_s)
+        except (AttributeError, TypeError, ValueError, OverflowError) as err:
+            self.warnings[f"undecodable {msg.get_type()}: {type(err).__name__}"] += 1
+            return []
+
+    def _from_gcs(self, msg) -> bool:
+        return self.vehicle_sysid is not None and msg.get_srcSystem() != self.vehicle_sysid
+
+    def _heartbeat(self, msg, t: float) -> list[Sample]:
+        if msg.type == MAV_TYPE_GCS or msg.autopilot == 8:  # 8 = MAV_AUTOPILOT_INVALID
+            return []
+        if self.vehicle_sysid is None:
+            self.vehicle_sysid = msg.get_srcSystem()
+        elif msg.get_srcSystem() != self.vehicle_sysid:
+            return []
+        name = {MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot", MAV_AUTOPILOT_PX4: "px4"}.get(msg.autopilot)
+        if name and name != self.autopilot:
+            self.autopilot = name
+            return [StatusSample(t, "autopilot", name)]
+        return []
+
+    def _scaled_imu(self, instance: int) -> Callable:
+        def decode(msg, arrival_s: float) -> list[Sample]:
+            t = arrival_s if msg.get_type() == "RAW_IMU" else self._t(msg, arrival_s)
+            out: list[Sample] = []
+            mag = (float(msg.xmag), float(msg.ymag), float(msg.zmag))
+            if mag != (0.0, 0.0, 0.0):  # all-zero = no compass on this instance
+                out.append(MagSample(t, mag, instance))
+            gyro = (msg.xgyro * 1e-3, msg.ygyro * 1e-3, msg.zgyro * 1e-3)
+            acc = (msg.xacc * 1e-3 * G_MPS2, msg.yacc * 1e-3 * G_MPS2, msg.zacc * 1e-3 * G_MPS2)
+            out.append(ImuSample(t, gyro, acc, instance))
+            return out
+        return decode
+
+    def _highres_imu(self, msg, t: float) -> list[Sample]:
+        updated = msg.fields_updated
+        out: list[Sample] = []
+        if updated & 0x1C0 or not updated:
+            mag = (msg.xmag * MG_PER_GAUSS, msg.ymag * MG_PER_GAUSS, msg.zmag * MG_PER_GAUSS)
+            if _finite(*mag):
+                out.append(MagSample(t, mag, 20 + msg.id))
+            else:
+                self.warnings["NaN magnetometer field"] += 1
+        gyro = (msg.xgyro, msg.ygyro, msg.zgyro)
+        acc = (msg.xacc, msg.yacc, msg.zacc)
+        if _finite(*gyro, *acc):
+            out.append(ImuSample(t, gyro, acc, 20 + msg.id))
+        else:
+            self.warnings["NaN IMU field"] += 1
+        return out
+
+    def _attitude(self, msg, arrival_s: float) -> list[Sample]:
+        if not _finite(msg.roll, msg.pitch, msg.yaw):
+            self.warnings["NaN attitude field"] += 1
+            return []
+        return [AttitudeSample(self._t(msg, arrival_s), msg.roll, msg.pitch, msg.yaw)]
+
+    def _attitude_quaternion(self, msg, arrival_s: float) -> list[Sample]:
+        q = (msg.q1, msg.q2, msg.q3, msg.q4)
+        norm = math.sqrt(sum(v * v for v in q)) if _finite(*q) else 0.0
+        if not 0.5 < norm < 1.5:
+            self.warnings["invalid attitude quaternion"] += 1
+            return []
+        return [AttitudeSample(self._t(msg, arrival_s), *_euler_from_quaternion(*(v / norm for v in q)))]
+
+    def _gps_raw_int(self, msg, t: float) -> list[Sample]:
+        self._last_gps_raw_t = t
+        self._last_fix_type = int(msg.fix_type)
+        if msg.fix_type < 2 or (msg.lat == 0 and msg.lon == 0):
+            return []
+        speed = msg.vel * 0.01 if msg.vel != 65535 else math.nan
+        course = math.radians(msg.cog * 0.01) if msg.cog != 65535 else math.nan
+        vel = (speed * math.cos(course), speed * math.sin(course), math.nan)
+        return [GpsSample(t, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3, vel, int(msg.fix_type))]
+
+    def _global_position_int(self, msg, arrival_s: float) -> list[Sample]:
+        """The autopilot's fused position: used only when no GPS_RAW_INT came for 3 s."""
+        t = self._t(msg, arrival_s)
+        if t - self._last_gps_raw_t < 3.0 or (msg.lat == 0 and msg.lon == 0):
+            return []
+        vel = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
+        return [GpsSample(t, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3, vel, self._last_fix_type)]
+
+    def _mission_item(self, msg, t: float) -> list[Sample]:
+        if msg.command != MAV_CMD_NAV_WAYPOINT:
+            return []
+        scale = 1e-7 if msg.get_type() == "MISSION_ITEM_INT" else 1.0
+        lat, lon = msg.x * scale, msg.y * scale
+        if not _finite(lat, lon) or (lat == 0 and lon == 0):
+            return []
+        return [MissionSample(t, int(msg.seq), lat, lon, float(msg.z))]
+
+    def _param_value(self, msg, t: float) -> list[Sample]:
+        name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else str(msg.param_id)
+        return [ParamSample(t, name, float(msg.param_value))]
+
+    @staticmethod
+    def _status(kind: str, text: Callable) -> Callable:
+        return lambda msg, t: [StatusSample(t, kind, str(text(msg)))]
+
+    def _sys_status(self, msg, t: float) -> list[Sample]:
+        """current_battery is in cA (10 mA); -1 means the autopilot does not measure it."""
+        if msg.current_battery < 0:
+            return []
+        return [BatterySample(t, msg.current_battery * 0.01)]
+
+    def _system_time(self, msg, t: float) -> list[Sample]:
+        if self.start_unix_s is None and msg.time_unix_usec > 1e15:
+            self.start_unix_s = msg.time_unix_usec * 1e-6 - t
+        return []

@@ -1,0 +1,69 @@
+"""Log readers: every supported file becomes a FlightLog in internal units (groundstation/samples.py).
+
+``read_log(path)`` picks the reader by suffix: MAVLink telemetry (.tlog), ArduPilot DataFlash
+(.bin), PX4 ULog (.ulg), CSV (.csv).  Bad input never raises out of ``read_log`` except as an
+``IngestError`` with a one-line message (nothing usable at all); damage inside a log (bad CRC,
+garbage bytes, NaN fields, time going backwards, truncation) is skipped and counted in
+``FlightLog.warnings``.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Callable, Iterable, Iterator
+
+from ..errors import IngestError
+from ...samples import FlightLog
+from .builder import LogBuilder, clean_table, iter_samples
+from .csvlog import read_csv
+from .dataflash import read_dataflash
+from .tlog import read_tlog, tlog_records
+from .ulog import read_ulog
+
+__all__ = ["READERS", "read_log", "load_many", "summarize_rates", "iter_samples", "IngestError",
+           "LogBuilder", "clean_table", "tlog_records"]
+
+READERS: dict[str, Callable[[Path, Callable[[float], None] | None], FlightLog]] = {
+    ".tlog": read_tlog, ".bin": read_dataflash, ".ulg": read_ulog, ".csv": read_csv,
+}
+
+
+def read_log(path: str | os.PathLike, progress: Callable[[float], None] | None = None) -> FlightLog:
+    """Read any supported log into a FlightLog.  Raises IngestError with a one-line message
+    when nothing usable can be read (missing file, unknown type, no readable messages).  A log
+    without magnetometer samples is returned (``info`` still describes it); the commands that
+    need the field say so."""
+    path = Path(path)
+    reader = READERS.get(path.suffix.lower())
+    if reader is None:
+        raise IngestError(f"{path.name}: unknown log type '{path.suffix}' "
+                          f"(supported: {', '.join(READERS)})")
+    if not path.is_file():
+        raise IngestError(f"{path}: no such file")
+    if path.stat().st_size == 0:
+        raise IngestError(f"{path.name}: file is empty")
+    try:
+        log = reader(path, progress)
+    except IngestError:
+        raise
+    except Exception as err:  # a reader library failing on damage we did not foresee
+        raise IngestError(f"{path.name}: could not be read ({type(err).__name__}: {err})") from err
+    if progress is not None:
+        progress(1.0)
+    if not (log.params or any(len(t) for t in (log.mag, log.imu, log.attitude, log.gps))):
+        raise IngestError(f"{path.name}: no readable messages (is it really a {path.suffix} file?)")
+    return log
+
+
+def summarize_rates(log: FlightLog) -> list[tuple[str, int, float]]:
+    """(message type, count, mean rate Hz) sorted by count, for `magstation info`."""
+    duration = max(log.duration_s, 1e-9)
+    return [(k, v, v / duration) for k, v in log.message_counts.most_common()]
+
+
+def load_many(paths: Iterable[str | os.PathLike]) -> Iterator[tuple[Path, FlightLog | IngestError]]:
+    for p in paths:
+        try:
+            yield Path(p), read_log(p)
+        except IngestError as err:
+            yield Path(p), err

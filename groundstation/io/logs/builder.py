@@ -1,0 +1,107 @@
+"""Assembling samples into a FlightLog (tables sorted, damage counted) and back into a stream."""
+from __future__ import annotations
+
+import heapq
+from collections import Counter
+from typing import Iterator
+
+import numpy as np
+
+from ...samples import (AttitudeSample, BatterySample, FlightLog, GpsSample, ImuSample, MagSample,
+                        MissionSample, ParamSample, Sample, StatusSample)
+
+__all__ = ["LogBuilder", "clean_table", "iter_samples"]
+
+
+def _primary_instance(rows: np.ndarray) -> np.ndarray:
+    """Rows of the most frequent sensor instance (last column), instance column removed."""
+    if not len(rows):
+        return rows[:, :-1]
+    ids, counts = np.unique(rows[:, -1], return_counts=True)
+    return rows[rows[:, -1] == ids[np.argmax(counts)], :-1]
+
+
+class LogBuilder:
+    """Collects samples into a FlightLog; keeps the primary instance of mag and IMU."""
+
+    def __init__(self, source: str) -> None:
+        self.log = FlightLog(source=source)
+        self.rows: dict[str, list] = {"mag": [], "imu": [], "attitude": [], "gps": [], "battery": []}
+        self.mission: dict[int, tuple[float, float, float]] = {}
+
+    def add(self, s: Sample) -> None:
+        if isinstance(s, MagSample):
+            self.rows["mag"].append((s.t_s, *s.mag_body_mG, s.instance))
+        elif isinstance(s, ImuSample):
+            self.rows["imu"].append((s.t_s, *s.gyro_rad_s, *s.accel_mps2, s.instance))
+        elif isinstance(s, AttitudeSample):
+            self.rows["attitude"].append((s.t_s, s.roll_rad, s.pitch_rad, s.yaw_rad))
+        elif isinstance(s, GpsSample):
+            self.rows["gps"].append((s.t_s, s.lat_deg, s.lon_deg, s.alt_m, *s.vel_ned_mps, s.fix_type))
+        elif isinstance(s, BatterySample):
+            self.rows["battery"].append((s.t_s, s.current_A))
+        elif isinstance(s, ParamSample):
+            self.log.params[s.name] = s.value
+        elif isinstance(s, MissionSample):
+            self.mission[s.seq] = (s.lat_deg, s.lon_deg, s.alt_m)
+        elif isinstance(s, StatusSample):
+            self.log.status.append(s)
+            if s.kind == "autopilot":
+                self.log.autopilot = s.text
+
+    def finish(self) -> FlightLog:
+        log = self.log
+        tables = {"mag": _primary_instance(np.asarray(self.rows["mag"], dtype=float).reshape(-1, 5)),
+                  "imu": _primary_instance(np.asarray(self.rows["imu"], dtype=float).reshape(-1, 8)),
+                  "attitude": self.rows["attitude"], "gps": self.rows["gps"], "battery": self.rows["battery"]}
+        widths = {"mag": 4, "imu": 7, "attitude": 4, "gps": 8, "battery": 2}
+        for name, rows in tables.items():
+            arr = np.asarray(rows, dtype=float).reshape(-1, widths[name])
+            setattr(log, name, clean_table(arr, name, log.warnings))
+        # ArduPilot numbers mission item 0 as home; a mission is the waypoints after it.
+        seqs = sorted(self.mission)
+        if log.autopilot == "ardupilot" and seqs and seqs[0] == 0 and len(seqs) > 1:
+            seqs = seqs[1:]
+        log.mission = [self.mission[s] for s in seqs]
+        return log
+
+
+def clean_table(arr: np.ndarray, name: str, warnings: Counter) -> np.ndarray:
+    """Drop rows with non-finite time or values (GPS velocity may be NaN), sort by time."""
+    check = arr[:, :4] if name == "gps" else arr
+    good = np.all(np.isfinite(check), axis=1)
+    if not good.all():
+        warnings[f"{name}: rows with NaN/inf dropped"] += int((~good).sum())
+        arr = arr[good]
+    if len(arr) > 1:
+        backwards = int(np.count_nonzero(np.diff(arr[:, 0]) < 0))
+        if backwards:
+            warnings[f"{name}: samples out of time order (re-sorted)"] += backwards
+            arr = arr[np.argsort(arr[:, 0], kind="stable")]
+    return arr
+
+
+def iter_samples(log: FlightLog) -> Iterator[Sample]:
+    """Merge a FlightLog's tables back into one time-ordered sample stream (for replay)."""
+    def mags() -> Iterator[Sample]:
+        for r in log.mag.tolist():
+            yield MagSample(r[0], (r[1], r[2], r[3]))
+
+    def imus() -> Iterator[Sample]:
+        for r in log.imu.tolist():
+            yield ImuSample(r[0], (r[1], r[2], r[3]), (r[4], r[5], r[6]))
+
+    def atts() -> Iterator[Sample]:
+        for r in log.attitude.tolist():
+            yield AttitudeSample(r[0], r[1], r[2], r[3])
+
+    def gpss() -> Iterator[Sample]:
+        for r in log.gps.tolist():
+            yield GpsSample(r[0], r[1], r[2], r[3], (r[4], r[5], r[6]), int(r[7]))
+
+    head: list[Sample] = [ParamSample(0.0, k, v) for k, v in log.params.items()]
+    head += [MissionSample(0.0, i, *wp) for i, wp in enumerate(log.mission)]
+    if log.autopilot:
+        head.append(StatusSample(0.0, "autopilot", log.autopilot))
+    yield from head
+    yield from heapq.merge(imus(), mags(), atts(), gpss(), log.status, key=lambda s: s.t_s)
