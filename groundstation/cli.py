@@ -119,7 +119,8 @@ def _load_calibration(path: str) -> dict:
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
-    from groundstation.jobs.analyze import analyze_log, format_report, write_csv
+    from groundstation.jobs.analyze import analyze_log
+    from groundstation.jobs.report import format_report, write_csv
     from groundstation.io.mission import read_mission
 
     calibration = _load_calibration(args.calibration) if args.calibration else None
@@ -154,13 +155,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
         replay = DEMO_RECORDING
     if replay is not None and not replay.is_file():
         raise CliError(f"{replay}: no such file")
-    if args.host not in ("127.0.0.1", "localhost", "::1") and not args.allow_remote:
-        raise CliError(f"refusing to bind {args.host}: the station listens on loopback unless "
-                       "--allow-remote is given")
+    from groundstation.station.settings import StationSettings   # light: no server import yet
+
+    settings = StationSettings(host=args.host, port=args.port, viser_port=args.viser_port,
+                               allow_remote=args.allow_remote)
     from groundstation.station.app import serve
 
-    serve(connect=args.connect, replay=replay, speed=args.speed, host=args.host, port=args.port,
-          viser_port=args.viser_port, allow_remote=args.allow_remote)
+    serve(settings, connect=args.connect, replay=replay, speed=args.speed)
     return 0
 
 

@@ -7,7 +7,9 @@ import csv
 import numpy as np
 import pytest
 
-from groundstation.jobs.analyze import CSV_COLUMNS, LiveAnalyzer, analyze_log, format_report, write_csv
+from groundstation.jobs.analyze import analyze_log
+from groundstation.jobs.live import LiveAnalyzer
+from groundstation.jobs.report import CSV_COLUMNS, format_report, write_csv
 from groundstation.jobs.calibrate import calibrate_log
 from groundstation.io.logs import iter_samples, read_log
 from groundstation.samples import FlightLog
@@ -162,7 +164,7 @@ def test_live_analyzer_matches_batch(slow, cal, slow_report):
 def test_detector_batch_equals_per_sample_on_a_flight(slow, cal):
     from estimators.detection import InterferenceDetector, detect
 
-    from groundstation.jobs.analyze import detection_inputs
+    from groundstation.jobs.inputs import detection_inputs
     x = detection_inputs(slow[1], cal)
     keys = ("t", "e", "d", "trusted", "strength", "incl", "heading", "yaw_rate")
     batch = detect(*(x[k] for k in keys))
@@ -233,7 +235,7 @@ def test_gps_outage_is_bridged_by_the_ins_gps_filter(tmp, cal, slow_report):
 
 
 def test_gps_outages_need_the_imu_to_keep_streaming():
-    from groundstation.jobs.analyze import gps_outages
+    from groundstation.jobs.navigation import gps_outages
     t_imu = np.arange(0.0, 100.0, 0.02)
     t_gps = np.r_[np.arange(0.0, 30.0, 0.2), np.arange(50.0, 80.0, 0.2)]
     # GPS lost 29.8-50 s with the IMU streaming, and gone for good from 79.8 s

@@ -31,11 +31,8 @@ def feed(session: Session, messages) -> None:
     """Decode messages as the live link would and push them through the hub (no network)."""
     dec = MavlinkDecoder()
     t0 = messages[0][0]
-    with session._lock:
-        for unix, msg in messages:
-            for s in dec.decode(msg, unix - t0):
-                session._process(s)
-            session._after_batch()
+    for unix, msg in messages:
+        session.feed(dec.decode(msg, unix - t0))
 
 
 def test_wizard_steps_and_result_match_truth(tmp_path):
@@ -46,11 +43,8 @@ def test_wizard_steps_and_result_match_truth(tmp_path):
     dec = MavlinkDecoder()
     t0 = msgs[0][0]
     for unix, msg in msgs:
-        with session._lock:
-            for s in dec.decode(msg, unix - t0):
-                session._process(s)
-            session._after_batch()
-            step = session.wizard.step
+        session.feed(dec.decode(msg, unix - t0))
+        step = session.snapshot()["wizard"]["step"]
         if not steps_seen or steps_seen[-1] != step:
             steps_seen.append(step)
     assert steps_seen == ["x", "y", "z", "tumble", "done"]
@@ -229,12 +223,13 @@ def test_station_reads_vehicle_params_on_link_up(tmp_path):
 def test_gps_fix_lost_and_back_events(tmp_path):
     from groundstation.samples import GpsSample, ImuSample
     session = Session(tmp_path, record_live=False)
-    with session._lock:
-        for k in range(1000):                         # 20 s at 50 Hz; GPS at 5 Hz except 6-14 s
-            t = k * 0.02
-            session._process(ImuSample(t, (0.0, 0.0, 0.0), (0.0, 0.0, -9.81)))
-            if k % 10 == 0 and not 6.0 < t < 14.0:
-                session._process(GpsSample(t, 30.26, 120.12, 20.0, (0.0, 0.0, 0.0), 6))
+    samples = []
+    for k in range(1000):                             # 20 s at 50 Hz; GPS at 5 Hz except 6-14 s
+        t = k * 0.02
+        samples.append(ImuSample(t, (0.0, 0.0, 0.0), (0.0, 0.0, -9.81)))
+        if k % 10 == 0 and not 6.0 < t < 14.0:
+            samples.append(GpsSample(t, 30.26, 120.12, 20.0, (0.0, 0.0, 0.0), 6))
+    session.feed(samples)
     texts = [e["text"] for e in session.events]
     lost = [x for x in texts if x.startswith("GPS fix lost")]
     back = [x for x in texts if x.startswith("GPS fix back")]

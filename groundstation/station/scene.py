@@ -273,7 +273,7 @@ class Scene:
         self._route_key = key
         pts_ne = route[:, 1:3]
         if line is not None and origin is not None:
-            from groundstation.station.hub.session import local_ne_m
+            from groundstation.station.hub.flight import local_ne_m
             a = np.array(local_ne_m(line["a"][0], line["a"][1], origin))
             b = np.array(local_ne_m(line["b"][0], line["b"][1], origin))
             length = float(np.linalg.norm(b - a)) or 1.0

@@ -15,7 +15,9 @@ import numpy as np
 from estimators.calibration import RlsEllipsoidCalibrator, rotation_progress_deg, sphere_coverage
 from estimators.geomag import decimal_year_from_unix, earth_field
 
+from groundstation.jsonsafe import jsonable
 from groundstation.samples import AttitudeSample, FlightLog, GpsSample, ImuSample, MagSample, Sample, finite_or_none
+from groundstation.station.tables import GrowingTable
 
 MAX_CLOUD_POINTS = 200_000      # raw mag points kept for the fit (display decimates further)
 WIZARD_STEPS = ("x", "y", "z", "tumble")
@@ -32,29 +34,6 @@ TUMBLE_COVERAGE = 0.6
 TOO_FAST_RAD_S = 3.0           # ~170 deg/s: samples get sparse and the IMU/mag timing skews
 DISTURBANCE_FRACTION = 0.12     # |m_cal| off the fitted sphere by this much -> something nearby
 WMM_MISMATCH_FRACTION = 0.15
-
-
-class GrowingTable:
-    """Append-only float table (amortised doubling) with a row cap."""
-
-    def __init__(self, cols: int, cap: int) -> None:
-        self.buf = np.empty((1024, cols))
-        self.n = 0
-        self.cap = cap
-
-    def append(self, row) -> None:
-        if self.n >= self.cap:
-            return
-        if self.n == len(self.buf):
-            self.buf = np.concatenate([self.buf, np.empty_like(self.buf)])
-        self.buf[self.n] = row
-        self.n += 1
-
-    def view(self) -> np.ndarray:
-        return self.buf[: self.n]
-
-    def clear(self) -> None:
-        self.n = 0
 
 
 # --------------------------------------------------------------------------- calibration wizard
@@ -86,7 +65,7 @@ class CalibrationWizard:
         self.param_write: dict | None = None
         self.rls = None
         self._progress_at = -math.inf
-        self._est = None
+        self.rls_estimate_cached = None
         self._fast_until = -math.inf
         self._disturbed_until = -math.inf
         self._last_t = 0.0
@@ -148,7 +127,7 @@ class CalibrationWizard:
                     self.rls.update(np.asarray(s.mag_body_mG, dtype=float))
                 except Exception:
                     pass
-            est = self._est if self.mag.n > 300 else None
+            est = self.rls_estimate_cached if self.mag.n > 300 else None
             if est is not None:
                 off, matrix, field = est
                 r = float(np.linalg.norm(matrix @ (np.asarray(s.mag_body_mG) - off)))
@@ -178,7 +157,7 @@ class CalibrationWizard:
     def _update_coverage(self) -> None:
         """Sphere coverage of the field directions about the current centre (4 Hz, all points)."""
         pts = self.mag.view()[:, 1:4]
-        self._est = est = self.rls_estimate()
+        self.rls_estimate_cached = est = self.rls_estimate()
         center = est[0] if est is not None else (pts.max(axis=0) + pts.min(axis=0)) / 2
         self.coverage = sphere_coverage(pts - center)
 
@@ -193,8 +172,8 @@ class CalibrationWizard:
         field = None
         if self.result is not None:
             field = self.result.get("field_strength_mG")
-        elif self._est is not None:
-            field = self._est[2]
+        elif self.rls_estimate_cached is not None:
+            field = self.rls_estimate_cached[2]
         exp = self.expected_field_mG
         if self.result is not None and self.result.get("expected_field_mG"):
             exp = self.result["expected_field_mG"]
@@ -229,7 +208,7 @@ class CalibrationWizard:
         return result
 
     def snapshot(self) -> dict:
-        est = self._est
+        est = self.rls_estimate_cached
         step = self.step
         return {
             "state": self.state,
@@ -276,19 +255,3 @@ def _heading_error_estimate(result: dict, gps: np.ndarray) -> float | None:
             pass
     horizontal = field * math.cos(math.radians(incl))
     return round(math.degrees(math.atan2(r, max(horizontal, 1e-6))), 3)
-
-
-def jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        return float(obj) if math.isfinite(obj) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj

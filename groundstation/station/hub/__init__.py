@@ -1,0 +1,1 @@
+"""The session hub and its parts (sources, vehicle, flight); see ``session.Session``."""

@@ -1,0 +1,61 @@
+"""Writing analyze results: the per-step CSV and the human-readable summary."""
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["CSV_COLUMNS", "write_csv", "format_report"]
+
+CSV_COLUMNS = ("t_s", "roll_deg", "pitch_deg", "yaw_deg", "mag_heading_deg", "heading_true_deg",
+               "v_forward_mps", "v_lateral_mps", "cross_track_m", "alarm")
+
+
+def write_csv(path: str | Path, columns: dict[str, np.ndarray]) -> Path:
+    """Write the issue-4 CSV (header = CSV_COLUMNS, then one row per IMU step; empty cell = NaN)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    names = [c for c in CSV_COLUMNS if c in columns] + [c for c in columns if c not in CSV_COLUMNS]
+    arr = np.column_stack([np.asarray(columns[c], dtype=float) for c in names]) if names else np.zeros((0, 0))
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(names)
+        for row in arr.tolist():
+            w.writerow(["" if not math.isfinite(v) else (str(int(v)) if c == "alarm" else f"{v:.6g}")
+                        for c, v in zip(names, row)])
+    return path
+
+
+def format_report(report: dict) -> str:
+    """Human-readable summary of an analyze report."""
+    lines = [f"file: {report.get('file')}  ({report.get('duration_s')} s)"]
+    if report.get("declination_deg") is not None:
+        lines.append(f"WMM: declination {report['declination_deg']:.2f}°, inclination "
+                     f"{report['inclination_deg']:.2f}°, field {report['field_strength_mG']:.1f} mG "
+                     f"(measured median {report.get('measured_field_strength_mG')} mG)")
+    lines.append("calibration: " + ("applied" if report.get("calibration_applied") else "none (raw magnetometer)"))
+    lines.append(f"RTK: {'yes' if report.get('rtk') else 'no'};  path test: {report.get('path_test')}")
+    lines.append(f"heading test: {report.get('heading_test')};  field test: {report.get('field_test')}")
+    if report.get("mission"):
+        m = report["mission"]
+        lines.append(f"mission A {m['A']} -> B {m['B']};  max cross-track {report.get('max_cross_track_m')} m")
+    nav = report.get("navigation") or {}
+    for o in nav.get("gps_outages", []):
+        cmp = "; ".join(f"{law.replace('_', ' ')} median {v['median']}°, max {v['max']}°"
+                        for law, v in (o.get("ins_vs_autopilot_heading_deg") or {}).items() if v)
+        lines.append(f"GPS outage {o['start_s']}–{o['end_s'] if o['end_s'] is not None else 'end'} s "
+                     f"({o['duration_s']} s): " + (f"INS/GPS mode {o['ins_mode']}; heading vs autopilot: {cmp or 'n/a'}"
+                                                   if o["ins_mode"] else f"INS/GPS {nav.get('ins_gps')}"))
+    comb = [a for a in report.get("alarms", []) if a["kind"] == "combined"]
+    others = [a for a in report.get("alarms", []) if a["kind"] != "combined"]
+    lines.append(f"interference detected: {'YES' if report.get('interference_detected') else 'no'}"
+                 + (f" (first alarm at {report['first_alarm_s']} s)" if report.get("first_alarm_s") is not None else ""))
+    for a in comb:
+        lines.append(f"  ALARM {a['start_s']}–{a['end_s'] if a['end_s'] is not None else 'end'} s, "
+                     f"evidence: {', '.join(a.get('evidence', []))}, peak score {a['peak']}")
+    if others:
+        lines.append("single-test alarms: " + ", ".join(
+            f"{a['kind']}@{a['start_s']}s" for a in others[:12]) + (" ..." if len(others) > 12 else ""))
+    return "\n".join(lines)
