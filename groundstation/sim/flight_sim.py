@@ -31,18 +31,14 @@ from estimators.detection import lla_from_ned, ned_from_lla  # noqa: F401  (re-e
 from estimators.heading import tilt_compensated_heading_rad
 from estimators.rotations import dcm_body_to_ned, euler_from_dcm, wrap_angle_rad
 
+from groundstation.sim.mission_loop import G, MissionLoop, wrap_pi as _wrap
 
-G = 9.80665
 
 __all__ = ["Interference", "MagModel", "SimConfig", "SimResult", "run", "ned_from_lla", "lla_from_ned",
            "G"]
 
 
 # --------------------------------------------------------------------------- geometry helpers
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
 def _gauss_markov(rng: np.random.Generator, n: int, dt: float, sigma: float, tau_s: float, dims: int) -> np.ndarray:
     """First-order Gauss-Markov process (stationary, std sigma, correlation time tau)."""
     out = np.zeros((n, dims))
@@ -397,22 +393,16 @@ def _mission_profile(cfg: SimConfig):
     return legs, leg_t, t_acc
 
 
-def _run_mission(cfg: SimConfig, rng) -> SimResult:
-    dt = 1.0 / cfg.rate_hz
-    n = int(round(cfg.duration_s * cfg.rate_hz))
-    t = np.arange(n) * dt
+def _mission_targets(cfg: SimConfig, t: np.ndarray):
+    """Per-step target along-track position, feed-forward speed along the line (sign per leg) and
+    commanded yaw (face along the leg from its start until the next leg)."""
     brg = math.radians(cfg.leg_bearing_deg)
-    u = np.array([math.cos(brg), math.sin(brg)])
-    a_pt = np.array([0.0, 0.0])
-    b_pt = a_pt + cfg.leg_length_m * u
     legs, leg_t, t_acc = _mission_profile(cfg)
     v, amax = cfg.speed_mps, 1.0
-
-    # target along-track position s(t) and feed-forward speed along u (sign per leg)
+    n = len(t)
     s_tgt = np.zeros(n)
     v_ff = np.zeros(n)
     yaw_cmd = np.full(n, brg)
-    direction = 1.0
     for k, (t0, t1) in enumerate(legs):
         direction = 1.0 if k % 2 == 0 else -1.0
         tau = np.clip(t - t0, 0, leg_t)
@@ -425,186 +415,47 @@ def _run_mission(cfg: SimConfig, rng) -> SimResult:
         start = 0.0 if direction > 0 else cfg.leg_length_m
         s_tgt[sel] = start + direction * dist[sel]
         v_ff[sel] = np.where((t[sel] <= t1), direction * spd[sel], 0.0)
-        # yaw: face along the leg from the leg's start until the next leg
         yaw_cmd[sel] = brg if direction > 0 else _wrap(brg + math.pi)
+    return legs, s_tgt, v_ff, yaw_cmd
 
+
+def _run_mission(cfg: SimConfig, rng) -> SimResult:
+    """The closed-loop mission (``mission_loop.MissionLoop``) on prepared targets and noise."""
+    dt = 1.0 / cfg.rate_hz
+    n = int(round(cfg.duration_s * cfg.rate_hz))
+    t = np.arange(n) * dt
+    brg = math.radians(cfg.leg_bearing_deg)
+    u = np.array([math.cos(brg), math.sin(brg)])
+    legs, s_tgt, v_ff, yaw_cmd = _mission_targets(cfg, t)
     wind = np.asarray(cfg.mean_wind_mps)[None, :] + _gauss_markov(rng, n, dt, cfg.gust_sigma_mps, cfg.gust_tau_s, 2)
     wz = _gauss_markov(rng, n, dt, cfg.vertical_gust_sigma_mps2, 0.5, 1)[:, 0]
     gps_idx, gps_step, gerr, gverr, gfix = _gps_errors(cfg, rng, n)
-    m = len(gps_idx)
     gps_valid_step = np.zeros(n, bool)
     gps_valid_step[gps_idx[gfix >= 3]] = True
     gps_row = np.full(n, -1)
-    gps_row[gps_idx] = np.arange(m)
-
+    gps_row[gps_idx] = np.arange(len(gps_idx))
     gyro_noise = rng.normal(0, cfg.gyro_noise_rad_s, (n, 3)) + cfg.gyro_bias_rad_s
     mag_noise = rng.normal(0, cfg.mag.noise_mG, (n, 3))
     acc_noise = rng.normal(0, cfg.accel_noise_mps2, (n, 3))
     att_noise = rng.normal(0, 0.002, (n, 2))
     interf = cfg.interference.field_sensor_mG(t)
-    A = cfg.mag.matrix
-    a_inv = np.linalg.inv(A)
-    off = cfg.mag.offsets_mG
-    cmot = np.asarray(cfg.mag.motor_mG_per_A, dtype=float)
-    fned = cfg.field_ned_mG
-    decl = math.radians(cfg.declination_deg)
-
-    out = {k: np.zeros((n, 3)) for k in ("rates", "gyro", "acc", "mag", "pos", "vel", "epos", "evel")}
-    out_att = np.zeros((n, 6))
-    current = np.zeros(n)
-
-    # The autopilot's field-vector filter (seed 000 eq. 9/10) runs inside the closed loop, so it is
-    # stepped here with plain floats, using exactly the discretisation of
-    # estimators.attitude (x' = (1 - g) R(-w dt) x + g m, g = 1 - exp(-k dt)); the per-sample
-    # FieldVectorFilter costs ~0.2 ms a step, too slow for a 15,000-step closed loop.
-    # tests/test_simulate.py checks the two agree on the same inputs.
-    g_ap = -math.expm1(-cfg.autopilot_mag_gain_per_s * dt)
-    A = [list(map(float, row)) for row in cfg.mag.matrix]
-    Ai = [list(map(float, row)) for row in a_inv]
-    offx, offy, offz = map(float, off)
-    cmx, cmy, cmz = map(float, cmot)
-    fN, fE, fD = map(float, fned)
-    comp = cfg.autopilot_motor_comp
-    pn = pe = 0.0
-    vn = ve = 0.0
-    roll = pitch = 0.0
-    yaw = brg
-    epn = epe = evn = eve = 0.0
-    # start in a steady hover: the velocity integrator already holds the mean wind
-    int_n = -cfg.drag_per_s * float(cfg.mean_wind_mps[0])
-    int_e = -cfg.drag_per_s * float(cfg.mean_wind_mps[1])
-    alt = -cfg.flight_alt_m
-    kp, kv, ki = cfg.pos_gain_per_s, cfg.vel_gain_per_s, cfg.vel_int_gain_per_s2
-    k_gv, k_gp = 0.6, 0.8          # autopilot INS blending gains toward GPS velocity / position
-    tau_att = 0.15
-    yaw_rate_max = math.radians(40.0)
-    gdt = gps_step * dt
-    hx = hy = hz = None            # autopilot filter state (body field estimate)
-    p_b = q_b = r_b = 0.0
-    rates_o, gyro_o, acc_o, mag_o = out["rates"], out["gyro"], out["acc"], out["mag"]
-    pos_o, vel_o, epos_o, evel_o = out["pos"], out["vel"], out["epos"], out["evel"]
-    gn, mn, an_, atn = gyro_noise.tolist(), mag_noise.tolist(), acc_noise.tolist(), att_noise.tolist()
-    itf = interf.tolist()
-    wind_l, wz_l = wind.tolist(), wz.tolist()
-    s_l, vff_l, ycmd_l = s_tgt.tolist(), v_ff.tolist(), yaw_cmd.tolist()
-    ux, uy = float(u[0]), float(u[1])
-    cos, sin, atan2, hypot = math.cos, math.sin, math.atan2, math.hypot
-    for i in range(n):
-        # ---------------- truth attitude, forces and sensors at this step
-        cr, sr, cp, sp = cos(roll), sin(roll), cos(pitch), sin(pitch)
-        cy, sy = cos(yaw), sin(yaw)
-        r00, r01, r02 = cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy
-        r10, r11, r12 = cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy
-        r20, r21, r22 = -sp, sr * cp, cr * cp
-        thrust = (G - wz_l[i]) / max(r22, 0.5)      # altitude held; vertical gusts countered by thrust
-        cur = cfg.mag.hover_current_A * (thrust / G) ** 1.5
-        current[i] = cur
-        w = wind_l[i]
-        an = -thrust * r02 + cfg.drag_per_s * (w[0] - vn)     # eq. (1): tilted thrust + drag
-        ae = -thrust * r12 + cfg.drag_per_s * (w[1] - ve)
-        fd = -G                                               # specific force f = a - g (NED)
-        ab = (r00 * an + r10 * ae + r20 * fd + an_[i][0],
-              r01 * an + r11 * ae + r21 * fd + an_[i][1],
-              r02 * an + r12 * ae + r22 * fd + an_[i][2])
-        mbx = r00 * fN + r10 * fE + r20 * fD + cur * cmx
-        mby = r01 * fN + r11 * fE + r21 * fD + cur * cmy
-        mbz = r02 * fN + r12 * fE + r22 * fD + cur * cmz
-        q = itf[i]
-        mx = A[0][0] * mbx + A[0][1] * mby + A[0][2] * mbz + offx + q[0] + mn[i][0]
-        my = A[1][0] * mbx + A[1][1] * mby + A[1][2] * mbz + offy + q[1] + mn[i][1]
-        mz = A[2][0] * mbx + A[2][1] * mby + A[2][2] * mbz + offz + q[2] + mn[i][2]
-        mag_o[i] = (mx, my, mz)
-        acc_o[i] = ab
-        gx, gy, gz = p_b + gn[i][0], q_b + gn[i][1], r_b + gn[i][2]   # gyro: rates of the last step
-        gyro_o[i] = (gx, gy, gz)
-        # ---------------- autopilot: corrected field, field-vector filter, tilt heading (+ declination)
-        dx, dy, dz = mx - offx, my - offy, mz - offz
-        cx = Ai[0][0] * dx + Ai[0][1] * dy + Ai[0][2] * dz - comp * cur * cmx
-        cyy = Ai[1][0] * dx + Ai[1][1] * dy + Ai[1][2] * dz - comp * cur * cmy
-        cz = Ai[2][0] * dx + Ai[2][1] * dy + Ai[2][2] * dz - comp * cur * cmz
-        if hx is None:
-            hx, hy, hz = cx, cyy, cz
-        else:
-            tx, ty, tz = gx * dt, gy * dt, gz * dt
-            ang = math.sqrt(tx * tx + ty * ty + tz * tz)
-            if ang < 1e-4:
-                sc, vs = 1.0 - ang * ang / 6.0, 0.5 - ang * ang / 24.0
-            else:
-                sc, vs = sin(ang) / ang, (1.0 - cos(ang)) / (ang * ang)
-            ca = cos(ang)
-            dot = tx * hx + ty * hy + tz * hz
-            kx, ky, kz = ty * hz - tz * hy, tz * hx - tx * hz, tx * hy - ty * hx
-            hx = (1 - g_ap) * (ca * hx - sc * kx + vs * dot * tx) + g_ap * cx
-            hy = (1 - g_ap) * (ca * hy - sc * ky + vs * dot * ty) + g_ap * cyy
-            hz = (1 - g_ap) * (ca * hz - sc * kz + vs * dot * tz) + g_ap * cz
-        er, ep = roll + atn[i][0], pitch + atn[i][1]
-        cer, ser, cep, sep = cos(er), sin(er), cos(ep), sin(ep)
-        Hx = hx * cep + hy * sep * ser + hz * sep * cer         # seed 000 eq. (11)
-        Hy = hy * cer - hz * ser                                # eq. (12)
-        yaw_est = _wrap(atan2(-Hy, Hx) + decl)                  # eq. (13) + declination
-        out_att[i] = (roll, pitch, yaw, er, ep, yaw_est)
-        # INS: accelerometer rotated to NED with the *estimated* attitude, blended with GPS
-        ce, se = cos(yaw_est), sin(yaw_est)
-        e00, e01, e02 = cep * ce, ser * sep * ce - cer * se, cer * sep * ce + ser * se
-        e10, e11, e12 = cep * se, ser * sep * se + cer * ce, cer * sep * se - ser * ce
-        evn += (e00 * ab[0] + e01 * ab[1] + e02 * ab[2]) * dt
-        eve += (e10 * ab[0] + e11 * ab[1] + e12 * ab[2]) * dt
-        if gps_valid_step[i]:
-            rr = gps_row[i]
-            evn += k_gv * (vn + gverr[rr, 0] - evn) * gdt
-            eve += k_gv * (ve + gverr[rr, 1] - eve) * gdt
-            epn += k_gp * (pn + gerr[rr, 0] - epn) * gdt
-            epe += k_gp * (pe + gerr[rr, 1] - epe) * gdt
-        epn += evn * dt
-        epe += eve * dt
-        epos_o[i] = (epn, epe, alt)
-        evel_o[i] = (evn, eve, 0.0)
-        # ---------------- position controller toward the moving target on the line
-        st = s_l[i]
-        vf = vff_l[i]
-        vsp_n = vf * ux + kp * (st * ux - epn)
-        vsp_e = vf * uy + kp * (st * uy - epe)
-        spd = hypot(vsp_n, vsp_e)
-        vmax = cfg.speed_mps + 2.0
-        if spd > vmax:
-            vsp_n, vsp_e = vsp_n * vmax / spd, vsp_e * vmax / spd
-        en, ee = vsp_n - evn, vsp_e - eve
-        int_n = min(max(int_n + ki * en * dt, -3.0), 3.0)
-        int_e = min(max(int_e + ki * ee * dt, -3.0), 3.0)
-        adn, ade = kv * en + int_n, kv * ee + int_e
-        amag = hypot(adn, ade)
-        if amag > 5.0:
-            adn, ade = adn * 5.0 / amag, ade * 5.0 / amag
-        # seed 002 eq. (4): desired tilt from the desired acceleration with the *estimated* yaw
-        a_fwd = ce * adn + se * ade
-        a_rgt = -se * adn + ce * ade
-        pitch_d = -atan2(a_fwd, G)
-        roll_d = atan2(a_rgt * cos(pitch_d), G)
-        yrate = min(max(1.5 * _wrap(ycmd_l[i] - yaw_est), -yaw_rate_max), yaw_rate_max)
-        # ---------------- integrate the truth (attitude first-order, Euler kinematics -> body rates)
-        droll = (roll_d - roll) / tau_att
-        dpitch = (pitch_d - pitch) / tau_att
-        p_b = droll - yrate * sp
-        q_b = dpitch * cr + yrate * cp * sr
-        r_b = -dpitch * sr + yrate * cp * cr
-        rates_o[i] = (p_b, q_b, r_b)
-        pos_o[i] = (pn, pe, alt)
-        vel_o[i] = (vn, ve, 0.0)
-        roll += droll * dt
-        pitch += dpitch * dt
-        yaw = _wrap(yaw + yrate * dt)
-        vn += an * dt
-        ve += ae * dt
-        pn += vn * dt
-        pe += ve * dt
-    # gyro sample i = body rate over the step (i-1 -> i), the convention of the heading filters
-    gyro_log = out["gyro"]
+    inputs = {"s_target": s_tgt.tolist(), "v_ff": v_ff.tolist(), "yaw_cmd": yaw_cmd.tolist(),
+              "wind": wind.tolist(), "wind_z": wz.tolist(), "acc_noise": acc_noise.tolist(),
+              "mag_noise": mag_noise.tolist(), "gyro_noise": gyro_noise.tolist(),
+              "att_noise": att_noise.tolist(), "interference": interf.tolist(),
+              "gps_valid": gps_valid_step.tolist(), "gps_row": gps_row.tolist(),
+              "gps_err": gerr, "gps_vel_err": gverr, "gps_dt": gps_step * dt,
+              "u": (float(u[0]), float(u[1]))}
+    loop = MissionLoop(cfg, inputs, n).run()
+    out, out_att = loop.out, loop.out_att
     pos, vel = out["pos"], out["vel"]
-    d = np.abs((pos[:, 0] - a_pt[0]) * u[1] - (pos[:, 1] - a_pt[1]) * u[0])
+    d = np.abs(pos[:, 0] * u[1] - pos[:, 1] * u[0])          # distance from the line through A = origin
     gpos = pos[gps_idx] + gerr
     gvel = vel[gps_idx] + gverr
-    mission = np.array([[a_pt[0], a_pt[1], alt], [b_pt[0], b_pt[1], alt]])
+    alt = loop.alt
+    b_pt = cfg.leg_length_m * u
+    mission = np.array([[0.0, 0.0, alt], [b_pt[0], b_pt[1], alt]])
     events = [{"kind": "leg", "start_s": round(a, 3), "end_s": round(b, 3)} for a, b in legs]
     return SimResult(t, out_att[:, 0], out_att[:, 1], out_att[:, 2], out_att[:, 3], out_att[:, 4], out_att[:, 5],
-                     gyro_log, out["acc"], out["mag"], out["rates"], pos, vel, out["epos"], out["evel"], interf,
-                     current, gps_idx, gpos, gvel, gfix, d, mission, events)
+                     out["gyro"], out["acc"], out["mag"], out["rates"], pos, vel, out["epos"], out["evel"], interf,
+                     loop.current, gps_idx, gpos, gvel, gfix, d, mission, events)

@@ -288,7 +288,18 @@ def _pack(cfg: fs.SimConfig, r: fs.SimResult, start_unix: float, boot_offset: fl
     for i in range(0, n, max(1, int(round(cfg.rate_hz / 10.0)))):
         out.append((start_unix + t[i] + 3e-4, _M.MAVLink_sys_status_message(
             0, 0, 0, 300, 15200, int(round(r.motor_current_A[i] * 100.0)), 70, 0, 0, 0, 0, 0, 0)))
-    # GPS rows (GPS_RAW_INT + GLOBAL_POSITION_INT)
+    out += _gps_messages(cfg, r, start_unix, boot_offset, boot_ms)
+    out.sort(key=lambda x: x[0])
+    return out
+
+
+def _gps_messages(cfg: fs.SimConfig, r: fs.SimResult, start_unix: float, boot_offset: float,
+                  boot_ms: np.ndarray) -> list:
+    """GPS rows as GPS_RAW_INT (the receiver) + GLOBAL_POSITION_INT (the autopilot's estimate)."""
+    t = r.t_s
+    yaw_est = np.asarray(r.est_yaw_rad)
+    lat0, lon0 = cfg.origin_lat_deg, cfg.origin_lon_deg
+    out: list = []
     gi = r.gps_idx
     glat, glon = fs.lla_from_ned(r.gps_pos_ned_m[:, 0], r.gps_pos_ned_m[:, 1], lat0, lon0)
     galt = cfg.ground_alt_m - r.gps_pos_ned_m[:, 2]
@@ -316,7 +327,6 @@ def _pack(cfg: fs.SimConfig, r: fs.SimResult, start_unix: float, boot_offset: fl
             int(round((cfg.ground_alt_m - r.est_pos_ned_m[i, 2]) * 1000)),
             int(round(-r.est_pos_ned_m[i, 2] * 1000)), int(round(ev[k, 0] * 100)), int(round(ev[k, 1] * 100)),
             int(round(ev[k, 2] * 100)), int(round(hdg[k])) % 36000)))
-    out.sort(key=lambda x: x[0])
     return out
 
 
