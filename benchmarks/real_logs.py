@@ -189,3 +189,118 @@ def motor_fit_compass(arr: LogArrays, k: int, field_ned_mG: np.ndarray):
     return fit_motor_field(t, raw, att.roll_rad, att.pitch_rad, att.yaw_rad, field_ned_mG, cur,
                            attitude_rate_deg_s=att.rate_deg_s, gps_vel_ne_mps=vel, corrected_in_force_mG=corrected,
                            nominal_matrix=correction_matrices(corr.diag[-1:], corr.offdiag[-1:])[0])
+
+
+# ------------------------------------------------------------------------------------ peers
+
+MAGFIT = Path(__import__("pymavlink").__file__).parent / "tools" / "magfit_WMM.py"
+
+
+def run_magfit(path: Path, mag: int = 1, reduce: int = 1, timeout_s: float = 900.0) -> dict:
+    """pymavlink's magfit_WMM.py on a DataFlash log (same model as ours: --elliptical --cmot).
+    Returns {"ofs": COMPASS_OFS (3,), "cmot": (3,), "runtime_s", "error"}."""
+    try:
+        import scipy  # noqa: F401  (magfit_WMM needs scipy and matplotlib: the "bench" extra)
+        import matplotlib  # noqa: F401
+    except ImportError as err:
+        return {"error": f"magfit_WMM needs {err.name}"}
+    cmd = [sys.executable, str(MAGFIT), "--att-source", "ATT", "--mag", str(mag), "--elliptical", "--cmot",
+           "--reduce", str(reduce), str(path)]
+    t0 = time.perf_counter()
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=dict(os.environ, MPLBACKEND="Agg"))
+    except subprocess.TimeoutExpired:
+        return {"error": f"timeout after {timeout_s:.0f} s", "runtime_s": timeout_s}
+    dt = time.perf_counter() - t0
+    m = re.search(r"New: Vector3\(([-\d.]+), ([-\d.]+), ([-\d.]+)\).*cmot: Vector3\(([-\d.]+), ([-\d.]+), ([-\d.]+)\)",
+                  out.stdout)
+    if not m:
+        return {"error": (out.stderr.strip().splitlines() or ["no result"])[-1], "runtime_s": dt}
+    v = np.array([float(x) for x in m.groups()])
+    return {"ofs": v[:3], "cmot": v[3:], "runtime_s": dt}
+
+
+# ------------------------------------------------------------------------------------ table
+
+def _verdict(ok: bool) -> str:
+    return "PASS" if ok else "FAIL"
+
+
+def bench_windows(seed: int, tmp: Path) -> list[str]:
+    from groundstation.sim.ardupilot import ArduSimConfig, simulate_ardupilot
+    sim = simulate_ardupilot(ArduSimConfig(seed=seed, imu_rate_hz=1.5))
+    arr = extract_tlog(sim.write_tlog(tmp / f"dance-{seed}.tlog"))
+    rows = []
+    for k in sorted(arr.mag):
+        ofs, res = window_offsets(arr, k)
+        w = res.chosen_window
+        err = float(np.max(np.abs(ofs - arr.cal_report[k][1]))) if ofs is not None else float("nan")
+        rows.append(f"  seed {seed} compass {k}: {res.status:22s} {w.n_samples if w else 0:3d} samples "
+                    f"{w.model if w else '-':9s} max |ours - MAG_CAL_REPORT| {err:5.1f} mG   target 20   {_verdict(err <= 20)}")
+    return rows
+
+
+def bench_inflight(seed: int, tmp: Path, magfit_reduce: int | None) -> list[str]:
+    from groundstation.sim.ardupilot import ArduSimConfig, simulate_ardupilot
+    from groundstation.sim.ardupilot_flight import FlightPlan
+    sim = simulate_ardupilot(ArduSimConfig(seed=seed, imu_rate_hz=2.0, plan=FlightPlan(dance=False, legs=6)))
+    arr = extract_tlog(sim.write_tlog(tmp / f"flight-{seed}.tlog"))
+    H = np.asarray(expected_field(arr, sim.config.start_unix_s).field_ned_mG)
+    rows = []
+    for k in sorted(arr.mag):
+        tr = sim.truth["compasses"][k]
+        t0 = time.perf_counter()
+        fit = wmm_fit_compass(arr, k, H)
+        dt = time.perf_counter() - t0
+        err = float(np.max(np.abs(fit.offsets_mG - tr["offsets_rot_mG"])))
+        mot = motor_fit_compass(arr, k, H)
+        f = np.asarray(tr["motor_mG_per_A"])
+        rel = 100 * float(np.linalg.norm(mot.motor_mG_per_unit - f) / np.linalg.norm(f))
+        rows.append(f"  seed {seed} compass {k}: {fit.status:3s} {fit.model:8s} offsets max err {err:4.1f} mG (target 5) "
+                    f"{_verdict(err <= 5)} | motor {np.linalg.norm(f):.2f} mG/A err {rel:4.1f} % (target 10) "
+                    f"{_verdict(rel <= 10)} | {1e3 * dt:4.0f} ms")
+    bin_path = sim.write_bin(tmp / f"flight-{seed}.bin", "timeus_split")
+    t0 = time.perf_counter()
+    arr_b = extract_bin(bin_path)
+    t_read = time.perf_counter() - t0
+    fit = wmm_fit_compass(arr_b, 0, H)
+    t_all = time.perf_counter() - t0
+    truth0 = np.asarray(sim.truth["compasses"][0]["offsets_rot_mG"])
+    ours = float(np.max(np.abs(fit.offsets_mG - truth0)))
+    rows.append(f"  seed {seed} .bin compass 0 ({len(arr_b.mag[0][0])} MAG records): ours max err {ours:4.1f} mG, "
+                f"{t_all:5.2f} s (read {t_read:.2f} s + fit {t_all - t_read:.2f} s)")
+    if magfit_reduce is not None:
+        mf = run_magfit(bin_path, 1, magfit_reduce)
+        if "error" in mf:
+            rows.append(f"  seed {seed} magfit_WMM: {mf['error']}")
+        else:
+            theirs = float(np.max(np.abs(-mf["ofs"] - truth0)))
+            faster = mf["runtime_s"] / t_all
+            rows.append(f"  seed {seed} magfit_WMM --elliptical --cmot --reduce {magfit_reduce}: max err {theirs:4.1f} mG, "
+                        f"{mf['runtime_s']:6.1f} s  ->  ours {faster:5.0f}x faster {_verdict(faster > 1)}, "
+                        f"accuracy {'at least as good' if ours <= theirs + 0.5 else 'worse'} {_verdict(ours <= theirs + 0.5)}")
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="one seed; magfit_WMM on every 10th record")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--no-magfit", action="store_true")
+    a = ap.parse_args(argv)
+    seeds = [1] if a.quick else list(range(1, a.seeds + 1))
+    reduce = None if a.no_magfit else (10 if a.quick else 1)
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        print("1. onboard calibration window in a 1.5 Hz telemetry log vs the vehicle's MAG_CAL_REPORT")
+        for s in seeds:
+            print("\n".join(bench_windows(s, tmp)))
+        print("2-4. in-flight WMM fit (no dance, 2 Hz telemetry; yaw from compass 0's EKF-like heading), "
+              "motor field per ampere, and the same fit on the DataFlash log vs magfit_WMM")
+        for s in seeds:
+            print("\n".join(bench_inflight(s, tmp, reduce)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -50,6 +50,7 @@ class WindowSettings:
     min_coverage: float = 0.45
     max_offset_sd_mG: float = 8.0
     max_residual_fraction: float = 0.05
+    field_strength_mG: float = 500.0      # for the field-only rate proxy (the WMM strength when known)
 
 
 @dataclass(frozen=True)
@@ -82,18 +83,19 @@ class WindowSearch:
         return None if self.chosen is None else self.windows[self.chosen]
 
 
-def field_direction_rate_deg_s(t_s: np.ndarray, mag_mG: np.ndarray) -> np.ndarray:
-    """Rate of change of the field direction about its median (deg/s), a rotation-rate proxy when
-    no attitude is logged; NaN where a neighbour is missing.  Assigned to the later sample."""
+def field_direction_rate_deg_s(t_s: np.ndarray, mag_mG: np.ndarray, field_strength_mG: float = 500.0) -> np.ndarray:
+    """Rotation-rate proxy from the field alone (deg/s) when no attitude is logged: the chord between
+    consecutive samples on a sphere of radius F, 2·asin(|Δm| / 2F) / Δt.  Offsets cancel in Δm, noise
+    adds ~|Δε|/F (a few tenths of a degree per sample).  NaN where a neighbour is missing; assigned
+    to the later sample."""
     m = np.asarray(mag_mG, float).reshape(-1, 3)
     t = np.asarray(t_s, float).ravel()
     out = np.full(len(m), np.nan)
     good = np.all(np.isfinite(m), axis=1) & np.isfinite(t)
-    if good.sum() < 3:
+    if good.sum() < 2:
         return out
-    d = m[good] - np.median(m[good], axis=0)
-    u = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
-    ang = np.degrees(np.arccos(np.clip(np.sum(u[1:] * u[:-1], axis=1), -1.0, 1.0)))
+    chord = np.linalg.norm(np.diff(m[good], axis=0), axis=1)
+    ang = np.degrees(2.0 * np.arcsin(np.clip(chord / (2.0 * field_strength_mG), 0.0, 1.0)))
     dt = np.diff(t[good])
     idx = np.nonzero(good)[0][1:]
     out[idx] = np.where(dt > 0, ang / np.where(dt > 0, dt, 1.0), np.nan)
@@ -186,7 +188,7 @@ def find_calibration_windows(t_s: np.ndarray, mag_raw_mG: np.ndarray, *, rate_de
     finite = np.all(np.isfinite(m), axis=1) & np.isfinite(t)
     if len(m) != len(t) or finite.sum() == 0:
         return WindowSearch("no_data", "no finite field samples", (), None, s)
-    rate = field_direction_rate_deg_s(t, m) if rate_deg_s is None else np.asarray(rate_deg_s, float).ravel()
+    rate = field_direction_rate_deg_s(t, m, s.field_strength_mG) if rate_deg_s is None else np.asarray(rate_deg_s, float).ravel()
     spans = [(a, b, "motion") for a, b in _motion_spans(t[finite], rate[finite], s)]
     spans += [(float(a) - s.marker_pad_s, float(b) + s.marker_pad_s, "marker") for a, b in marker_spans_s
               if np.isfinite(a) and np.isfinite(b) and b >= a]

@@ -27,7 +27,8 @@ __all__ = ["interp_series", "nearest_series", "AttitudeAt", "attitude_at"]
 
 def _sorted_finite(table_t_s: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     tt = np.asarray(table_t_s, float).ravel()
-    v = np.asarray(values, float).reshape(len(tt), -1)
+    v = np.asarray(values, float)
+    v = v.reshape(len(tt), -1) if v.size else np.empty((len(tt), v.shape[1] if v.ndim == 2 else 1))
     good = np.isfinite(tt) & np.all(np.isfinite(v), axis=1)
     tt, v = tt[good], v[good]
     order = np.argsort(tt, kind="stable")

@@ -79,7 +79,11 @@ def fit_motor_field(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG,
     un-applied, including any COMPASS_MOT compensation).  The motor term is always fitted; it is
     reported ``insufficient_signal_variation`` when its sd is not below supported_ratio × prior sd.
     """
-    s = settings or WmmFitSettings(min_motor_signal_std=1.0 if signal == "current_A" else 0.05)
+    if settings is None:
+        # per full throttle the field is ~100× the per-ampere one: ArduPilot allows ±1000 for COMPASS_MOT
+        settings = WmmFitSettings() if signal == "current_A" else WmmFitSettings(
+            min_motor_signal_std=0.05, motor_prior_sd_mG_per_unit=300.0, motor_limit_mG_per_unit=1000.0)
+    s = settings
     s = replace(s, fit_motor=True)
     if motor_signal is None or not np.any(np.isfinite(np.asarray(motor_signal, float))):
         return _nan_result("no_motor_signal", f"no {signal} in the log", signal, None)

@@ -10,8 +10,9 @@ the second best (among rotations not equivalent to it) has at least twice its va
 
 Here: ``reference`` "mean" is ArduPilot's score; "expected" scores against the WMM field instead
 (mean squared error to H_ned), which also tells apart rotations about the vertical when the yaw is
-independent of this compass — with level flight and yaw turns only, every rotation about the body
-Z axis gives a constant implied field, so "mean" cannot separate them (ambiguous, as it should say).
+independent of this compass — with exactly level yaw turns every rotation about the body Z axis
+gives a constant implied field, so "mean" cannot separate them (ambiguous, as it should say); a few
+degrees of tilt, as in real flight, already do.
 
 Statuses: confirmed (best = the rotation in use, clearly) | rotation_found (another rotation clearly
 best) | ambiguous | insufficient_data | no_attitude.  Units: mG, rad.  Pure numpy.
