@@ -8,9 +8,9 @@ samples.  ``find_calibration_windows``:
    stretches where the rotation rate (attitude/gyro rate when given, else the rate of change of the
    field direction) stays above ``min_rate_deg_s`` for at least ``min_span_s``, with pauses up to
    ``merge_gap_s`` bridged; overlapping spans are merged (source "marker+motion");
-2. each span is fitted: the robust ellipsoid (estimators.calibration.fit_ellipsoid_robust) when it
-   has at least ``ellipsoid_min_samples`` samples and a credible shape, else the robust sphere (as
-   ArduPilot's calibrator starts with a sphere fit);
+2. each span is fitted: the robust sphere (as ArduPilot's calibrator starts with a sphere fit) and,
+   from ``ellipsoid_min_samples`` on, the robust ellipsoid (estimators.calibration), kept when its
+   shape is credible and it explains clearly more than the sphere;
 3. sufficiency is judged by what the samples *say*, not by their count: direction coverage of the
    calibrated field (``coverage_bands`` × ``coverage_sectors`` equal-area cells, coarse enough for a
    45-sample dance), the offsets' standard deviation from the fit covariance, the residual RMS
@@ -43,7 +43,8 @@ class WindowSettings:
     min_span_s: float = 8.0
     marker_pad_s: float = 2.0
     min_samples: int = 15
-    ellipsoid_min_samples: int = 60
+    ellipsoid_min_samples: int = 30
+    ellipsoid_gain: float = 0.8
     max_axis_ratio: float = 2.5
     coverage_bands: int = 5
     coverage_sectors: int = 6
@@ -131,17 +132,22 @@ def _axis_ratio(C: np.ndarray) -> float:
 
 
 def fit_window(mag_raw_mG: np.ndarray, settings: WindowSettings = WindowSettings()) -> tuple[str, EllipsoidFit | None]:
-    """(model, fit) for one window's samples: ellipsoid when enough samples and a credible shape,
-    else sphere; ("", None) when fewer than ``min_samples`` finite samples."""
+    """(model, fit) for one window's samples; ("", None) below ``min_samples`` finite samples.
+
+    The sphere (4 parameters) is always fitted; from ``ellipsoid_min_samples`` on the ellipsoid
+    (9 parameters) too, and it is kept when its shape is credible and it explains clearly more
+    (residual below ``ellipsoid_gain`` × the sphere's: real soft iron, not noise fitting)."""
     m = np.asarray(mag_raw_mG, float).reshape(-1, 3)
     m = m[np.all(np.isfinite(m), axis=1)]
     if len(m) < settings.min_samples:
         return "", None
+    sphere = fit_sphere_robust(m)
     if len(m) >= settings.ellipsoid_min_samples:
-        fit = fit_ellipsoid_robust(m)
-        if fit.ok and _axis_ratio(fit.matrix) <= settings.max_axis_ratio:
-            return "ellipsoid", fit
-    return "sphere", fit_sphere_robust(m)
+        ell = fit_ellipsoid_robust(m)
+        if ell.ok and _axis_ratio(ell.matrix) <= settings.max_axis_ratio and (
+                not sphere.ok or ell.residual_rms_mG < settings.ellipsoid_gain * sphere.residual_rms_mG):
+            return "ellipsoid", ell
+    return "sphere", sphere
 
 
 def _judge(t0: float, t1: float, src: str, m: np.ndarray, s: WindowSettings) -> CalWindow:

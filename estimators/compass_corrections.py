@@ -107,13 +107,13 @@ def ardupilot_param_names(instance: int) -> dict[str, list[str]]:
             "motor": [f"COMPASS_MOT{n}_{a}" for a in "XYZ"], "motor_type": ["COMPASS_MOTCT"]}
 
 
-def _history(t: np.ndarray, changes: list[tuple[float, str, float]], names: list[str], default: float
+def _history(t: np.ndarray, by_name: dict[str, list], names: list[str], default: float
              ) -> tuple[np.ndarray, np.ndarray]:
     """(N, len(names)) step-held values of each name; a name never seen takes ``default``;
     known is False before the first change of any of the names."""
     cols, known = [], np.ones(len(t), bool)
     for name in names:
-        rows = [(ct, v) for ct, nm, v in changes if nm == name]
+        rows = by_name.get(name)
         if not rows:
             cols.append(np.full(len(t), default))
             continue
@@ -129,19 +129,23 @@ def corrections_from_param_changes(t_s: np.ndarray, changes: Iterable[tuple[floa
     """Corrections in force at each t_s for compass ``instance`` from a parameter history.
 
     ``changes``: (t_s, name, value) triples in any order, e.g. every PARAM_VALUE / PARM record of the
-    log and SENSOR_OFFSETS mag_ofs_* turned into COMPASS_OFS_* of compass 0.  A value logged at
-    t applies from t on.  Parameters never seen take ArduPilot's defaults (DIA 0 = identity,
-    ODI 0, SCALE 0 = unused, MOT 0, MOTCT 0); samples before the first offset record are
-    ``known`` False (their raw field cannot be rebuilt)."""
+    log, SENSOR_OFFSETS mag_ofs_* as COMPASS_OFS_* of compass 0, DataFlash MAG OfsX.. as COMPASS_OFS*
+    of that compass.  A value logged at t applies from t on.  Parameters never seen take ArduPilot's
+    defaults (DIA 0 = identity, ODI 0, SCALE 0 = unused, MOT 0, MOTCT 0); samples before the first
+    offset record are ``known`` False (their raw field cannot be rebuilt)."""
     t = np.asarray(t_s, float).ravel()
-    ch = [(float(a), str(b), float(c)) for a, b, c in changes]
     names = ardupilot_param_names(instance)
-    ofs, known = _history(t, ch, names["offsets"], np.nan)
-    dia, _ = _history(t, ch, names["diag"], 0.0)
-    odi, _ = _history(t, ch, names["offdiag"], 0.0)
-    scale, _ = _history(t, ch, names["scale"], 0.0)
-    mot, _ = _history(t, ch, names["motor"], 0.0)
-    motct, _ = _history(t, ch, names["motor_type"], 0.0)
+    wanted = {n for group in names.values() for n in group}
+    by_name: dict[str, list] = {}
+    for ct, nm, v in changes:
+        if nm in wanted:
+            by_name.setdefault(nm, []).append((ct, v))
+    ofs, known = _history(t, by_name, names["offsets"], np.nan)
+    dia, _ = _history(t, by_name, names["diag"], 0.0)
+    odi, _ = _history(t, by_name, names["offdiag"], 0.0)
+    scale, _ = _history(t, by_name, names["scale"], 0.0)
+    mot, _ = _history(t, by_name, names["motor"], 0.0)
+    motct, _ = _history(t, by_name, names["motor_type"], 0.0)
     motct = np.where(np.isfinite(motct[:, 0]), motct[:, 0], 0.0).astype(int)
     return CorrectionsInForce(ofs, np.nan_to_num(dia), np.nan_to_num(odi), scale[:, 0], np.nan_to_num(mot),
                               motct, known & np.all(np.isfinite(ofs), axis=1))

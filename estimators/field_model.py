@@ -204,9 +204,10 @@ def solve(data: FieldData, p_init: np.ndarray, p0: np.ndarray, opts: SolverOptio
     w, inl, sigma = _weights(r, np.ones(len(r), bool), opts.huber_k, opts.outlier_sigma)
     converged, it = False, 0
     for it in range(1, opts.max_iter + 1):
-        A = J[:, :, act]
-        Hm = np.einsum("n,nrp,nrq->pq", w, A, A) / sigma ** 2 + np.diag(lam)
-        g = np.einsum("n,nrp,nr->p", w, A, r) / sigma ** 2 + lam * (p[act] - p0[act])
+        A = J[:, :, act].reshape(-1, int(act.sum()))
+        wr = np.repeat(w, r.shape[1])
+        Hm = (A * wr[:, None]).T @ A / sigma ** 2 + np.diag(lam)
+        g = (A * wr[:, None]).T @ r.ravel() / sigma ** 2 + lam * (p[act] - p0[act])
         try:
             step = -np.linalg.solve(Hm, g)
         except np.linalg.LinAlgError:
@@ -227,10 +228,10 @@ def solve(data: FieldData, p_init: np.ndarray, p0: np.ndarray, opts: SolverOptio
         if np.max(np.abs(step)) < 1e-4:
             converged = True
             break
-    A = J[:, :, act]
+    A = J[:, :, act].reshape(-1, int(act.sum()))
     rows = 3 if opts.model == "vector" else 2          # ψ* absorbs one direction per sample
     sig_c = float(np.sqrt(np.sum(w[:, None] * r * r) / max(np.sum(w) * rows - act.sum(), 1.0)))
-    info = np.einsum("n,nrp,nrq->pq", w, A, A) / max(sig_c, 1e-9) ** 2 + np.diag(lam)
+    info = (A * np.repeat(w, r.shape[1])[:, None]).T @ A / max(sig_c, 1e-9) ** 2 + np.diag(lam)
     rho = _lag1(np.mean(r[inl], axis=1)) if np.any(inl) else 0.0
     cov = np.zeros((12, 12))
     try:

@@ -12,13 +12,17 @@ field is predicted, so offsets are observable from ordinary flight (the idea of 
   gradients of a Python loop, L1 cost, no uncertainty): offsets always; diagonal and motor terms
   element by element only where the data supports them (posterior sd < ``supported_ratio`` × prior
   sd, else held at nominal), within ArduPilot/magfit bounds; the covariance is returned;
-* the heading source: ArduPilot's EKF yaw is computed from the compass, so with ``yaw_source``
-  "compass" (or "auto" when the dependence is found) the yaw-free residual is used.  "auto" tests the
-  dependence: the slope of (attitude yaw − fitted-compass heading) against (in-force-compass
-  heading − fitted-compass heading); ≈ 1 when the attitude follows the compass, ≈ 0 when it does not
-  (then the full-vector residual, which uses the yaw, is used).  With a yaw-free fit the horizontal
-  offsets are observable only through heading changes: when the largest offset sd exceeds
-  ``max_offset_sd_mG`` the status is ``attitude_depends_on_compass``.
+* the heading source: ArduPilot's EKF yaw is computed from the compass, and a vector fit that uses
+  it is pulled toward the offsets the EKF was using (and 1° of yaw error is ~4 mG of horizontal
+  offset error).  So "auto" (and "compass") fit yaw-free: the attitude's heading is not used at
+  all, the horizontal offsets are observed through heading changes, and when too few headings were
+  flown (largest offset sd > ``max_offset_sd_mG``) the status is ``attitude_depends_on_compass``
+  (or ``insufficient_data`` when the yaw demonstrably does not follow this compass).  The yaw is
+  diagnosed, never trusted unasked: the RMS disagreement between the attitude yaw and the fitted
+  compass heading, and the slope of (attitude yaw − fitted heading) on (in-force heading − fitted
+  heading): ≈ 1 when the attitude follows this compass, ≈ 0 when not.  A caller that knows the
+  yaw is independent and accurate (GPS yaw, EK3_SRC1_YAW) asks for "independent": the full-vector
+  residual, with the GPS-course gate.
 
 Statuses: ok | attitude_depends_on_compass | insufficient_data | no_attitude | no_expected_field |
 offsets_out_of_range.  Units: mG, rad, A (or throttle 0..1), m/s.  Pure numpy.
@@ -40,7 +44,7 @@ __all__ = ["WmmFitSettings", "WmmFit", "fit_wmm", "compass_heading_rad"]
 class WmmFitSettings:
     """In-flight fit settings (units in the names).  Bounds follow magfit_WMM.py's defaults
     (diag 0.8–1.2, off-diagonal ±0.2) and ArduPilot's COMPASS_OFFS_MAX (1800 mG)."""
-    yaw_source: str = "auto"                  # "auto" | "independent" | "compass"
+    yaw_source: str = "auto"                  # "auto"/"compass": yaw-free | "independent": vector
     fit_diagonal: bool | None = None          # None: each element kept when supported
     fit_offdiagonal: bool = True              # True: each element kept when supported
     fit_motor: bool | None = None             # None: when the motor signal varies enough
@@ -65,7 +69,6 @@ class WmmFitSettings:
     min_samples: int = 30
     yaw_dependence_slope: float = 0.5
     min_heading_spread_deg: float = 1.0
-    max_yaw_disagreement_deg: float = 2.0     # "auto": RMS(attitude yaw − fitted heading) to trust the yaw
 
 
 @dataclass(frozen=True)
@@ -75,7 +78,7 @@ class WmmFit:
     status: str
     message: str
     model: str                                # "vector" | "yaw_free" | ""
-    yaw_source_used: str                      # "independent" | "compass" | ""
+    yaw_used: bool                            # the attitude's yaw entered the fit (vector model)
     offsets_mG: np.ndarray
     matrix: np.ndarray
     motor_mG_per_unit: np.ndarray
@@ -89,13 +92,14 @@ class WmmFit:
     rejected: dict
     heading_coverage: float                   # fraction of 12 heading sectors visited (used samples)
     yaw_dependence: float                     # slope, NaN when not determinable
+    yaw_disagreement_deg: float               # RMS(attitude yaw − fitted compass heading)
     settings: WmmFitSettings = field(default_factory=WmmFitSettings)
 
 
 def _failed(status: str, message: str, n: int, rejected: dict, settings: WmmFitSettings) -> WmmFit:
     nan3 = np.full(3, np.nan)
-    return WmmFit(status, message, "", "", nan3, np.full((3, 3), np.nan), nan3.copy(), np.full((12, 12), np.nan),
-                  nan3.copy(), nan3.copy(), (), float("nan"), 0, n, rejected, 0.0, float("nan"), settings)
+    return WmmFit(status, message, "", False, nan3, np.full((3, 3), np.nan), nan3.copy(), np.full((12, 12), np.nan),
+                  nan3.copy(), nan3.copy(), (), float("nan"), 0, n, rejected, 0.0, float("nan"), float("nan"), settings)
 
 
 def compass_heading_rad(corrected_mG: np.ndarray, roll_rad, pitch_rad, field_ned_mG) -> np.ndarray:
@@ -240,27 +244,34 @@ def _motor_choice(signal, ok, s: WmmFitSettings) -> tuple[bool, bool, str]:
     return False, False, f"motor term not fitted: signal varies by {sd:.2f} (sd) only"
 
 
-def _result(sol: Solution, active: np.ndarray, model: str, yaw_used: str, slope: float, data: FieldData,
+def _worst_offset_sd(cov: np.ndarray) -> float:
+    c = cov[:3, :3]
+    return float(np.sqrt(max(np.linalg.eigvalsh(c)[-1], 0.0))) if np.all(np.isfinite(c)) else float("inf")
+
+
+def _result(sol: Solution, active: np.ndarray, model: str, yaw: tuple[float, float], data: FieldData,
             n_in: int, rej: dict, notes: list[str], s: WmmFitSettings) -> WmmFit:
     p, cov = sol.params, sol.covariance
+    slope, disagree = yaw
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
-    ev = np.linalg.eigvalsh(cov[:3, :3]) if np.all(np.isfinite(cov[:3, :3])) else np.array([np.inf])
-    worst_sd = float(np.sqrt(max(ev[-1], 0.0)))
+    worst_sd = _worst_offset_sd(cov)
     rej = dict(rej, outliers=int((~sol.inliers).sum()))
     status = "ok"
     if np.any(np.abs(p[:3]) > s.offset_limit_mG):
         status = "offsets_out_of_range"
         notes.append(f"offsets beyond ±{s.offset_limit_mG:.0f} mG")
     elif worst_sd > s.max_offset_sd_mG:
-        status = "attitude_depends_on_compass" if model == "yaw_free" and yaw_used == "compass" else "insufficient_data"
+        depends = model == "yaw_free" and not (np.isfinite(slope) and slope < s.yaw_dependence_slope)
+        status = "attitude_depends_on_compass" if depends else "insufficient_data"
         notes.append(f"offsets unobservable: sd up to {worst_sd:.1f} mG (limit {s.max_offset_sd_mG:.1f})"
-                     + (", the yaw comes from this compass and the headings flown do not vary enough"
-                        if status == "attitude_depends_on_compass" else ""))
-    cov_txt = f"{model} fit of {int(sol.inliers.sum())} samples, residual RMS {sol.residual_rms_mG:.1f} mG"
+                     + ", too few headings flown" + (" and the attitude's yaw may follow this compass" if depends else "")
+                     + ("; if the attitude's yaw is independent and accurate (GPS yaw), fit with yaw_source 'independent'"
+                        if model == "yaw_free" else ""))
+    head = f"{model} fit of {int(sol.inliers.sum())} samples, residual RMS {sol.residual_rms_mG:.1f} mG"
     fitted = tuple(n for n, a in zip(PARAM_NAMES, active) if a)
-    return WmmFit(status, "; ".join([cov_txt] + notes), model, yaw_used, p[:3].copy(), matrix_from_params(p),
+    return WmmFit(status, "; ".join([head] + notes), model, model == "vector", p[:3].copy(), matrix_from_params(p),
                   p[9:12].copy(), cov, sd[:3], sd[9:12], fitted, sol.residual_rms_mG, int(sol.inliers.sum()), n_in,
-                  rej, _heading_coverage(data.yaw_rad[sol.inliers]), slope, s)
+                  rej, _heading_coverage(data.yaw_rad[sol.inliers]), slope, disagree, s)
 
 
 def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, attitude_rate_deg_s=None,
@@ -308,16 +319,10 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
     model = "vector" if s.yaw_source == "independent" else "yaw_free"
     data = data_for(ok)
     sol, active = _fit_terms(data, model, p0, auto, forced, s)
-    slope, yaw_used = float("nan"), ("independent" if model == "vector" else "compass")
-    if s.yaw_source == "auto":
-        cin = None if corrected_in_force_mG is None else np.asarray(corrected_in_force_mG, float).reshape(-1, 3)[ok]
-        slope, disagree = _yaw_checks(data, sol.params, cin, s)
-        if disagree <= s.max_yaw_disagreement_deg:
-            model, yaw_used = "vector", "independent"
-        elif not (np.isfinite(slope) and slope >= s.yaw_dependence_slope):
-            yaw_used = "unreliable"
-        notes.append(f"attitude yaw vs fitted heading: {disagree:.1f} deg RMS"
-                     + (f", dependence on this compass: slope {slope:.2f}" if np.isfinite(slope) else ""))
+    cin = None if corrected_in_force_mG is None else np.asarray(corrected_in_force_mG, float).reshape(-1, 3)[ok]
+    slope, disagree = _yaw_checks(data, sol.params, cin, s)
+    notes.append(f"attitude yaw vs fitted heading: {disagree:.1f} deg RMS"
+                 + (f", dependence on this compass: slope {slope:.2f}" if np.isfinite(slope) else ""))
     if model == "vector" and gps_vel_ne_mps is not None:
         bad = ok & _course_disagrees(t, cols[2], gps_vel_ne_mps, s)
         rej["course_disagreement"] = int(bad.sum())
@@ -325,6 +330,6 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
         if ok.sum() < s.min_samples:
             return _failed("insufficient_data", f"{int(ok.sum())} samples left after the course check", n, rej, s)
         data = data_for(ok)
-    if model == "vector":
-        sol, active = _fit_terms(data, model, p0, auto, forced, s)
-    return _result(sol, active, model, yaw_used, slope, data, n, rej, notes, s)
+    if model == "vector" and gps_vel_ne_mps is not None:
+        sol, active = _fit_terms(data, model, p0, auto, forced, s)     # refit without the gated samples
+    return _result(sol, active, model, (slope, disagree), data, n, rej, notes, s)

@@ -14,7 +14,7 @@ B = np.array([150.0, -90.0, 60.0])
 A = np.array([[1.03, 0.01, 0.0], [0.01, 0.98, 0.01], [0.0, 0.01, 1.01]])
 
 
-def _log(seed: int = 0, dance_samples: int = 45, rate_hz: float = 1.5, flight_s: float = 400.0):
+def _log(seed: int = 0, dance_samples: int = 45, rate_hz: float = 1.5, flight_s: float = 400.0, soft=A):
     """Ground 60 s, a handheld dance of ``dance_samples`` telemetry samples, then a flight of level turns."""
     rng = np.random.default_rng(seed)
     t0 = np.arange(0, 60, 1 / rate_hz)
@@ -25,7 +25,7 @@ def _log(seed: int = 0, dance_samples: int = 45, rate_hz: float = 1.5, flight_s:
     h2 = np.einsum("nji,j->ni", dcm_body_to_ned(rng.normal(0, .05, len(t2)), rng.normal(0, .05, len(t2)), yaw), H_NED)
     t = np.r_[t0, t1, t2]
     h = np.r_[np.tile(H_NED, (len(t0), 1)), h1, h2]
-    return t, h @ A.T + B + rng.normal(0, 2.0, h.shape), (t1[0], t1[-1])
+    return t, h @ soft.T + B + rng.normal(0, 2.0, h.shape), (t1[0], t1[-1])
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -35,9 +35,15 @@ def test_45_samples_at_1_5_hz_are_a_usable_dance(seed):
     assert res.status == "ok", res.message
     w = res.chosen_window
     assert w.start_s <= d0 + 1 and w.end_s >= d1 - 1 and w.source == "motion"
-    assert w.n_samples <= 50 and w.coverage >= 0.45 and w.model == "sphere"
-    assert np.max(np.abs(w.fit.offsets_mG - B)) < 10.0       # soft iron of ±3 % is not in a sphere model
+    assert w.n_samples <= 50 and w.coverage >= 0.45 and w.model == "ellipsoid"   # ±3 % soft iron is seen
+    assert np.max(np.abs(w.fit.offsets_mG - B)) < 5.0
     assert all(not x.sufficient for i, x in enumerate(res.windows) if i != res.chosen)   # the turns are not
+
+
+def test_no_soft_iron_keeps_the_sphere_model():
+    t, raw, _ = _log(7, soft=np.eye(3))
+    w = find_calibration_windows(t, raw).chosen_window
+    assert w.model == "sphere" and np.max(np.abs(w.fit.offsets_mG - B)) < 3.0
 
 
 def test_markers_add_a_window_even_without_motion_detection():

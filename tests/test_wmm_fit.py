@@ -34,14 +34,26 @@ def test_yaw_from_the_compass_itself_biases_the_vector_fit_not_the_yaw_free_one(
     assert np.max(np.abs(forced.offsets_mG - d["b"])) > 10.0         # pulled toward the stale offsets
     auto = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], ekf_yaw, H_NED, motor_signal=d["current"],
                    corrected_in_force_mG=cin)
-    assert auto.status == "ok" and auto.model == "yaw_free" and auto.yaw_source_used == "compass"
+    assert auto.status == "ok" and auto.model == "yaw_free" and not auto.yaw_used
     assert auto.yaw_dependence == pytest.approx(1.0, abs=0.1)
     # unbiased within its own uncertainty (z is the weak axis in level flight: the scale of z and its
     # offset are told apart by the ±3° tilt only)
     assert np.all(np.abs(auto.offsets_mG - d["b"]) < np.maximum(3.0, 3.0 * auto.offsets_sd_mG))
-    good = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED, motor_signal=d["current"],
-                   corrected_in_force_mG=cin)
-    assert good.model == "vector" and good.yaw_source_used == "independent"   # a right yaw is used
+    assert auto.yaw_disagreement_deg > 2.0
+
+
+def test_a_trustworthy_yaw_rescues_a_flight_with_too_few_headings():
+    d = level_flight(seed=8, headings_deg=(30, 210), n=600)
+    cin = d["raw"] - (d["b"] + np.array([25.0, -20.0, 5.0]))
+    kw = dict(corrected_in_force_mG=cin, nominal_matrix=np.linalg.inv(d["A"]), motor_signal=d["current"],
+              settings=WmmFitSettings(fit_diagonal=False, fit_offdiagonal=False))
+    auto = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED, **kw)
+    assert auto.status in ("attitude_depends_on_compass", "insufficient_data")     # the yaw is never trusted unasked
+    assert "yaw_source 'independent'" in auto.message
+    kw["settings"] = WmmFitSettings(fit_diagonal=False, fit_offdiagonal=False, yaw_source="independent")
+    good = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED, **kw)   # e.g. a GPS-compass yaw
+    assert good.status == "ok" and good.model == "vector" and good.yaw_used, good.message
+    np.testing.assert_allclose(good.offsets_mG, d["b"], atol=3.0)
 
 
 def test_too_few_headings_with_compass_yaw_is_attitude_depends_on_compass():

@@ -33,7 +33,7 @@ class FlightPlan:
     log_rate_hz: float = 10.0
     ground_s: float = 20.0
     dance: bool = True
-    dance_s: float = 40.0
+    dance_s: float = 30.0
     dance_rate_deg_s: float = 80.0
     settle_s: float = 20.0
     legs: int = 5
