@@ -82,3 +82,11 @@ def test_independent_yaw_and_no_dance():
     dep = simulate_ardupilot(ArduSimConfig(seed=5, plan=FlightPlan(dance=False)))
     err = np.degrees(np.angle(np.exp(1j * (dep.attitude[:, 2] - dep.flight.yaw_rad))))
     assert np.std(err) > 1.0                                   # the EKF-like yaw inherits the stale offsets
+
+
+def test_command_line_writes_both_logs_with_their_truth(tmp_path):
+    from groundstation.sim.ardupilot import main
+    assert main(["--seed", "6", "--out", str(tmp_path / "f.tlog"), "--bin", "timems", "--no-dance"]) == 0
+    assert json.loads((tmp_path / "f.truth.json").read_text())["format"] == "tlog"
+    assert json.loads((tmp_path / "f-timems.truth.json").read_text())["format"] == "bin/timems"
+    assert (tmp_path / "f-timems.bin").stat().st_size > 100_000

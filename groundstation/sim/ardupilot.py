@@ -232,3 +232,34 @@ def positions_lla(sim: ArduSim) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     lat0, lon0, alt0 = sim.config.origin
     lat, lon = lla_from_ned(sim.flight.pos_ned_m[:, 0], sim.flight.pos_ned_m[:, 1], lat0, lon0)
     return np.asarray(lat), np.asarray(lon), alt0 - sim.flight.pos_ned_m[:, 2]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """python -m groundstation.sim.ardupilot --seed 1 --out flight.tlog [--bin timeus_split] [--no-dance]"""
+    import argparse
+    from dataclasses import replace
+
+    from groundstation.sim.dataflash_writer import LAYOUTS
+    ap = argparse.ArgumentParser(prog="python -m groundstation.sim.ardupilot", description=__doc__.split("\n")[0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="ardupilot-sim.tlog", help="telemetry log to write (truth JSON beside it)")
+    ap.add_argument("--bin", choices=sorted(LAYOUTS), help="also write the DataFlash log in this layout")
+    ap.add_argument("--imu-rate", type=float, default=2.0, help="telemetry IMU rate [Hz]")
+    ap.add_argument("--no-dance", action="store_true", help="no onboard calibration: stale offsets throughout")
+    ap.add_argument("--independent-yaw", action="store_true", help="attitude yaw independent of the compasses")
+    ap.add_argument("--dropout", type=int, choices=[0, 1, 2], help="this compass drops out after 200 s")
+    a = ap.parse_args(argv)
+    cfg = ArduSimConfig(seed=a.seed, imu_rate_hz=a.imu_rate, plan=replace(FlightPlan(), dance=not a.no_dance),
+                        yaw_source="independent" if a.independent_yaw else "compass", dropout_compass=a.dropout)
+    sim = simulate_ardupilot(cfg)
+    p = sim.write_tlog(a.out)
+    print(f"wrote {p} and {truth_path(p)} ({sim.flight.t_s[-1]:.0f} s)")
+    if a.bin:
+        out = Path(a.out)
+        b = sim.write_bin(out.with_name(f"{out.stem}-{a.bin}.bin"), a.bin)     # its own truth JSON
+        print(f"wrote {b} and {truth_path(b)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
