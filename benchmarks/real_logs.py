@@ -1,7 +1,10 @@
 """Real and simulated ArduPilot logs: our calibration pieces against the vehicle and pymavlink's magfit_WMM.
 
-    .venv/bin/python benchmarks/real_logs.py            # simulated flights (3 seeds) + magfit_WMM side by side
-    .venv/bin/python benchmarks/real_logs.py --quick    # one seed, magfit on a reduced log (smoke run)
+    .venv/bin/python benchmarks/real_logs.py            # 3 seeds + magfit_WMM side by side (~20 min: magfit
+                                                        # takes 3.5-8 min per 2,900-record log on this box)
+    .venv/bin/python benchmarks/real_logs.py --quick    # one seed, magfit on every 10th record (~1 min)
+    .venv/bin/python benchmarks/real_logs.py --quick --no-magfit   # the smoke run of the tests (~10 s)
+magfit_WMM needs the "bench" extra (scipy, matplotlib).
 
 For each simulated flight (groundstation.sim.ardupilot: three compasses, stale offsets, an onboard
 calibration dance inside a 1.5 Hz telemetry log, a polygon mission with motor current):
