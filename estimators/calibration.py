@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.rotations import dcm_body_to_ned, rotation_from_vector_rad, rotation_to_vector_deg
+from estimators.rotations import dcm_body_to_ned, rotation_to_vector_deg
 
 __all__ = [
     "RlsEllipsoidCalibrator", "seed000_solve_batch", "seed000_params_from_c", "refine_seed000_batch",

@@ -100,7 +100,7 @@ def values_in_force(t_s: np.ndarray, change_t_s: np.ndarray, change_values: np.n
 
 def ardupilot_param_names(instance: int) -> dict[str, list[str]]:
     """ArduPilot parameter names of compass ``instance`` (0-based): COMPASS_OFS_X, COMPASS_OFS2_X, ...
-    (the convention of groundstation.autopilot_params; COMPASS_MOTCT is shared by all compasses)."""
+    (the convention of groundstation.io.params; COMPASS_MOTCT is shared by all compasses)."""
     n = "" if instance == 0 else str(instance + 1)
     return {"offsets": [f"COMPASS_OFS{n}_{a}" for a in "XYZ"], "diag": [f"COMPASS_DIA{n}_{a}" for a in "XYZ"],
             "offdiag": [f"COMPASS_ODI{n}_{a}" for a in "XYZ"], "scale": [f"COMPASS_SCALE{n}"],

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimators.field_model import (PARAM_NAMES, FieldData, Solution, SolverOptions, corrected_field,
-                                    matrix_from_params, nominal_params, residuals, solve)
+                                    matrix_from_params, nominal_params, solve)
 from estimators.rotations import dcm_body_to_ned, wrap_angle_rad
 
 __all__ = ["WmmFitSettings", "WmmFit", "fit_wmm", "compass_heading_rad"]

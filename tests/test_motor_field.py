@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from estimators.motor_field import fit_motor_field, motor_compensation_params
-from groundstation.autopilot_params import rotation_enum_matrix
+from groundstation.io.params import rotation_enum_matrix
 from sim_arrays import H_NED, ardupilot_flight, level_flight, real_logs
 
 pytestmark = pytest.mark.filterwarnings("error")

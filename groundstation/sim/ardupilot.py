@@ -33,7 +33,7 @@ from estimators.calibration import fit_ellipsoid_robust
 from estimators.compass_corrections import CorrectionsInForce, apply_ardupilot_corrections, motor_offset_mG
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.detection import lla_from_ned
-from groundstation.autopilot_params import rotation_enum_matrix
+from groundstation.io.params import rotation_enum_matrix
 from groundstation.sim.ardupilot_flight import FlightPlan, FlightTruth, autopilot_attitude, fly
 from groundstation.sim.ardupilot_telemetry import pack_telemetry, write_dataflash
 
@@ -119,7 +119,7 @@ class ArduSim:
     truth: dict
 
     def write_tlog(self, path: str | Path) -> Path:
-        from groundstation.mavlink import TlogWriter
+        from groundstation.io.mavlink import TlogWriter
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.unlink(missing_ok=True)

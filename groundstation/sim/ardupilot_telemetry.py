@@ -12,8 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from estimators.rotations import dcm_body_to_ned
-from groundstation.mavlink import mavlink2 as _M
+from groundstation.io.mavlink import mavlink2 as _M
 from groundstation.sim.ardupilot_flight import G_MPS2
 from groundstation.sim.dataflash_writer import DataFlashWriter
 
