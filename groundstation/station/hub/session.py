@@ -112,9 +112,10 @@ class Session:
         elif isinstance(s, MissionSample):
             if self._log_mission is None:   # live: the mission comes item by item
                 self.vehicle.on_mission_item(s)
-        elif flight.accepts(s):
-            self.calibration.on_sample(s)
-            flight.process(s)
+        else:
+            self.calibration.on_sample(s)       # every compass instance
+            if flight.accepts(s):
+                flight.process(s)
 
     def _on_status(self, s: StatusSample) -> None:
         if s.kind == "autopilot":
@@ -129,6 +130,7 @@ class Session:
             else:
                 self.event(s.text, "info" if up else "warning")
             self.sources.link_state = "up" if up else "lost"
+            self.calibration.on_link(up, s.t_s)
         elif s.kind == "statustext":
             self.event("vehicle: " + s.text)
 
@@ -233,8 +235,8 @@ class Session:
             self.changed()
 
     # ------------------------------------------------------------------ calibration (hub/calibration.py)
-    def wizard_start(self) -> None:
-        self.calibration.start()
+    def wizard_start(self, mode: str = "guided") -> None:
+        self.calibration.start(mode)
 
     def wizard_reset(self) -> None:
         self.calibration.reset()
