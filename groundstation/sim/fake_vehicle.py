@@ -153,26 +153,31 @@ class FakeVehicle:
         return out
 
     def _stream(self) -> None:
+        """Play the simulation; after its end keep answering (heartbeats, commands) and honour a
+        reboot: silence, then ``after_reboot`` (or the rest of the simulation)."""
         queue, start = self.messages, 0
-        while not self._stop.is_set() and queue:
-            stopped_at = self._play(queue, start)
-            if stopped_at is None and self._stop.is_set():
+        while not self._stop.is_set():
+            stopped_at = self._play(queue, start) if start < len(queue) else None
+            if self._stop.is_set():
                 return
-            if stopped_at is not None:            # rebooting: silence, then a fresh boot
-                self._stop.wait(self.reboot_silence_s)
-                with self._state_lock:
-                    self.calibrator.cancel()
-                    self.rebooting = False
-                    self._reboot_request.clear()
-                if self.after_reboot is not None:
-                    queue, start, self.after_reboot = self.after_reboot, 0, None
-                else:
-                    start = stopped_at
-                continue
-            if not self.loop:
-                break
-            start = 0
-        self.finished.set()
+            if stopped_at is None:
+                if self.loop and queue:
+                    start = 0
+                    continue
+                self.finished.set()
+                while not self._reboot_request.is_set():
+                    if self._stop.wait(0.05):
+                        return
+                stopped_at = len(queue)
+            self._stop.wait(self.reboot_silence_s)
+            with self._state_lock:
+                self.calibrator.cancel()
+                self.rebooting = False
+                self._reboot_request.clear()
+            if self.after_reboot is not None:
+                queue, start, self.after_reboot = self.after_reboot, 0, None
+            else:
+                start = stopped_at
 
     def _play(self, queue: list, start: int) -> int | None:
         """Send queue[start:] on time; the index where a reboot stopped it, else None."""

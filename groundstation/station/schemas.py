@@ -102,6 +102,7 @@ class Wizard(BaseModel):
     coverage_target: float
     coverage_cells: str
     next_pose: dict[str, Any] | None
+    current_direction: list[float] | None = Field(description="unit field direction in the body frame now")
     samples: int
     live_offsets_mG: list[float] | None
     live_field_mG: float | None

@@ -25,6 +25,8 @@ from groundstation.station.hub.sources import ConflictError, SessionError
 from groundstation.station.hub.vehicle import RESULT_TEXT
 from groundstation.station.wizard import FITNESS_LEVELS, MODES, CalibrationWizard
 from groundstation.station.wizard.compass import compass_index
+from groundstation.station.wizard.fit import raw_in_result_frame
+from groundstation.station.wizard.results import unapply_function
 from groundstation.station.wizard.onboard import OnboardCalibration
 
 __all__ = ["CalibrationControl", "Hub"]
@@ -289,11 +291,13 @@ class CalibrationControl:
         track = w.tracks.get(0)
         res = w.results.get(0) if w.results else None
         fit = None
+        cloud = track.mag.view()[:, 1:4].copy() if track is not None else np.empty((0, 3))
         if res and res.get("status") == "ok":
             fit = {"offsets_mG": res["offsets_mG"], "matrix": res["matrix"], "field_mG": res.get("field_strength_mG")}
+            cloud = raw_in_result_frame(res, cloud, unapply_function(self._hub.vehicle.autopilot or "ardupilot",
+                                                                     self._hub.vehicle.params, 0))
         elif track is not None and track.live is not None:
             fit = {"offsets_mG": track.live.offsets_mG.tolist(), "matrix": track.live.matrix.tolist(),
                    "field_mG": track.live.field_mG}
-        cloud = track.mag.view()[:, 1:4].copy() if track is not None else np.empty((0, 3))
         return {"cloud": cloud, "fit": fit, "calibrating": w.state != "idle",
                 "coverage": w.cells.copy() if w.state != "idle" else None}

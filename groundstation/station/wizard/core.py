@@ -279,6 +279,14 @@ class CalibrationWizard:
                     if step else "No motion.")
         return None
 
+    def _current_direction(self) -> list[float] | None:
+        """Unit field direction in the body frame now (from the latest attitude)."""
+        roll, pitch, yaw = self.latest_att
+        if self.state == "idle" or not all(math.isfinite(v) for v in self.latest_att):
+            return None
+        d = body_field_directions(roll, pitch, yaw, field_unit_ned(self.field_ned_mG))
+        return [round(float(v), 3) for v in d]
+
     def snapshot(self) -> dict:
         step = self.step
         primary = self.tracks.get(0)
@@ -287,12 +295,13 @@ class CalibrationWizard:
         return {
             "state": self.state, "mode": self.mode, "paused": self.paused, "banner": self.banner,
             "step": step, "step_index": self.step_index if self.state == "running" else (-1 if self.state == "idle" else 4),
-            "instruction": instruction(self), "hint": self.hint(),
+            "instruction": instruction(self, pose), "hint": self.hint(),
             "progress_deg": {a: round(float(v), 1) for a, v in zip("xyz", self.progress.progress_deg)},
             "turn_target_deg": self.settings.turn_target_deg,
             "coverage": math.floor(self.coverage * 100) / 100, "coverage_target": self.settings.tumble_coverage,
             "coverage_cells": "".join("1" if c else "0" for c in self.cells),
             "next_pose": pose,
+            "current_direction": self._current_direction(),
             "samples": self.primary_samples(),
             "live_offsets_mG": None if live is None else [round(float(v), 1) for v in live.offsets_mG],
             "live_field_mG": None if live is None else round(live.field_mG, 1),

@@ -28,7 +28,8 @@ from groundstation.samples import FlightLog
 from groundstation.station.wizard.quality import judge
 from groundstation.station.wizard.settings import WizardSettings
 
-__all__ = ["DanceData", "fit_compass", "orientation_param", "ROTATION_NAMES", "attitude_at", "calibrated_in_new_frame"]
+__all__ = ["DanceData", "fit_compass", "orientation_param", "ROTATION_NAMES", "attitude_at", "calibrated_in_new_frame",
+           "raw_in_result_frame"]
 
 N_ROTATIONS = 38
 ROTATION_NAMES = {0: "NONE", 1: "YAW_45", 2: "YAW_90", 3: "YAW_135", 4: "YAW_180", 5: "YAW_225", 6: "YAW_270",
@@ -131,11 +132,19 @@ def fit_compass(k: int, mag: np.ndarray, autopilot: str, params: dict[str, float
     return result
 
 
-def calibrated_in_new_frame(result: dict, raw: np.ndarray) -> np.ndarray:
-    """Un-applied samples -> calibrated body field with the result (orientation fix included)."""
+def raw_in_result_frame(result: dict, received: np.ndarray, unapply) -> np.ndarray:
+    """Samples as received -> the uncorrected field in the frame the result was fitted in
+    (the vehicle's calibration un-applied, a detected orientation applied)."""
+    raw = unapply(received)
     o = result.get("orientation") or {}
     if o.get("status") == "rotation_found":
         raw = raw @ (rotation_enum_matrix(o["detected"]) @ rotation_enum_matrix(o["current"]).T).T
+    return raw
+
+
+def calibrated_in_new_frame(result: dict, raw: np.ndarray) -> np.ndarray:
+    """Un-applied samples -> calibrated body field with the result (orientation fix included)."""
+    raw = raw_in_result_frame(result, raw, lambda m: m)
     return apply_calibration(raw, np.asarray(result["offsets_mG"], float), np.asarray(result["matrix"], float))
 
 

@@ -5,8 +5,9 @@ rotation vector φ (log map, ``estimators.rotations.rotation_to_vector_deg``) is
 frame, so φ_k is the angle turned about body axis k.  The step's progress is |Σ φ_k| over the
 step: a full turn about X gives 360°; wobbling back and forth cancels; a turn about another axis
 adds nothing; held still the attitude does not change, so nothing creeps (the sum of the
-increments telescopes to the change of attitude).  Without ATTITUDE messages the gyro rate of
-that axis is integrated instead (signed, so noise averages out).
+increments telescopes to the change of attitude).  Near pitch ±90° the Euler angles of ATTITUDE
+stop defining roll and yaw separately, so there the gyro's turn between the two attitude samples is
+used; without ATTITUDE messages the gyro is integrated throughout (signed, so noise averages out).
 
 The recent rotation rate (|φ| per second over ``still_window_s``) gives the "no motion" hint.
 """
@@ -22,6 +23,7 @@ from estimators.rotations import dcm_body_to_ned, rotation_to_vector_deg
 __all__ = ["AxisProgress"]
 
 ATTITUDE_STALE_S = 1.0      # no ATTITUDE for this long: integrate the gyro instead
+GIMBAL_PITCH_RAD = math.radians(80.0)
 
 
 def _small_rotation_deg(rel: np.ndarray) -> np.ndarray:
@@ -45,6 +47,7 @@ class AxisProgress:
         self._prev: tuple[float, np.ndarray] | None = None
         self._last_att_t = -math.inf
         self._last_gyro_t: float | None = None
+        self._gyro_since_att = np.zeros(3)
         self._recent: deque = deque()          # (t_s, |rotation| deg) of recent increments
         self.last_t = -math.inf
 
@@ -62,23 +65,34 @@ class AxisProgress:
         """Samples were lost: the rotation across the gap is not counted."""
         self._prev = None
         self._last_gyro_t = None
+        self._gyro_since_att = np.zeros(3)
         self._recent.clear()
 
     def on_attitude(self, t_s: float, roll_rad: float, pitch_rad: float, yaw_rad: float) -> None:
         R = dcm_body_to_ned(roll_rad, pitch_rad, yaw_rad)
         prev = self._prev
-        self._prev = (t_s, R)
+        self._prev = (t_s, R, abs(pitch_rad) > GIMBAL_PITCH_RAD)
         self._last_att_t = t_s
+        gyro_deg, self._gyro_since_att = self._gyro_since_att, np.zeros(3)
         if prev is None or not 0 < t_s - prev[0] < 1.0:
             return
-        self._count(t_s, _small_rotation_deg(prev[1].T @ R))
+        if prev[2] or self._prev[2]:
+            # near pitch ±90° roll and yaw of ATTITUDE are ill-defined (their split is arbitrary):
+            # the gyro turned through this interval instead
+            self._count(t_s, gyro_deg)
+        else:
+            self._count(t_s, _small_rotation_deg(prev[1].T @ R))
 
     def on_gyro(self, t_s: float, gyro_rad_s) -> None:
         last = self._last_gyro_t
         self._last_gyro_t = t_s
-        if t_s - self._last_att_t < ATTITUDE_STALE_S or last is None or not 0 < t_s - last < 1.0:
+        if last is None or not 0 < t_s - last < 1.0:
             return
-        self._count(t_s, np.degrees(np.asarray(gyro_rad_s, float)) * (t_s - last))
+        step = np.degrees(np.asarray(gyro_rad_s, float)) * (t_s - last)
+        if t_s - self._last_att_t < ATTITUDE_STALE_S:
+            self._gyro_since_att += step
+        else:
+            self._count(t_s, step)
 
     def _count(self, t_s: float, phi_deg: np.ndarray) -> None:
         if not np.all(np.isfinite(phi_deg)):

@@ -63,7 +63,7 @@ def _mode_text(w) -> str | None:
     return None
 
 
-def instruction(w) -> str:
+def instruction(w, pose: dict | None = None) -> str:
     after = _after_write(w)
     if after:
         return after
@@ -77,6 +77,8 @@ def instruction(w) -> str:
             return "Link lost: calibration paused. Keep the vehicle still until the link returns."
         step = w.step
         text = STEP_TEXT[step]["long"]
+        if step == "tumble" and pose is not None:
+            text = f"Cover the rest of the sphere: {pose['text']}."
         if w.mode == "onboard":
             text = "The vehicle's calibrator is running. " + text
         return text
