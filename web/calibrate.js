@@ -32,7 +32,11 @@ function renderWrite(pw) {
   const cls = pw.state === "failed" ? "error" : (pw.state === "written" ? "good" : "muted");
   let html = `<div class="write ${cls}">${pw.state === "written" ? "✔ " : (pw.state === "failed" ? "✖ " : "")}${escapeHtml(pw.message)}` +
     (pw.state === "writing" && pw.total ? ` (${pw.confirmed.length}/${pw.total} confirmed)` : "") + "</div>";
-  if (pw.failures && pw.failures.length) html += "<ul class='failures'>" + pw.failures.map((f) => `<li>${escapeHtml(f.text)}</li>`).join("") + "</ul>";
+  const fails = pw.failures || [];
+  if (fails.length) {
+    html += "<ul class='failures'>" + fails.slice(0, 3).map((f) => `<li>${escapeHtml(f.text)}</li>`).join("") +
+      (fails.length > 3 ? `<li>… and ${fails.length - 3} more</li>` : "") + "</ul>";
+  }
   $("param-write").innerHTML = html;
 }
 
@@ -123,14 +127,14 @@ function renderOnboard(w) {
   $("ob-cancel").disabled = !["starting", "running", "reported"].includes(ob.state);
 }
 
-function renderResult(w) {
+function renderResult(w, vehicleAutopilot) {
   const r = w.result;
   show("result-card", !!r);
   if (!r) return;
   $("result-status").textContent = r.status === "ok" ? "pass" : r.status;
   $("result-status").className = r.status === "ok" ? "good" : "error";
   $("result-message").textContent = r.status === "ok" ? (r.consistency_warning || "") : (r.message || "");
-  const px4 = (w.result.autopilot || "ardupilot") === "px4";
+  const px4 = (vehicleAutopilot || w.result.autopilot || "ardupilot") === "px4";
   const rows = [`<tr><th>#</th><th>Offsets b (mG)</th><th>${px4 ? "CAL_MAGn_x/y/zOFF (G)" : "COMPASS_OFSn_X/Y/Z"}</th>` +
     `<th>${px4 ? "CAL_MAGn_ROT" : "ORIENTn"}</th><th>Coverage</th></tr>`];
   w.compasses.filter((c) => c.included && c.result && c.result.status === "ok").forEach((c) => {
@@ -201,7 +205,7 @@ function render(s) {
   $("status").textContent = linkText(s) + (s.wizard.in_use ? " — calibration in use: " + (s.wizard.in_use === "vehicle" ? "the vehicle's" : "this station's") : "");
   const w = s.wizard;
   renderControl(w); renderSteps(w); renderCompasses(w); renderCoverage(w); renderOnboard(w);
-  renderResult(w); renderAfter(w); renderFixed(w);
+  renderResult(w, s.source.autopilot); renderAfter(w); renderFixed(w);
   show("deviation-card", !!w.deviation);
   if (w.deviation) {
     $("deviation-text").textContent = "max ±" + fmt(w.deviation.max_before_deg, 1) + "° before, ±" + fmt(w.deviation.max_after_deg, 1) + "° after";

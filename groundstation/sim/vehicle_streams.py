@@ -101,8 +101,7 @@ class AttitudeHistory:
         """This history followed by ``other`` (same rate; positions zero where not given)."""
         dt = 1.0 / self.rate_hz
         pos = [h.pos_ned_m if h.pos_ned_m is not None else np.zeros((len(h.t_s), 3)) for h in (self, other)]
-        if other.pos_ned_m is not None:
-            pos[1] = pos[1] + pos[0][-1]
+        pos[1] = pos[1] + pos[0][-1]          # it goes on from where this one ended
         return AttitudeHistory(np.concatenate([self.t_s, self.t_s[-1] + dt + other.t_s - other.t_s[0]]),
                                np.concatenate([self.roll_rad, other.roll_rad]),
                                np.concatenate([self.pitch_rad, other.pitch_rad]),

@@ -75,8 +75,9 @@ class AfterWrite:
                 silent = sum(1 for f in failures if f["echoed"] is None)
                 why = ("the vehicle did not answer" if silent == len(failed) else
                        "the vehicle answered with other values" if silent == 0 else "no answer or other values")
+                names = ", ".join(failed[:3]) + (f" and {len(failed) - 3} more" if len(failed) > 3 else "")
                 pw.update(state="failed", message=f"{len(failed)} of {len(params)} parameters did not stick after "
-                                                  f"3 tries ({why}): {', '.join(failed)}")
+                                                  f"3 tries: {why} ({names})")
                 hub.event(pw["message"], "error")
             else:
                 pw.update(state="written", message=f"all {len(params)} parameters written and confirmed by the vehicle")

@@ -224,12 +224,12 @@ class CalibrationWizard:
             step = self.step
             self.banner = {"level": "warning", "text": f"Link lost during step {STEP_TEXT[step]['short']}: calibration "
                            "paused. Keep the vehicle still; the step continues when the link returns."}
-            return f"calibration paused: link lost during step {step}"
+            return f"calibration paused: link lost during step {STEP_TEXT[step]['short']}"
         if up and self.paused:
             self.paused = False
             self.progress.gap()
             gap = max(0.0, t_s - (self._lost_at or t_s))
-            step = self.step
+            step = STEP_TEXT[self.step]["short"]
             if gap > self.settings.resume_max_gap_s and self.step_index < 3:
                 self.progress.restart_axis(self.step_index)
                 text = f"link back after {gap:.0f} s: step {step} restarts (the turn was interrupted too long)"

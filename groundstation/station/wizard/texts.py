@@ -42,8 +42,8 @@ def _after_write(w) -> str | None:
         return ("Written and confirmed: the vehicle now uses the new calibration. Reboot it (button below) so every "
                 "compass driver reloads it, then check the heading.")
     if pw["state"] == "failed":
-        return ("The write failed: " + pw["message"] + ". Check the link and press Accept again to retry, or export "
-                "the parameters and load them with another ground station.")
+        return (f"The write failed ({len(pw['failed'])} of {pw['total']} parameters did not stick). Check the link and "
+                "press Retry the write, or export the parameters and load them with another ground station.")
     if pw["state"] == "not_connected":
         return "Accepted for this station only (no live link): export the parameters and load them into the vehicle."
     return None
