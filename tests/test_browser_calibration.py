@@ -187,6 +187,13 @@ def test_three_compasses_orientation_write_reboot_and_heading_check(station, pag
         assert w["consistency"]["status"] == "ok"
         assert page.locator("#compass-table").inner_text().count("pass") == 3
 
+        page.uncheck("#compass-table input[data-compass='2']")      # leave compass 3 out ...
+        wait_api(api, lambda w: "COMPASS_OFS3_X" not in w["result"]["ardupilot_params"])
+        page.wait_for_selector("#compass-table tr.left-out", timeout=WAIT_MS)
+        page.screenshot(path=str(shots / "07b_compass_3_left_out.png"))
+        page.check("#compass-table input[data-compass='2']")        # ... and back in
+        wait_api(api, lambda w: "COMPASS_OFS3_X" in w["result"]["ardupilot_params"])
+
         page.click("#accept")
         page.wait_for_selector("#param-write .good", timeout=WAIT_MS)
         page.screenshot(path=str(shots / "08_written.png"))
@@ -226,12 +233,14 @@ def test_three_compasses_orientation_write_reboot_and_heading_check(station, pag
 # ------------------------------------------------------------------ onboard calibration
 def test_onboard_calibrator_beside_ours(station, page, api, shots):
     hw = make_hardware(three_compasses())
-    msgs = pack_stream(guided_dance_attitude(tilts=TILTS + MORE_TILTS), hw)
+    dance = hold_attitude(30.0, 30.0, rate_hz=25.0, wobble_deg=0.0).then(guided_dance_attitude(tilts=TILTS + MORE_TILTS))
+    msgs = pack_stream(dance, hw)
     port = connect(api)
     open_page(page, station)
+    page.check("#modes input[value='onboard']")
     with FakeVehicle(msgs, port, speed=SPEED) as fv:
-        page.wait_for_selector("#status:has-text('ardupilot')", timeout=WAIT_MS)
-        page.check("#modes input[value='onboard']")
+        while api.get("/api/state").json()["source"]["link"] != "up":      # the command needs the link
+            time.sleep(0.05)
         page.click("#start")
         page.wait_for_selector("#onboard-card:not([hidden])", timeout=WAIT_MS)
         wait_api(api, lambda w: w["onboard"]["compasses"] and w["onboard"]["compasses"][0].get("completion_pct", 0) > 40)
@@ -258,17 +267,17 @@ def test_large_vehicle_fixed_yaw_with_gps_course_and_entered_heading(station, pa
     """Walk the vehicle straight (GPS course), calibrate with that course, check against the WMM;
     then again with the heading entered by hand."""
     hw = make_hardware(three_compasses())
-    hist = (hold_attitude(75.0, 20.0, rate_hz=25.0).then(walk_attitude(75.0, 24.0, rate_hz=25.0))
-            .then(hold_attitude(75.0, 120.0, rate_hz=25.0)))
+    hist = (hold_attitude(75.0, 16.0, rate_hz=25.0).then(walk_attitude(75.0, 24.0, rate_hz=25.0))
+            .then(hold_attitude(75.0, 160.0, rate_hz=25.0)))
     msgs = pack_stream(hist, hw)
     port = connect(api)
     open_page(page, station)
     page.check("#modes input[value='fixed_yaw']")
     page.click("#start")
     page.wait_for_selector("#fixed-card:not([hidden])", timeout=5000)
-    with FakeVehicle(msgs, port, speed=3.0) as fv:
+    with FakeVehicle(msgs, port, speed=4.0) as fv:
         page.wait_for_selector("#status:has-text('link up')", timeout=WAIT_MS)
-        while fv.sent < sent_after(msgs, 19.0):     # standing at the start of the line
+        while fv.sent < sent_after(msgs, 15.0):     # standing at the start of the line
             time.sleep(0.05)
         page.click("#fy-walk")
         page.wait_for_selector("#fy-walk-text:has-text('walking')", timeout=WAIT_MS)
@@ -278,7 +287,7 @@ def test_large_vehicle_fixed_yaw_with_gps_course_and_entered_heading(station, pa
         page.wait_for_selector("#fy-walk-text:has-text('GPS course')", timeout=WAIT_MS)
         course = wizard(api)["heading_check"]["result"]["reference_deg"]
         assert course == pytest.approx(75.0, abs=1.0)
-        while fv.sent < sent_after(msgs, 45.0):     # standing still at the end of the walk
+        while fv.sent < sent_after(msgs, 41.0):     # standing still at the end of the walk
             time.sleep(0.05)
         page.click("#fy-gps")
         w = wait_api(api, lambda w: w["fixed_yaw"] and w["fixed_yaw"]["state"] == "done", timeout_s=30)

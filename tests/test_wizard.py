@@ -122,7 +122,7 @@ def test_short_drop_pauses_then_resumes_the_step():
 def test_long_drop_restarts_the_step():
     w = _started_on_y(200.0)
     w.on_link(False, 23.0)
-    text = w.on_link(True, 45.0)
+    text = w.on_link(True, 60.0)
     assert "restarts" in text and w.progress.net_deg[1] == 0.0 and w.step == "y"
 
 
@@ -269,3 +269,48 @@ def test_fake_onboard_calibrator_reports_arduplot_convention_offsets():
     (report,) = cal.report_fields(default_params())
     assert report[2] == 4 and report[4] < 3.0                           # success, fitness (RMS, mG)
     np.testing.assert_allclose(report[5:8], -hw.compasses[0].offsets_mG, atol=3.0)   # OFS = −b
+
+
+# ------------------------------------------------------------------ PX4 over the live link (no browser)
+def test_px4_vehicle_with_an_old_calibration_refitted_and_written(tmp_path):
+    """A PX4 vehicle already corrects each compass with an old CAL_MAGk_* (the field it sends is
+    corrected); the wizard un-applies it per slot, fits, and the write is confirmed by echo."""
+    import time
+
+    from conftest import free_udp_port
+    from groundstation.sim.fake_vehicle import FakeVehicle
+    from groundstation.station.hub.session import Session
+
+    hw = make_hardware(three_compasses())
+    old = default_params("px4", 3)
+    old |= {"CAL_MAG0_XOFF": 0.05, "CAL_MAG0_YOFF": -0.02, "CAL_MAG1_ZOFF": -0.1, "CAL_MAG2_XSCALE": 1.05}
+    msgs = pack_stream(guided_dance_attitude(rate_hz=12.5), hw)
+    session = Session(tmp_path, record_live=False)
+    port = free_udp_port()
+    session.connect(f"udpin:127.0.0.1:{port}")
+    session.wizard_start()
+    fv = FakeVehicle(msgs, port, speed=8.0, autopilot="px4", params=old).start()
+    try:
+        deadline = time.monotonic() + 90
+        while session.snapshot()["wizard"]["state"] != "result" and time.monotonic() < deadline:
+            time.sleep(0.1)
+        w = session.snapshot()["wizard"]
+        assert w["state"] == "result" and w["result"]["status"] == "ok", w["result"]
+        for k, c in enumerate(hw.compasses):
+            r = w["compasses"][k]["result"]
+            np.testing.assert_allclose(r["offsets_mG"], c.offsets_mG, atol=3.0)      # the sensor's own hard iron
+            assert f"CAL_MAG{k}" in r["message"]                                   # it says what it un-applied
+        pw = session.wizard_accept()
+        assert pw["state"] == "writing" and pw["autopilot"] == "px4"
+        deadline = time.monotonic() + 20
+        while session.snapshot()["wizard"]["param_write"]["state"] == "writing" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        pw = session.snapshot()["wizard"]["param_write"]
+        sent = w["result"]["px4_params"]
+    finally:
+        fv.stop()
+        session.close()
+    assert pw["state"] == "written" and sorted(pw["confirmed"]) == sorted(sent)
+    for name, value in sent.items():
+        assert fv.params[name] == pytest.approx(value, abs=1e-6 * max(1.0, abs(value)))
+    assert session.snapshot()["calibration_in_use"]          # the vehicle's, now

@@ -65,7 +65,8 @@ function renderSteps(w) {
   });
   const p = w.next_pose;
   show("next-pose", !!p);
-  if (p) $("next-pose").textContent = "Next: " + p.text + " (fills " + p.fills + " of " + p.missing + " missing directions).";
+  if (p) $("next-pose").textContent = "That pose fills " + p.fills + " of the " + p.missing +
+    " directions still missing (grey on the sphere).";
 }
 
 function compassRow(c, w) {
@@ -90,7 +91,7 @@ function compassRow(c, w) {
 }
 
 function renderCompasses(w) {
-  show("compass-card", w.compasses.length > 0);
+  show("compass-card", w.compasses.length > 0 && w.mode !== "fixed_yaw");
   if (!w.compasses.length) return;
   const done = w.compasses.some((c) => c.result);
   const head = done ? "<tr><th>Use</th><th>#</th><th>Result</th><th>Fitness mG</th><th>Heading</th><th>Orientation</th><th>Field</th></tr>" :
@@ -102,6 +103,7 @@ function renderCompasses(w) {
 }
 
 function renderCoverage(w) {
+  show("coverage-card", w.mode !== "fixed_yaw" || w.state === "idle");
   const ob = w.onboard;
   let sections = null;
   if (ob && ob.compasses.length && sectionCentres) sections = ob.compasses[0].sections || [];
@@ -131,7 +133,7 @@ function renderResult(w, vehicleAutopilot) {
   const r = w.result;
   show("result-card", !!r);
   if (!r) return;
-  $("result-status").textContent = r.status === "ok" ? "pass" : r.status;
+  $("result-status").textContent = r.status;
   $("result-status").className = r.status === "ok" ? "good" : "error";
   $("result-message").textContent = r.status === "ok" ? (r.consistency_warning || "") : (r.message || "");
   const px4 = (vehicleAutopilot || w.result.autopilot || "ardupilot") === "px4";

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import threading
-import time
+from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
@@ -26,7 +26,7 @@ from groundstation.station.hub.vehicle import RESULT_TEXT
 from groundstation.station.wizard import FITNESS_LEVELS, MODES, CalibrationWizard
 from groundstation.station.wizard.compass import compass_index
 from groundstation.station.wizard.fit import raw_in_result_frame
-from groundstation.station.wizard.results import unapply_function
+from groundstation.station.wizard.results import consistency_of, unapply_function
 from groundstation.station.wizard.onboard import OnboardCalibration
 
 __all__ = ["CalibrationControl", "Hub"]
@@ -177,9 +177,8 @@ class CalibrationControl:
                 raise SessionError(f"no compass {compass + 1} in this calibration")
             track.included = bool(included)
             if w.results:
-                from groundstation.station.wizard.results import _consistency
-                w.consistency = _consistency(w, self._hub.vehicle.autopilot or "ardupilot", self._hub.vehicle.params,
-                                             w.results)
+                w.consistency = consistency_of(w, self._hub.vehicle.autopilot or "ardupilot", self._hub.vehicle.params,
+                                               w.results)
                 w.rebuild_result(self._hub.vehicle.autopilot)
             self._hub.event(f"{track.name} {'included' if included else 'left out'}")
             self._hub.changed()
@@ -189,7 +188,6 @@ class CalibrationControl:
         if level not in FITNESS_LEVELS:
             raise SessionError(f"fitness level must be one of {', '.join(FITNESS_LEVELS)}")
         with self._lock:
-            from dataclasses import replace
             w = self.wizard
             w.settings = replace(w.settings, fitness_level=level)
             for t in w.tracks.values():
@@ -249,7 +247,8 @@ class CalibrationControl:
             self.send("the large-vehicle calibration", _M.MAV_CMD_FIXED_MAG_CAL_YAW, float(yaw_deg) % 360.0, 0, 0, 0)
             fy = FixedYawCalibration(float(yaw_deg), source, w.field_ned_mG, w.declination_deg)
             roll, pitch, _ = w.latest_att
-            fy.compute_ours(dict(w.latest_mag), self._hub.vehicle.params, roll, pitch)
+            fy.compute_ours({k: np.mean(list(v), axis=0) for k, v in w.latest_mag.items() if v},
+                            self._hub.vehicle.params, roll, pitch)
             w.fixed_yaw = fy
             w.heading_check = None
             self._hub.event(fy.message)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 
 import numpy as np
 
@@ -33,6 +34,7 @@ from groundstation.station.wizard.texts import STEP_TEXT, instruction, live_warn
 __all__ = ["CalibrationWizard", "WIZARD_STEPS", "MODES"]
 
 WIZARD_STEPS = ("x", "y", "z", "tumble")
+RECENT_MAG_SAMPLES = 25
 MODES = ("guided", "onboard", "fixed_yaw")
 
 
@@ -80,7 +82,7 @@ class CalibrationWizard:
         self._pending: list[Sample] = []
         self._coverage_at = -math.inf
         self.latest_att = (math.nan, math.nan, math.nan)
-        self.latest_mag: dict[int, np.ndarray] = {}
+        self.latest_mag: dict[int, deque] = {}     # the last few samples of each compass (still vehicle)
         self.start_unix_s: float | None = None
 
     def start(self, mode: str = "guided") -> None:
@@ -104,6 +106,10 @@ class CalibrationWizard:
 
     # ------------------------------------------------------------------ samples
     def on_sample(self, s: Sample) -> None:
+        if self.state == "idle":          # nothing to collect: only the WMM field at the first fix
+            if isinstance(s, GpsSample):
+                self._on_gps(s)
+            return
         for x in self._retimed(s):
             self._dispatch(x)
 
@@ -151,7 +157,8 @@ class CalibrationWizard:
             track = self.tracks[k] = CompassTrack(k, s.instance, self.settings)
         if s.instance != track.instance:
             return                       # RAW_IMU and SCALED_IMU both carry compass 0: keep one
-        self.latest_mag[k] = np.asarray(s.mag_body_mG, float)
+        recent = self.latest_mag.setdefault(k, deque(maxlen=RECENT_MAG_SAMPLES))
+        recent.append(np.asarray(s.mag_body_mG, float))
         if self._collecting():
             track.on_mag(s.t_s, s.mag_body_mG)
 

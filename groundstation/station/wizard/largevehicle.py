@@ -50,7 +50,8 @@ class FixedYawCalibration:
 
     def compute_ours(self, latest: dict[int, np.ndarray], params: dict[str, float], roll_rad: float,
                      pitch_rad: float) -> None:
-        """Our offsets from the last sample of each compass (the vehicle's formula)."""
+        """Our offsets from the mean of the last samples of each compass (the vehicle's formula
+        on one sample; averaging takes the sensor noise out)."""
         if self.field_ned_mG is None:
             return
         expected = expected_body_field(self.field_ned_mG, roll_rad, pitch_rad, self.yaw_deg)

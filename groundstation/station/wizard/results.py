@@ -10,7 +10,7 @@ from groundstation.station.wizard.consistency import check_consistency
 from groundstation.station.wizard.fit import DanceData, calibrated_in_new_frame, fit_compass
 from groundstation.station.wizard.quality import judge
 
-__all__ = ["build_results", "merged_result", "unapply_function"]
+__all__ = ["build_results", "merged_result", "unapply_function", "consistency_of"]
 
 MIN_SAMPLES = 50
 
@@ -36,12 +36,13 @@ def build_results(w, autopilot: str, params: dict[str, float]) -> tuple[dict[int
                                          "cautions": [], "ardupilot_params": {}, "px4_params": {}}
             continue
         track.result = results[k] = fit_compass(k, mag, autopilot, params, data, w.settings, track.disturbances)
-    consistency = _consistency(w, autopilot, params, results)
+    consistency = consistency_of(w, autopilot, params, results)
     deviation = _deviation(w, autopilot, params, results)
     return results, consistency, deviation
 
 
-def _consistency(w, autopilot, params, results) -> dict | None:
+def consistency_of(w, autopilot: str, params: dict[str, float], results: dict[int, dict]) -> dict | None:
+    """Consistency of the included compasses that fitted."""
     entries = [(k, r, w.tracks[k].mag.view(), unapply_function(autopilot, params, k))
                for k, r in sorted(results.items()) if w.tracks[k].included and r.get("status") == "ok"]
     return check_consistency(entries, w.settings, w.expected_field_mG)

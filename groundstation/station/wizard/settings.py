@@ -32,7 +32,7 @@ class WizardSettings:
     too_fast_deg_s: float = 172.0           # |gyro| above this: samples sparse, IMU/mag timing skews
     still_rate_deg_s: float = 4.0           # attitude rate below this for still_window_s: "no motion"
     still_window_s: float = 2.0
-    resume_max_gap_s: float = 10.0          # link back within this: the step resumes; else it restarts
+    resume_max_gap_s: float = 30.0          # link back within this: the step resumes; else it restarts
     disturbance_fraction: float = 0.12      # |m_cal| off the live sphere by this fraction: disturbance
     live_fit_every_s: float = 3.0           # the live robust fit is redone this often (sample time)
     live_fit_points: int = 400              # ... on at most this many (decimated) points

@@ -15,8 +15,22 @@ STEP_TEXT = {
 }
 
 
+def _walk_for_course(hc) -> str:
+    """Large-vehicle mode: the walk gives the heading to calibrate with."""
+    r = hc.result
+    if r is None:
+        return (f"Walk the vehicle straight along its nose direction ({hc.snapshot()['distance_m']:.0f} m so far), "
+                "then press Stop walk.")
+    if r.get("reference_deg") is None:
+        return f"The walk gave no course: {r.get('message')}. Walk again."
+    return (f"GPS course {r['reference_deg']:.1f}° over {r['distance_m']:.0f} m. Stop with the nose on that course, "
+            "then press Calibrate with the GPS course.")
+
+
 def _after_write(w) -> str | None:
     pw, rb, hc = w.param_write, w.reboot, w.heading_check
+    if hc is not None and w.mode == "fixed_yaw":
+        return _walk_for_course(hc)
     if hc is not None:
         r = hc.result
         if r is None:
