@@ -7,6 +7,10 @@ let last = null, sectionCentres = null, rebootAsked = false;
 
 function vec(v, d = 1) { return v ? "[" + v.map((x) => fmt(x, d)).join(", ") + "]" : "—"; }
 function show(id, on) { $(id).hidden = !on; }
+// Re-render only when the content changed: the page gets a state many times a second, and replacing
+// the table under the pointer would swallow clicks on its checkboxes.
+const lastHtml = {};
+function setHtml(id, html) { if (lastHtml[id] !== html) { lastHtml[id] = html; $(id).innerHTML = html; } }
 function pct(f) { return Math.floor(100 * (f || 0)) + " %"; }     // floored: never shows a target reached early
 function cap(s) { return s ? s[0].toUpperCase() + s.slice(1) : s; }
 
@@ -18,18 +22,18 @@ function renderControl(w) {
   if (b) { $("banner").className = "cal-banner " + b.level; $("banner").textContent = b.text; }
   show("hint", !!w.hint);
   $("hint").textContent = w.hint || "";
-  $("warnings").innerHTML = w.warnings.map((t) => `<div>⚠ ${escapeHtml(t)}</div>`).join("");
+  setHtml("warnings", w.warnings.map((t) => `<div>⚠ ${escapeHtml(t)}</div>`).join(""));
   $("start").disabled = w.state === "running";
   $("finish").disabled = w.state !== "running" || w.mode === "fixed_yaw";
-  $("live-fit").textContent = w.state === "idle" ? "" : w.samples + " samples" +
+  $("live-fit").textContent = w.state === "idle" || w.mode === "fixed_yaw" ? "" : w.samples + " samples" +
     (w.live_field_mG ? " · live field " + fmt(w.live_field_mG, 0) + " mG" : "") +
     (w.expected_field_mG ? " · WMM " + fmt(w.expected_field_mG, 0) + " mG" : "");
   renderWrite(w.param_write);
 }
 
 function renderWrite(pw) {
-  if (!pw) { $("param-write").innerHTML = ""; return; }
-  const cls = pw.state === "failed" ? "error" : (pw.state === "written" ? "good" : "muted");
+  if (!pw) { setHtml("param-write", ""; return; }
+  const cls = pw.state === "failed" ? "error" : (pw.state === "written" ? "good" : "muted"));
   let html = `<div class="write ${cls}">${pw.state === "written" ? "✔ " : (pw.state === "failed" ? "✖ " : "")}${escapeHtml(pw.message)}` +
     (pw.state === "writing" && pw.total ? ` (${pw.confirmed.length}/${pw.total} confirmed)` : "") + "</div>";
   const fails = pw.failures || [];
@@ -37,7 +41,7 @@ function renderWrite(pw) {
     html += "<ul class='failures'>" + fails.slice(0, 3).map((f) => `<li>${escapeHtml(f.text)}</li>`).join("") +
       (fails.length > 3 ? `<li>… and ${fails.length - 3} more</li>` : "") + "</ul>";
   }
-  $("param-write").innerHTML = html;
+  setHtml("param-write", html);
 }
 
 function renderSteps(w) {
@@ -96,10 +100,10 @@ function renderCompasses(w) {
   const done = w.compasses.some((c) => c.result);
   const head = done ? "<tr><th>Use</th><th>#</th><th>Result</th><th>Fitness mG</th><th>Heading</th><th>Orientation</th><th>Field</th></tr>" :
     "<tr><th>Use</th><th>#</th><th>Samples</th><th>Coverage</th><th colspan='3'></th></tr>";
-  $("compass-table").innerHTML = head + w.compasses.map((c) => compassRow(c, w)).join("");
+  setHtml("compass-table", head + w.compasses.map((c) => compassRow(c, w)).join(""));
   $("fitness").value = w.fitness_level;
   const k = w.consistency;
-  $("consistency").innerHTML = k ? `<div class="${k.status === "ok" ? "good" : "error"}">${escapeHtml(k.text)}</div>` : "";
+  setHtml("consistency", k ? `<div class="${k.status === "ok" ? "good" : "error"}">${escapeHtml(k.text)}</div>` : "");
 }
 
 function renderCoverage(w) {
@@ -124,7 +128,7 @@ function renderOnboard(w) {
     rows.push(`<tr><td>${c.index + 1}</td><td>${st}</td><td>${r ? vec(r.ofs_mG, 0) : "—"}${cmp ? "<br>" + vec(cmp.our_ofs_mG, 0) : ""}</td>` +
       `<td>${r ? fmt(r.fitness_mG, 1) : "—"} / ${cmp ? fmt(cmp.our_fitness_mG, 1) : "—"} mG</td></tr>`);
   });
-  $("onboard-table").innerHTML = rows.join("") + `<tr><td colspan="4" class="muted small">${escapeHtml(ob.message)}</td></tr>`;
+  setHtml("onboard-table", rows.join("") + `<tr><td colspan="4" class="muted small">${escapeHtml(ob.message)}</td></tr>`);
   $("ob-accept").disabled = ob.state !== "reported";
   $("ob-cancel").disabled = !["starting", "running", "reported"].includes(ob.state);
 }
@@ -149,7 +153,7 @@ function renderResult(w, vehicleAutopilot) {
       `<td>${rot === undefined ? "unchanged" : fmt(rot, 0) + (o && o.detected_name ? " " + o.detected_name : "")}</td>` +
       `<td title="directions of the final fit (it needs 25 %)">${pct(res.coverage)}</td></tr>`);
   });
-  $("result-table").innerHTML = rows.join("");
+  setHtml("result-table", rows.join(""));
   const pw = w.param_write;
   $("accept").disabled = r.status !== "ok" || (pw && ["writing", "written"].includes(pw.state));
   $("accept").textContent = pw && pw.state === "failed" ? "Retry the write" : "Accept and write";
@@ -158,7 +162,8 @@ function renderResult(w, vehicleAutopilot) {
 
 function renderAfter(w) {
   const pw = w.param_write, rb = w.reboot, hc = w.heading_check;
-  const on = !!(pw && pw.state === "written") || !!rb || !!hc;
+  const fixedDone = w.fixed_yaw && w.fixed_yaw.state === "done";
+  const on = (!!(pw && pw.state === "written") || !!rb || !!hc || fixedDone) && (w.mode !== "fixed_yaw" || fixedDone);
   show("after-card", on);
   if (!on) return;
   const waiting = rb && ["sent", "waiting"].includes(rb.state);
@@ -176,7 +181,7 @@ function renderAfter(w) {
       (r.ok ? `<div class="muted small">compass ${fmt(r.heading_deg, 1)}° ± ${fmt(r.spread_deg, 1)}° over ${r.samples} samples` +
         (r.distance_m ? `, walk ${fmt(r.distance_m, 1)} m (max ${fmt(r.off_line_m, 1)} m off the line)` : "") + "</div>" : "");
   } else if (measuring) html = `<div class="muted">measuring… ${hc.samples} samples${hc.kind === "walk" ? ", " + fmt(hc.distance_m, 1) + " m" : ""}</div>`;
-  $("hc-result").innerHTML = html;
+  setHtml("hc-result", html);
 }
 
 function renderFixed(w) {
@@ -189,8 +194,8 @@ function renderFixed(w) {
   $("fy-walk-text").textContent = hc ? (walking ? "walking… " + fmt(hc.distance_m, 1) + " m" :
     (hc.result && hc.result.reference_deg !== undefined ? "GPS course " + fmt(hc.result.reference_deg, 1) + "° over " + fmt(hc.result.distance_m, 1) + " m" :
       (hc.result ? hc.result.message : ""))) : "";
-  if (!fy) { $("fy-table").innerHTML = ""; return; }
-  const rows = ["<tr><th>Compass</th><th>Vehicle's new COMPASS_OFS</th><th>Ours (same formula)</th></tr>"];
+  if (!fy) { setHtml("fy-table", ""; return; }
+  const rows = ["<tr><th>Compass</th><th>Vehicle's new COMPASS_OFS</th><th>Ours (same formula)</th></tr>"]);
   Object.keys(fy.ours_ofs_mG).forEach((k) => rows.push(`<tr><td>${+k + 1}</td><td>${vec(fy.vehicle_ofs_mG[k], 1)}</td><td>${vec(fy.ours_ofs_mG[k], 1)}</td></tr>`));
   const c = fy.check;
   if (c) {
@@ -199,7 +204,7 @@ function renderFixed(w) {
       `${fmt(c.wmm_strength_mG, 0)} mG, inclination ${fmt(c.inclination_error_deg, 1)}° off</td></tr>`);
     (c.cautions || []).forEach((t) => rows.push(`<tr><td colspan="3" class="warn">${escapeHtml(t)}</td></tr>`));
   }
-  $("fy-table").innerHTML = rows.join("");
+  setHtml("fy-table", rows.join(""));
 }
 
 function render(s) {

@@ -29,7 +29,7 @@ def _walk_for_course(hc) -> str:
 
 def _after_write(w) -> str | None:
     pw, rb, hc = w.param_write, w.reboot, w.heading_check
-    if hc is not None and w.mode == "fixed_yaw":
+    if hc is not None and w.mode == "fixed_yaw" and (w.fixed_yaw is None or w.fixed_yaw.state != "done"):
         return _walk_for_course(hc)
     if hc is not None:
         r = hc.result
