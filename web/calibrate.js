@@ -32,8 +32,8 @@ function renderControl(w) {
 }
 
 function renderWrite(pw) {
-  if (!pw) { setHtml("param-write", ""; return; }
-  const cls = pw.state === "failed" ? "error" : (pw.state === "written" ? "good" : "muted"));
+  if (!pw) { setHtml("param-write", ""); return; }
+  const cls = pw.state === "failed" ? "error" : (pw.state === "written" ? "good" : "muted");
   let html = `<div class="write ${cls}">${pw.state === "written" ? "✔ " : (pw.state === "failed" ? "✖ " : "")}${escapeHtml(pw.message)}` +
     (pw.state === "writing" && pw.total ? ` (${pw.confirmed.length}/${pw.total} confirmed)` : "") + "</div>";
   const fails = pw.failures || [];
@@ -194,8 +194,8 @@ function renderFixed(w) {
   $("fy-walk-text").textContent = hc ? (walking ? "walking… " + fmt(hc.distance_m, 1) + " m" :
     (hc.result && hc.result.reference_deg !== undefined ? "GPS course " + fmt(hc.result.reference_deg, 1) + "° over " + fmt(hc.result.distance_m, 1) + " m" :
       (hc.result ? hc.result.message : ""))) : "";
-  if (!fy) { setHtml("fy-table", ""; return; }
-  const rows = ["<tr><th>Compass</th><th>Vehicle's new COMPASS_OFS</th><th>Ours (same formula)</th></tr>"]);
+  if (!fy) { setHtml("fy-table", ""); return; }
+  const rows = ["<tr><th>Compass</th><th>Vehicle's new COMPASS_OFS</th><th>Ours (same formula)</th></tr>"];
   Object.keys(fy.ours_ofs_mG).forEach((k) => rows.push(`<tr><td>${+k + 1}</td><td>${vec(fy.vehicle_ofs_mG[k], 1)}</td><td>${vec(fy.ours_ofs_mG[k], 1)}</td></tr>`));
   const c = fy.check;
   if (c) {
