@@ -299,4 +299,4 @@ class CalibrationControl:
             fit = {"offsets_mG": track.live.offsets_mG.tolist(), "matrix": track.live.matrix.tolist(),
                    "field_mG": track.live.field_mG}
         return {"cloud": cloud, "fit": fit, "calibrating": w.state != "idle",
-                "coverage": w.cells.copy() if w.state != "idle" else None}
+                "coverage": w.cells.copy() if w.state != "idle" and w.mode != "fixed_yaw" else None}
