@@ -42,6 +42,7 @@ class LiveFit:
     planarity: float
     n: int
     stable: bool      # agrees with the previous live fit (field within 2 %, offsets within 3 % of it)
+    rows: tuple       # the matrix as plain floats (the per-sample disturbance check)
 
 
 class CompassTrack:
@@ -54,6 +55,7 @@ class CompassTrack:
         self.mag = GrowingTable(4, MAX_POINTS)        # t_s, mx, my, mz as received (mG)
         self.included = True
         self.live: LiveFit | None = None
+        self._trusted = False
         self.cells = np.zeros(100, bool)
         self.disturbances = 0
         self.disturbed_until = -math.inf
@@ -67,8 +69,9 @@ class CompassTrack:
     def on_mag(self, t_s: float, m: tuple[float, float, float]) -> None:
         self.mag.append((t_s, *m))
         live = self.live
-        if live is not None and self.trusted():
-            r = float(np.linalg.norm(apply_calibration(np.asarray(m), live.offsets_mG, live.matrix)))
+        if live is not None and self._trusted:
+            d = [m[i] - live.offsets_mG[i] for i in range(3)]        # plain floats: per sample, 3x3
+            r = math.sqrt(sum((c[0] * d[0] + c[1] * d[1] + c[2] * d[2]) ** 2 for c in live.rows))
             if abs(r - live.field_mG) > self.settings.disturbance_fraction * live.field_mG:
                 if t_s >= self.disturbed_until:
                     self.disturbances += 1
@@ -89,7 +92,8 @@ class CompassTrack:
         stable = (prev is not None and abs(field - prev.field_mG) < 0.02 * field
                   and float(np.linalg.norm(fit.offsets_mG - prev.offsets_mG)) < 0.03 * field)
         self.live = LiveFit(fit.offsets_mG, fit.matrix, field, float(self.cells.mean()), planarity_ratio(pts[::step]),
-                            len(pts), stable)
+                            len(pts), stable, tuple(tuple(float(v) for v in row) for row in fit.matrix))
+        self._trusted = self.trusted()
 
     def trusted(self) -> bool:
         """The live fit is good enough to judge the field strength."""

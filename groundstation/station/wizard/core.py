@@ -177,7 +177,6 @@ class CalibrationWizard:
         if rate > self.settings.too_fast_rad_s:
             self._fast_until = s.t_s + 1.0
             self._last_gyro_deg_s = math.degrees(rate)
-        self._advance(s.t_s)
 
     def _on_attitude(self, s: AttitudeSample) -> None:
         self.latest_att = (s.roll_rad, s.pitch_rad, s.yaw_rad)
@@ -188,7 +187,7 @@ class CalibrationWizard:
         if s.t_s - self._coverage_at > 0.25:
             self._coverage_at = s.t_s
             self._update_cells()
-        self._advance(s.t_s)
+            self.advance()
 
     def _on_gps(self, s: GpsSample) -> None:
         if self._collecting():
@@ -214,8 +213,9 @@ class CalibrationWizard:
     def coverage(self) -> float:
         return float(self.cells.mean())
 
-    def _advance(self, t_s: float) -> None:
-        """Next step once the current one is complete."""
+    def advance(self) -> None:
+        """Count the queued attitude samples; the next step once the current one is complete."""
+        self.progress.flush()
         s = self.settings
         if self.step_index < 3 and self.progress.progress_deg[self.step_index] >= s.turn_target_deg - s.turn_tolerance_deg:
             self.step_index += 1
@@ -226,6 +226,7 @@ class CalibrationWizard:
         """Pause on a drop, resume (short gap) or restart the step (long gap); the event text."""
         if self.state != "running" or self.mode == "fixed_yaw":
             return None
+        self.advance()
         if not up and not self.paused:
             self.paused, self._lost_at = True, self._last_t
             step = self.step
@@ -250,6 +251,7 @@ class CalibrationWizard:
     def ready(self) -> bool:
         if self.state != "running" or self.paused:
             return False
+        self.advance()
         if self.mode == "onboard":
             return self.onboard is not None and self.onboard.state in ("reported", "refused") and \
                 self.primary_samples() >= 50
@@ -295,6 +297,8 @@ class CalibrationWizard:
         return [round(float(v), 3) for v in d]
 
     def snapshot(self) -> dict:
+        if self.state == "running":
+            self.advance()
         step = self.step
         primary = self.tracks.get(0)
         live = primary.live if primary is not None else None
