@@ -50,7 +50,7 @@ def test_wizard_steps_and_result_match_truth(tmp_path):
     assert steps_seen == ["x", "y", "z", "tumble", "done"]
     snap = session.snapshot()["wizard"]
     assert snap["state"] == "result"
-    assert all(snap["progress_deg"][a] >= 360 for a in "xyz")
+    assert all(snap["progress_deg"][a] >= 345 for a in "xyz")    # a full turn, less the hand tolerance
     res = snap["result"]
     assert res["status"] == "ok", res
     np.testing.assert_allclose(res["offsets_mG"], DANCE_TRUTH["offsets_mG"], atol=5.0)

@@ -111,6 +111,40 @@ def _plottable(t: np.ndarray, series: list[np.ndarray]) -> tuple | None:
     return tuple(out)
 
 
+COVERAGE_CENTER = np.array([0.0, 1.3, 3.4])           # above right of the calibration clouds
+
+
+class CoverageSphere:
+    """Handle of the calibration's covered field directions: the centres of the 100 equal-area
+    cells (estimators.calibration.coverage_cells; body FRD drawn in viser axes), green once seen."""
+
+    def __init__(self, scene, position: np.ndarray, radius: float = 0.6) -> None:
+        band, sector = np.divmod(np.arange(100), 10)
+        z = -1.0 + (band + 0.5) * 0.2
+        lon = (sector + 0.5) * 2 * np.pi / 10 - np.pi
+        r = np.sqrt(1 - z * z)
+        self._points = (np.stack([r * np.cos(lon), r * np.sin(lon), z], 1) @ S_FLIP * radius).astype(np.float32)
+        self._key = None
+        self.cloud = scene.add_point_cloud("/coverage", self._points, colors=(200, 200, 200), point_size=0.07,
+                                           point_shape="circle", position=tuple(position), visible=False)
+        self.label = scene.add_label("/coverage_label", "directions covered", position=tuple(position + [0, 0, 0.85]),
+                                     visible=False)
+
+    def update(self, cells: np.ndarray | None) -> None:
+        key = None if cells is None else bytes(np.asarray(cells, bool))
+        if key == self._key:
+            return
+        self._key = key
+        self.cloud.visible = self.label.visible = cells is not None
+        if cells is not None:
+            seen = np.asarray(cells, bool)[:, None]
+            self.cloud.colors = np.where(seen, [[67, 160, 71]], [[200, 200, 200]]).astype(np.uint8)
+
+
+def add_coverage_sphere(scene, position: np.ndarray = COVERAGE_CENTER) -> CoverageSphere:
+    return CoverageSphere(scene, position)
+
+
 class Scene:
     def __init__(self, session: Session, host: str = "127.0.0.1", port: int = 8080) -> None:
         self.session = session
@@ -156,6 +190,7 @@ class Scene:
                                               thickness=1.5, thickness_units="screen",
                                               position=tuple(CAL_CENTER), visible=False)
 
+        self.coverage = add_coverage_sphere(sc)
         self.route_label = sc.add_label("/route_label", "route vs preset line (blue), red: alarm",
                                         position=tuple(ROUTE_CENTER + [0, 0, 1.0]))
         seg0 = np.zeros((1, 2, 3), dtype=np.float32)
@@ -217,6 +252,7 @@ class Scene:
                 abs(math.remainder(a - b, 2 * math.pi)) for a, b in zip(ap, (roll, pitch, yaw))) > math.radians(2)
             self.ghost.visible = differs
         self._update_cloud(d["cloud"], d["fit"])
+        self.coverage.update(d.get("coverage"))
         for label in self.cal_labels:
             label.visible = self.cloud.visible
         # the calibration clouds stand in front of the route: hide the route while calibrating

@@ -62,31 +62,95 @@ class Line(BaseModel):
 
 
 class ParamWrite(BaseModel):
-    state: str
+    state: str = Field(description="writing | written | failed | not_connected")
     autopilot: str | None = None
     total: int = 0
     confirmed: list[str] = []
     failed: list[str] = []
+    failures: list[dict[str, Any]] = Field([], description="per failed name: sent, echoed (None: no answer), text")
     message: str = ""
 
 
+class CompassState(BaseModel):
+    index: int = Field(description="0 = first compass (RAW_IMU), 1 = SCALED_IMU2, 2 = SCALED_IMU3")
+    name: str
+    instance: int
+    included: bool
+    samples: int
+    coverage: float | None = Field(description="fraction of direction cells its live fit covers")
+    cells: str = Field(description="100 chars '0'/'1': the equal-area direction cells covered")
+    live_offsets_mG: list[float] | None
+    live_field_mG: float | None
+    trusted: bool = Field(description="the live fit is good enough to judge the field strength")
+    disturbances: int
+    result: dict[str, Any] | None = Field(description="calibration result of this compass: fit, orientation, "
+                                                      "fitness_mG, pass, reasons, cautions, parameters")
+
+
 class Wizard(BaseModel):
-    state: str
+    state: str = Field(description="idle | running | result | accepted")
+    mode: str = Field(description="guided | onboard | fixed_yaw")
+    paused: bool = Field(description="link lost during the dance")
+    banner: dict[str, Any] | None
     step: str | None
     step_index: int
     instruction: str
-    progress_deg: dict[str, float]
+    hint: str | None = Field(description="e.g. no motion")
+    progress_deg: dict[str, float] = Field(description="net turn about each body axis while its step was current")
     turn_target_deg: float
-    coverage: float
+    coverage: float = Field(description="fraction of field directions (body frame) seen, floored to 1 %")
     coverage_target: float
+    coverage_cells: str
+    next_pose: dict[str, Any] | None
+    current_direction: list[float] | None = Field(description="unit field direction in the body frame now")
     samples: int
-    rls_offsets_mG: list[float] | None
-    rls_field_mG: float | None
+    live_offsets_mG: list[float] | None
+    live_field_mG: float | None
     expected_field_mG: float | None
+    declination_deg: float | None
     warnings: list[str]
-    result: dict[str, Any] | None = Field(description="calibration result object (issue 3) "
-                                                      "+ heading_error_deg")
+    compasses: list[CompassState]
+    consistency: dict[str, Any] | None
+    deviation: dict[str, Any] | None
+    fitness_level: str
+    result: dict[str, Any] | None = Field(description="combined result of the included compasses")
     param_write: ParamWrite | None
+    onboard: dict[str, Any] | None
+    fixed_yaw: dict[str, Any] | None
+    reboot: dict[str, Any] | None
+    heading_check: dict[str, Any] | None
+    in_use: str | None = Field(description="whose calibration corrects the heading: station | vehicle")
+    settings: dict[str, Any]
+
+
+class CalibrationStart(BaseModel):
+    mode: Literal["guided", "onboard", "fixed_yaw"] = "guided"
+
+
+class CompassInclude(BaseModel):
+    included: bool
+
+
+class Fitness(BaseModel):
+    level: Literal["very_strict", "strict", "default", "relaxed"]
+
+
+class AcceptRequest(BaseModel):
+    which: Literal["ours", "vehicle"] = "ours"
+
+
+class FixedYawRequest(BaseModel):
+    yaw_deg: float | None = Field(None, description="true heading of the vehicle, deg")
+    source: Literal["entered", "gps"] = "entered"
+
+
+class RebootRequest(BaseModel):
+    confirm: bool = False
+
+
+class HeadingCheckRequest(BaseModel):
+    kind: Literal["bearing", "walk"] = "bearing"
+    bearing_deg: float | None = Field(None, description="known true bearing the vehicle points at, deg")
 
 
 class Event(BaseModel):

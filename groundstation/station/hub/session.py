@@ -2,8 +2,8 @@
 
 The parts each do one job (``sources.SourceControl``: live link or replay and its worker thread;
 ``vehicle.VehicleLink``: autopilot identity, parameters, confirmed writes; ``flight.FlightState``:
-estimation, alarms, route and plots; ``groundstation.station.wizard.CalibrationWizard``: the
-guided calibration).  ``Session`` owns the lock, the version and the event log, routes every
+estimation, alarms, route and plots; ``calibration.CalibrationControl``: the guided calibration
+and writing its result).  ``Session`` owns the lock, the version and the event log, routes every
 sample to the parts, and builds immutable snapshots for readers (the WebSocket pusher, the viser
 scene, REST).  ``add_listener`` callbacks run on the worker thread after each batch, so pushers
 wake without polling; a failing listener is logged, never silently dropped.
@@ -26,11 +26,11 @@ import numpy as np
 
 from groundstation.jsonsafe import json_default, jsonable
 from groundstation.samples import FlightLog, MissionSample, ParamSample, Sample, StatusSample
+from groundstation.station.hub.calibration import CalibrationControl
 from groundstation.station.hub.flight import FlightState
 from groundstation.station.hub.sources import (ConflictError, NotFoundError, SessionError, SourceControl,
                                                check_speed)
 from groundstation.station.hub.vehicle import VehicleLink
-from groundstation.station.wizard import CalibrationWizard
 
 __all__ = ["Session", "SessionError", "NotFoundError", "ConflictError"]
 
@@ -51,7 +51,7 @@ class Session:
         self.sources = SourceControl(self, self._lock, Path(recordings_dir).resolve(), record_live)
         self.vehicle = VehicleLink(self._lock)
         self.flight = FlightState(self.event)
-        self.wizard = CalibrationWizard()
+        self.calibration = CalibrationControl(self._lock, self)
         self.log_calibration: dict | None = None
         self._log_mission: list | None = None
 
@@ -83,6 +83,10 @@ class Session:
         return self.vehicle.params
 
     @property
+    def wizard(self):
+        return self.calibration.wizard
+
+    @property
     def replay(self):
         return self.sources.replay
 
@@ -96,10 +100,7 @@ class Session:
     def process_batch(self, samples: list[Sample]) -> None:
         for s in samples:
             self._process(s)
-        if self.wizard.ready():
-            self.wizard.finish(self.vehicle.autopilot, self.vehicle.params)
-            r = self.wizard.result or {}
-            self.event(f"calibration finished: {r.get('status')} {r.get('message') or ''}".strip())
+        self.calibration.after_batch()
 
     def _process(self, s: Sample) -> None:
         flight = self.flight
@@ -111,9 +112,10 @@ class Session:
         elif isinstance(s, MissionSample):
             if self._log_mission is None:   # live: the mission comes item by item
                 self.vehicle.on_mission_item(s)
-        elif flight.accepts(s):
-            self.wizard.on_sample(s)
-            flight.process(s)
+        else:
+            self.calibration.on_sample(s)       # every compass instance
+            if flight.accepts(s):
+                flight.process(s)
 
     def _on_status(self, s: StatusSample) -> None:
         if s.kind == "autopilot":
@@ -128,6 +130,7 @@ class Session:
             else:
                 self.event(s.text, "info" if up else "warning")
             self.sources.link_state = "up" if up else "lost"
+            self.calibration.on_link(up, s.t_s)
         elif s.kind == "statustext":
             self.event("vehicle: " + s.text)
 
@@ -231,74 +234,19 @@ class Session:
             self.event(f"seek to {t_s:.1f} s")
             self.changed()
 
-    # ------------------------------------------------------------------ calibration wizard
-    def wizard_start(self) -> None:
-        with self._lock:
-            if self.wizard.state == "running":
-                return  # a second client pressing Start joins the running wizard
-            self.wizard.start()
-            self.vehicle.request_params(self.sources.link)   # the onboard calibration to un-apply
-            self.event("calibration started: turn about X")
-            self.changed()
+    # ------------------------------------------------------------------ calibration (hub/calibration.py)
+    def wizard_start(self, mode: str = "guided") -> None:
+        self.calibration.start(mode)
 
     def wizard_reset(self) -> None:
-        with self._lock:
-            self.wizard.reset()
-            self.event("calibration reset")
-            self.changed()
+        self.calibration.reset()
 
     def wizard_finish_now(self) -> dict:
-        with self._lock:
-            if self.wizard.state != "running":
-                raise ConflictError("the calibration wizard is not running")
-            return self.wizard.finish(self.vehicle.autopilot, self.vehicle.params)
+        return self.calibration.finish_now()
 
     def wizard_accept(self) -> dict:
         """Use the result for heading; on a live link write it to the vehicle (background)."""
-        with self._lock:
-            w = self.wizard
-            if w.result is None or w.result.get("status") != "ok":
-                raise ConflictError("no successful calibration result to accept")
-            if w.param_write is not None and w.param_write.get("state") == "writing":
-                return w.param_write
-            self.flight.stack.set_calibration(w.result)     # the detector re-learns with it
-            w.state = "accepted"
-            autopilot = self.vehicle.autopilot or "ardupilot"
-            params = w.result.get(f"{autopilot}_params") or {}
-            link = self.sources.link
-            if link is not None and self.sources.link_state == "up" and params:
-                w.param_write = {"state": "writing", "autopilot": autopilot, "total": len(params),
-                                 "confirmed": [], "failed": [], "message": "writing parameters"}
-                threading.Thread(target=self._write_params, args=(link, dict(params)), daemon=True,
-                                 name="param-write").start()
-            else:
-                w.param_write = {"state": "not_connected", "autopilot": autopilot, "total": len(params),
-                                 "confirmed": [], "failed": [],
-                                 "message": "accepted for this station; no live link, export the parameters"}
-            self.event("calibration accepted")
-            self.changed()
-            return w.param_write
-
-    def _write_params(self, link, params: dict[str, float]) -> None:
-        def progress(confirmed: list[str]) -> None:
-            self.wizard.param_write = dict(self.wizard.param_write or {}, confirmed=confirmed)
-
-        confirmed, failed = self.vehicle.write_params(link, params, progress)
-        with self._lock:
-            pw = self.wizard.param_write or {}
-            pw.update(confirmed=confirmed, failed=failed)
-            if failed:
-                pw.update(state="failed", message=f"{len(failed)} of {len(params)} parameters did not stick "
-                                                  f"after 3 tries: {', '.join(failed)}")
-                self.event(pw["message"], "error")
-            else:
-                pw.update(state="written", message=f"all {len(params)} parameters written and confirmed")
-                self.event(pw["message"])
-                # the vehicle now corrects its own field: applying the result here too would
-                # correct twice (its onboard calibration was un-applied for the fit)
-                self.flight.stack.set_calibration(None)
-            self.wizard.param_write = pw
-            self.changed()
+        return self.calibration.accept()
 
     # ------------------------------------------------------------------ preset line
     def set_line(self, a, b, source: str = "user") -> dict:
@@ -340,8 +288,8 @@ class Session:
                 "alarm": self.flight.alarm_snapshot(),
                 "alarm_count": len(self.flight.alarms),
                 "line": stack.line,
-                "calibration_in_use": stack.calibration is not None,
-                "wizard": self.wizard.snapshot(),
+                "calibration_in_use": self.calibration.in_use(),
+                "wizard": self.calibration.snapshot(),
                 "events": list(self.events)[-EVENTS_SHOWN:],
             }
 
@@ -358,24 +306,17 @@ class Session:
     def scene_data(self) -> dict:
         """Arrays for the 3-D view (copies, safe to use outside the lock)."""
         with self._lock:
-            w = self.wizard
             flight, stack = self.flight, self.flight.stack
-            est = w.rls_estimate_cached
-            res = w.result if w.result and w.result.get("status") == "ok" else None
             return {
                 "att": (stack.roll_rad, stack.pitch_rad, stack.yaw_rad),
                 "ap_att": stack.ap_rpy_rad,
-                "cloud": w.mag.view()[:, 1:4].copy(),
-                "fit": ({"offsets_mG": res["offsets_mG"], "matrix": res["matrix"],
-                         "field_mG": res.get("field_strength_mG")} if res else
-                        ({"offsets_mG": est[0].tolist(), "matrix": est[1].tolist(), "field_mG": est[2]} if est else None)),
                 "route": flight.route.view().copy(),
                 "line": stack.line,
                 "origin": flight.origin,
                 "alarm": stack.alarm_active,
                 "alarm_text": ", ".join(stack.alarm_kinds),
-                "calibrating": w.state != "idle",
                 "history": np.array(flight.history, dtype=float).reshape(-1, 6),
+                **self.calibration.scene_data(),
             }
 
     def alarm_list(self) -> list[dict]:
