@@ -40,7 +40,7 @@ def test_parameter_history_per_instance_and_defaults():
 
 
 def _random_corrections(rng, n, t):
-    first, second = t < t[n // 2], t >= t[n // 2]
+    first = t < t[n // 2]
     ofs = np.where(first[:, None], [30.0, -20.0, 10.0], [-80.0, 45.0, 12.0])
     diag = np.where(first[:, None], 0.0, [1.05, 0.97, 1.01])      # identity, then a soft-iron fit
     odi = np.where(first[:, None], 0.0, [0.02, -0.01, 0.015])

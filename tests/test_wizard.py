@@ -9,11 +9,11 @@ import pytest
 
 from groundstation.io.decode import MavlinkDecoder
 from groundstation.io.magcal import mask_from_sections, section_centres, section_of, sections_from_mask
-from groundstation.samples import AttitudeSample, ImuSample, MagSample
+from groundstation.samples import AttitudeSample, MagSample
 from groundstation.sim.fake_autopilot import OnboardCalibrator, default_params
 from groundstation.sim.fake_vehicle import compress_time
 from groundstation.sim.vehicle_streams import (FakeCompass, ROTATION_ROLL_180, ROTATION_YAW_90, attitude_from_moves,
-                                               guided_dance_attitude, hold_attitude, make_hardware, pack_stream,
+                                               guided_dance_attitude, make_hardware, pack_stream,
                                                three_compasses, walk_attitude)
 from groundstation.station.wizard import CalibrationWizard, WizardSettings
 from groundstation.station.wizard.aftercheck import HeadingCheck
