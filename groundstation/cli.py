@@ -56,6 +56,7 @@ def _write_json(path: str, obj: object) -> None:
 
 def cmd_info(args: argparse.Namespace) -> int:
     from groundstation.io.logs import summarize_rates
+    from groundstation.jobs.log_summary import compass_lines
 
     log = load_log(args.file)
     tables = {"magnetometer": log.mag, "IMU": log.imu, "attitude": log.attitude, "GPS": log.gps,
@@ -78,6 +79,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         else:
             state = "already calibrated by the autopilot"
         print(f"  mag field       {state}")
+    print("\n".join(compass_lines(log)))
     rtk = bool(len(log.gps) and (log.gps[:, 7] >= 5).any())
     print(f"  RTK             {'yes' if rtk else 'no'}")
     print(f"  mission         {len(log.mission)} waypoints" if log.mission else "  mission         none")
@@ -91,16 +93,16 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from groundstation.jobs.calibrate import calibrate_log, error_result, format_summary
+    from groundstation.jobs.calibrate import calibrate_compasses, error_result, format_consistency, format_summary
 
     results = []
     for file in args.files:
         try:
-            result = calibrate_log(load_log(file))
+            found = calibrate_compasses(load_log(file))    # one result per compass
         except IngestError as err:
-            result = error_result(file, str(err))
-        results.append(result)
-        print(format_summary(result))
+            found = [error_result(file, str(err))]
+        results += found
+        print("\n".join([format_summary(r) for r in found] + [format_consistency(found[0].get("consistency"))]).rstrip())
     if args.json:
         _write_json(args.json, {"results": results})
     return 0 if all(r["status"] == "ok" for r in results) else 1

@@ -107,9 +107,9 @@ def test_bad_input_gives_a_status_never_a_traceback():
 
 
 def test_simulated_ardupilot_flight_within_5_mG_of_truth():
-    sim, arr, H = ardupilot_flight(seed=1)
+    sim, log, H = ardupilot_flight(seed=1)
     for k in range(3):
-        fit = real_logs.wmm_fit_compass(arr, k, H)
+        fit, _ = real_logs.inflight_fits(log, k)
         truth = np.asarray(sim.truth["compasses"][k]["offsets_rot_mG"])
         assert fit.status == "ok", (k, fit.message)
         assert np.max(np.abs(fit.offsets_mG - truth)) < 5.0, (k, fit.offsets_mG - truth)

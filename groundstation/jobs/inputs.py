@@ -16,13 +16,24 @@ from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import run_heading_chain
 from estimators.rotations import wrap_angle_rad
 
-from groundstation.io.params import ardupilot_never_calibrated, unapply_onboard_calibration
-from groundstation.samples import FlightLog, finite_or_none
+from groundstation.io.params import ardupilot_never_calibrated
+from groundstation.jobs.compass_raw import compass_field
+from groundstation.samples import CompassTable, FlightLog, finite_or_none
 
-__all__ = ["detection_inputs", "calibration_arrays", "mission_legs", "cross_track_legs", "hold_last",
+__all__ = ["detection_inputs", "calibration_arrays", "primary_raw", "mission_legs", "cross_track_legs", "hold_last",
            "field_reference", "uncalibrated", "too_steep", "rotation_rate", "rounded", "GPS_TIMEOUT_S"]
 
 GPS_TIMEOUT_S = 1.0
+
+
+def primary_raw(log: FlightLog) -> np.ndarray:
+    """The primary compass's raw field (N,3), the autopilot's corrections un-applied with the values
+    in force at each sample (jobs.compass_raw), on the rows of ``log.mag``."""
+    mag = np.asarray(log.mag, dtype=float).reshape(-1, 4)
+    same = [c for c in log.compasses if c.compass == log.primary_compass and c.field is log.mag]
+    table = CompassTable(log.primary_compass, mag, "mag", None, log.mag_calibration_applied,
+                         same[0].motor_offset_mG if same else None)
+    return compass_field(log, table).raw_mG
 
 
 def calibration_arrays(calibration: dict | None) -> tuple[np.ndarray, np.ndarray] | None:
@@ -127,10 +138,9 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
     mag_cal = mag.copy()
     field_test = "on"
     if cal is not None and len(mag):
-        # the calibration (issue 3) is relative to the raw sensor: un-apply the autopilot's own first
-        raw, _ = unapply_onboard_calibration(mag[:, 1:4], log.params, log.autopilot,
-                                             getattr(log, "mag_calibration_applied", None))
-        mag_cal[:, 1:4] = (raw - cal[0]) @ cal[1].T
+        # the calibration is relative to the raw sensor: un-apply the autopilot's own first, as in
+        # force at each sample (parameter history)
+        mag_cal[:, 1:4] = (primary_raw(log) - cal[0]) @ cal[1].T
     elif uncalibrated(log):
         field_test = "off: magnetometer not calibrated (give a calibration; the log has no onboard offsets)"
     ef, pos = field_reference(log)

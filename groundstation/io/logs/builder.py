@@ -7,31 +7,38 @@ from typing import Iterator
 
 import numpy as np
 
-from ...samples import (AttitudeSample, BatterySample, FlightLog, GpsSample, ImuSample, MagSample,
-                        MissionSample, ParamSample, Sample, StatusSample)
+from ...samples import (AttitudeSample, BatterySample, FlightLog, GpsSample, ImuSample, MagCalSample, MagSample,
+                        MissionSample, OffsetsSample, ParamSample, Sample, StatusSample, ThrottleSample)
+from .instances import compact_history, split_compasses, split_imus
 
 __all__ = ["LogBuilder", "clean_table", "iter_samples"]
 
 
-def _primary_instance(rows: np.ndarray) -> np.ndarray:
-    """Rows of the most frequent sensor instance (last column), instance column removed."""
-    if not len(rows):
-        return rows[:, :-1]
-    ids, counts = np.unique(rows[:, -1], return_counts=True)
-    return rows[rows[:, -1] == ids[np.argmax(counts)], :-1]
+NAN3 = (float("nan"),) * 3
 
 
 class LogBuilder:
-    """Collects samples into a FlightLog; keeps the primary instance of mag and IMU."""
+    """Collects samples into a FlightLog: every compass and IMU instance (the most sampled one also
+    as ``mag`` / ``imu``), the parameter history and the onboard-calibration events.
+
+    ``source_names`` names the compass sources in ``CompassTable.source`` (readers whose instance
+    numbers are compass numbers, DataFlash, set it; MAVLink sources are named by the decoder)."""
 
     def __init__(self, source: str) -> None:
         self.log = FlightLog(source=source)
-        self.rows: dict[str, list] = {"mag": [], "imu": [], "attitude": [], "gps": [], "battery": []}
+        self.rows: dict[str, list] = {"mag": [], "imu": [], "attitude": [], "gps": [], "battery": [], "throttle": []}
         self.mission: dict[int, tuple[float, float, float]] = {}
+        self.history: list[tuple[float, str, float, float]] = []     # t, name, value, quantum
+        self.source_names: dict[int, str] = {}
+
+    def add_history(self, t_s: float, name: str, value: float, quantum: float = 0.0) -> None:
+        """A parameter value seen at t_s (PARM, PARAM_VALUE, logged offsets) for the history only."""
+        self.history.append((t_s, name, value, quantum))
 
     def add(self, s: Sample) -> None:
         if isinstance(s, MagSample):
-            self.rows["mag"].append((s.t_s, *s.mag_body_mG, s.instance))
+            mot = s.motor_offset_mG if s.motor_offset_mG is not None else NAN3
+            self.rows["mag"].append((s.t_s, *s.mag_body_mG, *mot, s.instance))
         elif isinstance(s, ImuSample):
             self.rows["imu"].append((s.t_s, *s.gyro_rad_s, *s.accel_mps2, s.instance))
         elif isinstance(s, AttitudeSample):
@@ -40,8 +47,16 @@ class LogBuilder:
             self.rows["gps"].append((s.t_s, s.lat_deg, s.lon_deg, s.alt_m, *s.vel_ned_mps, s.fix_type))
         elif isinstance(s, BatterySample):
             self.rows["battery"].append((s.t_s, s.current_A))
+        elif isinstance(s, ThrottleSample):
+            self.rows["throttle"].append((s.t_s, s.throttle))
         elif isinstance(s, ParamSample):
             self.log.params[s.name] = s.value
+            self.history.append((s.t_s, s.name, s.value, 0.0))
+        elif isinstance(s, OffsetsSample):
+            n = "" if s.compass == 0 else str(s.compass + 1)
+            self.history += [(s.t_s, f"COMPASS_OFS{n}_{a}", v, s.quantum_mG) for a, v in zip("XYZ", s.offsets_mG)]
+        elif isinstance(s, MagCalSample):
+            self.log.mag_cal.append(s)
         elif isinstance(s, MissionSample):
             self.mission[s.seq] = (s.lat_deg, s.lon_deg, s.alt_m)
         elif isinstance(s, StatusSample):
@@ -51,13 +66,19 @@ class LogBuilder:
 
     def finish(self) -> FlightLog:
         log = self.log
-        tables = {"mag": _primary_instance(np.asarray(self.rows["mag"], dtype=float).reshape(-1, 5)),
-                  "imu": _primary_instance(np.asarray(self.rows["imu"], dtype=float).reshape(-1, 8)),
-                  "attitude": self.rows["attitude"], "gps": self.rows["gps"], "battery": self.rows["battery"]}
-        widths = {"mag": 4, "imu": 7, "attitude": 4, "gps": 8, "battery": 2}
-        for name, rows in tables.items():
-            arr = np.asarray(rows, dtype=float).reshape(-1, widths[name])
+        log.compasses, log.primary_compass = split_compasses(
+            np.asarray(self.rows["mag"], dtype=float).reshape(-1, 8), self.source_names, log.params,
+            log.mag_calibration_applied, log.warnings, clean_table)
+        primary = [c for c in log.compasses if c.compass == log.primary_compass]
+        log.mag = primary[0].field if primary else np.empty((0, 4))
+        log.imus, log.imu = split_imus(np.asarray(self.rows["imu"], dtype=float).reshape(-1, 8), log.warnings,
+                                       clean_table)
+        widths = {"attitude": 4, "gps": 8, "battery": 2, "throttle": 2}
+        for name, width in widths.items():
+            arr = np.asarray(self.rows[name], dtype=float).reshape(-1, width)
             setattr(log, name, clean_table(arr, name, log.warnings))
+        log.param_history = compact_history(self.history)
+        log.mag_cal.sort(key=lambda e: e.t_s)
         # ArduPilot numbers mission item 0 as home; a mission is the waypoints after it.
         seqs = sorted(self.mission)
         if log.autopilot == "ardupilot" and seqs and seqs[0] == 0 and len(seqs) > 1:

@@ -1,0 +1,110 @@
+"""Calibration windows of one compass: onboard-calibration markers or rotation segmentation, each
+window fitted and judged (estimators.cal_windows), plus the sensor-to-body misalignment of the
+chosen one when the attitude and the WMM allow it (seed 004, estimators.calibration)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from estimators.cal_windows import WindowSearch, field_direction_rate_deg_s, find_calibration_windows, judge_window
+from estimators.calibration import apply_calibration, combine_calibration, estimate_misalignment
+from groundstation.jobs.compass_raw import CompassField
+from groundstation.samples import FlightLog
+
+from .context import LogContext, attitude_for, marker_spans
+from .settings import CalibrateSettings
+
+__all__ = ["WindowStep", "window_step", "window_dicts", "MIN_MISALIGNMENT_SAMPLES"]
+
+MIN_MISALIGNMENT_SAMPLES = 50
+
+
+@dataclass(frozen=True)
+class WindowStep:
+    search: WindowSearch
+    markers: list
+    matrix: np.ndarray | None          # chosen fit's C, with the misalignment folded in when estimated
+    misalignment_deg: list | None
+    note: str
+
+
+def _rate(log: FlightLog, cf: CompassField, field_strength_mG: float) -> np.ndarray:
+    """Attitude rotation rate at the samples; the field-direction rate where there is no attitude."""
+    proxy = field_direction_rate_deg_s(cf.t_s, cf.raw_mG, field_strength_mG)
+    if len(log.attitude) < 2:
+        return proxy
+    rate = attitude_for(log, cf.t_s).rate_deg_s
+    return np.where(np.isfinite(rate), rate, proxy)
+
+
+def _misalignment(log: FlightLog, cf: CompassField, ctx: LogContext, search: WindowSearch,
+                  settings: CalibrateSettings) -> tuple[np.ndarray | None, list | None, str]:
+    w = search.chosen_window
+    if ctx.field is None or len(log.attitude) < 2 or w is None:
+        return None, None, ""
+    sel = (cf.t_s >= w.start_s) & (cf.t_s <= w.end_s)
+    finite = sel & cf.valid
+    t = cf.t_s[finite][w.fit.inliers]
+    cal = apply_calibration(cf.raw_mG[finite][w.fit.inliers], w.fit.offsets_mG, w.fit.matrix)
+    att = attitude_for(log, t)
+    inside = att.valid
+    if inside.sum() < MIN_MISALIGNMENT_SAMPLES:
+        return None, None, ""
+    mis = estimate_misalignment(cal[inside], att.roll_rad[inside], att.pitch_rad[inside], att.yaw_rad[inside],
+                                ctx.field.field_ned_mG)
+    if mis.ok and mis.residual_deg <= settings.max_misalignment_residual_deg:
+        C, _ = combine_calibration(w.fit.offsets_mG, w.fit.matrix, mis.rotation)
+        return C, [round(float(a), 3) for a in mis.angles_deg], f"misalignment from attitude (residual {mis.residual_deg:.2f} deg)"
+    return None, None, "misalignment not estimated: " + (mis.reason or f"attitude/field residual {mis.residual_deg:.1f} deg too large")
+
+
+def _whole_log_fallback(cf: CompassField, search: WindowSearch, ws) -> WindowSearch:
+    """No sufficient window: the whole log judged as one (a log that is all dance, shorter than
+    the segmentation's minimum span or rotating slowly, as the calibration wizard records)."""
+    t = cf.t_s
+    whole = judge_window(float(t[0]), float(t[-1]), "whole_log", cf.raw_mG, ws)
+    windows = search.windows + (whole,)
+    if not whole.sufficient:
+        return replace(search, windows=windows)
+    return WindowSearch("ok", f"no sufficient window; the whole log fits ({whole.n_samples} samples, {whole.model}, "
+                        f"coverage {whole.coverage:.0%})", windows, len(windows) - 1, search.settings)
+
+
+def window_step(log: FlightLog, cf: CompassField, ctx: LogContext, settings: CalibrateSettings) -> WindowStep:
+    """Find, fit and judge this compass's calibration windows."""
+    ws = settings.windows
+    if ctx.field is not None:
+        ws = replace(ws, field_strength_mG=float(ctx.field.field_strength_mG))
+    markers = marker_spans(log.mag_cal, cf.compass)
+    search = find_calibration_windows(cf.t_s, cf.raw_mG, rate_deg_s=_rate(log, cf, ws.field_strength_mG),
+                                      marker_spans_s=markers, settings=ws)
+    if search.chosen is None and search.status != "no_data":
+        search = _whole_log_fallback(cf, search, ws)
+    C, mis, note = _misalignment(log, cf, ctx, search, settings) if search.chosen is not None else (None, None, "")
+    if C is None and search.chosen_window is not None:
+        C = search.chosen_window.fit.matrix
+    return WindowStep(search, markers, C, mis, note)
+
+
+def _num(v, nd=2):
+    v = float(v)
+    return round(v, nd) if np.isfinite(v) else None
+
+
+def window_dicts(search: WindowSearch, t_s: np.ndarray) -> list[dict]:
+    """Every window found, JSON-ready (bounds clipped to the compass's samples ``t_s``); ``chosen``
+    marks the one the parameters come from."""
+    out = []
+    lo, hi = (float(t_s[0]), float(t_s[-1])) if len(t_s) else (0.0, 0.0)
+    for i, w in enumerate(search.windows):
+        fit = w.fit if w.fit is not None and w.fit.ok else None
+        out.append({"start_s": _num(max(w.start_s, lo)), "end_s": _num(min(w.end_s, hi)), "source": w.source, "samples": w.n_samples,
+                    "model": w.model or None, "coverage": _num(w.coverage, 3), "planarity": _num(w.planarity, 3),
+                    "offsets_mG": [_num(v, 1) for v in fit.offsets_mG] if fit else None,
+                    "offsets_sd_mG": [_num(v, 2) for v in w.offsets_sd_mG],
+                    "residual_rms_mG": _num(fit.residual_rms_mG) if fit else None,
+                    "field_strength_mG": _num(fit.field_strength_mG, 1) if fit else None,
+                    "axis_ratio": _num(w.axis_ratio, 3), "sufficient": bool(w.sufficient), "reason": w.reason,
+                    "chosen": i == search.chosen})
+    return out
