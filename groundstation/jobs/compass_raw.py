@@ -76,12 +76,15 @@ def motor_signals(log: FlightLog, t_s: np.ndarray) -> tuple[np.ndarray | None, n
 
 
 def reconciled_history(log: FlightLog) -> list[tuple[float, str, float]]:
-    """The parameter history, reconciled with ``log.params`` (the last values): a name the table
-    holds but the history does not (a log built in memory), or whose last value the table
-    contradicts (the table edited after reading), takes the table's value throughout."""
+    """The parameter history, reconciled with ``log.params``: a name the table holds but the history
+    does not (a log built in memory), or with a value the history never had (the table edited after
+    reading), takes the table's value throughout.  (The table holds the last PARAM_VALUE / PARM;
+    a later SENSOR_OFFSETS report in the history is not a contradiction.)"""
     hist = list(log.param_history)
-    last = {name: value for _, name, value in hist}
-    override = {n: v for n, v in (log.params or {}).items() if n not in last or last[n] != v}
+    values: dict[str, set] = {}
+    for _, name, value in hist:
+        values.setdefault(name, set()).add(value)
+    override = {n: v for n, v in (log.params or {}).items() if n not in values or v not in values[n]}
     if override:
         hist = [h for h in hist if h[1] not in override] + [(-np.inf, n, v) for n, v in override.items()]
         hist.sort(key=lambda h: h[0])

@@ -3,6 +3,8 @@ estimators.orientation_check) and the consistency of the compasses (ArduPilot's 
 estimators.compass_consistency)."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from estimators.calibration import apply_calibration
@@ -16,13 +18,24 @@ from groundstation.samples import FlightLog
 from .context import LogContext, attitude_for
 from .settings import CalibrateSettings
 
-__all__ = ["orientation_step", "orientation_dict", "consistency_table", "ROTATION_CANDIDATES", "reorient"]
+__all__ = ["orientation_step", "orientation_reference", "orientation_dict", "consistency_table", "ROTATION_CANDIDATES", "reorient"]
 
 ROTATION_CANDIDATES = tuple(range(38))      # ArduPilot/PX4 ROTATION_* 0..37
 
 
+def orientation_reference(ctx: LogContext, yaw_dependence: float | None, settings: CalibrateSettings) -> str:
+    """ArduPilot's "mean" score cannot tell rotations about the vertical apart in level flight (the
+    implied earth field is then constant for all of them); when the WMM field is known and the
+    attitude's yaw demonstrably does not follow this compass (the in-flight fit's dependence
+    slope below ``wmm.yaw_dependence_slope``), the "expected" score against the WMM does."""
+    if ctx.field is not None and yaw_dependence is not None and np.isfinite(yaw_dependence) \
+            and yaw_dependence < settings.wmm.yaw_dependence_slope:
+        return "expected"
+    return settings.orientation.reference
+
+
 def orientation_step(log: FlightLog, cf: CompassField, calibration: tuple[np.ndarray, np.ndarray] | None,
-                     ctx: LogContext, settings: CalibrateSettings) -> OrientationCheck | None:
+                     ctx: LogContext, settings: CalibrateSettings, reference: str = "mean") -> OrientationCheck | None:
     """Score the standard rotations on the calibrated field (our calibration, else the field as the
     autopilot corrected it) at samples rotating slower than ``orientation_max_rate_deg_s``."""
     if cf.orientation_id is None or cf.orientation_id not in ROTATION_CANDIDATES or len(log.attitude) < 2:
@@ -34,7 +47,7 @@ def orientation_step(log: FlightLog, cf: CompassField, calibration: tuple[np.nda
     cands = [(i, rotation_enum_matrix(i)) for i in ROTATION_CANDIDATES]
     return check_orientation(m, att.roll_rad, att.pitch_rad, att.yaw_rad, cands, cf.orientation_id,
                              field_ned_mG=None if ctx.field is None else ctx.field.field_ned_mG,
-                             settings=settings.orientation)
+                             settings=replace(settings.orientation, reference=reference))
 
 
 def reorient(offsets_mG: np.ndarray, matrix: np.ndarray, current_id: int, new_id: int) -> tuple[np.ndarray, np.ndarray]:
@@ -44,11 +57,12 @@ def reorient(offsets_mG: np.ndarray, matrix: np.ndarray, current_id: int, new_id
     return Q @ np.asarray(offsets_mG, float), Q @ np.asarray(matrix, float) @ Q.T
 
 
-def orientation_dict(check: OrientationCheck | None) -> dict | None:
+def orientation_dict(check: OrientationCheck | None, reference: str = "mean") -> dict | None:
     if check is None:
         return None
     conf = float(check.confidence)
-    return {"status": check.status, "message": check.message, "in_use": check.current_id, "best": check.best_id,
+    return {"status": check.status, "message": check.message, "reference": reference, "in_use": check.current_id,
+            "best": check.best_id,
             "second": check.second_id, "confidence": round(conf, 2) if np.isfinite(conf) else None,
             "samples": check.n_used}
 

@@ -11,16 +11,16 @@ from __future__ import annotations
 import numpy as np
 
 from estimators.calibration import apply_calibration
-from groundstation.io.params import export_params, px4_rotation
+from groundstation.io.params import export_params, px4_rotation, rotation_enum_matrix
 from groundstation.jobs.compass_raw import CompassField
 from groundstation.samples import FlightLog, finite_or_none
 
-from .checks import orientation_dict, orientation_step, reorient
+from .checks import orientation_dict, orientation_reference, orientation_step, reorient
 from .context import LogContext, onboard_report
 from .inflight import flight_inputs, inflight_step, motor_dict, motor_step, wmm_dict
 from .result import empty_result
 from .settings import CalibrateSettings, settings_record
-from .windows import window_dicts, window_step
+from .windows import misalignment, window_dicts, window_step
 
 __all__ = ["calibrate_compass", "SPECIFIC_INFLIGHT_STATUSES"]
 
@@ -56,8 +56,8 @@ def _from_window(r: dict, step, cf: CompassField) -> tuple:
     r.update(method="window", window_s=[round(float(cf.t_s[sel][0]), 2), round(float(cf.t_s[sel][-1]), 2)], samples=int(fit.n_used),
              coverage=round(float(w.coverage), 3), field_strength_mG=finite_or_none(fit.field_strength_mG),
              residual_rms_mG=finite_or_none(fit.residual_rms_mG), condition_number=finite_or_none(fit.condition_number),
-             offsets_sd_mG=_vec(w.offsets_sd_mG, 2), misalignment_deg=step.misalignment_deg)
-    return np.asarray(fit.offsets_mG, float), np.asarray(step.matrix, float)
+             offsets_sd_mG=_vec(w.offsets_sd_mG, 2))
+    return np.asarray(fit.offsets_mG, float), np.asarray(fit.matrix, float)
 
 
 def _from_inflight(r: dict, fit, cf: CompassField) -> tuple:
@@ -132,13 +132,12 @@ def _export(r: dict, log: FlightLog, cf: CompassField, b, C, motor, check, notes
 
 
 def _compare_report(r: dict) -> None:
+    """Largest per-axis difference between our COMPASS_OFS and the vehicle's MAG_CAL_REPORT."""
     rep = r.get("onboard_report")
-    ap = r.get("ardupilot_params") or {}
     if rep is None or r["offsets_mG"] is None or None in (rep.get("COMPASS_OFS") or [None]):
         return
     ours = -np.asarray(r["offsets_mG"], float)
-    rep["difference_mG"] = round(float(np.max(np.abs(ours - np.asarray(rep["COMPASS_OFS"], float)))), 2) if ap or \
-        r["status"] == "ok" else None
+    rep["difference_mG"] = round(float(np.max(np.abs(ours - np.asarray(rep["COMPASS_OFS"], float)))), 2)
 
 
 def calibrate_compass(log: FlightLog, cf: CompassField, ctx: LogContext, settings: CalibrateSettings
@@ -155,8 +154,6 @@ def calibrate_compass(log: FlightLog, cf: CompassField, ctx: LogContext, setting
         return r, None
     step = window_step(log, cf, ctx, settings)
     r["windows"] = window_dicts(step.search, cf.t_s)
-    if step.note:
-        notes.append(step.note)
     cal = _from_window(r, step, cf) if step.search.chosen is not None else None
     x = flight_inputs(log, cf, settings.inflight_max_samples) if ctx.field is not None and settings.inflight_fit else None
     wmm = inflight_step(cf, x, ctx, settings) if x is not None else None
@@ -170,6 +167,41 @@ def calibrate_compass(log: FlightLog, cf: CompassField, ctx: LogContext, setting
     return _finish(r, log, cf, ctx, settings, step, wmm, motor, cal, notes)
 
 
+def _body_matrix(r: dict, log: FlightLog, cf: CompassField, ctx: LogContext, settings: CalibrateSettings, step,
+                 cal: tuple, check, notes: list[str]) -> np.ndarray:
+    """The result's matrix maps the log's raw frame to the body: with the rotation the orientation
+    check found (Q = R_best R_inuseᵀ), else with the small misalignment estimated from the
+    attitude on a calibration window (seed 004), else the fitted symmetric matrix."""
+    b, C = cal
+    if check is not None and check.status == "rotation_found" and check.best_id is not None:
+        Q = rotation_enum_matrix(check.best_id) @ rotation_enum_matrix(cf.orientation_id).T
+        return Q @ C
+    if r["method"] != "window":
+        return C
+    R, angles, note = misalignment(log, cf, ctx, step.search.chosen_window, C, settings)
+    if note:
+        notes.append(note)
+    if R is None:
+        return C
+    r["misalignment_deg"] = angles
+    return R @ C
+
+
+def _orientation_without_calibration(r: dict, log: FlightLog, cf: CompassField, ctx: LogContext,
+                                     settings: CalibrateSettings, wmm) -> list[str]:
+    """No calibration: the orientation check on the field as the autopilot corrected it (a wrong
+    COMPASS_ORIENT is a common reason for an in-flight fit that does not converge); reported only."""
+    if not settings.orientation_check:
+        return []
+    ref = orientation_reference(ctx, None if wmm is None else wmm.yaw_dependence, settings)
+    check = orientation_step(log, cf, None, ctx, settings, ref)
+    r["orientation"] = orientation_dict(check, ref)
+    if check is not None and check.status == "rotation_found":
+        return [f"the field as corrected fits rotation {check.best_id} clearly better than the one in use "
+                f"({check.current_id}): check the compass orientation, then calibrate again"]
+    return []
+
+
 def _finish(r, log, cf, ctx, settings, step, wmm, motor, cal, notes) -> tuple[dict, tuple | None]:
     if cal is None:
         why = [f"calibration windows: {step.search.message}"]
@@ -178,13 +210,16 @@ def _finish(r, log, cf, ctx, settings, step, wmm, motor, cal, notes) -> tuple[di
         elif ctx.field is None or len(log.attitude) < 2:
             why.append("no in-flight fit (needs the attitude and a GPS position for the WMM)")
         best = max(step.search.windows, key=lambda w: w.n_samples, default=None)
+        why += _orientation_without_calibration(r, log, cf, ctx, settings, wmm)
         r.update(status=_failure_status(step, wmm, notes), message="; ".join(why + notes),
                  coverage=round(float(best.coverage), 3) if best is not None else 0.0)
         return r, None
     b, C = cal
-    check = orientation_step(log, cf, (b, C), ctx, settings) if settings.orientation_check else None
-    r["orientation"] = orientation_dict(check)
-    r.update(offsets_mG=_vec(b, 4), matrix=[_vec(row, 6) for row in C])
+    ref = orientation_reference(ctx, None if wmm is None else wmm.yaw_dependence, settings)
+    check = orientation_step(log, cf, (b, C), ctx, settings, ref) if settings.orientation_check else None
+    r["orientation"] = orientation_dict(check, ref)
+    C_body = _body_matrix(r, log, cf, ctx, settings, step, (b, C), check, notes)
+    r.update(offsets_mG=_vec(b, 4), matrix=[_vec(row, 6) for row in C_body])
     if cf.status == "no_parameters":
         r.update(status="no_parameters", message="; ".join(
             [cf.note + ": offsets shown are relative to the corrections in force, nothing exported"] + notes[1:]))
@@ -194,4 +229,4 @@ def _finish(r, log, cf, ctx, settings, step, wmm, motor, cal, notes) -> tuple[di
         notes.append(f"fitted field {r['field_strength_mG']:.0f} mG vs WMM {ctx.field.field_strength_mG:.0f} mG")
     r.update(status="ok", message="; ".join(notes))
     _compare_report(r)
-    return r, (b, C)
+    return r, (b, C_body)

@@ -18,7 +18,9 @@ class CalibrateSettings:
     windows: calibration-window search and sufficiency (estimators.cal_windows); wmm: the in-flight
     fit against the WMM (estimators.wmm_fit; also the motor fit's base); orientation /
     consistency: the checks.  ``max_misalignment_residual_deg``: a sensor-to-body rotation estimated
-    from the attitude is applied only when it explains the field directions this well.
+    from the attitude is applied only when it explains the field directions this well and is
+    smaller than ``max_misalignment_deg`` (a larger one is a mounting orientation, left to the
+    orientation check).
     ``offsets_limit_mG``: ArduPilot's default COMPASS_OFFS_MAX (a note, not a rejection).
     ``consistency_max_dt_s``: compasses are compared at samples this close in time.
     ``orientation_max_rate_deg_s``: the orientation check uses samples rotating slower than this.
@@ -34,6 +36,7 @@ class CalibrateSettings:
     motor_fit: bool = True
     orientation_check: bool = True
     max_misalignment_residual_deg: float = 10.0
+    max_misalignment_deg: float = 15.0
     offsets_limit_mG: float = 1800.0
     consistency_max_dt_s: float = 0.6
     orientation_max_rate_deg_s: float = 60.0

@@ -8,14 +8,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from estimators.cal_windows import WindowSearch, field_direction_rate_deg_s, find_calibration_windows, judge_window
-from estimators.calibration import apply_calibration, combine_calibration, estimate_misalignment
+from estimators.calibration import apply_calibration, estimate_misalignment
 from groundstation.jobs.compass_raw import CompassField
 from groundstation.samples import FlightLog
 
 from .context import LogContext, attitude_for, marker_spans
 from .settings import CalibrateSettings
 
-__all__ = ["WindowStep", "window_step", "window_dicts", "MIN_MISALIGNMENT_SAMPLES"]
+__all__ = ["WindowStep", "window_step", "window_dicts", "misalignment", "MIN_MISALIGNMENT_SAMPLES"]
 
 MIN_MISALIGNMENT_SAMPLES = 50
 
@@ -24,9 +24,6 @@ MIN_MISALIGNMENT_SAMPLES = 50
 class WindowStep:
     search: WindowSearch
     markers: list
-    matrix: np.ndarray | None          # chosen fit's C, with the misalignment folded in when estimated
-    misalignment_deg: list | None
-    note: str
 
 
 def _rate(log: FlightLog, cf: CompassField, field_strength_mG: float) -> np.ndarray:
@@ -38,24 +35,29 @@ def _rate(log: FlightLog, cf: CompassField, field_strength_mG: float) -> np.ndar
     return np.where(np.isfinite(rate), rate, proxy)
 
 
-def _misalignment(log: FlightLog, cf: CompassField, ctx: LogContext, search: WindowSearch,
-                  settings: CalibrateSettings) -> tuple[np.ndarray | None, list | None, str]:
-    w = search.chosen_window
-    if ctx.field is None or len(log.attitude) < 2 or w is None:
+def misalignment(log: FlightLog, cf: CompassField, ctx: LogContext, window, C: np.ndarray,
+                 settings: CalibrateSettings) -> tuple[np.ndarray | None, list | None, str]:
+    """Sensor-to-body rotation of the window's calibrated samples from the attitude and the WMM
+    (seed 004 step 2): (R, angles deg, note); R None when not estimated or not small (a rotation
+    beyond ``max_misalignment_deg`` is a mounting orientation, the orientation check's business)."""
+    if ctx.field is None or len(log.attitude) < 2 or window is None:
         return None, None, ""
-    sel = (cf.t_s >= w.start_s) & (cf.t_s <= w.end_s)
+    sel = (cf.t_s >= window.start_s) & (cf.t_s <= window.end_s)
     finite = sel & cf.valid
-    t = cf.t_s[finite][w.fit.inliers]
-    cal = apply_calibration(cf.raw_mG[finite][w.fit.inliers], w.fit.offsets_mG, w.fit.matrix)
+    t = cf.t_s[finite][window.fit.inliers]
+    cal = apply_calibration(cf.raw_mG[finite][window.fit.inliers], window.fit.offsets_mG, C)
     att = attitude_for(log, t)
     inside = att.valid
     if inside.sum() < MIN_MISALIGNMENT_SAMPLES:
         return None, None, ""
     mis = estimate_misalignment(cal[inside], att.roll_rad[inside], att.pitch_rad[inside], att.yaw_rad[inside],
                                 ctx.field.field_ned_mG)
-    if mis.ok and mis.residual_deg <= settings.max_misalignment_residual_deg:
-        C, _ = combine_calibration(w.fit.offsets_mG, w.fit.matrix, mis.rotation)
-        return C, [round(float(a), 3) for a in mis.angles_deg], f"misalignment from attitude (residual {mis.residual_deg:.2f} deg)"
+    angle = float(np.linalg.norm(mis.angles_deg)) if mis.ok else float("nan")
+    if mis.ok and mis.residual_deg <= settings.max_misalignment_residual_deg and angle <= settings.max_misalignment_deg:
+        return mis.rotation, [round(float(a), 3) for a in mis.angles_deg], \
+            f"misalignment from attitude (residual {mis.residual_deg:.2f} deg)"
+    if mis.ok and angle > settings.max_misalignment_deg:
+        return None, None, f"misalignment not applied: {angle:.0f} deg is a mounting rotation, not a misalignment"
     return None, None, "misalignment not estimated: " + (mis.reason or f"attitude/field residual {mis.residual_deg:.1f} deg too large")
 
 
@@ -81,10 +83,7 @@ def window_step(log: FlightLog, cf: CompassField, ctx: LogContext, settings: Cal
                                       marker_spans_s=markers, settings=ws)
     if search.chosen is None and search.status != "no_data":
         search = _whole_log_fallback(cf, search, ws)
-    C, mis, note = _misalignment(log, cf, ctx, search, settings) if search.chosen is not None else (None, None, "")
-    if C is None and search.chosen_window is not None:
-        C = search.chosen_window.fit.matrix
-    return WindowStep(search, markers, C, mis, note)
+    return WindowStep(search, markers)
 
 
 def _num(v, nd=2):
