@@ -32,11 +32,12 @@ def _changes(cf) -> list[str]:
             return [f"      offsets in force (body frame) {_fmt(cf.offsets_in_force_mG[-1])} mG (CAL_MAG{cf.px4_slot})"]
         return []
     shown = cf.changes[:MAX_CHANGES_LISTED]
-    text = ", then ".join(f"{_fmt(o)} at {t:.1f} s" for t, o in shown)
+    text = ", then ".join(f"{_fmt(o)} " + ("from the start" if i == 0 else f"at {t:.1f} s")
+                          for i, (t, o) in enumerate(shown))
     more = len(cf.changes) - len(shown)
     lines = [f"      {name} in force: {text}" + (f" (+{more} more changes)" if more > 0 else "")]
     mot = cf.motor_in_force
-    if mot.get("type"):
+    if mot.get("type") and any(abs(v) > 1e-6 for v in mot.get("per_unit", [])):
         lines.append(f"      motor compensation COMPASS_MOTCT={mot['type']}: {_fmt(mot['per_unit'])} mG per "
                      f"{'A' if mot['type'] == 2 else 'full throttle'}")
     return lines

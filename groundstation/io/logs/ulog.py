@@ -34,7 +34,8 @@ def _device_id(data) -> int | None:
     ids = data.get("device_id")
     if ids is None or not len(ids):
         return None
-    v = int(np.bincount(np.asarray(ids, dtype=np.int64) & 0xFFFFFFFF).argmax()) if np.all(ids >= 0) else int(ids[0])
+    values, counts = np.unique(np.asarray(ids, dtype=np.int64), return_counts=True)
+    v = int(values[np.argmax(counts)])          # the id the instance reported most
     return v or None
 
 

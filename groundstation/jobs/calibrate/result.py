@@ -15,6 +15,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from groundstation.io.params import format_param_file
 
 from .settings import DEFAULT_SETTINGS, settings_record
@@ -55,10 +57,17 @@ def _windows_lines(result: dict) -> list[str]:
 
 def _checks_lines(result: dict) -> list[str]:
     lines = []
-    for key, label in (("inflight", "in-flight WMM fit"), ("motor", "motor field")):
-        part = result.get(key)
-        if part:
-            lines.append(f"  {label}: {part['status']}: {part.get('message', '')}")
+    part = result.get("inflight")
+    if part:
+        lines.append(f"  in-flight WMM fit: {part['status']}: {part.get('message', '')}")
+    mot = result.get("motor")
+    if mot:
+        f = [v for v in mot.get("motor_mG_per_unit") or [] if v is not None]
+        unit = "A" if mot.get("signal") == "current_A" else "full throttle"
+        size = f"{float(np.linalg.norm(f)):.2f} mG per {unit}" if len(f) == 3 else "not determined"
+        pct = mot.get("interference_pct")
+        lines.append(f"  motor field: {mot['status']}: {size}" + (f", {pct:.1f} % of the Earth field at "
+                     f"{mot.get('signal_max')}" if pct is not None else ""))
     ori = result.get("orientation")
     if ori:
         lines.append(f"  orientation: {ori['status']}: {ori['message']}")
