@@ -197,6 +197,24 @@ def apply_ardupilot_corrections(raw_mG: np.ndarray, corr: CorrectionsInForce, cu
     return x + mot if motor_after_matrix else x
 
 
+def _inverse_per_sample(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(det (N,), inverse (N,3,3)) of per-sample matrices that change only a few times in a log:
+    computed once per stretch of equal matrices (a singular or non-finite one gives det 0/NaN and
+    the identity as its 'inverse')."""
+    n = len(M)
+    if n == 0:
+        return np.zeros(0), np.zeros((0, 3, 3))
+    flat = M.reshape(n, 9)
+    starts = np.flatnonzero(np.r_[True, np.any(flat[1:] != flat[:-1], axis=1)])
+    seg = np.cumsum(np.isin(np.arange(n), starts)) - 1
+    Mu = M[starts]
+    det_u = np.linalg.det(np.where(np.isfinite(Mu), Mu, 0.0))
+    det_u[~np.all(np.isfinite(Mu.reshape(len(Mu), 9)), axis=1)] = np.nan
+    ok = np.isfinite(det_u) & (np.abs(det_u) > 1e-6)
+    inv_u = np.linalg.inv(np.where(ok[:, None, None], Mu, np.eye(3)))
+    return det_u[seg], inv_u[seg]
+
+
 def unapply_ardupilot_corrections(corrected_mG: np.ndarray, corr: CorrectionsInForce, current_A=None,
                                   throttle=None, logged_motor_offset_mG: np.ndarray | None = None,
                                   motor_after_matrix: bool = True) -> RawRebuild:
@@ -211,12 +229,11 @@ def unapply_ardupilot_corrections(corrected_mG: np.ndarray, corr: CorrectionsInF
     n = len(c)
     if n == 0:
         return RawRebuild(np.empty((0, 3)), np.zeros(0, bool), "no_data", "no samples")
-    M = correction_matrices(corr.diag, corr.offdiag)
-    det = np.linalg.det(M)
+    det, Minv = _inverse_per_sample(correction_matrices(corr.diag, corr.offdiag))
     good = corr.known & np.all(np.isfinite(c), axis=1) & np.isfinite(det) & (np.abs(det) > 1e-6)
     mot = motor_offset_mG(corr, current_A, throttle) if logged_motor_offset_mG is None \
         else np.nan_to_num(np.asarray(logged_motor_offset_mG, float).reshape(-1, 3))
-    Minv = np.linalg.inv(np.where(good[:, None, None], M, np.eye(3)))
+    Minv = np.where(good[:, None, None], Minv, np.eye(3))
     x = c - mot if motor_after_matrix else c
     x = np.einsum("nij,nj->ni", Minv, np.where(good[:, None], x, 0.0))
     if not motor_after_matrix:

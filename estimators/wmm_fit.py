@@ -322,6 +322,10 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
     if ok.sum() < s.min_samples:
         return _failed("insufficient_data", f"{int(ok.sum())} usable samples of {n} (need {s.min_samples}); "
                        f"rejected: {rej}", n, rej, s)
+    flown = _heading_coverage(cols[2][ok])
+    if flown < s.min_heading_coverage:          # the attitude's headings, before any fit: no point solving
+        return _failed("insufficient_data", f"offsets unobservable: {int(round(flown * 12))} of 12 heading sectors "
+                       f"flown (need {int(np.ceil(s.min_heading_coverage * 12))})", n, rej, s)
     M0 = np.eye(3) if nominal_matrix is None else np.asarray(nominal_matrix, float)
     p0 = nominal_params(M0)
     forced, auto = _term_masks(s, use_motor, motor_forced)

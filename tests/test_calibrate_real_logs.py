@@ -220,3 +220,16 @@ def test_log_without_per_compass_tables_is_its_mag_table():
     assert log.compass_tables()[0] == CompassTable(0, log.mag, "mag", None, None)
     r = calibrate_log(log)
     assert r["status"] == "ok" and np.allclose(r["offsets_mG"], [30, -20, 10], atol=1.0)
+
+
+def test_a_log_that_is_all_dance_shorter_than_a_window_is_one_window():
+    """The calibration wizard's few seconds of tumbling (shorter than the segmentation's minimum
+    span) are judged as one window, source whole_log."""
+    from groundstation.samples import FlightLog
+    rng = np.random.default_rng(4)
+    u = rng.normal(size=(150, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    log = FlightLog(source="wizard", mag=np.column_stack([np.arange(150) * 0.02, 480 * u + [-60, 90, 15]]))
+    r = calibrate_log(log)
+    assert r["status"] == "ok" and [w["source"] for w in r["windows"] if w["chosen"]] == ["whole_log"]
+    np.testing.assert_allclose(r["offsets_mG"], [-60, 90, 15], atol=1.0)
