@@ -24,7 +24,16 @@ def _open_reader(path: Path):
 def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
     """ArduPilot DataFlash .bin of any generation (TimeMS or TimeUS, MAG/MAG2/MAG3 or MAG with an
     instance column): every compass and IMU, ATT, GPS, current (CURR/BAT/BATT), throttle
-    (CTUN/CURR/RCOU), PARM history, CMD, MSG.  See dataflash_messages.py for units and timing."""
+    (CTUN/CURR/RCOU), PARM history, CMD, MSG.  See dataflash_messages.py for units and timing.
+
+    Args:
+        path: the .bin file; progress: called with the fraction read (0..1), or None.
+    Returns:
+        FlightLog (``compasses`` with the logged motor compensation, ``param_history`` with the
+        MAG Ofs* changes as COMPASS_OFS{n}_*); damage is counted in ``warnings``.
+    Raises:
+        IngestError: the header cannot be read at all.
+    """
     reader = _open_reader(path)
     return _read_messages(path, progress, reader)
 

@@ -53,6 +53,7 @@ class DataFlashDecoder:
         self.history: list[tuple[float, str, float, float]] = []       # t, name, value, quantum
         self.throttle: dict[str, list[tuple[float, float]]] = {k: [] for k in THROTTLE_PRIORITY}
         self.source_names: dict[int, str] = {}
+        self._last_ofs: dict[int, tuple] = {}
         self._handlers: dict[str, Callable] = {
             "MAG": self._mag, "MAG2": self._mag, "MAG3": self._mag, "IMU": self._imu, "IMU2": self._imu,
             "IMU3": self._imu, "ATT": self._att, "GPS": self._gps, "PARM": self._parm, "CMD": self._cmd,
@@ -89,8 +90,9 @@ class DataFlashDecoder:
         k = _instance(m, mtype)
         self.source_names.setdefault(k, mtype if mtype != "MAG" or getattr(m, "I", None) is None else f"MAG[{k}]")
         n = "" if k == 0 else str(k + 1)
-        ofs = [getattr(m, f"Ofs{a}", None) for a in "XYZ"]
-        if None not in ofs:
+        ofs = tuple(getattr(m, f"Ofs{a}", None) for a in "XYZ")
+        if None not in ofs and ofs != self._last_ofs.get(k):       # every record repeats them: keep changes
+            self._last_ofs[k] = ofs
             q = 1.0 if _column_char(m, "OfsX") in "hH" else 0.0
             self.history += [(t, f"COMPASS_OFS{n}_{a}", float(v), q) for a, v in zip("XYZ", ofs)]
         mot = [getattr(m, f"MOfs{a}", getattr(m, f"MO{a}", None)) for a in "XYZ"]
