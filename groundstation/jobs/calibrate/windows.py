@@ -61,16 +61,27 @@ def misalignment(log: FlightLog, cf: CompassField, ctx: LogContext, window, C: n
     return None, None, "misalignment not estimated: " + (mis.reason or f"attitude/field residual {mis.residual_deg:.1f} deg too large")
 
 
-def _whole_log_fallback(cf: CompassField, search: WindowSearch, ws) -> WindowSearch:
-    """No sufficient window: the whole log judged as one (a log that is all dance, shorter than
-    the segmentation's minimum span or rotating slowly, as the calibration wizard records)."""
+WHOLE_LOG_SHARE = 0.7      # windows covering this share of the log: the log is a dance, judge it whole too
+
+
+def _with_whole_log(cf: CompassField, search: WindowSearch, ws) -> WindowSearch:
+    """The whole log judged as one window, when no window is sufficient (a log that is all dance,
+    shorter than the segmentation's minimum span or rotating slowly, as the calibration wizard
+    records) or when the windows cover most of the log without markers (a dance with pauses: all
+    its samples together beat its best part).  Chosen when sufficient and at least as certain."""
     t = cf.t_s
+    span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    covered = sum(max(0.0, min(w.end_s, t[-1]) - max(w.start_s, t[0])) for w in search.windows)
+    markers = any("marker" in w.source for w in search.windows)
+    if search.chosen is not None and (markers or span <= 0 or covered < WHOLE_LOG_SHARE * span):
+        return search
     whole = judge_window(float(t[0]), float(t[-1]), "whole_log", cf.raw_mG, ws)
     windows = search.windows + (whole,)
-    if not whole.sufficient:
+    best = search.chosen_window
+    if not whole.sufficient or (best is not None and np.max(whole.offsets_sd_mG) > np.max(best.offsets_sd_mG)):
         return replace(search, windows=windows)
-    return WindowSearch("ok", f"no sufficient window; the whole log fits ({whole.n_samples} samples, {whole.model}, "
-                        f"coverage {whole.coverage:.0%})", windows, len(windows) - 1, search.settings)
+    return WindowSearch("ok", f"the whole log as one window ({whole.n_samples} samples, {whole.model}, coverage "
+                        f"{whole.coverage:.0%}); {search.message}", windows, len(windows) - 1, search.settings)
 
 
 def window_step(log: FlightLog, cf: CompassField, ctx: LogContext, settings: CalibrateSettings) -> WindowStep:
@@ -81,8 +92,8 @@ def window_step(log: FlightLog, cf: CompassField, ctx: LogContext, settings: Cal
     markers = marker_spans(log.mag_cal, cf.compass)
     search = find_calibration_windows(cf.t_s, cf.raw_mG, rate_deg_s=_rate(log, cf, ws.field_strength_mG),
                                       marker_spans_s=markers, settings=ws)
-    if search.chosen is None and search.status != "no_data":
-        search = _whole_log_fallback(cf, search, ws)
+    if search.status != "no_data":
+        search = _with_whole_log(cf, search, ws)
     return WindowStep(search, markers)
 
 
