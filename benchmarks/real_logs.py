@@ -1,8 +1,9 @@
 """Real and simulated autopilot logs through `magstation calibrate`, next to the vehicle, the truth and
 pymavlink's magfit_WMM.py.
 
-    .venv/bin/python benchmarks/real_logs.py                 # real logs + 2 simulated seeds, magfit_WMM on
-                                                             # every 4th record of each .bin (~30-60 min)
+    .venv/bin/python benchmarks/real_logs.py                 # real logs + simulated seed 1 (--seeds N for more),
+                                                             # magfit_WMM on every 4th record of each .bin
+                                                             # (--magfit-reduce 1: all; ~15-40 min on 2 cores)
     .venv/bin/python benchmarks/real_logs.py --quick         # real logs + seed 1, magfit on every 10th record
     .venv/bin/python benchmarks/real_logs.py --smoke         # one short simulated flight, no real logs, no magfit
                                                              # (the test; < 20 s)
@@ -260,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="seed 1 only; magfit_WMM on every 10th record")
     ap.add_argument("--smoke", action="store_true", help="one short simulated flight, no real logs, no magfit")
-    ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--magfit-reduce", type=int, default=4, help="magfit_WMM --reduce (1: every record)")
     ap.add_argument("--no-magfit", action="store_true")
     a = ap.parse_args(argv)
