@@ -1,7 +1,10 @@
 """Log readers: every supported file becomes a FlightLog in internal units (groundstation/samples.py).
 
 ``read_log(path)`` picks the reader by suffix: MAVLink telemetry (.tlog), ArduPilot DataFlash
-(.bin), PX4 ULog (.ulg), CSV (.csv).  Bad input never raises out of ``read_log`` except as an
+(.bin, TimeMS or TimeUS, MAG/MAG2/MAG3 or MAG with an instance column), PX4 ULog (.ulg, every
+sensor_mag instance), CSV (.csv).  Every compass and IMU is kept (``FlightLog.compasses`` /
+``imus``, the primary also as ``mag`` / ``imu``), with the parameter history, the onboard
+calibration events, current and throttle.  Bad input never raises out of ``read_log`` except as an
 ``IngestError`` with a one-line message (nothing usable at all); damage inside a log (bad CRC,
 garbage bytes, NaN fields, time going backwards, truncation) is skipped and counted in
 ``FlightLog.warnings``.
