@@ -155,13 +155,20 @@ def cmd_serve(args: argparse.Namespace) -> int:
         replay = DEMO_RECORDING
     if replay is not None and not replay.is_file():
         raise CliError(f"{replay}: no such file")
+    if args.connect is not None:
+        from groundstation.io.link import validate_connection_string
+        args.connect = validate_connection_string(args.connect)     # the operator may listen on 0.0.0.0
     from groundstation.station.settings import StationSettings   # light: no server import yet
 
     settings = StationSettings(host=args.host, port=args.port, viser_port=args.viser_port,
-                               allow_remote=args.allow_remote)
-    from groundstation.station.app import serve
+                               allow_remote=args.allow_remote, allowed_hosts=tuple(args.allowed_host),
+                               tls_cert=args.tls_cert, tls_key=args.tls_key)
+    from groundstation.station.app import StationStartError, serve
 
-    serve(settings, connect=args.connect, replay=replay, speed=args.speed)
+    try:
+        serve(settings, connect=args.connect, replay=replay, speed=args.speed)
+    except StationStartError as err:
+        raise CliError(str(err)) from err
     return 0
 
 
@@ -178,7 +185,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--viser-port", type=int, default=8080)
-    p.add_argument("--allow-remote", action="store_true", help="allow binding a non-loopback host")
+    p.add_argument("--allow-remote", action="store_true",
+                   help="remote mode: allow a non-loopback --host; every request then needs the token printed at start")
+    p.add_argument("--allowed-host", action="append", default=[], metavar="NAME",
+                   help="a host name or address the station is reached by (Host header), repeatable")
+    p.add_argument("--tls-cert", metavar="CERT.pem", help="serve HTTPS with this certificate (with --tls-key)")
+    p.add_argument("--tls-key", metavar="KEY.pem", help="the certificate's private key")
     p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("calibrate", help="magnetometer calibration from one or more logs")
