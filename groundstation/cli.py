@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -26,6 +27,21 @@ class CliError(Exception):
     """A user-facing failure: printed as one line, exit code 1."""
 
 
+MAX_CALIBRATION_BYTES = 10 << 20
+# control characters (C0, DEL, C1), bidi/zero-width controls, lone surrogates (undecodable file names)
+_UNPRINTABLE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e\u2066-\u2069\ud800-\udfff]")
+
+
+def printable(text: object, *, lines: bool = False) -> str:
+    """``text`` safe for a terminal: control characters from files (escape sequences, BEL,
+    bidi overrides) shown as \\xNN / \\uNNNN instead of acted on; newlines kept only when ``lines``."""
+    def escape(found: re.Match) -> str:
+        c = found.group()
+        return f"\\x{ord(c):02x}" if ord(c) < 0x100 else f"\\u{ord(c):04x}"
+    text = _UNPRINTABLE.sub(escape, str(text))
+    return text if lines else text.replace("\n", "\\n").replace("\t", " ")
+
+
 @contextmanager
 def progress_bar(label: str) -> Iterator[Callable[[float], None] | None]:
     """A tqdm bar on a terminal (fraction 0..1 in), nothing when output is piped."""
@@ -41,10 +57,10 @@ def progress_bar(label: str) -> Iterator[Callable[[float], None] | None]:
 
 
 def load_log(path: str | Path) -> FlightLog:
-    with progress_bar(f"reading {Path(path).name}") as progress:
+    with progress_bar(f"reading {printable(Path(path).name)}") as progress:
         log = read_log(path, progress)
     for warning, count in log.warnings.items():
-        print(f"warning: {Path(path).name}: {warning} ({count})", file=sys.stderr)
+        print(f"warning: {printable(Path(path).name)}: {printable(warning)} ({count})", file=sys.stderr)
     return log
 
 
@@ -60,9 +76,9 @@ def cmd_info(args: argparse.Namespace) -> int:
     log = load_log(args.file)
     tables = {"magnetometer": log.mag, "IMU": log.imu, "attitude": log.attitude, "GPS": log.gps,
               "battery current": log.battery}
-    print(f"{args.file}")
+    print(printable(args.file))
     print(f"  duration        {log.duration_s:.1f} s")
-    print(f"  autopilot       {log.autopilot or 'unknown'}")
+    print(f"  autopilot       {printable(log.autopilot or 'unknown')}")
     for name, table in tables.items():
         if len(table) > 1:
             span = table[-1, 0] - table[0, 0]
@@ -84,9 +100,9 @@ def cmd_info(args: argparse.Namespace) -> int:
     print(f"  parameters      {len(log.params)}")
     print("  messages:")
     for mtype, count, rate in summarize_rates(log)[: args.top]:
-        print(f"    {mtype:<28} {count:>8}  {rate:8.2f} Hz")
+        print(f"    {printable(mtype):<28} {count:>8}  {rate:8.2f} Hz")
     for warning, count in log.warnings.items():
-        print(f"  warning: {warning} ({count})")
+        print(f"  warning: {printable(warning)} ({count})")
     return 0
 
 
@@ -100,20 +116,32 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         except IngestError as err:
             result = error_result(file, str(err))
         results.append(result)
-        print(format_summary(result))
+        print(printable(format_summary(result), lines=True))
     if args.json:
         _write_json(args.json, {"results": results})
     return 0 if all(r["status"] == "ok" for r in results) else 1
 
 
 def _load_calibration(path: str) -> dict:
+    """The first calibration with status 'ok' in a `calibrate --json` file (or a bare result),
+    checked (``check_calibration``).  Raises CliError (one line) otherwise."""
+    from groundstation.jobs.inputs import check_calibration
+
     try:
+        if Path(path).stat().st_size > MAX_CALIBRATION_BYTES:
+            raise CliError(f"{path}: too large for a calibration JSON")
         data = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as err:
-        raise CliError(f"{path}: not a readable calibration JSON ({err})") from err
+    except (OSError, ValueError, RecursionError) as err:   # JSONDecodeError, bad UTF-8, deep nesting
+        raise CliError(f"{path}: not a readable calibration JSON ({str(err)[:120]})") from err
     candidates = data.get("results", [data]) if isinstance(data, dict) else []
+    if not isinstance(candidates, list):
+        raise CliError(f"{path}: 'results' must be a list of calibration objects")
     for result in candidates:
         if isinstance(result, dict) and result.get("status") == "ok":
+            try:
+                check_calibration(result)
+            except ValueError as err:
+                raise CliError(f"{path}: unusable calibration: {err}") from err
             return result
     raise CliError(f"{path}: holds no calibration with status 'ok'")
 
@@ -128,7 +156,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     log = load_log(args.file)
     with progress_bar("analyzing"):
         report, columns = analyze_log(log, calibration=calibration, mission=mission)
-    print(format_report(report))
+    print(printable(format_report(report), lines=True))
     if args.json:
         _write_json(args.json, report)
     if args.csv:
@@ -143,7 +171,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise CliError(f"unknown scenario '{args.scenario}' (choose from {', '.join(SCENARIOS)})")
     sim = simulate(args.scenario, seed=args.seed)
     sim.write(args.out)
-    print(f"wrote {args.out} ({len(sim.messages)} messages) and its truth JSON")
+    print(f"wrote {printable(args.out)} ({len(sim.messages)} messages) and its truth JSON")
     return 0
 
 
@@ -229,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     except (IngestError, CliError, OSError, ValueError) as err:
         if os.environ.get("MAGSTATION_DEBUG"):
             raise
-        print(f"magstation: error: {err}", file=sys.stderr)
+        print(f"magstation: error: {printable(err)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130

@@ -98,12 +98,13 @@ def _bin(records: list[bytes]) -> bytes:
     return bytes(out)
 
 
-def _bin_flight(n: int = 500, flip_at: int | None = None, bit: int = 62) -> bytes:
+def _bin_flight(n: int = 500, flip_at: int | None = None, bit: int = 62, flip_imu: bool = False) -> bytes:
     recs = []
     for k in range(n):
         t_us = 5_000_000 + k * 20_000
-        mag_t = t_us ^ (1 << bit) if k == flip_at else t_us
-        recs.append(df_record("IMU", t_us, 0, 0.0, 0.0, 0.6, 0.0, 0.0, -9.8, 0, 0, 25.0, 1, 1, 400, 400))
+        mag_t = t_us ^ (1 << bit) if k == flip_at and not flip_imu else t_us
+        imu_t = t_us ^ (1 << bit) if k == flip_at and flip_imu else t_us
+        recs.append(df_record("IMU", imu_t, 0, 0.0, 0.0, 0.6, 0.0, 0.0, -9.8, 0, 0, 25.0, 1, 1, 400, 400))
         recs.append(df_record("MAG", mag_t, 0, 300, -100, -400, 12, 0, 0, 0, 0, 0, 1, t_us))
         recs.append(df_record("ATT", t_us, 0, 100, 0, -200, 0, 9000, 0, 0, 3))
     return _bin(recs)
@@ -118,6 +119,16 @@ def test_bin_flipped_timestamp_bit_is_dropped_and_counted(tmp_path, flip_at, bit
     assert len(log.mag) == 499 and 0 <= log.mag[0, 0] < 1.0
     assert any("outlier" in w for w in log.warnings), log.warnings
     assert sum(c for w, c in log.warnings.items() if "outlier" in w) == 1
+
+
+def test_bin_corrupt_first_timestamp_does_not_shift_the_log(tmp_path):
+    """The first record sets the time origin: when its stamp is corrupt, the rest is re-based."""
+    path = tmp_path / "flip0.bin"
+    path.write_bytes(_bin_flight(flip_at=0, bit=62, flip_imu=True))
+    log = read_log(path)
+    assert 9.0 < log.duration_s < 11.0, log.duration_s
+    assert len(log.imu) == 499 and len(log.mag) == 500 and abs(log.mag[0, 0]) < 1.0
+    assert any("re-based" in w for w in log.warnings), log.warnings
 
 
 def test_bin_bad_header_bytes_are_counted_not_printed(tmp_path, capfd):

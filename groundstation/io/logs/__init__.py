@@ -50,9 +50,35 @@ def read_log(path: str | os.PathLike, progress: Callable[[float], None] | None =
         raise IngestError(f"{path.name}: could not be read ({type(err).__name__}: {err})") from err
     if progress is not None:
         progress(1.0)
+    _rebase_corrupt_origin(log)
     if not (log.params or any(len(t) for t in (log.mag, log.imu, log.attitude, log.gps))):
         raise IngestError(f"{path.name}: no readable messages (is it really a {path.suffix} file?)")
     return log
+
+
+TABLES = ("mag", "imu", "attitude", "gps", "battery")
+EARLY_TOLERANCE_S = 60.0      # samples this much before the first timestamp: its stamp was corrupt
+LATE_TOLERANCE_S = 86400.0    # no table starting within a day of it: same
+
+
+def _rebase_corrupt_origin(log: FlightLog) -> None:
+    """t_s counts from the log's first timestamp; when that one was corrupt (its row dropped as a
+    time outlier), every table starts far from 0 (9e12 s): shift them back to start at 0 and say so."""
+    starts = [float(getattr(log, n)[0, 0]) for n in TABLES if len(getattr(log, n))]
+    if not starts or -EARLY_TOLERANCE_S <= min(starts) <= LATE_TOLERANCE_S:
+        return
+    shift = min(starts)
+    for name in TABLES:
+        table = getattr(log, name)
+        if len(table):
+            table = table.copy() if not table.flags.writeable else table
+            table[:, 0] -= shift
+            setattr(log, name, table)
+    for status in log.status:
+        status.t_s -= shift
+    if log.start_unix_s is not None:
+        log.start_unix_s += shift
+    log.warnings[f"the first timestamp was corrupt: times re-based by {-shift:.6g} s"] += 1
 
 
 def summarize_rates(log: FlightLog) -> list[tuple[str, int, float]]:

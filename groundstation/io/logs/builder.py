@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import heapq
+from array import array
 from collections import Counter
 from typing import Iterator
 
@@ -10,36 +11,40 @@ import numpy as np
 from ...samples import (AttitudeSample, BatterySample, FlightLog, GpsSample, ImuSample, MagSample,
                         MissionSample, ParamSample, Sample, StatusSample)
 
-__all__ = ["LogBuilder", "clean_table", "iter_samples"]
+__all__ = ["LogBuilder", "clean_table", "drop_time_outliers", "iter_samples"]
 
 
 def _primary_instance(rows: np.ndarray) -> np.ndarray:
     """Rows of the most frequent sensor instance (last column), instance column removed."""
-    if not len(rows):
-        return rows[:, :-1]
+    if not len(rows) or np.all(rows[:, -1] == rows[0, -1]):
+        return np.ascontiguousarray(rows[:, :-1])
     ids, counts = np.unique(rows[:, -1], return_counts=True)
     return rows[rows[:, -1] == ids[np.argmax(counts)], :-1]
 
 
+WIDTHS = {"mag": 5, "imu": 8, "attitude": 4, "gps": 8, "battery": 2}   # columns while collecting
+
+
 class LogBuilder:
-    """Collects samples into a FlightLog; keeps the primary instance of mag and IMU."""
+    """Collects samples into a FlightLog; keeps the primary instance of mag and IMU.  Rows are
+    kept as flat float64 arrays (8 bytes a value, no Python object per sample)."""
 
     def __init__(self, source: str) -> None:
         self.log = FlightLog(source=source)
-        self.rows: dict[str, list] = {"mag": [], "imu": [], "attitude": [], "gps": [], "battery": []}
+        self.rows: dict[str, array] = {name: array("d") for name in WIDTHS}
         self.mission: dict[int, tuple[float, float, float]] = {}
 
     def add(self, s: Sample) -> None:
         if isinstance(s, MagSample):
-            self.rows["mag"].append((s.t_s, *s.mag_body_mG, s.instance))
+            self.rows["mag"].extend((s.t_s, *s.mag_body_mG, s.instance))
         elif isinstance(s, ImuSample):
-            self.rows["imu"].append((s.t_s, *s.gyro_rad_s, *s.accel_mps2, s.instance))
+            self.rows["imu"].extend((s.t_s, *s.gyro_rad_s, *s.accel_mps2, s.instance))
         elif isinstance(s, AttitudeSample):
-            self.rows["attitude"].append((s.t_s, s.roll_rad, s.pitch_rad, s.yaw_rad))
+            self.rows["attitude"].extend((s.t_s, s.roll_rad, s.pitch_rad, s.yaw_rad))
         elif isinstance(s, GpsSample):
-            self.rows["gps"].append((s.t_s, s.lat_deg, s.lon_deg, s.alt_m, *s.vel_ned_mps, s.fix_type))
+            self.rows["gps"].extend((s.t_s, s.lat_deg, s.lon_deg, s.alt_m, *s.vel_ned_mps, s.fix_type))
         elif isinstance(s, BatterySample):
-            self.rows["battery"].append((s.t_s, s.current_A))
+            self.rows["battery"].extend((s.t_s, s.current_A))
         elif isinstance(s, ParamSample):
             self.log.params[s.name] = s.value
         elif isinstance(s, MissionSample):
@@ -51,13 +56,12 @@ class LogBuilder:
 
     def finish(self) -> FlightLog:
         log = self.log
-        tables = {"mag": _primary_instance(np.asarray(self.rows["mag"], dtype=float).reshape(-1, 5)),
-                  "imu": _primary_instance(np.asarray(self.rows["imu"], dtype=float).reshape(-1, 8)),
-                  "attitude": self.rows["attitude"], "gps": self.rows["gps"], "battery": self.rows["battery"]}
-        widths = {"mag": 4, "imu": 7, "attitude": 4, "gps": 8, "battery": 2}
-        for name, rows in tables.items():
-            arr = np.asarray(rows, dtype=float).reshape(-1, widths[name])
+        for name, width in WIDTHS.items():       # one table at a time: its rows are freed after
+            arr = np.frombuffer(self.rows.pop(name), dtype=float).reshape(-1, width)
+            if name in ("mag", "imu"):
+                arr = _primary_instance(arr)
             setattr(log, name, clean_table(arr, name, log.warnings))
+            del arr
         # ArduPilot numbers mission item 0 as home; a mission is the waypoints after it.
         seqs = sorted(self.mission)
         if log.autopilot == "ardupilot" and seqs and seqs[0] == 0 and len(seqs) > 1:
@@ -66,13 +70,42 @@ class LogBuilder:
         return log
 
 
+OUTLIER_GAP_S = 300.0     # samples separated from the rest of a table by a gap this long ...
+OUTLIER_MAX_ROWS = 2      # ... in a group of at most this many rows (or 0.1 % of the table) have
+OUTLIER_MAX_FRACTION = 1e-3  # corrupt times (a flipped bit: 9e12 s), not a second session
+
+
+def drop_time_outliers(arr: np.ndarray, name: str, warnings: Counter) -> np.ndarray:
+    """Drop the rows of small groups of samples far away in time from the rest of the table (a
+    corrupt timestamp: a flipped bit turns 10 s into 9e12 s) and count them; real pauses, with
+    many samples on both sides, are kept.  The largest group is always kept."""
+    if len(arr) < 3:
+        return arr
+    order = np.argsort(arr[:, 0], kind="stable")
+    t = arr[order, 0]
+    breaks = np.flatnonzero(np.diff(t) > OUTLIER_GAP_S)
+    if not len(breaks):
+        return arr
+    sizes = np.diff(np.r_[0, breaks + 1, len(t)])
+    small = sizes <= max(OUTLIER_MAX_ROWS, OUTLIER_MAX_FRACTION * len(t))
+    small[np.argmax(sizes)] = False
+    if not small.any():
+        return arr
+    bad = np.empty(len(t), dtype=bool)
+    bad[order] = np.repeat(small, sizes)
+    warnings[f"{name}: samples with outlier times dropped (corrupt timestamps)"] += int(bad.sum())
+    return arr[~bad]
+
+
 def clean_table(arr: np.ndarray, name: str, warnings: Counter) -> np.ndarray:
-    """Drop rows with non-finite time or values (GPS velocity may be NaN), sort by time."""
+    """Drop rows with non-finite time or values (GPS velocity may be NaN) or outlier times
+    (``drop_time_outliers``), sort by time."""
     check = arr[:, :4] if name == "gps" else arr
     good = np.all(np.isfinite(check), axis=1)
     if not good.all():
         warnings[f"{name}: rows with NaN/inf dropped"] += int((~good).sum())
         arr = arr[good]
+    arr = drop_time_outliers(arr, name, warnings)
     if len(arr) > 1:
         backwards = int(np.count_nonzero(np.diff(arr[:, 0]) < 0))
         if backwards:

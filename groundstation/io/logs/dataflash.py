@@ -1,9 +1,16 @@
 """ArduPilot DataFlash logs (.bin) through pymavlink's DFReader."""
 from __future__ import annotations
 
+import builtins
 import math
+import os
+import re
+import sys
+import threading
+from collections import Counter
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 from ..decode import MAV_CMD_NAV_WAYPOINT
 from ..errors import IngestError
@@ -13,14 +20,90 @@ from ...samples import AttitudeSample, BatterySample, FlightLog, GpsSample, ImuS
 __all__ = ["read_dataflash"]
 
 
-def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
-    """ArduPilot DataFlash .bin: MAG/MAG2 (mG), IMU (rad/s, m/s^2), ATT (deg), GPS, PARM, CMD."""
+# pymavlink's DataFlash reader prints a line per skipped byte ("bad header ... at N"): a megabyte of
+# garbage is a million lines.  We count instead.  Its Python prints go through ``print`` looked up
+# in pymavlink.DFReader, replaced there by one that counts while this thread reads.  Its C indexer
+# (dfindexer) writes to fd 2 itself while holding the GIL (a pipe would deadlock), so fd 2 points
+# at /dev/null while it runs (milliseconds) and the skipped bytes are counted from its index.
+BAD_HEADER = "bad DataFlash header bytes skipped"
+_READER_LINES = ((re.compile(r"^bad header"), BAD_HEADER, None),
+                 (re.compile(r"^Skipped (\d+) bad bytes"), "DataFlash bytes skipped between messages", 1),
+                 (re.compile(r"^unknown msg type"), "DataFlash: unknown message type (rest of the log not indexed)", None),
+                 (re.compile(r"^Failed to parse"), "DataFlash: unparseable messages skipped", None))
+_sink = threading.local()            # this thread's Counter while it reads a DataFlash log
+
+
+def _count_line(counts: Counter, line: str) -> None:
+    for pattern, key, group in _READER_LINES:
+        found = pattern.match(line)
+        if found:
+            counts[key] += int(found.group(group)) if group else 1
+            return
+    if line.strip():
+        counts["DataFlash reader messages"] += 1
+
+
+def _reader_print(*args, sep=" ", end="\n", file=None, flush=False) -> None:
+    """Stands in for ``print`` inside pymavlink.DFReader: counted while we read, else printed."""
+    counts = getattr(_sink, "counts", None)
+    if counts is None:
+        builtins.print(*args, sep=sep, end=end, file=file, flush=flush)
+    else:
+        _count_line(counts, sep.join(str(a) for a in args))
+
+
+_fd2_lock = threading.Lock()
+
+
+@contextmanager
+def _fd2_to_devnull() -> Iterator[None]:
+    """fd 2 -> /dev/null for the duration (process-wide: held briefly, one reader at a time)."""
+    with _fd2_lock:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 2)
+        os.close(null)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
+def _open_reader(path: Path):
     from pymavlink import DFReader
 
+    class QuietReader(DFReader.DFReader_binary):
+        def init_arrays_fast(self, progress_callback=None):
+            with _fd2_to_devnull():
+                super().init_arrays_fast(progress_callback=progress_callback)
+            covered = sum(self.counts[t] * fmt.len for t, fmt in self.formats.items() if 0 <= t < 256)
+            counts = getattr(_sink, "counts", None)
+            if counts is not None and self.data_len > covered:
+                counts[BAD_HEADER] += self.data_len - covered
+
+    DFReader.print = _reader_print
     try:
-        reader = DFReader.DFReader_binary(str(path), zero_time_base=False)
+        return QuietReader(str(path), zero_time_base=False)
     except Exception as err:  # pymavlink raises bare exceptions on unreadable headers
         raise IngestError(f"{path.name}: not a readable DataFlash log ({type(err).__name__})") from err
+
+
+def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
+    """ArduPilot DataFlash .bin: MAG/MAG2 (mG), IMU (rad/s, m/s^2), ATT (deg), GPS, PARM, CMD.
+    pymavlink's per-byte complaints about damage become counted warnings."""
+    counts: Counter = Counter()
+    _sink.counts = counts
+    try:
+        log = _read_messages(path, progress, _open_reader(path))
+    finally:
+        _sink.counts = None
+    log.warnings.update(counts)
+    return log
+
+
+def _read_messages(path: Path, progress: Callable[[float], None] | None, reader) -> FlightLog:
     builder = LogBuilder(str(path))
     log = builder.log
     log.autopilot = "ardupilot"
