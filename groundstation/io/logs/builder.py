@@ -70,6 +70,7 @@ class LogBuilder:
         return log
 
 
+ABSURD_VALUE = 1e15          # no time [s] or reading in any internal unit comes near (their squares overflow)
 OUTLIER_GAP_S = 300.0     # samples separated from the rest of a table by a gap this long ...
 OUTLIER_MAX_ROWS = 2      # ... in a group of at most this many rows (or 0.1 % of the table) have
 OUTLIER_MAX_FRACTION = 1e-3  # corrupt times (a flipped bit: 9e12 s), not a second session
@@ -104,7 +105,11 @@ def clean_table(arr: np.ndarray, name: str, warnings: Counter) -> np.ndarray:
     good = np.all(np.isfinite(check), axis=1)
     if not good.all():
         warnings[f"{name}: rows with NaN/inf dropped"] += int((~good).sum())
-        arr = arr[good]
+        arr, check = arr[good], check[good]
+    sane = np.all(np.abs(check) < ABSURD_VALUE, axis=1)
+    if not sane.all():
+        warnings[f"{name}: rows with absurd values (beyond {ABSURD_VALUE:g}) dropped"] += int((~sane).sum())
+        arr = arr[sane]
     arr = drop_time_outliers(arr, name, warnings)
     if len(arr) > 1:
         backwards = int(np.count_nonzero(np.diff(arr[:, 0]) < 0))

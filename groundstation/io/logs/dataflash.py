@@ -1,7 +1,6 @@
 """ArduPilot DataFlash logs (.bin) through pymavlink's DFReader."""
 from __future__ import annotations
 
-import builtins
 import math
 import os
 import re
@@ -13,6 +12,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from ..decode import MAV_CMD_NAV_WAYPOINT
+from .quiet import counting, quiet, record
 from ..errors import IngestError
 from .builder import LogBuilder
 from ...samples import AttitudeSample, BatterySample, FlightLog, GpsSample, ImuSample, MagSample, MissionSample, ParamSample
@@ -21,35 +21,22 @@ __all__ = ["read_dataflash"]
 
 
 # pymavlink's DataFlash reader prints a line per skipped byte ("bad header ... at N"): a megabyte of
-# garbage is a million lines.  We count instead.  Its Python prints go through ``print`` looked up
-# in pymavlink.DFReader, replaced there by one that counts while this thread reads.  Its C indexer
-# (dfindexer) writes to fd 2 itself while holding the GIL (a pipe would deadlock), so fd 2 points
-# at /dev/null while it runs (milliseconds) and the skipped bytes are counted from its index.
+# garbage is a million lines.  We count instead: its Python prints through ``quiet`` (quiet.py); its
+# C indexer (dfindexer) writes to fd 2 itself while holding the GIL (a pipe would deadlock), so fd 2
+# points at /dev/null while it runs (milliseconds) and the skipped bytes are counted from its index.
 BAD_HEADER = "bad DataFlash header bytes skipped"
 _READER_LINES = ((re.compile(r"^bad header"), BAD_HEADER, None),
                  (re.compile(r"^Skipped (\d+) bad bytes"), "DataFlash bytes skipped between messages", 1),
                  (re.compile(r"^unknown msg type"), "DataFlash: unknown message type (rest of the log not indexed)", None),
                  (re.compile(r"^Failed to parse"), "DataFlash: unparseable messages skipped", None))
-_sink = threading.local()            # this thread's Counter while it reads a DataFlash log
 
 
-def _count_line(counts: Counter, line: str) -> None:
+def _classify(line: str) -> tuple[str, int]:
     for pattern, key, group in _READER_LINES:
         found = pattern.match(line)
         if found:
-            counts[key] += int(found.group(group)) if group else 1
-            return
-    if line.strip():
-        counts["DataFlash reader messages"] += 1
-
-
-def _reader_print(*args, sep=" ", end="\n", file=None, flush=False) -> None:
-    """Stands in for ``print`` inside pymavlink.DFReader: counted while we read, else printed."""
-    counts = getattr(_sink, "counts", None)
-    if counts is None:
-        builtins.print(*args, sep=sep, end=end, file=file, flush=flush)
-    else:
-        _count_line(counts, sep.join(str(a) for a in args))
+            return key, int(found.group(group)) if group else 1
+    return "DataFlash reader complaints", 1
 
 
 _fd2_lock = threading.Lock()
@@ -79,11 +66,10 @@ def _open_reader(path: Path):
             with _fd2_to_devnull():
                 super().init_arrays_fast(progress_callback=progress_callback)
             covered = sum(self.counts[t] * fmt.len for t, fmt in self.formats.items() if 0 <= t < 256)
-            counts = getattr(_sink, "counts", None)
-            if counts is not None and self.data_len > covered:
-                counts[BAD_HEADER] += self.data_len - covered
+            if self.data_len > covered:
+                record(BAD_HEADER, self.data_len - covered)
 
-    DFReader.print = _reader_print
+    quiet(DFReader, _classify)
     try:
         return QuietReader(str(path), zero_time_base=False)
     except Exception as err:  # pymavlink raises bare exceptions on unreadable headers
@@ -94,11 +80,8 @@ def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Flig
     """ArduPilot DataFlash .bin: MAG/MAG2 (mG), IMU (rad/s, m/s^2), ATT (deg), GPS, PARM, CMD.
     pymavlink's per-byte complaints about damage become counted warnings."""
     counts: Counter = Counter()
-    _sink.counts = counts
-    try:
+    with counting(counts):
         log = _read_messages(path, progress, _open_reader(path))
-    finally:
-        _sink.counts = None
     log.warnings.update(counts)
     return log
 

@@ -1,6 +1,7 @@
 """PX4 ULogs (.ulg) through pyulog."""
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 from typing import Callable
 
@@ -9,6 +10,7 @@ import numpy as np
 from ..decode import MG_PER_GAUSS
 from ..errors import IngestError
 from .builder import clean_table
+from .quiet import counting, quiet
 from ...samples import FlightLog
 
 __all__ = ["read_ulog"]
@@ -21,6 +23,51 @@ def _ulog_table(ulog, name: str, instance: int = 0):
     return None
 
 
+class ReaderStuck(RuntimeError):
+    """pyulog stopped making progress through a corrupt file."""
+
+
+class _ProgressGuardedFile:
+    """The file pyulog reads, raising ReaderStuck when reads stop reaching further into it: on
+    some truncated, corrupt files pyulog's resynchronisation seeks back further than it read
+    and loops forever.  Normal and resynchronising reads always move the furthest position on."""
+
+    MAX_STALLED_READS = 50_000
+
+    def __init__(self, path: Path) -> None:
+        self._file = open(path, "rb")
+        self._furthest = 0
+        self._stalled = 0
+
+    def read(self, size: int = -1) -> bytes:
+        data = self._file.read(size)
+        position = self._file.tell()
+        if position > self._furthest:
+            self._furthest, self._stalled = position, 0
+        else:
+            self._stalled += 1
+            if self._stalled > self.MAX_STALLED_READS:
+                raise ReaderStuck(f"no progress after {self._stalled} reads at byte {position}")
+        return data
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._file.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def _pyulog_complaint(line: str) -> tuple[str, int]:
+    if "no subscription found" in line:
+        return "ULog: messages of unknown subscriptions skipped", 1
+    if "corruption" in line.lower() or "sync" in line.lower():
+        return "ULog: corrupt data skipped (resynchronised)", 1
+    return "ULog reader complaints", 1
+
+
 def read_ulog(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
     """PX4 ULog: sensor_mag (gauss, raw) or vehicle_magnetometer (gauss, calibrated),
     sensor_combined, vehicle_attitude (quaternion), vehicle_gps_position, parameters."""
@@ -28,11 +75,22 @@ def read_ulog(path: Path, progress: Callable[[float], None] | None) -> FlightLog
 
     topics = ["sensor_mag", "vehicle_magnetometer", "sensor_combined", "vehicle_attitude",
               "vehicle_gps_position", "sensor_gps"]
+    import pyulog.core
+
+    quiet(pyulog.core, _pyulog_complaint)      # it prints a line per unknown or damaged message
+    complaints: Counter = Counter()
     try:
-        ulog = ULog(str(path), topics, parse_header_only=False)
+        with counting(complaints):
+            guarded = _ProgressGuardedFile(path)
+            try:
+                ulog = ULog(guarded, topics, parse_header_only=False)
+            finally:
+                guarded.close()
     except Exception as err:  # pyulog raises bare exceptions on corrupt headers
-        raise IngestError(f"{path.name}: not a readable ULog ({type(err).__name__}: {err})") from err
+        raise IngestError(f"{path.name}: not a readable ULog ({type(err).__name__}: "
+                          f"{str(err).splitlines()[0][:120] if str(err) else ''})") from err
     log = FlightLog(source=str(path), autopilot="px4")
+    log.warnings.update(complaints)
     log.params = {k: float(v) for k, v in ulog.initial_parameters.items()}
     for d in ulog.data_list:
         log.message_counts[d.name if d.multi_id == 0 else f"{d.name}[{d.multi_id}]"] += len(d.data["timestamp"])
