@@ -240,9 +240,16 @@ def test_own_page_and_scripts_still_write(station_no_viser, mission_recording):
     # a script on the station machine: no Origin, no token (curl, Python, tests)
     assert httpx.post(base + "/api/source/stop").status_code == 200
     assert httpx.post(base + "/api/calibration/start").status_code == 200
-    # the page token is not readable cross-origin (no CORS grant)
-    r = httpx.get(base + "/api/page-token", headers={"Origin": EVIL})
-    assert "access-control-allow-origin" not in r.headers
+    # the page token is never served to another site; nor is any other /api answer
+    for headers in ({"Origin": EVIL}, {"Sec-Fetch-Site": "cross-site"}, {"Sec-Fetch-Site": "same-site"}):
+        for path in ("/api/page-token", "/api/state", "/api/analysis", "/api/session.tlog"):
+            r = httpx.get(base + path, headers=headers)
+            assert r.status_code == 403 and "access-control-allow-origin" not in r.headers, (path, headers)
+    assert httpx.get(base + "/api/state", headers={"Sec-Fetch-Site": "same-origin"}).status_code == 200
+    # /docs documents the header on the writing routes
+    spec = httpx.get(base + "/openapi.json").json()
+    params = spec["paths"]["/api/calibration/accept"]["post"].get("parameters", [])
+    assert any(p["name"] == TOKEN_HEADER and p["in"] == "header" for p in params)
 
 
 def test_preflight_grants_nothing(station_no_viser):

@@ -67,7 +67,7 @@ def create_app(hub: Session, viser_port: int | None = None, settings: StationSet
     for module in ROUTERS:
         app.include_router(module.router, dependencies=[Depends(require_operator)])
     app.include_router(ws.router)              # WebSocket Origin/Host/token: StationGuard
-    app.include_router(security.router)
+    app.include_router(security.router, dependencies=[Depends(require_operator)])
 
     @app.get("/", include_in_schema=False)
     def root() -> RedirectResponse:

@@ -4,6 +4,8 @@ request-body limits, and the same checks on the 3-D view's WebSocket.
 Rules (README, "API and security"):
   * Every HTTP request and WebSocket must name an allowed host (``Host`` header): loopback names,
     the bound host and ``StationSettings.allowed_hosts``.  This closes DNS rebinding.
+  * No /api request a browser sends from another site is served (``Sec-Fetch-Site`` cross-site or
+    same-site, or a foreign ``Origin``: 403).
   * A state-changing request (anything but GET/HEAD/OPTIONS) that comes from a browser (it carries
     ``Origin``, ``Referer`` or ``Sec-Fetch-Site``) must come from the station's own origin *and*
     carry the page token in ``X-MagStation-Token``, which our pages read from ``/api/page-token``
@@ -22,10 +24,10 @@ import http.cookies
 import secrets
 import socket
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Annotated, Mapping
 from urllib.parse import parse_qsl, urlencode, urlsplit
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, Header, HTTPException, Request
 from fastapi.responses import JSONResponse
 from starlette.datastructures import Headers
 
@@ -254,12 +256,16 @@ async def _no_receive():
 
 # ------------------------------------------------------------------------------ the dependency
 
-def require_operator(request: Request) -> None:
-    """FastAPI dependency on writing routers: a state-changing request from a browser must come
-    from the station's own origin and carry the page token; scripts (no Origin, Referer or
-    Sec-Fetch-Site) pass.  Raises HTTPException 403 with the reason."""
-    if request.method in SAFE_METHODS:
-        return
+PageToken = Annotated[str | None, Header(alias=TOKEN_HEADER, description=(
+    f"Browsers only: the token from GET {PAGE_TOKEN_PATH}, on every state-changing request. "
+    "Scripts that send no Origin header leave it out."))]
+
+
+def require_operator(request: Request, token: PageToken = None) -> None:
+    """FastAPI dependency on the /api routers.  Any request a browser sends from another site
+    (``Sec-Fetch-Site`` cross-site/same-site, or a foreign ``Origin``) is refused; a
+    state-changing one from a browser must also carry the page token.  Scripts (no Origin,
+    Referer or Sec-Fetch-Site) pass.  Raises HTTPException 403 with the reason."""
     policy: AccessPolicy = request.app.state.access
     h = request.headers
     origin, referer, site = h.get("origin"), h.get("referer"), h.get("sec-fetch-site")
@@ -268,11 +274,12 @@ def require_operator(request: Request) -> None:
         raise HTTPException(403, detail=f"cross-site request refused (Sec-Fetch-Site: {site[:20]})")
     if origin is not None and not policy.same_origin(origin, host, scheme):
         raise HTTPException(403, detail=f"cross-origin request refused: Origin {origin[:80]} is not this station")
+    if request.method in SAFE_METHODS:
+        return
     if origin is None and referer is not None and not policy.same_origin(referer, host, scheme):
         raise HTTPException(403, detail="cross-origin request refused: Referer is not this station")
     if origin is None and referer is None and site is None:
         return                                      # a script, not a browser
-    token = h.get(TOKEN_HEADER)
     if not token or not secrets.compare_digest(token.encode(), policy.page_token.encode()):
         raise HTTPException(403, detail=f"missing or wrong {TOKEN_HEADER} header (the station's pages "
                             f"send it, from GET {PAGE_TOKEN_PATH}; scripts send no Origin header)")
@@ -283,11 +290,8 @@ router = APIRouter(prefix="/api", tags=["station"])
 
 @router.get("/page-token", summary="The token our pages echo in X-MagStation-Token on writes")
 def page_token(request: Request) -> JSONResponse:
+    """Behind ``require_operator`` like every /api route: never answered to another site."""
     policy: AccessPolicy = request.app.state.access
-    origin, site = request.headers.get("origin"), request.headers.get("sec-fetch-site")
-    if (origin is not None and not policy.same_origin(origin, request.headers.get("host"), request.url.scheme)) \
-            or site not in (None, "same-origin", "none"):
-        raise HTTPException(403, detail="the page token is for the station's own pages")
     return JSONResponse({"token": policy.page_token, "header": TOKEN_HEADER}, headers={
         "Cache-Control": "no-store", "Cross-Origin-Resource-Policy": "same-origin"})
 
