@@ -226,7 +226,7 @@ class StationGuard:
 
     async def _set_cookie_and_redirect(self, scope, query: str, send) -> None:
         rest = urlencode([(k, v) for k, v in parse_qsl(query, keep_blank_values=True) if k != "token"])
-        location = scope["path"] + ("?" + rest if rest else "")
+        location = "/" + scope["path"].lstrip("/") + ("?" + rest if rest else "")   # never //other.host
         cookie = f"{TOKEN_COOKIE}={self.policy.access_token}; HttpOnly; SameSite=Strict; Path=/"
         if self.policy.scheme == "https":
             cookie += "; Secure"

@@ -17,7 +17,7 @@ __all__ = ["LogBuilder", "clean_table", "drop_time_outliers", "iter_samples"]
 def _primary_instance(rows: np.ndarray) -> np.ndarray:
     """Rows of the most frequent sensor instance (last column), instance column removed."""
     if not len(rows) or np.all(rows[:, -1] == rows[0, -1]):
-        return np.ascontiguousarray(rows[:, :-1])
+        return rows[:, :-1]          # a view: no second copy of the biggest tables while reading
     ids, counts = np.unique(rows[:, -1], return_counts=True)
     return rows[rows[:, -1] == ids[np.argmax(counts)], :-1]
 
@@ -106,7 +106,7 @@ def clean_table(arr: np.ndarray, name: str, warnings: Counter) -> np.ndarray:
     if not good.all():
         warnings[f"{name}: rows with NaN/inf dropped"] += int((~good).sum())
         arr, check = arr[good], check[good]
-    sane = np.all(np.abs(check) < ABSURD_VALUE, axis=1)
+    sane = np.all((check > -ABSURD_VALUE) & (check < ABSURD_VALUE), axis=1)   # no float temporary
     if not sane.all():
         warnings[f"{name}: rows with absurd values (beyond {ABSURD_VALUE:g}) dropped"] += int((~sane).sum())
         arr = arr[sane]

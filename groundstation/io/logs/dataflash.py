@@ -81,7 +81,14 @@ def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Flig
     pymavlink's per-byte complaints about damage become counted warnings."""
     counts: Counter = Counter()
     with counting(counts):
-        log = _read_messages(path, progress, _open_reader(path))
+        reader = _open_reader(path)
+        try:
+            log = _read_messages(path, progress, reader)
+        finally:
+            try:
+                reader.close()
+            except (BufferError, OSError, ValueError):   # a view of its mmap still alive: GC closes it
+                pass
     log.warnings.update(counts)
     return log
 
