@@ -374,6 +374,29 @@ def test_remote_mode_with_tls(recordings_dir, tmp_path):
         assert "secure" in r.headers["set-cookie"].lower()
         with pytest.raises(httpx.HTTPError):
             httpx.get(st.url.replace("https://", "http://") + "/api/health", timeout=3)
+        from groundstation.station.settings import StationSettings
+        wide = StationSettings(host="0.0.0.0", allow_remote=True, tls_cert=cert, tls_key=key)
+        assert wide.viser_host == "127.0.0.1" and wide.scheme == "https"   # viser has no TLS
+    finally:
+        st.close()
+
+
+def test_remote_mode_guards_the_3d_view(recordings_dir):
+    import viser
+    from groundstation.station.app import Station
+    st = Station(host="127.0.0.1", allow_remote=True, port=0, viser_port=free_tcp_port(),
+                 recordings_dir=recordings_dir)
+    try:
+        url = f"ws://127.0.0.1:{st.viser_port}/"
+        own = f"http://127.0.0.1:{st.viser_port}"
+        proto = [f"viser-v{viser.__version__}"]
+        with ws_client.connect(url, origin=own, subprotocols=proto, open_timeout=5) as ws:
+            with pytest.raises(ConnectionClosed):
+                ws.recv(timeout=3)
+        cookie = {"Cookie": f"magstation_token={st.settings.access_token}"}
+        with ws_client.connect(url, origin=own, subprotocols=proto, additional_headers=cookie,
+                               open_timeout=5) as ws:
+            assert len(ws.recv(timeout=5)) > 0
     finally:
         st.close()
 

@@ -122,7 +122,9 @@ class Station:
                 self.scene = Scene(self.session, host=settings.viser_host, port=settings.viser_port)
                 protect_viser(self.scene.server, self.access)
             self.viser_port = self.scene.port if self.scene else None
-            self.app = create_app(self.session, self.viser_port, settings, self.access)
+            # with TLS the 3-D view is on loopback only: the page (remote, https) does not embed it
+            page_viser_port = None if settings.tls else self.viser_port
+            self.app = create_app(self.session, page_viser_port, settings, self.access)
             tls = {"ssl_certfile": str(settings.tls_cert), "ssl_keyfile": str(settings.tls_key)} if settings.tls else {}
             config = uvicorn.Config(self.app, host=settings.host, port=settings.port, log_level="warning",
                                     ws_ping_interval=None, **tls)
