@@ -105,8 +105,8 @@ def read_ulog(path: Path, progress: Callable[[float], None] | None) -> FlightLog
         log.mag = np.column_stack([tcol(raw), raw["x"], raw["y"], raw["z"]]) * [1, MG_PER_GAUSS, MG_PER_GAUSS, MG_PER_GAUSS]
         log.mag_calibration_applied = False
     elif fused is not None:
-        log.mag = np.column_stack([tcol(fused)] + [fused[f"magnetometer_ga[{i}]"] * MG_PER_GAUSS
-                                                   for i in range(3)])
+        log.mag = np.column_stack([tcol(fused)] + [fused[f"magnetometer_ga[{i}]"].astype(float) * MG_PER_GAUSS
+                                                   for i in range(3)])      # float64 first: no overflow
         log.mag_calibration_applied = True
     imu = _ulog_table(ulog, "sensor_combined")
     if imu is not None:
