@@ -1,9 +1,16 @@
 """ArduPilot DataFlash logs (.bin) through pymavlink's DFReader."""
 from __future__ import annotations
 
+import os
+import re
+import sys
+import threading
+from collections import Counter
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
+from .quiet import counting, quiet, record
 from ..errors import IngestError
 from .builder import LogBuilder
 from .dataflash_messages import WANTED, DataFlashDecoder
@@ -12,11 +19,58 @@ from ...samples import FlightLog
 __all__ = ["read_dataflash"]
 
 
+# pymavlink's DataFlash reader prints a line per skipped byte ("bad header ... at N"): a megabyte of
+# garbage is a million lines.  We count instead: its Python prints through ``quiet`` (quiet.py); its
+# C indexer (dfindexer) writes to fd 2 itself while holding the GIL (a pipe would deadlock), so fd 2
+# points at /dev/null while it runs (milliseconds) and the skipped bytes are counted from its index.
+BAD_HEADER = "bad DataFlash header bytes skipped"
+_READER_LINES = ((re.compile(r"^bad header"), BAD_HEADER, None),
+                 (re.compile(r"^Skipped (\d+) bad bytes"), "DataFlash bytes skipped between messages", 1),
+                 (re.compile(r"^unknown msg type"), "DataFlash: unknown message type (rest of the log not indexed)", None),
+                 (re.compile(r"^Failed to parse"), "DataFlash: unparseable messages skipped", None))
+
+
+def _classify(line: str) -> tuple[str, int]:
+    for pattern, key, group in _READER_LINES:
+        found = pattern.match(line)
+        if found:
+            return key, int(found.group(group)) if group else 1
+    return "DataFlash reader complaints", 1
+
+
+_fd2_lock = threading.Lock()
+
+
+@contextmanager
+def _fd2_to_devnull() -> Iterator[None]:
+    """fd 2 -> /dev/null for the duration (process-wide: held briefly, one reader at a time)."""
+    with _fd2_lock:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 2)
+        os.close(null)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
 def _open_reader(path: Path):
     from pymavlink import DFReader
 
+    class QuietReader(DFReader.DFReader_binary):
+        def init_arrays_fast(self, progress_callback=None):
+            with _fd2_to_devnull():
+                super().init_arrays_fast(progress_callback=progress_callback)
+            covered = sum(self.counts[t] * fmt.len for t, fmt in self.formats.items() if 0 <= t < 256)
+            if self.data_len > covered:
+                record(BAD_HEADER, self.data_len - covered)
+
+    quiet(DFReader, _classify)
     try:
-        return DFReader.DFReader_binary(str(path), zero_time_base=False)
+        return QuietReader(str(path), zero_time_base=False)
     except Exception as err:  # pymavlink raises bare exceptions on unreadable headers
         raise IngestError(f"{path.name}: not a readable DataFlash log ({type(err).__name__})") from err
 
@@ -25,6 +79,7 @@ def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Flig
     """ArduPilot DataFlash .bin of any generation (TimeMS or TimeUS, MAG/MAG2/MAG3 or MAG with an
     instance column): every compass and IMU, ATT, GPS, current (CURR/BAT/BATT), throttle
     (CTUN/CURR/RCOU), PARM history, CMD, MSG.  See dataflash_messages.py for units and timing.
+    pymavlink's per-byte complaints about damage become counted warnings.
 
     Args:
         path: the .bin file; progress: called with the fraction read (0..1), or None.
@@ -34,8 +89,18 @@ def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Flig
     Raises:
         IngestError: the header cannot be read at all.
     """
-    reader = _open_reader(path)
-    return _read_messages(path, progress, reader)
+    counts: Counter = Counter()
+    with counting(counts):
+        reader = _open_reader(path)
+        try:
+            log = _read_messages(path, progress, reader)
+        finally:
+            try:
+                reader.close()
+            except (BufferError, OSError, ValueError):   # a view of its mmap still alive: GC closes it
+                pass
+    log.warnings.update(counts)
+    return log
 
 
 def _read_messages(path: Path, progress: Callable[[float], None] | None, reader) -> FlightLog:

@@ -1,6 +1,7 @@
 """PX4 ULogs (.ulg) through pyulog."""
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 from typing import Callable
 
@@ -10,6 +11,7 @@ from ..decode import MG_PER_GAUSS
 from ..errors import IngestError
 from .builder import clean_table
 from .instances import compact_history
+from .quiet import counting, quiet
 from ...samples import CompassTable, FlightLog
 
 __all__ = ["read_ulog"]
@@ -39,10 +41,6 @@ def _device_id(data) -> int | None:
     return v or None
 
 
-def _px4_slot_ids(params: dict[str, float]) -> dict[int, int]:
-    return {int(params[f"CAL_MAG{n}_ID"]): n for n in range(4) if params.get(f"CAL_MAG{n}_ID")}
-
-
 def _compasses(ulog, tcol, params: dict[str, float], warnings) -> tuple[list[CompassTable], int]:
     """One table per sensor_mag instance (raw, gauss -> mG); the instance that feeds
     vehicle_magnetometer (same device id, or CAL_MAG_PRIME) takes the calibrated topic instead
@@ -53,11 +51,11 @@ def _compasses(ulog, tcol, params: dict[str, float], warnings) -> tuple[list[Com
     out: list[CompassTable] = []
     for d in _instances(ulog, "sensor_mag"):
         raw = d.data
-        table = np.column_stack([tcol(raw), raw["x"] * MG_PER_GAUSS, raw["y"] * MG_PER_GAUSS, raw["z"] * MG_PER_GAUSS])
+        table = np.column_stack([tcol(raw)] + [raw[a].astype(float) * MG_PER_GAUSS for a in "xyz"])  # float64 first
         out.append(CompassTable(d.multi_id, clean_table(table, f"mag[{d.multi_id}]", warnings), f"sensor_mag[{d.multi_id}]",
                                 _device_id(raw), False))
     if fused is not None and len(fused["timestamp"]):
-        table = clean_table(np.column_stack([tcol(fused)] + [fused[f"magnetometer_ga[{i}]"] * MG_PER_GAUSS
+        table = clean_table(np.column_stack([tcol(fused)] + [fused[f"magnetometer_ga[{i}]"].astype(float) * MG_PER_GAUSS
                                                             for i in range(3)]), "vehicle_magnetometer", warnings)
         mine = [c for c in out if prime is not None and c.device_id == prime] or ([] if len(out) > 1 else out)
         replace_at = out.index(mine[0]) if mine else None
@@ -93,17 +91,73 @@ def _throttle(ulog, tcol) -> np.ndarray:
     return np.empty((0, 2))
 
 
+class ReaderStuck(RuntimeError):
+    """pyulog stopped making progress through a corrupt file."""
+
+
+class _ProgressGuardedFile:
+    """The file pyulog reads, raising ReaderStuck when reads stop reaching further into it: on
+    some truncated, corrupt files pyulog's resynchronisation seeks back further than it read
+    and loops forever.  Normal and resynchronising reads always move the furthest position on."""
+
+    MAX_STALLED_READS = 50_000
+
+    def __init__(self, path: Path) -> None:
+        self._file = open(path, "rb")
+        self._furthest = 0
+        self._stalled = 0
+
+    def read(self, size: int = -1) -> bytes:
+        data = self._file.read(size)
+        position = self._file.tell()
+        if position > self._furthest:
+            self._furthest, self._stalled = position, 0
+        else:
+            self._stalled += 1
+            if self._stalled > self.MAX_STALLED_READS:
+                raise ReaderStuck(f"no progress after {self._stalled} reads at byte {position}")
+        return data
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._file.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def _pyulog_complaint(line: str) -> tuple[str, int]:
+    if "no subscription found" in line:
+        return "ULog: messages of unknown subscriptions skipped", 1
+    if "corruption" in line.lower() or "sync" in line.lower():
+        return "ULog: corrupt data skipped (resynchronised)", 1
+    return "ULog reader complaints", 1
+
+
 def read_ulog(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
     """PX4 ULog: every sensor_mag instance (gauss, raw, with its device id) and
     vehicle_magnetometer (gauss, calibrated), sensor_combined, vehicle_attitude (quaternion),
     vehicle_gps_position, battery_status, thrust, parameters with their changes."""
     from pyulog import ULog
 
+    import pyulog.core
+
+    quiet(pyulog.core, _pyulog_complaint)      # it prints a line per unknown or damaged message
+    complaints: Counter = Counter()
     try:
-        ulog = ULog(str(path), TOPICS, parse_header_only=False)
+        with counting(complaints):
+            guarded = _ProgressGuardedFile(path)
+            try:
+                ulog = ULog(guarded, TOPICS, parse_header_only=False)
+            finally:
+                guarded.close()
     except Exception as err:  # pyulog raises bare exceptions on corrupt headers
-        raise IngestError(f"{path.name}: not a readable ULog ({type(err).__name__}: {err})") from err
+        raise IngestError(f"{path.name}: not a readable ULog ({type(err).__name__}: "
+                          f"{str(err).splitlines()[0][:120] if str(err) else ''})") from err
     log = FlightLog(source=str(path), autopilot="px4")
+    log.warnings.update(complaints)
     log.params = {k: float(v) for k, v in ulog.initial_parameters.items()}
     for d in ulog.data_list:
         log.message_counts[d.name if d.multi_id == 0 else f"{d.name}[{d.multi_id}]"] += len(d.data["timestamp"])
