@@ -2,6 +2,7 @@
 (drops, garbage, recording), parameter writes confirmed by echo."""
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -80,8 +81,13 @@ def test_accept_without_result_is_refused(tmp_path):
 
 def test_connection_strings_validated():
     assert validate_connection_string("udpin:127.0.0.1:14550")
-    assert validate_connection_string("/dev/ttyUSB0,57600")
-    for bad in ("", "http://evil", "udpin:host", "file:/etc/passwd", "udpin:1.2.3.4:99999"):
+    master, slave = os.openpty()                       # a real serial-like device node
+    try:
+        assert validate_connection_string(f"{os.ttyname(slave)},57600")
+    finally:
+        os.close(master)
+        os.close(slave)
+    for bad in ("", "http://evil", "udpin:host", "file:/etc/passwd", "udpin:1.2.3.4:99999", "/dev/ttyNOPE0,57600"):
         with pytest.raises(IngestError):
             validate_connection_string(bad)
 

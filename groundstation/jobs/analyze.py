@@ -2,8 +2,9 @@
 
 ``analyze_log(log, calibration=None, mission=None) -> (report, columns)``
   report:  the analyze JSON object (file, duration_s, calibration, declination_deg, inclination_deg,
-           field_strength_mG, rtk, mission, path_test, max_cross_track_m, alarms, first_alarm_s,
-           interference_detected, navigation, detection ...)
+           field_strength_mG, rtk, mission, path_test, max_cross_track_m, compasses (each compass's
+           field strength / inclination against the WMM), compass_consistency, alarms,
+           first_alarm_s, interference_detected, navigation, detection ...)
   columns: the per-step CSV as {name: array} on the IMU time base (``groundstation.jobs.report``).
 The per-sample twin for the live station is ``groundstation.jobs.live.LiveAnalyzer``.
 
@@ -18,6 +19,7 @@ import numpy as np
 from estimators.detection import DetectionSettings, alarm_intervals, detect
 from estimators.heading import split_velocity
 
+from groundstation.jobs.compass_report import compass_summaries
 from groundstation.jobs.inputs import GPS_TIMEOUT_S, detection_inputs, hold_last, rounded
 from groundstation.jobs.navigation import navigation
 from groundstation.samples import FlightLog
@@ -60,6 +62,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         if len(legs) > 1:
             legs_report["legs"] = len(legs)
     meas_strength = float(np.nanmedian(strength)) if np.isfinite(strength).any() else None
+    compasses, consistency = compass_summaries(log, cal, (calibration or {}).get("compass"), ef, settings)
     report = {
         "file": log.source,
         "duration_s": rounded(log.duration_s, 2),
@@ -77,6 +80,8 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "field_test": x["field_test"],
         "imu_rate_hz": rounded(x["imu_rate_hz"], 1),
         "max_cross_track_m": rounded(np.nanmax(d_gps)) if len(d_gps) and np.isfinite(d_gps).any() else None,
+        "compasses": compasses,
+        "compass_consistency": consistency,
         "alarms": alarms,
         "first_alarm_s": combined[0]["start_s"] if combined else None,
         "interference_detected": bool(combined),

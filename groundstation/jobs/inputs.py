@@ -16,25 +16,78 @@ from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import run_heading_chain
 from estimators.rotations import wrap_angle_rad
 
-from groundstation.io.params import ardupilot_never_calibrated, unapply_onboard_calibration
-from groundstation.samples import FlightLog, finite_or_none
+from groundstation.io.params import ardupilot_never_calibrated
+from groundstation.jobs.compass_raw import compass_field
+from groundstation.samples import CompassTable, FlightLog, finite_or_none
 
-__all__ = ["detection_inputs", "calibration_arrays", "mission_legs", "cross_track_legs", "hold_last",
+__all__ = ["detection_inputs", "calibration_arrays", "check_calibration", "primary_raw", "mission_legs",
+           "cross_track_legs", "hold_last",
            "field_reference", "uncalibrated", "too_steep", "rotation_rate", "rounded", "GPS_TIMEOUT_S"]
 
 GPS_TIMEOUT_S = 1.0
 
 
+MAX_OFFSET_MG = 1e5          # 100 G: far beyond any magnetometer's range
+MAX_MATRIX_CONDITION = 1e3   # a fitted soft-iron matrix is near a rotation times ~1 (ratio <= 2.5)
+MATRIX_SCALE_RANGE = (1e-2, 1e2)
+
+
+def check_calibration(calibration: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(offsets_mG (3,), matrix (3, 3)) of a calibration object (``m_cal = matrix (m_raw - offsets)``).
+
+    Raises:
+        ValueError: saying what is wrong: offsets or matrix missing, not three / 3x3 numbers, not
+            finite, offsets beyond MAX_OFFSET_MG, matrix singular or of absurd scale.
+    """
+    off, mat = calibration.get("offsets_mG"), calibration.get("matrix")
+    if off is None:
+        raise ValueError("the calibration has no offsets_mG")
+    if mat is None:
+        raise ValueError("the calibration has no matrix")
+    try:
+        off = np.asarray(off, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError("offsets_mG must be three numbers") from None
+    try:
+        mat = np.asarray(mat, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError("matrix must be 3x3 numbers") from None
+    if off.shape != (3,):
+        raise ValueError("offsets_mG must be three numbers")
+    if mat.shape != (3, 3):
+        raise ValueError("matrix must be 3x3 numbers")
+    if not (np.all(np.isfinite(off)) and np.all(np.isfinite(mat))):
+        raise ValueError("offsets_mG and matrix must be finite numbers")
+    if np.max(np.abs(off)) > MAX_OFFSET_MG:
+        raise ValueError(f"offsets_mG beyond +-{MAX_OFFSET_MG:g} mG are not a magnetometer's")
+    sv = np.linalg.svd(mat, compute_uv=False)
+    if sv[-1] <= sv[0] / MAX_MATRIX_CONDITION or sv[0] == 0:
+        raise ValueError(f"matrix is singular (singular values {', '.join(f'{v:.3g}' for v in sv)}): "
+                         "it would map every field onto a plane or a point")
+    if not MATRIX_SCALE_RANGE[0] <= sv[-1] <= sv[0] <= MATRIX_SCALE_RANGE[1]:
+        raise ValueError(f"matrix scale {sv[-1]:.3g}..{sv[0]:.3g} is outside "
+                         f"{MATRIX_SCALE_RANGE[0]:g}..{MATRIX_SCALE_RANGE[1]:g}")
+    return off, mat
+
+
+def primary_raw(log: FlightLog) -> np.ndarray:
+    """The primary compass's raw field (N,3), the autopilot's corrections un-applied with the values
+    in force at each sample (jobs.compass_raw), on the rows of ``log.mag``."""
+    mag = np.asarray(log.mag, dtype=float).reshape(-1, 4)
+    same = [c for c in log.compasses if c.compass == log.primary_compass and c.field is log.mag]
+    table = CompassTable(log.primary_compass, mag, "mag", None, log.mag_calibration_applied,
+                         same[0].motor_offset_mG if same else None)
+    return compass_field(log, table).raw_mG
+
+
 def calibration_arrays(calibration: dict | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """``check_calibration``'s arrays, or None when there is no usable calibration."""
     if not calibration:
         return None
-    off, mat = calibration.get("offsets_mG"), calibration.get("matrix")
-    if off is None or mat is None:
+    try:
+        return check_calibration(calibration)
+    except ValueError:
         return None
-    off, mat = np.asarray(off, dtype=float).reshape(3), np.asarray(mat, dtype=float).reshape(3, 3)
-    if not (np.all(np.isfinite(off)) and np.all(np.isfinite(mat))):
-        return None
-    return off, mat
 
 
 def mission_legs(points: list | None) -> list[tuple[tuple[float, float], tuple[float, float]]]:
@@ -127,10 +180,9 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
     mag_cal = mag.copy()
     field_test = "on"
     if cal is not None and len(mag):
-        # the calibration (issue 3) is relative to the raw sensor: un-apply the autopilot's own first
-        raw, _ = unapply_onboard_calibration(mag[:, 1:4], log.params, log.autopilot,
-                                             getattr(log, "mag_calibration_applied", None))
-        mag_cal[:, 1:4] = (raw - cal[0]) @ cal[1].T
+        # the calibration is relative to the raw sensor: un-apply the autopilot's own first, as in
+        # force at each sample (parameter history)
+        mag_cal[:, 1:4] = (primary_raw(log) - cal[0]) @ cal[1].T
     elif uncalibrated(log):
         field_test = "off: magnetometer not calibrated (give a calibration; the log has no onboard offsets)"
     ef, pos = field_reference(log)

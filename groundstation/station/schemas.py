@@ -1,9 +1,21 @@
 """Request and response models of the station API (the OpenAPI schema at /docs)."""
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import AfterValidator, BaseModel, Field, StringConstraints
+
+
+def _no_control_characters(value: str) -> str:
+    if any(ord(c) < 0x20 or 0x7F <= ord(c) < 0xA0 for c in value):
+        raise ValueError("control characters (a null byte, escape ...) are not allowed")
+    return value
+
+
+RecordingName = Annotated[str, StringConstraints(min_length=1, max_length=255),
+                          AfterValidator(_no_control_characters)]
+ConnectionString = Annotated[str, StringConstraints(min_length=1, max_length=512),
+                             AfterValidator(_no_control_characters)]
 
 
 class Health(BaseModel):
@@ -186,14 +198,14 @@ class Alarm(BaseModel):
 
 
 class SourceRequest(BaseModel):
-    connect: str | None = Field(None, description="pymavlink connection string, e.g. udpin:127.0.0.1:14550")
-    recording: str | None = Field(None, description="a file name from GET /api/recordings")
+    connect: ConnectionString | None = Field(None, description="pymavlink connection string, e.g. udpin:127.0.0.1:14550")
+    recording: RecordingName | None = Field(None, description="a file name from GET /api/recordings")
     speed: float = 1.0
     loop: bool = False
 
 
 class ReplayStart(BaseModel):
-    recording: str
+    recording: RecordingName
     speed: float = 1.0
     loop: bool = False
 
