@@ -1,0 +1,332 @@
+"""Batch (replay) form of the AHRS of estimators/ahrs.py: same numbers as ``Ahrs``, vectorised.
+
+Inside a block (see estimators/ahrs.py, "Schedule") every step is x' = a·R(−ω dt)·x + g·z with a,
+g, ω and z known from the measurements and the block's gating variant.  So:
+  1. per-step coefficients for every variant, from the measurements alone (vectorised over N);
+  2. pass 1, vectorised over blocks and looping over the position in the block (≤
+     ``block_max_samples``): the raw-gyro rotation product P, the affine part c of each variant
+     (gravity gated / all, field accepted), the rotated measurement sums and the rest statistics;
+  3. a loop over blocks in plain floats: the block's end vectors are α·P·x_start + c for the
+     variant chosen at the previous block end, then ``_Supervisor.close`` (the same code the
+     per-sample form runs) decides bias, gating and the next start vectors;
+  4. pass 2, vectorised over blocks again: every step from its block's true start vector with
+     the chosen variant, then the bias rotation R(b̂·τ) and the angles.
+Bad input is handled as in ``Ahrs``: time stamps by the running maximum (a non-finite or backwards
+stamp is a zero step without measurements), non-finite gyro samples count as zero rate,
+non-finite or zero measurements are skipped.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimators.ahrs import AhrsSettings, ExpectedField
+from estimators.ahrs_math import ACCEPT, REJECT, SERIES_MAX_RAD
+from estimators.ahrs_supervisor import BlockSums, Supervisor
+from estimators.rotations import wrap_heading_rad
+
+__all__ = ["AhrsResult", "run_ahrs"]
+
+
+@dataclass
+class AhrsResult:
+    """Arrays on the IMU time base (length N); see ``estimators.ahrs.AhrsState`` for the fields."""
+    t_s: np.ndarray
+    roll_rad: np.ndarray
+    pitch_rad: np.ndarray
+    yaw_rad: np.ndarray             # magnetic heading, [0, 2π)
+    mag_heading_rad: np.ndarray     # tilt-compensated heading of the latest magnetometer sample
+    gyro_bias_rad_s: np.ndarray     # (N, 3)
+    acc_rejected: np.ndarray
+    mag_rejected: np.ndarray
+    at_rest: np.ndarray
+    valid: np.ndarray
+    gravity_body: np.ndarray        # (N, 3) x2, m/s²
+    field_body_mG: np.ndarray       # (N, 3)
+    mag_latest_mG: np.ndarray       # (N, 3) latest applied magnetometer sample (zeros before)
+
+
+def _rodrigues(theta: np.ndarray):
+    """Vectorised ``estimators.ahrs_math.rodrigues`` (same formulas, same order)."""
+    a2 = theta[:, 0] * theta[:, 0] + theta[:, 1] * theta[:, 1] + theta[:, 2] * theta[:, 2]
+    small = a2 < SERIES_MAX_RAD * SERIES_MAX_RAD
+    a = np.sqrt(np.where(small, 1.0, a2))
+    c = np.cos(a)
+    c = np.where(small, 1.0 - a2 * (0.5 - a2 * (1.0 / 24.0 - a2 * (1.0 / 720.0 - a2 / 40320.0))), c)
+    s = np.where(small, 1.0 - a2 * (1.0 / 6.0 - a2 * (1.0 / 120.0 - a2 / 5040.0)), np.sin(a) / a)
+    w = np.where(small, 0.5 - a2 * (1.0 / 24.0 - a2 * (1.0 / 720.0 - a2 / 40320.0)),
+                 (1.0 - c) / np.where(small, 1.0, a2))
+    return c, s, w
+
+
+def _rotate(v: np.ndarray, t: np.ndarray, c, s, w) -> np.ndarray:
+    """``estimators.ahrs_math.rotate`` on v (B, 3, K) with θ (B, 3) and coefficients (B,)."""
+    tx, ty, tz = t[:, 0, None], t[:, 1, None], t[:, 2, None]
+    c, s, w = c[:, None], s[:, None], w[:, None]
+    vx, vy, vz = v[:, 0], v[:, 1], v[:, 2]
+    d = w * (tx * vx + ty * vy + tz * vz)
+    return np.stack([c * vx - s * (ty * vz - tz * vy) + d * tx, c * vy - s * (tz * vx - tx * vz) + d * ty,
+                     c * vz - s * (tx * vy - ty * vx) + d * tz], axis=1)
+
+
+def _gain(k: float, interval: np.ndarray, since: np.ndarray) -> np.ndarray:
+    """Vectorised ``estimators.ahrs_math.measurement_gain``."""
+    pos = interval > 0.0
+    g = np.where(pos, -np.expm1(-k * interval), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        boost = interval / (since + interval)
+    return np.where(pos & (since > 0.0), np.maximum(g, np.where(pos, boost, 0.0)), g)
+
+
+def _first_in_segment(have: np.ndarray, gap: np.ndarray) -> np.ndarray:
+    """First step with ``have`` at the start and after each gap."""
+    seg = np.cumsum(gap)
+    out = np.zeros(len(have), bool)
+    hi = np.flatnonzero(have)
+    if len(hi):
+        _, first = np.unique(seg[hi], return_index=True)
+        out[hi[first]] = True
+    return out
+
+
+def _last_value(flag: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(value at the last flagged step at or before each step, any flagged so far)."""
+    idx = np.maximum.accumulate(np.where(flag, np.arange(len(flag)), -1))
+    return values[np.maximum(idx, 0)], idx >= 0
+
+
+def _clean_time(t_raw: np.ndarray, max_gap_s: float):
+    fin = np.isfinite(t_raw)
+    tt = np.where(fin, t_raw, -np.inf)
+    tt[0] = t_raw[0] if fin[0] else 0.0
+    t = np.maximum.accumulate(tt)
+    ok = fin.copy()
+    ok[1:] &= t_raw[1:] >= t[:-1]
+    dt = np.diff(t, prepend=t[0])
+    gap = dt > max_gap_s
+    return t, np.where(gap, 0.0, dt), ok, gap
+
+
+def _magnetometer(mag: np.ndarray, t: np.ndarray, s: AhrsSettings):
+    """Which IMU step applies which magnetometer sample (the last one when several arrive),
+    the interval it stands for, and its time."""
+    n = len(t)
+    mt, mv = mag[:, 0], mag[:, 1:4]
+    with np.errstate(invalid="ignore", over="ignore"):
+        ok = np.isfinite(mt) & np.all(np.isfinite(mv), axis=1) & (np.sum(mv * mv, axis=1) > 1.0)
+    prev = np.maximum.accumulate(np.where(ok, mt, -np.inf))
+    ok &= mt >= np.r_[-np.inf, prev[:-1]]
+    mt, mv = mt[ok], mv[ok]
+    k = np.searchsorted(t, mt, side="left")
+    keep = k < n
+    mt, mv, k = mt[keep], mv[keep], k[keep]
+    last = np.r_[k[1:] != k[:-1], True] if len(k) else np.zeros(0, bool)
+    fresh = np.zeros(n, bool)
+    m = np.zeros((n, 3))
+    tm = np.zeros(n)
+    interval = np.zeros(n)
+    ks = k[last]
+    fresh[ks] = True
+    m[ks] = mv[last]
+    tm[ks] = mt[last]
+    if len(ks) > 1:
+        interval[ks[1:]] = np.minimum(mt[last][1:] - mt[last][:-1], s.mag_max_interval_s)
+    return fresh, m, tm, interval
+
+
+def _blocks(t: np.ndarray, s: AhrsSettings):
+    """Block index of every step: a new block when the time grid of ``block_s`` moves on or the
+    block has ``block_max_samples`` steps (the rule of ``Ahrs.update_imu``)."""
+    n = len(t)
+    grid = np.floor(t / s.block_s)
+    new = np.r_[True, grid[1:] != grid[:-1]]
+    start = np.maximum.accumulate(np.where(new, np.arange(n), 0))
+    pos = np.arange(n) - start
+    new |= (pos > 0) & (pos % s.block_max_samples == 0)
+    bid = np.cumsum(new) - 1
+    starts = np.flatnonzero(new)
+    return bid, starts, np.diff(np.r_[starts, n])
+
+
+
+
+@dataclass
+class _Steps:
+    """Per-step coefficients, length N + 1 (the last entry is an identity step for padding).
+    ``a``/``inc``: first gravity stage and field (``inc`` also the fresh field for its sum);
+    ``a2``/``g2``: the second gravity stage when it is not held."""
+    theta: np.ndarray
+    cos: np.ndarray
+    sinc: np.ndarray
+    vers: np.ndarray
+    dt: np.ndarray
+    a: np.ndarray          # (N+1, 2)
+    inc: np.ndarray        # (N+1, 3, 3)
+    a2: np.ndarray         # (N+1,)
+    g2: np.ndarray
+    stats: np.ndarray      # (N+1, 10): ω (3), |ω|², ω valid, f (3), |f|², f valid
+
+
+def _pad(x: np.ndarray, fill: float) -> np.ndarray:
+    return np.concatenate([x, np.full((1,) + x.shape[1:], fill, dtype=float)])
+
+
+def _steps(imu: np.ndarray, mag: np.ndarray, s: AhrsSettings) -> tuple[_Steps, dict]:
+    """Measurement-only per-step quantities, and the flags the outputs need."""
+    t, dt, time_ok, gap = _clean_time(imu[:, 0], s.max_gap_s)
+    w_raw = imu[:, 1:4]
+    gyro_ok = np.all(np.isfinite(w_raw), axis=1)
+    w = np.where(gyro_ok[:, None], w_raw, 0.0)
+    f = np.where(time_ok[:, None] & np.all(np.isfinite(imu[:, 4:7]), axis=1)[:, None], imu[:, 4:7], 0.0)
+    n2 = f[:, 0] * f[:, 0] + f[:, 1] * f[:, 1] + f[:, 2] * f[:, 2]
+    f_valid = n2 > 0.0
+    fresh, m, tm, interval = _magnetometer(mag, t, s)
+    reinit_g = _first_in_segment(f_valid, gap)
+    reinit_m = _first_in_segment(fresh, gap)
+    t_init_g, g_init = _last_value(reinit_g, t)
+    t_init_m, m_init = _last_value(reinit_m, tm)
+    blend = g_init & ~reinit_g
+    g1 = np.where(reinit_g, 1.0, np.where(blend & f_valid, _gain(s.gravity_gain_per_s, dt, t - t_init_g), 0.0))
+    g2 = np.where(reinit_g, 1.0, np.where(blend, _gain(s.gravity_smoothing_per_s, dt, t - t_init_g), 0.0))
+    gm = np.where(reinit_m, 1.0, np.where(m_init & fresh, _gain(s.field_gain_per_s, interval, tm - t_init_m), 0.0))
+    a = np.stack([np.where(reinit_g, 0.0, 1.0 - g1), np.where(reinit_m, 0.0, 1.0 - gm)], axis=1)
+    a2 = np.where(reinit_g, 0.0, 1.0 - g2)
+    inc = np.stack([g1[:, None] * f, gm[:, None] * m, np.where(fresh[:, None], m, 0.0)], axis=2)
+    theta = w * dt[:, None]
+    c, sn, vw = _rodrigues(theta)
+    stats = np.c_[w, w[:, 0] * w[:, 0] + w[:, 1] * w[:, 1] + w[:, 2] * w[:, 2], gyro_ok, f, n2, f_valid]
+    steps = _Steps(_pad(theta, 0.0), _pad(c, 1.0), _pad(sn, 1.0), _pad(vw, 0.5), _pad(dt, 0.0), _pad(a, 1.0),
+                   _pad(inc, 0.0), _pad(a2, 1.0), _pad(g2, 0.0), _pad(stats, 0.0))
+    flags = dict(t=t, fresh=fresh, m=m, reinit_g=reinit_g, reinit_m=reinit_m, g_init=g_init, m_init=m_init)
+    return steps, flags
+
+
+def _pass1(st: _Steps, starts: np.ndarray, lengths: np.ndarray, n: int) -> dict:
+    """Block maps and sums, vectorised over blocks (module docstring, step 2).  Columns of x: P (3),
+    c1, c2, c_m, Σm; products α1 = Π a1, (m21, m22) of the second stage, α_m."""
+    nb = len(starts)
+    x = np.zeros((nb, 3, 7))
+    x[:, :, :3] = np.eye(3)
+    prod = np.zeros((nb, 4))            # α1, m21, m22, α_m
+    prod[:, [0, 2, 3]] = 1.0
+    stats = np.zeros((nb, 11))
+    for p in range(int(lengths.max()) if nb else 0):
+        k = np.where(lengths > p, starts + p, n)
+        x = _rotate(x, st.theta[k], st.cos[k], st.sinc[k], st.vers[k])
+        a, inc, a2, g2 = st.a[k], st.inc[k], st.a2[k], st.g2[k]
+        x[:, :, 3] = x[:, :, 3] * a[:, 0, None] + inc[:, :, 0]
+        x[:, :, 4] = x[:, :, 4] * a2[:, None] + g2[:, None] * x[:, :, 3]
+        x[:, :, 5] = x[:, :, 5] * a[:, 1, None] + inc[:, :, 1]
+        x[:, :, 6] = x[:, :, 6] + inc[:, :, 2]
+        prod[:, 0] = prod[:, 0] * a[:, 0]
+        prod[:, 1] = g2 * prod[:, 0] + a2 * prod[:, 1]
+        prod[:, 2] = prod[:, 2] * a2
+        prod[:, 3] = prod[:, 3] * a[:, 1]
+        stats[:, :10] += st.stats[k]
+        stats[:, 10] += st.dt[k]
+    return dict(P=x[:, :, :3], c=x[:, :, 3:6], sums=x[:, :, 6], prod=prod, stats=stats)
+
+
+def _block_loop(p1: dict, counts: dict, sup: Supervisor) -> list:
+    """Sequential block-end logic in plain floats (module docstring, step 3).  Returns per block
+    (x1, x2, x_m at its start, gravity variant, field variant, at rest, bias)."""
+    P, c, sums, prod, stats = (p1[k].tolist() for k in ("P", "c", "sums", "prod", "stats"))
+    mag_n, g_init, m_init, re_g, re_m = (counts[k].tolist() for k in
+                                         ("mag_n", "g_init", "m_init", "reinit_g", "reinit_m"))
+    x1 = x2 = xm = [0.0, 0.0, 0.0]
+    rec = []
+    for j in range(len(P)):
+        vg = ACCEPT if re_g[j] else sup.var_g
+        vm = ACCEPT if re_m[j] else sup.var_m
+        rec.append((x1, x2, xm, vg, vm, sup.at_rest, tuple(sup.bias)))
+        Pj, cj, (al1, m21, m22, alm) = P[j], c[j], prod[j]
+        p1_, p2_, pm_ = ([Pj[r][0] * v[0] + Pj[r][1] * v[1] + Pj[r][2] * v[2] for r in range(3)] for v in (x1, x2, xm))
+        e1 = [al1 * p1_[r] + cj[r][0] for r in range(3)]
+        e2 = [m21 * p1_[r] + m22 * p2_[r] + cj[r][1] for r in range(3)] if vg == ACCEPT else p2_
+        em = [alm * pm_[r] + cj[r][2] for r in range(3)] if vm == ACCEPT else pm_
+        sj, st = sums[j], stats[j]
+        x1, x2, xm = sup.close(BlockSums(
+            st[10], e1, e2, em, sj, mag_n[j], (st[0], st[1], st[2]), st[3], int(st[4]), (st[5], st[6], st[7]),
+            st[8], int(st[9]), g_init[j], m_init[j], re_g[j], re_m[j]))
+    return rec
+
+
+def _pass2(st: _Steps, fl: dict, bid: np.ndarray, starts, lengths, rec: list, n: int):
+    """Every step from its block's start vectors with the chosen variants (module docstring,
+    step 4).  Returns the raw vectors (N, 3, 3: x1, x2, x_m), τ (N,) and the variants (N, 2)."""
+    var = np.array([r[3:5] for r in rec], dtype=int)[bid]
+    for col, key in ((0, "reinit_g"), (1, "reinit_m")):
+        last = np.maximum.accumulate(np.where(fl[key], np.arange(n), -1))
+        var[:, col] = np.where(last >= starts[bid], ACCEPT, var[:, col])   # from a re-initialisation on
+    hold_g, hold_m = _pad((var[:, 0] == REJECT).astype(float), 0.0), _pad((var[:, 1] == REJECT).astype(float), 0.0)
+    a2 = np.where(hold_g > 0, 1.0, st.a2)
+    g2 = np.where(hold_g > 0, 0.0, st.g2)
+    am = np.where(hold_m > 0, 1.0, st.a[:, 1])
+    incm = np.where(hold_m[:, None] > 0, 0.0, st.inc[:, :, 1])
+    x = np.array([[r[0], r[1], r[2]] for r in rec]).transpose(0, 2, 1)      # (blocks, 3, 3)
+    tau_b = np.zeros(len(starts))
+    out = np.zeros((n + 1, 3, 3))
+    tau = np.zeros(n + 1)
+    for p in range(int(lengths.max())):
+        k = np.where(lengths > p, starts + p, n)
+        x = _rotate(x, st.theta[k], st.cos[k], st.sinc[k], st.vers[k])
+        x[:, :, 0] = x[:, :, 0] * st.a[k, 0, None] + st.inc[k, :, 0]
+        x[:, :, 1] = x[:, :, 1] * a2[k][:, None] + g2[k][:, None] * x[:, :, 0]
+        x[:, :, 2] = x[:, :, 2] * am[k][:, None] + incm[k]
+        tau_b = tau_b + st.dt[k]
+        out[k] = x
+        tau[k] = tau_b
+    return out[:n], tau[:n], var
+
+
+def run_ahrs(imu: np.ndarray, mag: np.ndarray, settings: AhrsSettings | None = None, *,
+             expected_field: ExpectedField | None = None, gyro_bias_rad_s=(0.0, 0.0, 0.0)) -> AhrsResult:
+    """Batch AHRS over a log; the same numbers as feeding ``estimators.ahrs.Ahrs`` sample by sample.
+
+    imu: (N, 7) [t_s, gx, gy, gz rad/s, ax, ay, az m/s²];  mag: (M, 4) [t_s, mx, my, mz mG]
+    (calibrated), body FRD.  Returns arrays on the IMU time base; outputs are always finite.
+    """
+    s = settings or AhrsSettings()
+    imu = np.asarray(imu, dtype=float).reshape(-1, 7)
+    mag = np.asarray(mag, dtype=float).reshape(-1, 4)
+    n = len(imu)
+    if n == 0:
+        z, z3, zb = np.zeros(0), np.zeros((0, 3)), np.zeros(0, bool)
+        return AhrsResult(z, z, z, z, z, z3, zb, zb, zb, zb, z3, z3, z3)
+    st, fl = _steps(imu, mag, s)
+    bid, starts, lengths = _blocks(fl["t"], s)
+    p1 = _pass1(st, starts, lengths, n)
+    ends = starts + lengths - 1
+    nb = len(starts)
+    counts = dict(mag_n=np.bincount(bid, fl["fresh"], nb).astype(int),
+                  g_init=fl["g_init"][ends], m_init=fl["m_init"][ends],
+                  reinit_g=np.bincount(bid, fl["reinit_g"], nb) > 0, reinit_m=np.bincount(bid, fl["reinit_m"], nb) > 0)
+    rec = _block_loop(p1, counts, Supervisor(s, expected_field, gyro_bias_rad_s))
+    raw, tau, var = _pass2(st, fl, bid, starts, lengths, rec, n)
+    bias = np.array([r[6] for r in rec])[bid]
+    rest = np.array([r[5] for r in rec], dtype=bool)[bid]
+    return _outputs(fl, raw, tau, var, bias, rest)
+
+
+def _outputs(fl: dict, raw: np.ndarray, tau: np.ndarray, var: np.ndarray, bias: np.ndarray,
+             rest: np.ndarray) -> AhrsResult:
+    """Bias rotation to first order (x + (b̂τ) × x, as ``Ahrs._state``), angles and flags."""
+    p = bias * tau[:, None]
+    px, py, pz = p[:, 0], p[:, 1], p[:, 2]
+    v = []
+    for col in (1, 2):
+        x, y, z = raw[:, 0, col], raw[:, 1, col], raw[:, 2, col]
+        v.append(np.stack([x + py * z - pz * y, y + pz * x - px * z, z + px * y - py * x], axis=1))
+    g, m = v
+    valid = fl["g_init"] & fl["m_init"]
+    latest, _ = _last_value(fl["fresh"], fl["m"])
+    roll = np.arctan2(-g[:, 1], -g[:, 2])
+    pitch = np.arctan2(g[:, 0], np.hypot(g[:, 1], g[:, 2]))
+    sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
+    spsr, spcr = sp * sr, sp * cr
+    heads = [wrap_heading_rad(np.arctan2(-(h[:, 1] * cr - h[:, 2] * sr), h[:, 0] * cp + h[:, 1] * spsr + h[:, 2] * spcr))
+             for h in (m, latest)]
+    roll, pitch, yaw, mag_heading = (np.where(valid, a, 0.0) for a in (roll, pitch, *heads))
+    return AhrsResult(fl["t"], roll, pitch, yaw, mag_heading, bias, fl["g_init"] & (var[:, 0] == REJECT),
+                      var[:, 1] == REJECT, rest, valid, g, m, latest)
