@@ -61,13 +61,16 @@ def _rodrigues(theta: np.ndarray):
 
 
 def _rotate(v: np.ndarray, t: np.ndarray, c, s, w) -> np.ndarray:
-    """``estimators.ahrs_math.rotate`` on v (B, 3, K) with θ (B, 3) and coefficients (B,)."""
-    tx, ty, tz = t[:, 0, None], t[:, 1, None], t[:, 2, None]
-    c, s, w = c[:, None], s[:, None], w[:, None]
-    vx, vy, vz = v[:, 0], v[:, 1], v[:, 2]
+    """``estimators.ahrs_math.rotate`` on v (3, K, B) with θ (3, B) and coefficients (B,): the
+    component axis first and the blocks last, so every operation runs on contiguous rows."""
+    vx, vy, vz = v[0], v[1], v[2]
+    tx, ty, tz = t[0], t[1], t[2]
     d = w * (tx * vx + ty * vy + tz * vz)
-    return np.stack([c * vx - s * (ty * vz - tz * vy) + d * tx, c * vy - s * (tz * vx - tx * vz) + d * ty,
-                     c * vz - s * (tx * vy - ty * vx) + d * tz], axis=1)
+    out = np.empty_like(v)
+    out[0] = c * vx - s * (ty * vz - tz * vy) + d * tx
+    out[1] = c * vy - s * (tz * vx - tx * vz) + d * ty
+    out[2] = c * vz - s * (tx * vy - ty * vx) + d * tz
+    return out
 
 
 def _gain(k: float, interval: np.ndarray, since: np.ndarray) -> np.ndarray:
@@ -202,30 +205,49 @@ def _steps(imu: np.ndarray, mag: np.ndarray, s: AhrsSettings) -> tuple[_Steps, d
     return steps, flags
 
 
-def _pass1(st: _Steps, starts: np.ndarray, lengths: np.ndarray, n: int) -> dict:
+class _Layout:
+    """Steps regrouped by position in the block: ``take(a)`` turns a per-step array (N+1, ...)
+    into (L, ..., B) — position first, blocks last — with the identity step as padding."""
+
+    def __init__(self, starts: np.ndarray, lengths: np.ndarray, n: int):
+        pos = np.arange(int(lengths.max()) if len(starts) else 0)[:, None]
+        self.valid = pos < lengths[None, :]
+        self.idx = np.where(self.valid, starts[None, :] + pos, n)
+        self.L, self.B = self.idx.shape
+
+    def take(self, a: np.ndarray) -> np.ndarray:
+        g = a[self.idx]
+        return np.ascontiguousarray(np.moveaxis(g, 1, -1)) if g.ndim > 2 else g
+
+
+def _pass1(st: _Steps, lay: _Layout) -> dict:
     """Block maps and sums, vectorised over blocks (module docstring, step 2).  Columns of x: P (3),
     c1, c2, c_m, Σm; products α1 = Π a1, (m21, m22) of the second stage, α_m."""
-    nb = len(starts)
-    x = np.zeros((nb, 3, 7))
-    x[:, :, :3] = np.eye(3)
-    prod = np.zeros((nb, 4))            # α1, m21, m22, α_m
-    prod[:, [0, 2, 3]] = 1.0
-    stats = np.zeros((nb, 11))
-    for p in range(int(lengths.max()) if nb else 0):
-        k = np.where(lengths > p, starts + p, n)
-        x = _rotate(x, st.theta[k], st.cos[k], st.sinc[k], st.vers[k])
-        a, inc, a2, g2 = st.a[k], st.inc[k], st.a2[k], st.g2[k]
-        x[:, :, 3] = x[:, :, 3] * a[:, 0, None] + inc[:, :, 0]
-        x[:, :, 4] = x[:, :, 4] * a2[:, None] + g2[:, None] * x[:, :, 3]
-        x[:, :, 5] = x[:, :, 5] * a[:, 1, None] + inc[:, :, 1]
-        x[:, :, 6] = x[:, :, 6] + inc[:, :, 2]
-        prod[:, 0] = prod[:, 0] * a[:, 0]
-        prod[:, 1] = g2 * prod[:, 0] + a2 * prod[:, 1]
-        prod[:, 2] = prod[:, 2] * a2
-        prod[:, 3] = prod[:, 3] * a[:, 1]
-        stats[:, :10] += st.stats[k]
-        stats[:, 10] += st.dt[k]
-    return dict(P=x[:, :, :3], c=x[:, :, 3:6], sums=x[:, :, 6], prod=prod, stats=stats)
+    B = lay.B
+    x = np.zeros((3, 7, B))
+    for r in range(3):
+        x[r, r] = 1.0
+    th, co, si, ve = lay.take(st.theta), lay.take(st.cos), lay.take(st.sinc), lay.take(st.vers)
+    a, inc, a2, g2 = lay.take(st.a), lay.take(st.inc), lay.take(st.a2), lay.take(st.g2)
+    prod = np.ones((4, B))               # α1, m21, m22, α_m
+    prod[1] = 0.0
+    for p in range(lay.L):
+        x = _rotate(x, th[p], co[p], si[p], ve[p])
+        x[:, 3] = x[:, 3] * a[p, 0] + inc[p, :, 0]
+        x[:, 4] = x[:, 4] * a2[p] + g2[p] * x[:, 3]
+        x[:, 5] = x[:, 5] * a[p, 1] + inc[p, :, 1]
+        x[:, 6] = x[:, 6] + inc[p, :, 2]
+        prod[0] = prod[0] * a[p, 0]
+        prod[1] = g2[p] * prod[0] + a2[p] * prod[1]
+        prod[2] = prod[2] * a2[p]
+        prod[3] = prod[3] * a[p, 1]
+    stats = np.zeros((11, B))
+    sk, dk = lay.take(st.stats), lay.take(st.dt)
+    for p in range(lay.L):                 # sequential sums, the per-sample form's order
+        stats[:10] += sk[p]
+        stats[10] += dk[p]
+    return dict(P=x[:, :3].transpose(2, 0, 1), c=x[:, 3:6].transpose(2, 0, 1), sums=x[:, 6].T, prod=prod.T,
+                stats=stats.T)
 
 
 def _block_loop(p1: dict, counts: dict, sup: Supervisor) -> list:
@@ -234,50 +256,62 @@ def _block_loop(p1: dict, counts: dict, sup: Supervisor) -> list:
     P, c, sums, prod, stats = (p1[k].tolist() for k in ("P", "c", "sums", "prod", "stats"))
     mag_n, g_init, m_init, re_g, re_m = (counts[k].tolist() for k in
                                          ("mag_n", "g_init", "m_init", "reinit_g", "reinit_m"))
-    x1 = x2 = xm = [0.0, 0.0, 0.0]
+    x1 = x2 = xm = (0.0, 0.0, 0.0)
     rec = []
     for j in range(len(P)):
         vg = ACCEPT if re_g[j] else sup.var_g
         vm = ACCEPT if re_m[j] else sup.var_m
         rec.append((x1, x2, xm, vg, vm, sup.at_rest, tuple(sup.bias)))
-        Pj, cj, (al1, m21, m22, alm) = P[j], c[j], prod[j]
-        p1_, p2_, pm_ = ([Pj[r][0] * v[0] + Pj[r][1] * v[1] + Pj[r][2] * v[2] for r in range(3)] for v in (x1, x2, xm))
-        e1 = [al1 * p1_[r] + cj[r][0] for r in range(3)]
-        e2 = [m21 * p1_[r] + m22 * p2_[r] + cj[r][1] for r in range(3)] if vg == ACCEPT else p2_
-        em = [alm * pm_[r] + cj[r][2] for r in range(3)] if vm == ACCEPT else pm_
-        sj, st = sums[j], stats[j]
+        (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = P[j]
+        (c10, c20, cm0), (c11, c21, cm1), (c12, c22, cm2) = c[j]
+        al1, m21, m22, alm = prod[j]
+        u0, u1, u2 = x1
+        q0, q1, q2 = p00 * u0 + p01 * u1 + p02 * u2, p10 * u0 + p11 * u1 + p12 * u2, p20 * u0 + p21 * u1 + p22 * u2
+        e1 = [al1 * q0 + c10, al1 * q1 + c11, al1 * q2 + c12]
+        u0, u1, u2 = x2
+        r0, r1, r2 = p00 * u0 + p01 * u1 + p02 * u2, p10 * u0 + p11 * u1 + p12 * u2, p20 * u0 + p21 * u1 + p22 * u2
+        e2 = ([m21 * q0 + m22 * r0 + c20, m21 * q1 + m22 * r1 + c21, m21 * q2 + m22 * r2 + c22]
+              if vg == ACCEPT else [r0, r1, r2])
+        u0, u1, u2 = xm
+        r0, r1, r2 = p00 * u0 + p01 * u1 + p02 * u2, p10 * u0 + p11 * u1 + p12 * u2, p20 * u0 + p21 * u1 + p22 * u2
+        em = [alm * r0 + cm0, alm * r1 + cm1, alm * r2 + cm2] if vm == ACCEPT else [r0, r1, r2]
+        st = stats[j]
         x1, x2, xm = sup.close(BlockSums(
-            st[10], e1, e2, em, sj, mag_n[j], (st[0], st[1], st[2]), st[3], int(st[4]), (st[5], st[6], st[7]),
+            st[10], e1, e2, em, sums[j], mag_n[j], (st[0], st[1], st[2]), st[3], int(st[4]), (st[5], st[6], st[7]),
             st[8], int(st[9]), g_init[j], m_init[j], re_g[j], re_m[j]))
     return rec
 
 
-def _pass2(st: _Steps, fl: dict, bid: np.ndarray, starts, lengths, rec: list, n: int):
+def _pass2(st: _Steps, fl: dict, bid: np.ndarray, starts, lay: _Layout, rec: list, n: int):
     """Every step from its block's start vectors with the chosen variants (module docstring,
     step 4).  Returns the raw vectors (N, 3, 3: x1, x2, x_m), τ (N,) and the variants (N, 2)."""
     var = np.array([r[3:5] for r in rec], dtype=int)[bid]
     for col, key in ((0, "reinit_g"), (1, "reinit_m")):
         last = np.maximum.accumulate(np.where(fl[key], np.arange(n), -1))
         var[:, col] = np.where(last >= starts[bid], ACCEPT, var[:, col])   # from a re-initialisation on
-    hold_g, hold_m = _pad((var[:, 0] == REJECT).astype(float), 0.0), _pad((var[:, 1] == REJECT).astype(float), 0.0)
-    a2 = np.where(hold_g > 0, 1.0, st.a2)
-    g2 = np.where(hold_g > 0, 0.0, st.g2)
-    am = np.where(hold_m > 0, 1.0, st.a[:, 1])
-    incm = np.where(hold_m[:, None] > 0, 0.0, st.inc[:, :, 1])
-    x = np.array([[r[0], r[1], r[2]] for r in rec]).transpose(0, 2, 1)      # (blocks, 3, 3)
-    tau_b = np.zeros(len(starts))
-    out = np.zeros((n + 1, 3, 3))
-    tau = np.zeros(n + 1)
-    for p in range(int(lengths.max())):
-        k = np.where(lengths > p, starts + p, n)
-        x = _rotate(x, st.theta[k], st.cos[k], st.sinc[k], st.vers[k])
-        x[:, :, 0] = x[:, :, 0] * st.a[k, 0, None] + st.inc[k, :, 0]
-        x[:, :, 1] = x[:, :, 1] * a2[k][:, None] + g2[k][:, None] * x[:, :, 0]
-        x[:, :, 2] = x[:, :, 2] * am[k][:, None] + incm[k]
-        tau_b = tau_b + st.dt[k]
-        out[k] = x
-        tau[k] = tau_b
-    return out[:n], tau[:n], var
+    hold_g, hold_m = _pad(var[:, 0] == REJECT, False), _pad(var[:, 1] == REJECT, False)
+    a2 = lay.take(np.where(hold_g, 1.0, st.a2))
+    g2 = lay.take(np.where(hold_g, 0.0, st.g2))
+    am = lay.take(np.where(hold_m, 1.0, st.a[:, 1]))
+    incm = lay.take(np.where(hold_m[:, None], 0.0, st.inc[:, :, 1]))
+    a1, inc1 = lay.take(st.a[:, 0]), lay.take(st.inc[:, :, 0])
+    th, co, si, ve, dt = (lay.take(a) for a in (st.theta, st.cos, st.sinc, st.vers, st.dt))
+    x = np.array([[r[0], r[1], r[2]] for r in rec]).transpose(2, 1, 0)      # (3, 3 vectors, B)
+    tau_b = np.zeros(lay.B)
+    out = np.empty((lay.L, 3, 3, lay.B))
+    tau = np.empty((lay.L, lay.B))
+    for p in range(lay.L):
+        x = _rotate(x, th[p], co[p], si[p], ve[p])
+        x[:, 0] = x[:, 0] * a1[p] + inc1[p]
+        x[:, 1] = x[:, 1] * a2[p] + g2[p] * x[:, 0]
+        x[:, 2] = x[:, 2] * am[p] + incm[p]
+        tau_b = tau_b + dt[p]
+        out[p] = x
+        tau[p] = tau_b
+    raw, tau_n = np.empty((n, 3, 3)), np.empty(n)
+    raw[lay.idx[lay.valid]] = out.transpose(0, 3, 2, 1)[lay.valid].transpose(0, 2, 1)
+    tau_n[lay.idx[lay.valid]] = tau[lay.valid]
+    return raw, tau_n, var
 
 
 def run_ahrs(imu: np.ndarray, mag: np.ndarray, settings: AhrsSettings | None = None, *,
@@ -296,14 +330,15 @@ def run_ahrs(imu: np.ndarray, mag: np.ndarray, settings: AhrsSettings | None = N
         return AhrsResult(z, z, z, z, z, z3, zb, zb, zb, zb, z3, z3, z3)
     st, fl = _steps(imu, mag, s)
     bid, starts, lengths = _blocks(fl["t"], s)
-    p1 = _pass1(st, starts, lengths, n)
+    lay = _Layout(starts, lengths, n)
+    p1 = _pass1(st, lay)
     ends = starts + lengths - 1
     nb = len(starts)
     counts = dict(mag_n=np.bincount(bid, fl["fresh"], nb).astype(int),
                   g_init=fl["g_init"][ends], m_init=fl["m_init"][ends],
                   reinit_g=np.bincount(bid, fl["reinit_g"], nb) > 0, reinit_m=np.bincount(bid, fl["reinit_m"], nb) > 0)
     rec = _block_loop(p1, counts, Supervisor(s, expected_field, gyro_bias_rad_s))
-    raw, tau, var = _pass2(st, fl, bid, starts, lengths, rec, n)
+    raw, tau, var = _pass2(st, fl, bid, starts, lay, rec, n)
     bias = np.array([r[6] for r in rec])[bid]
     rest = np.array([r[5] for r in rec], dtype=bool)[bid]
     return _outputs(fl, raw, tau, var, bias, rest)

@@ -63,6 +63,7 @@ class Supervisor:
         self._psi_max = math.radians(s.mag_reject_deg)
         self._dip_tol = math.radians(s.field_dip_tol_deg)
         self._g2, self._a2 = s.rest_gyro_rad_s ** 2, s.rest_acc_mps2 ** 2
+        self._gd2, self._ad2 = s.rest_gyro_drift_rad_s ** 2, s.rest_acc_drift_mps2 ** 2
         self._T = None                               # block duration the cached gains are for
 
     def _gains(self, T: float) -> None:
@@ -100,27 +101,30 @@ class Supervisor:
         return b.fast_end, b.gravity_end, b.field_end
 
     def _rest(self, b: BlockSums, T: float) -> None:
-        """Still: block variance and deviation from the low-passed block means under the
-        thresholds (VQF's rest detection on block means); at rest after ``rest_time_s``."""
+        """Still: the gyro and specific-force spread inside the block (vibration, shocks) and the
+        drift of the block means from their low-pass (a slow rotation about a horizontal axis turns
+        the specific force) under the thresholds; at rest after ``rest_time_s`` still (VQF's rest
+        detection on block means).  A slow turn about the vertical below ``bias_max_rad_s`` is not
+        seen: a platform yawing slowly while otherwise still is taken for a gyro bias."""
         if not (b.gyro_n and b.force_n):
             self.rest_t, self.at_rest = 0.0, False
             return
+        s = self.s
         ng, nf = b.gyro_n, b.force_n
-        wx, wy, wz = b.gyro_sum[0] / ng, b.gyro_sum[1] / ng, b.gyro_sum[2] / ng
-        fx, fy, fz = b.force_sum[0] / nf, b.force_sum[1] / nf, b.force_sum[2] / nf
+        w = (b.gyro_sum[0] / ng, b.gyro_sum[1] / ng, b.gyro_sum[2] / ng)
+        f = (b.force_sum[0] / nf, b.force_sum[1] / nf, b.force_sum[2] / nf)
         if self.lp_w is None:
-            self.lp_w, self.lp_f = [wx, wy, wz], [fx, fy, fz]
-        lw, lf, k = self.lp_w, self.lp_f, self._k_rest_lp
-        dwx, dwy, dwz, dfx, dfy, dfz = wx - lw[0], wy - lw[1], wz - lw[2], fx - lf[0], fy - lf[1], fz - lf[2]
-        g2, a2 = self._g2, self._a2
-        still = (b.gyro_sq / ng - (wx * wx + wy * wy + wz * wz) < g2
-                 and b.force_sq / nf - (fx * fx + fy * fy + fz * fz) < a2
-                 and dwx * dwx + dwy * dwy + dwz * dwz < g2 and dfx * dfx + dfy * dfy + dfz * dfz < a2
-                 and max(abs(wx), abs(wy), abs(wz)) < self.s.bias_max_rad_s)
-        lw[0] += k * dwx; lw[1] += k * dwy; lw[2] += k * dwz  # noqa: E702
-        lf[0] += k * dfx; lf[1] += k * dfy; lf[2] += k * dfz  # noqa: E702
+            self.lp_w, self.lp_f = list(w), list(f)
+        still = (b.gyro_sq / ng - (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) < self._g2
+                 and b.force_sq / nf - (f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) < self._a2
+                 and max(abs(w[0]), abs(w[1]), abs(w[2])) < s.bias_max_rad_s)
+        k = self._k_rest_lp
+        for x, lp, lim2 in ((w, self.lp_w, self._gd2), (f, self.lp_f, self._ad2)):
+            d0, d1, d2 = x[0] - lp[0], x[1] - lp[1], x[2] - lp[2]
+            still = still and d0 * d0 + d1 * d1 + d2 * d2 < lim2
+            lp[0] += k * d0; lp[1] += k * d1; lp[2] += k * d2  # noqa: E702
         self.rest_t = self.rest_t + T if still else 0.0
-        self.at_rest = self.rest_t >= self.s.rest_time_s
+        self.at_rest = self.rest_t >= s.rest_time_s
 
     def _trigger(self, trig: float, bad: bool, T: float, limit: float) -> float:
         trig = trig + T if bad else trig - self.s.recovery_ratio * T
