@@ -154,29 +154,24 @@ def _blocks(t: np.ndarray, s: AhrsSettings):
 
 
 
-@dataclass
-class _Steps:
-    """Per-step coefficients, length N + 1 (the last entry is an identity step for padding).
-    ``a``/``inc``: first gravity stage and field (``inc`` also the fresh field for its sum);
-    ``a2``/``g2``: the second gravity stage when it is not held."""
-    theta: np.ndarray
-    cos: np.ndarray
-    sinc: np.ndarray
-    vers: np.ndarray
-    dt: np.ndarray
-    a: np.ndarray          # (N+1, 2)
-    inc: np.ndarray        # (N+1, 3, 3)
-    a2: np.ndarray         # (N+1,)
-    g2: np.ndarray
-    stats: np.ndarray      # (N+1, 10): ω (3), |ω|², ω valid, f (3), |f|², f valid
+def _pad(x: np.ndarray, fill) -> np.ndarray:
+    return np.concatenate([x, np.full((1,) + x.shape[1:], fill, dtype=x.dtype)])
 
 
-def _pad(x: np.ndarray, fill: float) -> np.ndarray:
-    return np.concatenate([x, np.full((1,) + x.shape[1:], fill, dtype=float)])
+# columns of the per-step table (module docstring, step 1)
+TH, CO, SI, VE, DT, A1, AM, INC1, INCM, MSUM, A2, G2 = (
+    slice(0, 3), 3, 4, 5, 6, 7, 8, slice(9, 12), slice(12, 15), slice(15, 18), 18, 19)
+N_COLS = 20
+_IDENTITY = np.zeros(N_COLS)
+_IDENTITY[[CO, SI, VE, A1, AM, A2]] = [1.0, 1.0, 0.5, 1.0, 1.0, 1.0]
 
 
-def _steps(imu: np.ndarray, mag: np.ndarray, s: AhrsSettings) -> tuple[_Steps, dict]:
-    """Measurement-only per-step quantities, and the flags the outputs need."""
+def _steps(imu: np.ndarray, mag: np.ndarray, s: AhrsSettings) -> tuple[np.ndarray, dict, np.ndarray]:
+    """Measurement-only per-step table (N_COLS, N + 1; the last column an identity step for padding):
+    Rodrigues coefficients of the raw gyro step, dt, the stage coefficients a and increments g·z
+    (first gravity stage, field, field sum, second stage); the flags; and the per-step rest
+    statistics (N, 11): ω (3), |ω|², ω valid, f (3), |f|², f valid, dt."""
+    n = len(imu)
     t, dt, time_ok, gap = _clean_time(imu[:, 0], s.max_gap_s)
     w_raw = imu[:, 1:4]
     gyro_ok = np.all(np.isfinite(w_raw), axis=1)
@@ -193,16 +188,21 @@ def _steps(imu: np.ndarray, mag: np.ndarray, s: AhrsSettings) -> tuple[_Steps, d
     g1 = np.where(reinit_g, 1.0, np.where(blend & f_valid, _gain(s.gravity_gain_per_s, dt, t - t_init_g), 0.0))
     g2 = np.where(reinit_g, 1.0, np.where(blend, _gain(s.gravity_smoothing_per_s, dt, t - t_init_g), 0.0))
     gm = np.where(reinit_m, 1.0, np.where(m_init & fresh, _gain(s.field_gain_per_s, interval, tm - t_init_m), 0.0))
-    a = np.stack([np.where(reinit_g, 0.0, 1.0 - g1), np.where(reinit_m, 0.0, 1.0 - gm)], axis=1)
-    a2 = np.where(reinit_g, 0.0, 1.0 - g2)
-    inc = np.stack([g1[:, None] * f, gm[:, None] * m, np.where(fresh[:, None], m, 0.0)], axis=2)
-    theta = w * dt[:, None]
-    c, sn, vw = _rodrigues(theta)
-    stats = np.c_[w, w[:, 0] * w[:, 0] + w[:, 1] * w[:, 1] + w[:, 2] * w[:, 2], gyro_ok, f, n2, f_valid]
-    steps = _Steps(_pad(theta, 0.0), _pad(c, 1.0), _pad(sn, 1.0), _pad(vw, 0.5), _pad(dt, 0.0), _pad(a, 1.0),
-                   _pad(inc, 0.0), _pad(a2, 1.0), _pad(g2, 0.0), _pad(stats, 0.0))
+    tab = np.empty((N_COLS, n + 1))
+    tab[:, n] = _IDENTITY
+    tab[TH, :n] = (w * dt[:, None]).T
+    tab[CO, :n], tab[SI, :n], tab[VE, :n] = _rodrigues(tab[TH, :n].T)
+    tab[DT, :n] = dt
+    tab[A1, :n] = np.where(reinit_g, 0.0, 1.0 - g1)
+    tab[AM, :n] = np.where(reinit_m, 0.0, 1.0 - gm)
+    tab[INC1, :n] = (g1[:, None] * f).T
+    tab[INCM, :n] = (gm[:, None] * m).T
+    tab[MSUM, :n] = np.where(fresh[:, None], m, 0.0).T
+    tab[A2, :n] = np.where(reinit_g, 0.0, 1.0 - g2)
+    tab[G2, :n] = g2
+    stats = np.c_[w, w[:, 0] * w[:, 0] + w[:, 1] * w[:, 1] + w[:, 2] * w[:, 2], gyro_ok, f, n2, f_valid, dt]
     flags = dict(t=t, fresh=fresh, m=m, reinit_g=reinit_g, reinit_m=reinit_m, g_init=g_init, m_init=m_init)
-    return steps, flags
+    return tab, flags, stats
 
 
 class _Layout:
@@ -220,51 +220,44 @@ class _Layout:
         return np.ascontiguousarray(np.moveaxis(g, 1, -1)) if g.ndim > 2 else g
 
 
-def _pass1(st: _Steps, lay: _Layout) -> dict:
-    """Block maps and sums, vectorised over blocks (module docstring, step 2).  Columns of x: P (3),
-    c1, c2, c_m, Σm; products α1 = Π a1, (m21, m22) of the second stage, α_m."""
-    B = lay.B
+def _pass1(X: np.ndarray) -> dict:
+    """Block maps and sums, vectorised over blocks (module docstring, step 2); X is the step table
+    by position, (L, N_COLS, B).  Columns of x: P (3), c1, c2, c_m, Σm; products α1 = Π a1,
+    (m21, m22) of the second stage, α_m."""
+    B = X.shape[2]
     x = np.zeros((3, 7, B))
     for r in range(3):
         x[r, r] = 1.0
-    th, co, si, ve = lay.take(st.theta), lay.take(st.cos), lay.take(st.sinc), lay.take(st.vers)
-    a, inc, a2, g2 = lay.take(st.a), lay.take(st.inc), lay.take(st.a2), lay.take(st.g2)
     prod = np.ones((4, B))               # α1, m21, m22, α_m
     prod[1] = 0.0
-    for p in range(lay.L):
-        x = _rotate(x, th[p], co[p], si[p], ve[p])
-        x[:, 3] = x[:, 3] * a[p, 0] + inc[p, :, 0]
-        x[:, 4] = x[:, 4] * a2[p] + g2[p] * x[:, 3]
-        x[:, 5] = x[:, 5] * a[p, 1] + inc[p, :, 1]
-        x[:, 6] = x[:, 6] + inc[p, :, 2]
-        prod[0] = prod[0] * a[p, 0]
-        prod[1] = g2[p] * prod[0] + a2[p] * prod[1]
-        prod[2] = prod[2] * a2[p]
-        prod[3] = prod[3] * a[p, 1]
-    stats = np.zeros((11, B))
-    sk, dk = lay.take(st.stats), lay.take(st.dt)
-    for p in range(lay.L):                 # sequential sums, the per-sample form's order
-        stats[:10] += sk[p]
-        stats[10] += dk[p]
-    return dict(P=x[:, :3].transpose(2, 0, 1), c=x[:, 3:6].transpose(2, 0, 1), sums=x[:, 6].T, prod=prod.T,
-                stats=stats.T)
+    for Xp in X:
+        x = _rotate(x, Xp[TH], Xp[CO], Xp[SI], Xp[VE])
+        x[:, 3] = x[:, 3] * Xp[A1] + Xp[INC1]
+        x[:, 4] = x[:, 4] * Xp[A2] + Xp[G2] * x[:, 3]
+        x[:, 5] = x[:, 5] * Xp[AM] + Xp[INCM]
+        x[:, 6] = x[:, 6] + Xp[MSUM]
+        prod[0] = prod[0] * Xp[A1]
+        prod[1] = Xp[G2] * prod[0] + Xp[A2] * prod[1]
+        prod[2] = prod[2] * Xp[A2]
+        prod[3] = prod[3] * Xp[AM]
+    return dict(P=x[:, :3].transpose(2, 0, 1), c=x[:, 3:6].transpose(2, 0, 1), sums=x[:, 6].T, prod=prod.T)
 
 
-def _block_loop(p1: dict, counts: dict, sup: Supervisor) -> list:
+def _block_loop(p1: dict, counts: dict, sup: Supervisor) -> tuple[list, list]:
     """Sequential block-end logic in plain floats (module docstring, step 3).  Returns per block
-    (x1, x2, x_m at its start, gravity variant, field variant, at rest, bias)."""
-    P, c, sums, prod, stats = (p1[k].tolist() for k in ("P", "c", "sums", "prod", "stats"))
-    mag_n, g_init, m_init, re_g, re_m = (counts[k].tolist() for k in
-                                         ("mag_n", "g_init", "m_init", "reinit_g", "reinit_m"))
-    x1 = x2 = xm = (0.0, 0.0, 0.0)
-    rec = []
-    for j in range(len(P)):
-        vg = ACCEPT if re_g[j] else sup.var_g
-        vm = ACCEPT if re_m[j] else sup.var_m
-        rec.append((x1, x2, xm, vg, vm, sup.at_rest, tuple(sup.bias)))
-        (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = P[j]
-        (c10, c20, cm0), (c11, c21, cm1), (c12, c22, cm2) = c[j]
-        al1, m21, m22, alm = prod[j]
+    the start vectors [x1, x2, x_m] (9 floats) and (gravity variant, field variant, at rest, bias)."""
+    B = len(p1["prod"])
+    table = np.concatenate([p1["P"].reshape(B, 9), p1["c"].reshape(B, 9), p1["sums"], p1["prod"], p1["stats"],
+                            np.c_[counts["mag_n"], counts["g_init"], counts["m_init"], counts["reinit_g"],
+                                  counts["reinit_m"]]], axis=1).tolist()
+    x1 = x2 = xm = [0.0, 0.0, 0.0]
+    starts, decisions = [], []
+    for (p00, p01, p02, p10, p11, p12, p20, p21, p22, c10, c20, cm0, c11, c21, cm1, c12, c22, cm2, s0, s1, s2,
+         al1, m21, m22, alm, w0, w1, w2, wsq, wn, f0, f1, f2, fsq, fn, dur, mag_n, g_init, m_init, re_g, re_m) in table:
+        vg = ACCEPT if re_g else sup.var_g
+        vm = ACCEPT if re_m else sup.var_m
+        starts.append(x1 + x2 + xm)
+        decisions.append((vg, vm, sup.at_rest, sup.bias))
         u0, u1, u2 = x1
         q0, q1, q2 = p00 * u0 + p01 * u1 + p02 * u2, p10 * u0 + p11 * u1 + p12 * u2, p20 * u0 + p21 * u1 + p22 * u2
         e1 = [al1 * q0 + c10, al1 * q1 + c11, al1 * q2 + c12]
@@ -275,42 +268,37 @@ def _block_loop(p1: dict, counts: dict, sup: Supervisor) -> list:
         u0, u1, u2 = xm
         r0, r1, r2 = p00 * u0 + p01 * u1 + p02 * u2, p10 * u0 + p11 * u1 + p12 * u2, p20 * u0 + p21 * u1 + p22 * u2
         em = [alm * r0 + cm0, alm * r1 + cm1, alm * r2 + cm2] if vm == ACCEPT else [r0, r1, r2]
-        st = stats[j]
-        x1, x2, xm = sup.close(BlockSums(
-            st[10], e1, e2, em, sums[j], mag_n[j], (st[0], st[1], st[2]), st[3], int(st[4]), (st[5], st[6], st[7]),
-            st[8], int(st[9]), g_init[j], m_init[j], re_g[j], re_m[j]))
-    return rec
+        x1, x2, xm = sup.close(BlockSums(dur, e1, e2, em, [s0, s1, s2], int(mag_n), (w0, w1, w2), wsq, int(wn),
+                                         (f0, f1, f2), fsq, int(fn), g_init > 0, m_init > 0, re_g > 0, re_m > 0))
+    return starts, decisions
 
 
-def _pass2(st: _Steps, fl: dict, bid: np.ndarray, starts, lay: _Layout, rec: list, n: int):
+def _pass2(X: np.ndarray, lay: _Layout, fl: dict, starts: list, decisions: list, n: int):
     """Every step from its block's start vectors with the chosen variants (module docstring,
     step 4).  Returns the raw vectors (N, 3, 3: x1, x2, x_m), τ (N,) and the variants (N, 2)."""
-    var = np.array([r[3:5] for r in rec], dtype=int)[bid]
-    for col, key in ((0, "reinit_g"), (1, "reinit_m")):
-        last = np.maximum.accumulate(np.where(fl[key], np.arange(n), -1))
-        var[:, col] = np.where(last >= starts[bid], ACCEPT, var[:, col])   # from a re-initialisation on
-    hold_g, hold_m = _pad(var[:, 0] == REJECT, False), _pad(var[:, 1] == REJECT, False)
-    a2 = lay.take(np.where(hold_g, 1.0, st.a2))
-    g2 = lay.take(np.where(hold_g, 0.0, st.g2))
-    am = lay.take(np.where(hold_m, 1.0, st.a[:, 1]))
-    incm = lay.take(np.where(hold_m[:, None], 0.0, st.inc[:, :, 1]))
-    a1, inc1 = lay.take(st.a[:, 0]), lay.take(st.inc[:, :, 0])
-    th, co, si, ve, dt = (lay.take(a) for a in (st.theta, st.cos, st.sinc, st.vers, st.dt))
-    x = np.array([[r[0], r[1], r[2]] for r in rec]).transpose(2, 1, 0)      # (3, 3 vectors, B)
-    tau_b = np.zeros(lay.B)
+    var_b = np.array([d[:2] for d in decisions], dtype=int)                # (B, 2)
+    after = [np.logical_or.accumulate(lay.take(_pad(fl[k], False)), axis=0) for k in ("reinit_g", "reinit_m")]
+    hold_g = (var_b[:, 0] == REJECT)[None, :] & ~after[0]                   # (L, B)
+    hold_m = (var_b[:, 1] == REJECT)[None, :] & ~after[1]
+    a2 = np.where(hold_g, 1.0, X[:, A2])                                    # (L, B)
+    g2 = np.where(hold_g, 0.0, X[:, G2])
+    am = np.where(hold_m, 1.0, X[:, AM])
+    incm = np.where(hold_m[:, None], 0.0, X[:, INCM])                       # (L, 3, B)
+    x = np.array(starts).reshape(-1, 3, 3).transpose(2, 1, 0)               # (3, 3 vectors, B)
     out = np.empty((lay.L, 3, 3, lay.B))
-    tau = np.empty((lay.L, lay.B))
-    for p in range(lay.L):
-        x = _rotate(x, th[p], co[p], si[p], ve[p])
-        x[:, 0] = x[:, 0] * a1[p] + inc1[p]
+    for p, Xp in enumerate(X):
+        x = _rotate(x, Xp[TH], Xp[CO], Xp[SI], Xp[VE])
+        x[:, 0] = x[:, 0] * Xp[A1] + Xp[INC1]
         x[:, 1] = x[:, 1] * a2[p] + g2[p] * x[:, 0]
         x[:, 2] = x[:, 2] * am[p] + incm[p]
-        tau_b = tau_b + dt[p]
         out[p] = x
-        tau[p] = tau_b
-    raw, tau_n = np.empty((n, 3, 3)), np.empty(n)
-    raw[lay.idx[lay.valid]] = out.transpose(0, 3, 2, 1)[lay.valid].transpose(0, 2, 1)
-    tau_n[lay.idx[lay.valid]] = tau[lay.valid]
+    tau = np.cumsum(X[:, DT], axis=0)          # sequential along the block, as the per-sample τ
+    sel = lay.idx[lay.valid]
+    raw, tau_n, var = np.empty((n, 3, 3)), np.empty(n), np.empty((n, 2), int)
+    raw[sel] = out.transpose(0, 3, 1, 2)[lay.valid]
+    tau_n[sel] = tau[lay.valid]
+    var[sel, 0] = np.where(hold_g, REJECT, ACCEPT)[lay.valid]
+    var[sel, 1] = np.where(hold_m, REJECT, ACCEPT)[lay.valid]
     return raw, tau_n, var
 
 
@@ -328,19 +316,21 @@ def run_ahrs(imu: np.ndarray, mag: np.ndarray, settings: AhrsSettings | None = N
     if n == 0:
         z, z3, zb = np.zeros(0), np.zeros((0, 3)), np.zeros(0, bool)
         return AhrsResult(z, z, z, z, z, z3, zb, zb, zb, zb, z3, z3, z3)
-    st, fl = _steps(imu, mag, s)
+    tab, fl, stats = _steps(imu, mag, s)
     bid, starts, lengths = _blocks(fl["t"], s)
     lay = _Layout(starts, lengths, n)
-    p1 = _pass1(st, lay)
+    X = np.ascontiguousarray(tab[:, lay.idx].transpose(1, 0, 2))   # (L, N_COLS, B)
+    p1 = _pass1(X)
+    p1["stats"] = np.add.reduceat(stats, starts, axis=0)     # to round-off the per-sample running sums
     ends = starts + lengths - 1
     nb = len(starts)
     counts = dict(mag_n=np.bincount(bid, fl["fresh"], nb).astype(int),
                   g_init=fl["g_init"][ends], m_init=fl["m_init"][ends],
                   reinit_g=np.bincount(bid, fl["reinit_g"], nb) > 0, reinit_m=np.bincount(bid, fl["reinit_m"], nb) > 0)
-    rec = _block_loop(p1, counts, Supervisor(s, expected_field, gyro_bias_rad_s))
-    raw, tau, var = _pass2(st, fl, bid, starts, lay, rec, n)
-    bias = np.array([r[6] for r in rec])[bid]
-    rest = np.array([r[5] for r in rec], dtype=bool)[bid]
+    starts_x, decisions = _block_loop(p1, counts, Supervisor(s, expected_field, gyro_bias_rad_s))
+    raw, tau, var = _pass2(X, lay, fl, starts_x, decisions, n)
+    bias = np.array([d[3] for d in decisions])[bid]
+    rest = np.array([d[2] for d in decisions], dtype=bool)[bid]
     return _outputs(fl, raw, tau, var, bias, rest)
 
 

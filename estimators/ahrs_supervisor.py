@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from estimators.ahrs_math import ACCEPT, REJECT, rodrigues, rotate
+from estimators.ahrs_math import ACCEPT, REJECT, rodrigues
 
 __all__ = ["BlockSums", "Supervisor"]
 
@@ -93,11 +93,16 @@ class Supervisor:
             kg, km = self._k_tilt, self._k_head * psi
             nb = (bx + kg * r_g[0] + km * up[0], by + kg * r_g[1] + km * up[1], bz + kg * r_g[2] + km * up[2])
         lim = self.s.bias_max_rad_s
-        self.bias = [lim if v > lim else (-lim if v < -lim else v) for v in nb]
-        tx, ty, tz = -bx * T, -by * T, -bz * T            # rotation by +b̂·T
-        c, sn, w = rodrigues(tx, ty, tz)
+        n0, n1, n2 = nb
+        self.bias = [min(lim, max(-lim, n0)), min(lim, max(-lim, n1)), min(lim, max(-lim, n2))]
+        tx, ty, tz = -bx * T, -by * T, -bz * T            # rotation by +b̂·T (ahrs_math.rotate, inlined)
+        c, sn, q = rodrigues(tx, ty, tz)
         for v in (b.fast_end, b.gravity_end, b.field_end):   # in place: the caller passes fresh lists
-            rotate(v, tx, ty, tz, c, sn, w)
+            vx, vy, vz = v
+            d = q * (tx * vx + ty * vy + tz * vz)
+            v[0] = c * vx - sn * (ty * vz - tz * vy) + d * tx
+            v[1] = c * vy - sn * (tz * vx - tx * vz) + d * ty
+            v[2] = c * vz - sn * (tx * vy - ty * vx) + d * tz
         return b.fast_end, b.gravity_end, b.field_end
 
     def _rest(self, b: BlockSums, T: float) -> None:
