@@ -58,12 +58,15 @@ def trial_paths(directory: Path = BROAD_DIR) -> list[Path]:
     return sorted(directory.glob("*.hdf5"))
 
 
-def load_trial(path: Path) -> BroadTrial:
+def load_trial(path: Path, seconds: float | None = None) -> BroadTrial:
+    """One trial; ``seconds``: only its beginning (smoke runs)."""
     import h5py
     with h5py.File(path, "r") as f:
-        d = {k: np.asarray(f[k][:], dtype=float) for k in ("imu_gyr", "imu_acc", "imu_mag", "opt_quat")}
-        return BroadTrial(Path(path).stem, float(f.attrs["sampling_rate"]), d["imu_gyr"], d["imu_acc"],
-                          d["imu_mag"], d["opt_quat"], np.asarray(f["movement"][:], dtype=bool).ravel())
+        fs = float(f.attrs["sampling_rate"])
+        n = None if seconds is None else int(seconds * fs)
+        d = {k: np.asarray(f[k][:n], dtype=float) for k in ("imu_gyr", "imu_acc", "imu_mag", "opt_quat")}
+        return BroadTrial(Path(path).stem, fs, d["imu_gyr"], d["imu_acc"], d["imu_mag"], d["opt_quat"],
+                          np.asarray(f["movement"][:n], dtype=bool).ravel())
 
 
 def quat_enu_from_dcm_ned(c_body_to_ned: np.ndarray) -> np.ndarray:

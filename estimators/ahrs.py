@@ -114,6 +114,7 @@ class AhrsState:
     gyro_bias_rad_s: tuple              # (bx, by, bz) in effect at this step
     acc_rejected: bool                  # tilt held on the gyro (accelerometer rejected)
     mag_rejected: bool                  # the heading is held on the gyro (magnetometer rejected)
+    mag_disturbed: bool                 # the field departs from the reference (strength or dip)
     at_rest: bool
     valid: bool
     gravity_body: tuple                 # x2, bias-corrected [m/s²]
@@ -155,7 +156,7 @@ class Ahrs:
         self.mag_latest = (0.0, 0.0, 0.0)           # the latest applied magnetometer sample
         self._block: float | None = None
         self._var_g = self._var_m = ACCEPT
-        self._rest = False
+        self._rest = self._disturbed = False
         self._bias = tuple(self.supervisor.bias)
         self._new_block()
 
@@ -188,6 +189,7 @@ class Ahrs:
             self._reinit_g, self._reinit_m))
         v[0:9] = x1 + x2 + xm
         self._var_g, self._var_m, self._rest, self._bias = sup.var_g, sup.var_m, sup.at_rest, tuple(sup.bias)
+        self._disturbed = sup.field_disturbed
         self._new_block()
 
     def _time(self, t_s) -> tuple[float, float, bool]:
@@ -299,6 +301,6 @@ class Ahrs:
         valid = self.g_init and self.m_init
         roll, pitch, yaw, mag_heading = attitude_from_vectors(g, m, self.mag_latest) if valid else (0.0,) * 4
         return AhrsState(t, roll, pitch, yaw, mag_heading, self._bias, self.g_init and self._var_g == REJECT,
-                         self._var_m == REJECT, self._rest, valid, g, m)
+                         self._var_m == REJECT, self._disturbed, self._rest, valid, g, m)
 
 

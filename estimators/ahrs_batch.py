@@ -40,6 +40,7 @@ class AhrsResult:
     gyro_bias_rad_s: np.ndarray     # (N, 3)
     acc_rejected: np.ndarray
     mag_rejected: np.ndarray
+    mag_disturbed: np.ndarray
     at_rest: np.ndarray
     valid: np.ndarray
     gravity_body: np.ndarray        # (N, 3) x2, m/s²
@@ -245,7 +246,8 @@ def _pass1(X: np.ndarray) -> dict:
 
 def _block_loop(p1: dict, counts: dict, sup: Supervisor) -> tuple[list, list]:
     """Sequential block-end logic in plain floats (module docstring, step 3).  Returns per block
-    the start vectors [x1, x2, x_m] (9 floats) and (gravity variant, field variant, at rest, bias)."""
+    the start vectors [x1, x2, x_m] (9 floats) and (gravity variant, field variant, at rest, bias,
+    field disturbed) in effect during it."""
     B = len(p1["prod"])
     table = np.concatenate([p1["P"].reshape(B, 9), p1["c"].reshape(B, 9), p1["sums"], p1["prod"], p1["stats"],
                             np.c_[counts["mag_n"], counts["g_init"], counts["m_init"], counts["reinit_g"],
@@ -257,7 +259,7 @@ def _block_loop(p1: dict, counts: dict, sup: Supervisor) -> tuple[list, list]:
         vg = ACCEPT if re_g else sup.var_g
         vm = ACCEPT if re_m else sup.var_m
         starts.append(x1 + x2 + xm)
-        decisions.append((vg, vm, sup.at_rest, sup.bias))
+        decisions.append((vg, vm, sup.at_rest, sup.bias, sup.field_disturbed))
         u0, u1, u2 = x1
         q0, q1, q2 = p00 * u0 + p01 * u1 + p02 * u2, p10 * u0 + p11 * u1 + p12 * u2, p20 * u0 + p21 * u1 + p22 * u2
         e1 = [al1 * q0 + c10, al1 * q1 + c11, al1 * q2 + c12]
@@ -315,7 +317,7 @@ def run_ahrs(imu: np.ndarray, mag: np.ndarray, settings: AhrsSettings | None = N
     n = len(imu)
     if n == 0:
         z, z3, zb = np.zeros(0), np.zeros((0, 3)), np.zeros(0, bool)
-        return AhrsResult(z, z, z, z, z, z3, zb, zb, zb, zb, z3, z3, z3)
+        return AhrsResult(z, z, z, z, z, z3, zb, zb, zb, zb, zb, z3, z3, z3)
     tab, fl, stats = _steps(imu, mag, s)
     bid, starts, lengths = _blocks(fl["t"], s)
     lay = _Layout(starts, lengths, n)
@@ -330,12 +332,12 @@ def run_ahrs(imu: np.ndarray, mag: np.ndarray, settings: AhrsSettings | None = N
     starts_x, decisions = _block_loop(p1, counts, Supervisor(s, expected_field, gyro_bias_rad_s))
     raw, tau, var = _pass2(X, lay, fl, starts_x, decisions, n)
     bias = np.array([d[3] for d in decisions])[bid]
-    rest = np.array([d[2] for d in decisions], dtype=bool)[bid]
-    return _outputs(fl, raw, tau, var, bias, rest)
+    flags = np.array([(d[2], d[4]) for d in decisions], dtype=bool)[bid]
+    return _outputs(fl, raw, tau, var, bias, flags)
 
 
 def _outputs(fl: dict, raw: np.ndarray, tau: np.ndarray, var: np.ndarray, bias: np.ndarray,
-             rest: np.ndarray) -> AhrsResult:
+             flags: np.ndarray) -> AhrsResult:
     """Bias rotation to first order (x + (b̂τ) × x, as ``Ahrs._state``), angles and flags."""
     p = bias * tau[:, None]
     px, py, pz = p[:, 0], p[:, 1], p[:, 2]
@@ -354,4 +356,4 @@ def _outputs(fl: dict, raw: np.ndarray, tau: np.ndarray, var: np.ndarray, bias: 
              for h in (m, latest)]
     roll, pitch, yaw, mag_heading = (np.where(valid, a, 0.0) for a in (roll, pitch, *heads))
     return AhrsResult(fl["t"], roll, pitch, yaw, mag_heading, bias, fl["g_init"] & (var[:, 0] == REJECT),
-                      var[:, 1] == REJECT, rest, valid, g, m, latest)
+                      var[:, 1] == REJECT, flags[:, 1], flags[:, 0], valid, g, m, latest)

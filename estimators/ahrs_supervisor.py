@@ -55,6 +55,7 @@ class Supervisor:
         self.acc_trig = self.mag_trig = self.dist_t = self.rest_t = 0.0
         self.acc_recovering = self.mag_recovering = False
         self.at_rest = False
+        self.field_disturbed = False                 # the latest block-mean field departs from the reference
         self.ref_norm = expected_field.strength_mG if expected_field else None
         self.ref_dip = math.radians(expected_field.inclination_deg) if expected_field else 0.0
         self.lp_w: list | None = None
@@ -164,6 +165,7 @@ class Supervisor:
         none = (0.0, (0.0, 0.0, 0.0))
         if b.reinit_field:
             self.mag_trig, self.dist_t, self.mag_recovering, self.var_m = 0.0, 0.0, False, ACCEPT
+            self.field_disturbed = False
         if not (b.mag_n and b.field_init and b.gravity_init):
             return none
         ux, uy, uz, gn = _unit(b.gravity_end)                  # x2 points up (−down)
@@ -186,6 +188,7 @@ class Supervisor:
         self.dist_t = self.dist_t + T if dist else 0.0
         if dist and self.dist_t >= s.field_relearn_s:       # a new, lasting field: take it
             self.ref_norm, self.ref_dip, self.dist_t, dist = norm, dip, 0.0, False
+        self.field_disturbed = dist
         bad = dist or abs(psi) > self._psi_max
         self.mag_trig = trig = self._trigger(self.mag_trig, bad, T, s.mag_recovery_s)
         if trig >= s.mag_recovery_s:

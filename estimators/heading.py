@@ -100,6 +100,7 @@ class HeadingChainResult:
     gyro_bias_rad_s: np.ndarray = dc_field(default_factory=_zeros3)   # (N, 3) in effect at each step
     acc_rejected: np.ndarray = dc_field(default_factory=_no_flags)    # tilt held on the gyro
     mag_rejected: np.ndarray = dc_field(default_factory=_no_flags)    # heading held on the gyro
+    mag_disturbed: np.ndarray = dc_field(default_factory=_no_flags)   # field departs from the reference
     at_rest: np.ndarray = dc_field(default_factory=_no_flags)
     estimator: str = "ahrs"
 
@@ -116,6 +117,7 @@ class HeadingState:
     gyro_bias_rad_s: tuple = (0.0, 0.0, 0.0)
     acc_rejected: bool = False
     mag_rejected: bool = False
+    mag_disturbed: bool = False
     at_rest: bool = False
 
 
@@ -198,7 +200,8 @@ def run_heading_chain(imu: np.ndarray, mag_cal: np.ndarray, declination_deg=0.0,
     decl = np.broadcast_to(np.nan_to_num(np.asarray(declination_deg, dtype=float)), r.t_s.shape)
     true = np.where(r.valid, wrap_heading_rad(r.yaw_rad + np.radians(decl)), 0.0)
     return HeadingChainResult(r.t_s, r.roll_rad, r.pitch_rad, r.yaw_rad, r.mag_heading_rad, true, r.field_body_mG,
-                              r.valid, r.gyro_bias_rad_s, r.acc_rejected, r.mag_rejected, r.at_rest, "ahrs")
+                              r.valid, r.gyro_bias_rad_s, r.acc_rejected, r.mag_rejected, r.mag_disturbed, r.at_rest,
+                              "ahrs")
 
 
 def _run_seed000(imu: np.ndarray, mag_cal: np.ndarray, declination_deg, s: HeadingChainSettings) -> HeadingChainResult:
@@ -213,8 +216,8 @@ def _run_seed000(imu: np.ndarray, mag_cal: np.ndarray, declination_deg, s: Headi
     roll, pitch, yaw, mh, true, valid = _outputs(grav, field_b, mag_held, mag_exists, g_init & f_init, decl)
     n = len(t)
     no = np.zeros(n, bool)
-    return HeadingChainResult(t, roll, pitch, yaw, mh, true, field_b, valid, np.zeros((n, 3)), no, no, no.copy(),
-                              "seed000")
+    return HeadingChainResult(t, roll, pitch, yaw, mh, true, field_b, valid, np.zeros((n, 3)), no, no.copy(),
+                              no.copy(), no.copy(), "seed000")
 
 
 class HeadingChain:
@@ -251,7 +254,7 @@ class HeadingChain:
             a = self.ahrs.update_imu(t_s, gyro_rad_s, accel_mps2)
             true = wrap_heading_rad_float(a.yaw_rad + math.radians(decl)) if a.valid else 0.0
             return HeadingState(a.t_s, a.roll_rad, a.pitch_rad, a.yaw_rad, a.mag_heading_rad, true, a.valid,
-                                a.gyro_bias_rad_s, a.acc_rejected, a.mag_rejected, a.at_rest)
+                                a.gyro_bias_rad_s, a.acc_rejected, a.mag_rejected, a.mag_disturbed, a.at_rest)
         return self._update_seed000(t_s, gyro_rad_s, accel_mps2, decl)
 
     def _update_seed000(self, t_s: float, gyro_rad_s, accel_mps2, decl: float) -> HeadingState:
