@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import math
 import pathlib
 import sys
 import time
@@ -142,7 +141,9 @@ def print_table(table: dict, common: dict) -> tuple[int, int]:
               f" | inclination {oi:5.2f} vs {bi[1][1]:5.2f} ({bi[0]}) {'met   ' if ok_i else 'MISSED'}")
     if common:
         print("  best common settings: " + "; ".join(f"{p}: {c[0]}" for p, c in common.items()))
-    mean = lambda c, k: np.mean([row[c][k] for row in table.values() if c in row])
+
+    def mean(c, k):
+        return np.mean([row[c][k] for row in table.values() if c in row])
     print(f"  mean over trials: ours {mean(OURS[0], 0):.2f}/{mean(OURS[0], 1):.2f}, seed 000 "
           f"{mean(OURS[1], 0):.2f}/{mean(OURS[1], 1):.2f}"
           + "".join(f", {p} common {mean(p + ' common', 0):.2f}/{mean(p + ' common', 1):.2f}" for p in common))

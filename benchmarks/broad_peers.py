@@ -79,8 +79,7 @@ def score_deg(q_sensor_to_enu: np.ndarray, trial: BroadTrial) -> tuple[float, fl
     without optical truth are left out, as its nan-mean does)."""
     heading, incl = earth_frame_errors_rad(q_sensor_to_enu, trial.opt_quat)
     m = trial.movement
-    rms = lambda e: math.degrees(math.sqrt(np.nanmean(e[m] ** 2)))
-    return rms(heading), rms(incl)
+    return tuple(math.degrees(math.sqrt(np.nanmean(e[m] ** 2))) for e in (heading, incl))
 
 
 def initial_dcm_enu(acc: np.ndarray, mag: np.ndarray) -> np.ndarray:

@@ -113,7 +113,9 @@ def static_protocol(lat: float, lon: float, sensors: int, bias_deg_s: float = 0.
             for col in range(2):
                 out[name]["steps"].extend(wrap_angle_deg(np.diff(np.r_[read[:, col], read[0, col]]) - 45.0))
             out[name]["diffs"].extend(wrap_angle_deg(read[:, 1] - read[:, 0]))
-    rms = lambda a: float(np.sqrt(np.mean(np.square(a))))
+
+    def rms(a):
+        return float(np.sqrt(np.mean(np.square(a))))
     return dict(inclination=ef.inclination_deg, declination=ef.declination_deg,
                 rows={k: dict(step_rms=rms(v["steps"]), step_max=float(np.max(np.abs(v["steps"]))),
                               roll_rms=rms(v["diffs"]), roll_max=float(np.max(np.abs(v["diffs"]))))
@@ -195,7 +197,8 @@ def _report_static(q: bool, checks: list) -> None:
 def _report_outage(q: bool, checks: list) -> None:
     configs = {"INS/GPS default": {}} if q else {"INS/GPS default": {}, "open-loop INS": dict(field_feedback=False)}
     sites = OUTAGE_SITES[:1] if q else OUTAGE_SITES
-    for case, step in (("bias 0.5 deg/s all flight", False), ("unseen bias step at outage start (stress, no target)", True)):
+    for case, step in (("bias 0.5 deg/s all flight", False),
+                       ("unseen bias step at outage start (stress, no target)", True)):
         print(f"\n2. GPS outage 100-180 s, {case}; max error in the outage [deg]")
         print(f"  {'mission':24s} {'filter':18s} {'heading':>8s} {'roll':>7s} {'pitch':>7s} {'hdg before':>10s}")
         for site, lat, lon, seed in sites:

@@ -18,23 +18,30 @@ Information Fusion 91:187, 2023).  Beyond the seeds:
    – heading axis: r = k_m·ψ·up, ψ the heading innovation of the block-mean field, with
      ``bias_heading_time_s`` — only the rotation about the vertical, so a disturbed field cannot
      tilt the bias of the horizontal axes (the integral path of Mahony et al., IEEE TAC 53(5), 2008);
-   – at rest (gyro and specific force still for ``rest_time_s``: block variance and deviation
-     from a low-passed block mean under thresholds, as VQF's rest detection) b̂ → mean gyro with
-     time constant ``bias_rest_time_s``, the role of x-io Fusion's offset correction (FusionBias.c).
-2. Acceleration rejection: a sample whose |f| departs from g by more than ``acc_norm_tol_mps2`` is
-   not used; a block-mean specific force more than ``acc_reject_deg`` from x2 makes the next block
-   gyro-only.  Recovery as Fusion's trigger (FusionAhrs.c): it grows by the rejected time, shrinks
-   ``recovery_ratio`` times faster while accepted; at ``acc_recovery_s`` every sample is used until
-   it is back to 0, so tilt is never lost for good.
-3. Magnetic rejection: the block-mean field is disturbed when its strength departs from the
-   reference by more than ``field_norm_tol`` or its dip (below the horizontal of x2) by more than
-   ``field_dip_tol_deg``; the reference is the expected field (WMM or calibration) when given, else
-   the first field, and follows clean fields with ``field_ref_time_s``.  A disturbed field or a
-   heading innovation over ``mag_reject_deg`` makes the next block hold the heading on the gyro with
-   the learned bias.  Innovation-only rejection recovers like the accelerometer; a field disturbed
-   for ``field_relearn_s`` becomes the new reference.
-4. Schedule.  Bias and gating are decided at block ends (time grid ``block_s``, at most
-   ``block_max_samples`` IMU samples; estimators/ahrs_supervisor.py) and held over the next block;
+   – at rest b̂ → mean gyro with time constant ``bias_rest_time_s``, the role of x-io Fusion's
+     offset correction (FusionBias.c).  Rest (VQF's rest detection on block means): gyro and
+     specific-force spread inside the block under ``rest_gyro_rad_s`` / ``rest_acc_mps2``, the block
+     means within ``rest_gyro_drift_rad_s`` / ``rest_acc_drift_mps2`` of their low-pass (a slow
+     rotation about a horizontal axis turns the specific force), for ``rest_time_s``.  A slow turn
+     about the vertical alone is not seen and would be learnt as bias.
+2. Acceleration rejection on the low-passed stages (per-sample gating of |f| biases the inertial-
+   frame average: an upward acceleration lengthens f, a downward one shortens it): when |x1|
+   departs from g by more than ``acc_norm_tol_mps2`` or x1 turns more than ``acc_reject_deg`` away
+   from x2, x2 holds on the gyro (x1 keeps following the accelerometer, so the end of the
+   acceleration is seen).  Recovery as Fusion's trigger (FusionAhrs.c): it grows by the held time
+   and shrinks ``recovery_ratio`` times faster while accepted; at ``acc_recovery_s`` the
+   accelerometer is used until the trigger is back to 0, so tilt is never lost for good.
+3. Magnetic rejection: the block-mean field is disturbed (``mag_disturbed``) when its strength
+   departs from the reference by more than ``field_norm_tol`` or its dip (below the horizontal of
+   x2) by more than ``field_dip_tol_deg``; the reference is the expected field (WMM or calibration)
+   when given, else the first field, follows clean fields with ``field_ref_time_s`` and becomes the
+   field disturbed for ``field_relearn_s``.  A disturbed field or a heading innovation over
+   ``mag_reject_deg`` holds the heading on the gyro with the learned bias (``mag_rejected``), with
+   the same recovery trigger (``mag_recovery_s``): a disturbance that does not end is eventually
+   accepted, as Fusion does; ``mag_disturbed`` stays set for the detector.
+4. Schedule.  Bias and gating are decided at block ends (time grid ``block_s``, at least
+   ``block_min_samples`` and at most ``block_max_samples`` IMU samples; estimators/
+   ahrs_supervisor.py) and held over the next block;
    the bias is applied to the raw-gyro propagation as one rotation R(b̂·τ), τ the time into the block
    (first order in b̂·τ ≤ 2e-3 rad for the outputs, exact at the block end).  Inside a block each
    step is affine in the state with coefficients from the measurements alone, which lets the batch
@@ -86,14 +93,15 @@ class AhrsSettings:
     field_ref_time_s: float = 20.0           # the reference follows clean fields this slowly
     recovery_ratio: float = 9.0              # recovery triggers fall this much faster than they rise
     block_s: float = 0.05                    # bias / gating schedule
-    block_max_samples: int = 64              # ... and at most this many IMU samples per block
+    block_min_samples: int = 8               # ... with at least this many IMU samples per block
+    block_max_samples: int = 64              # ... and at most this many
     mag_max_interval_s: float = 1.0          # a magnetometer gap counts at most this long
     max_gap_s: float = 0.5                   # a longer IMU step re-initialises the vectors
     gravity_mps2: float = GRAVITY_MPS2
 
     def __post_init__(self):
-        if not (0.0 < self.block_s <= self.max_gap_s) or self.block_max_samples < 1:
-            raise ValueError("need 0 < block_s <= max_gap_s and block_max_samples >= 1")
+        if not (0.0 < self.block_s <= self.max_gap_s) or not (1 <= self.block_min_samples <= self.block_max_samples):
+            raise ValueError("need 0 < block_s <= max_gap_s and 1 <= block_min_samples <= block_max_samples")
 
 
 @dataclass(frozen=True)
@@ -211,11 +219,10 @@ class Ahrs:
             self._need_g = self._need_m = True
             dt = 0.0
         blk = math.floor(t_eff / s.block_s)
-        if self._block is None:
-            self._block = blk
-        elif blk != self._block or self._count >= s.block_max_samples:
+        if self._block is not None and ((blk != self._block and self._count >= s.block_min_samples)
+                                        or self._count >= s.block_max_samples):
             self._close_block()
-            self._block = blk
+        self._block = blk
         self._count += 1
         return t_eff, dt, ok
 

@@ -140,19 +140,25 @@ def _magnetometer(mag: np.ndarray, t: np.ndarray, s: AhrsSettings):
 
 
 def _blocks(t: np.ndarray, s: AhrsSettings):
-    """Block index of every step: a new block when the time grid of ``block_s`` moves on or the
-    block has ``block_max_samples`` steps (the rule of ``Ahrs.update_imu``)."""
+    """Block index of every step, the rule of ``Ahrs._time``: a new block where the time grid of
+    ``block_s`` moves on and the block has ``block_min_samples`` steps, or where it has
+    ``block_max_samples``.  A loop over the blocks (plain integers)."""
     n = len(t)
     grid = np.floor(t / s.block_s)
-    new = np.r_[True, grid[1:] != grid[:-1]]
-    start = np.maximum.accumulate(np.where(new, np.arange(n), 0))
-    pos = np.arange(n) - start
-    new |= (pos > 0) & (pos % s.block_max_samples == 0)
-    bid = np.cumsum(new) - 1
-    starts = np.flatnonzero(new)
-    return bid, starts, np.diff(np.r_[starts, n])
-
-
+    crossings = (np.flatnonzero(grid[1:] != grid[:-1]) + 1).tolist()
+    lo, cap = s.block_min_samples, s.block_max_samples
+    starts, s0, ci = [0], 0, 0
+    while True:
+        while ci < len(crossings) and crossings[ci] - s0 < lo:
+            ci += 1
+        nxt = min(crossings[ci] if ci < len(crossings) else n, s0 + cap)
+        if nxt >= n:
+            break
+        starts.append(nxt)
+        s0 = nxt
+    starts = np.array(starts)
+    lengths = np.diff(np.r_[starts, n])
+    return np.repeat(np.arange(len(starts)), lengths), starts, lengths
 
 
 def _pad(x: np.ndarray, fill) -> np.ndarray:
@@ -352,8 +358,8 @@ def _outputs(fl: dict, raw: np.ndarray, tau: np.ndarray, var: np.ndarray, bias: 
     pitch = np.arctan2(g[:, 0], np.hypot(g[:, 1], g[:, 2]))
     sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
     spsr, spcr = sp * sr, sp * cr
-    heads = [wrap_heading_rad(np.arctan2(-(h[:, 1] * cr - h[:, 2] * sr), h[:, 0] * cp + h[:, 1] * spsr + h[:, 2] * spcr))
-             for h in (m, latest)]
+    heads = [wrap_heading_rad(np.arctan2(-(h[:, 1] * cr - h[:, 2] * sr),
+                                         h[:, 0] * cp + h[:, 1] * spsr + h[:, 2] * spcr)) for h in (m, latest)]
     roll, pitch, yaw, mag_heading = (np.where(valid, a, 0.0) for a in (roll, pitch, *heads))
     return AhrsResult(fl["t"], roll, pitch, yaw, mag_heading, bias, fl["g_init"] & (var[:, 0] == REJECT),
                       var[:, 1] == REJECT, flags[:, 1], flags[:, 0], valid, g, m, latest)

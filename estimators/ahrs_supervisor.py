@@ -4,7 +4,8 @@ and the batch ``run_ahrs`` once per block, so both forms take the same decisions
 
 Inputs per block (``BlockSums``) are in the raw-gyro frame of the block end: the filter vectors at
 the block end (before the bias rotation), the sum of the fresh magnetometer samples rotated to the
-block end, and plain sums of the gyro and specific force for the rest test.  Plain floats: this runs ~20 times a second of data.
+block end, and plain sums of the gyro and specific force for the rest test.  Plain floats: this
+runs ~20 times a second of data.
 """
 from __future__ import annotations
 
@@ -89,7 +90,8 @@ class Supervisor:
         bx, by, bz = self.bias
         if self.at_rest and b.gyro_n:
             k, n = self._k_bias_rest, b.gyro_n
-            nb = (bx + k * (b.gyro_sum[0] / n - bx), by + k * (b.gyro_sum[1] / n - by), bz + k * (b.gyro_sum[2] / n - bz))
+            gs = b.gyro_sum
+            nb = (bx + k * (gs[0] / n - bx), by + k * (gs[1] / n - by), bz + k * (gs[2] / n - bz))
         else:
             kg, km = self._k_tilt, self._k_head * psi
             nb = (bx + kg * r_g[0] + km * up[0], by + kg * r_g[1] + km * up[1], bz + kg * r_g[2] + km * up[2])

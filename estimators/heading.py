@@ -232,7 +232,8 @@ class HeadingChain:
                  expected_field: ExpectedField | None = None):
         self.settings = settings or HeadingChainSettings()
         self.declination_deg = float(declination_deg)
-        self.ahrs = Ahrs(self.settings.ahrs, expected_field=expected_field) if self.settings.estimator == "ahrs" else None
+        ahrs = self.settings.estimator == "ahrs"
+        self.ahrs = Ahrs(self.settings.ahrs, expected_field=expected_field) if ahrs else None
         self.field_filter = FieldVectorFilter(self.settings.field)
         self.gravity_filter = GravityVectorFilter(self.settings.gravity)
         self._mag = np.zeros(3)

@@ -8,8 +8,8 @@ import pytest
 from estimators.ahrs import Ahrs, AhrsSettings, ExpectedField
 from estimators.ahrs_batch import run_ahrs
 from estimators.heading import HeadingChain, run_heading_chain, tilt_compensated_heading_rad
-from estimators.rotations import (dcm_body_to_ned, rotation_from_vector_rad, wrap_angle_deg, wrap_heading_deg,
-                                  wrap_heading_rad, wrap_heading_rad_float)
+from estimators.rotations import (rotation_from_vector_rad, wrap_angle_deg, wrap_heading_deg, wrap_heading_rad,
+                                  wrap_heading_rad_float)
 from groundstation.sim.truth import simulate_manoeuvring_flight
 
 G = 9.80665
@@ -107,7 +107,7 @@ def test_2g_shock_rejected_and_tilt_recovers():
     assert r.acc_rejected[2000:2100].any() and not r.acc_rejected[2300:4000].any()
     assert tilt[2000:2600].max() < 1.0 and tilt[3000:4000].max() < 0.2    # measured 0.88, 0.13
     assert r.acc_rejected[4200:4600].all()                               # held on the gyro ...
-    assert tilt[4200:4600].max() < 8.0                                   # ... measured 6.9 (the accelerometer says 26.6)
+    assert tilt[4200:4600].max() < 8.0                                   # ... measured 6.9 (accelerometer: 26.6)
     assert not r.acc_rejected[4700:4800].any()                           # recovery after acc_recovery_s
     assert not r.acc_rejected[5000:].any() and tilt[7000:].max() < 0.3  # the accelerometer back in charge
     assert np.abs(hdg[7000:]).max() < 1.0

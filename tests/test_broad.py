@@ -42,8 +42,8 @@ def _score(broad, estimator):
     q = quaternion_from_dcm(ENU_TO_NED @ dcm_body_to_ned(r.roll_rad, r.pitch_rad, r.yaw_rad) @ SENSOR_TO_FRD)
     heading, incl = earth_frame_errors_rad(q, broad["opt_quat"])
     m = broad["movement"]
-    rms = lambda e: float(np.degrees(np.sqrt(np.nanmean(e[m] ** 2))))
-    return r, rms(heading), rms(incl), float(np.degrees(np.nanmax(incl[m])))
+    heading_rms, incl_rms = (float(np.degrees(np.sqrt(np.nanmean(e[m] ** 2)))) for e in (heading, incl))
+    return r, heading_rms, incl_rms, float(np.degrees(np.nanmax(incl[m])))
 
 
 def test_default_ahrs_against_optical_truth(broad):
