@@ -1,16 +1,22 @@
 """Batch (replay) form of the AHRS of estimators/ahrs.py: same numbers as ``Ahrs``, vectorised.
 
-Inside a block (see estimators/ahrs.py, "Schedule") every step is x' = a·R(−ω dt)·x + g·z with a,
-g, ω and z known from the measurements and the block's gating variant.  So:
-  1. per-step coefficients for every variant, from the measurements alone (vectorised over N);
-  2. pass 1, vectorised over blocks and looping over the position in the block (≤
-     ``block_max_samples``): the raw-gyro rotation product P, the affine part c of each variant
-     (gravity gated / all, field accepted), the rotated measurement sums and the rest statistics;
-  3. a loop over blocks in plain floats: the block's end vectors are α·P·x_start + c for the
-     variant chosen at the previous block end, then ``_Supervisor.close`` (the same code the
-     per-sample form runs) decides bias, gating and the next start vectors;
-  4. pass 2, vectorised over blocks again: every step from its block's true start vector with
-     the chosen variant, then the bias rotation R(b̂·τ) and the angles.
+Inside a block (see estimators/ahrs.py, "Schedule") every step is x' = a·R(−ω dt)·x + g·z (z the
+measurement, or x1 for the second gravity stage) with a, g, ω and z known from the measurements and
+the block's gating variant.  The mixing coefficients are scalars, so they commute with the rotations
+and a block maps x_start to (M ⊗ P)·x_start + c, M a 2×2 (gravity stages) or scalar (field)
+product.  So:
+  1. a per-step table from the measurements alone (Rodrigues coefficients of the raw gyro step, the
+     stage coefficients and increments), regrouped by position in the block (L × columns × blocks);
+  2. pass 1, vectorised over blocks and looping over the position (≤ ``block_max_samples``): the
+     raw-gyro rotation product P, M and c with the measurements used (a held stage is P alone) and
+     the rotated field sum; the rest statistics are block sums (np.add.reduceat);
+  3. a loop over blocks in plain floats: the block's end vectors for the variants chosen at the
+     previous block end, then ``Supervisor.close`` (the code the per-sample form runs) decides bias,
+     gating and the next start vectors;
+  4. pass 2, vectorised over blocks again: every step from its block's true start vectors with the
+     chosen variants, then the bias rotation (first order, as the per-sample outputs) and the angles.
+Round-off: sums taken in a different order (the block maps, reduceat) differ from the per-sample
+running values in the last bits only; the tests hold the two forms to 1e-9 with every flag equal.
 Bad input is handled as in ``Ahrs``: time stamps by the running maximum (a non-finite or backwards
 stamp is a zero step without measurements), non-finite gyro samples count as zero rate,
 non-finite or zero measurements are skipped.
