@@ -175,16 +175,14 @@ def _pad(x: np.ndarray, fill) -> np.ndarray:
 TH, CO, SI, VE, DT, A1, AM, INC1, INCM, MSUM, A2, G2 = (
     slice(0, 3), 3, 4, 5, 6, 7, 8, slice(9, 12), slice(12, 15), slice(15, 18), 18, 19)
 N_COLS = 20
+CHUNK_BLOCKS = 2048          # blocks per chunk of the passes (memory in cache, not the log's size)
 _IDENTITY = np.zeros(N_COLS)
 _IDENTITY[[CO, SI, VE, A1, AM, A2]] = [1.0, 1.0, 0.5, 1.0, 1.0, 1.0]
 
 
-def _steps(imu: np.ndarray, mag: np.ndarray, s: AhrsSettings) -> tuple[np.ndarray, dict, np.ndarray]:
-    """Measurement-only per-step table (N_COLS, N + 1; the last column an identity step for padding):
-    Rodrigues coefficients of the raw gyro step, dt, the stage coefficients a and increments g·z
-    (first gravity stage, field, field sum, second stage); the flags; and the per-step rest
-    statistics (N, 11): ω (3), |ω|², ω valid, f (3), |f|², f valid, dt."""
-    n = len(imu)
+def _measurements(imu: np.ndarray, mag: np.ndarray, s: AhrsSettings) -> dict:
+    """Measurement-only per-step quantities over the whole log (cleaned time, rates, specific
+    force, the magnetometer sample each step applies, (re)initialisations, stage gains)."""
     t, dt, time_ok, gap = _clean_time(imu[:, 0], s.max_gap_s)
     w_raw = imu[:, 1:4]
     gyro_ok = np.all(np.isfinite(w_raw), axis=1)
@@ -201,21 +199,35 @@ def _steps(imu: np.ndarray, mag: np.ndarray, s: AhrsSettings) -> tuple[np.ndarra
     g1 = np.where(reinit_g, 1.0, np.where(blend & f_valid, _gain(s.gravity_gain_per_s, dt, t - t_init_g), 0.0))
     g2 = np.where(reinit_g, 1.0, np.where(blend, _gain(s.gravity_smoothing_per_s, dt, t - t_init_g), 0.0))
     gm = np.where(reinit_m, 1.0, np.where(m_init & fresh, _gain(s.field_gain_per_s, interval, tm - t_init_m), 0.0))
+    latest, _ = _last_value(fresh, m)
+    return dict(t=t, dt=dt, w=w, gyro_ok=gyro_ok, f=f, n2=n2, f_valid=f_valid, fresh=fresh, m=m, latest=latest,
+                reinit_g=reinit_g, reinit_m=reinit_m, g_init=g_init, m_init=m_init, g1=g1, g2=g2, gm=gm)
+
+
+def _table(ms: dict, k0: int, k1: int) -> tuple[np.ndarray, np.ndarray]:
+    """Steps k0..k1−1 as the table (N_COLS, k1 − k0 + 1; the last column an identity step for
+    padding): Rodrigues coefficients of the raw gyro step, dt, the stage coefficients a and
+    increments g·z; and their rest statistics (k1 − k0, 11): ω (3), |ω|², ω valid, f (3), |f|²,
+    f valid, dt."""
+    sl = slice(k0, k1)
+    n = k1 - k0
+    w, f, m, dt = ms["w"][sl], ms["f"][sl], ms["m"][sl], ms["dt"][sl]
+    g1, g2, gm, re_g, re_m = ms["g1"][sl], ms["g2"][sl], ms["gm"][sl], ms["reinit_g"][sl], ms["reinit_m"][sl]
     tab = np.empty((N_COLS, n + 1))
     tab[:, n] = _IDENTITY
     tab[TH, :n] = (w * dt[:, None]).T
     tab[CO, :n], tab[SI, :n], tab[VE, :n] = _rodrigues(tab[TH, :n].T)
     tab[DT, :n] = dt
-    tab[A1, :n] = np.where(reinit_g, 0.0, 1.0 - g1)
-    tab[AM, :n] = np.where(reinit_m, 0.0, 1.0 - gm)
+    tab[A1, :n] = np.where(re_g, 0.0, 1.0 - g1)
+    tab[AM, :n] = np.where(re_m, 0.0, 1.0 - gm)
     tab[INC1, :n] = (g1[:, None] * f).T
     tab[INCM, :n] = (gm[:, None] * m).T
-    tab[MSUM, :n] = np.where(fresh[:, None], m, 0.0).T
-    tab[A2, :n] = np.where(reinit_g, 0.0, 1.0 - g2)
+    tab[MSUM, :n] = np.where(ms["fresh"][sl, None], m, 0.0).T
+    tab[A2, :n] = np.where(re_g, 0.0, 1.0 - g2)
     tab[G2, :n] = g2
-    stats = np.c_[w, w[:, 0] * w[:, 0] + w[:, 1] * w[:, 1] + w[:, 2] * w[:, 2], gyro_ok, f, n2, f_valid, dt]
-    flags = dict(t=t, fresh=fresh, m=m, reinit_g=reinit_g, reinit_m=reinit_m, g_init=g_init, m_init=m_init)
-    return tab, flags, stats
+    stats = np.c_[w, w[:, 0] * w[:, 0] + w[:, 1] * w[:, 1] + w[:, 2] * w[:, 2], ms["gyro_ok"][sl], f,
+                  ms["n2"][sl], ms["f_valid"][sl], dt]
+    return tab, stats
 
 
 class _Layout:
@@ -256,15 +268,15 @@ def _pass1(X: np.ndarray) -> dict:
     return dict(P=x[:, :3].transpose(2, 0, 1), c=x[:, 3:6].transpose(2, 0, 1), sums=x[:, 6].T, prod=prod.T)
 
 
-def _block_loop(p1: dict, counts: dict, sup: Supervisor) -> tuple[list, list]:
+def _block_loop(p1: dict, counts: dict, sup: Supervisor, x_start: tuple) -> tuple[list, list, tuple]:
     """Sequential block-end logic in plain floats (module docstring, step 3).  Returns per block
     the start vectors [x1, x2, x_m] (9 floats) and (gravity variant, field variant, at rest, bias,
-    field disturbed) in effect during it."""
+    field disturbed) in effect during it, and the start vectors of the block after the last."""
     B = len(p1["prod"])
     table = np.concatenate([p1["P"].reshape(B, 9), p1["c"].reshape(B, 9), p1["sums"], p1["prod"], p1["stats"],
                             np.c_[counts["mag_n"], counts["g_init"], counts["m_init"], counts["reinit_g"],
                                   counts["reinit_m"]]], axis=1).tolist()
-    x1 = x2 = xm = [0.0, 0.0, 0.0]
+    x1, x2, xm = x_start
     starts, decisions = [], []
     for (p00, p01, p02, p10, p11, p12, p20, p21, p22, c10, c20, cm0, c11, c21, cm1, c12, c22, cm2, s0, s1, s2,
          al1, m21, m22, alm, w0, w1, w2, wsq, wn, f0, f1, f2, fsq, fn, dur, mag_n, g_init, m_init, re_g, re_m) in table:
@@ -284,7 +296,7 @@ def _block_loop(p1: dict, counts: dict, sup: Supervisor) -> tuple[list, list]:
         em = [alm * r0 + cm0, alm * r1 + cm1, alm * r2 + cm2] if vm == ACCEPT else [r0, r1, r2]
         x1, x2, xm = sup.close(BlockSums(dur, e1, e2, em, [s0, s1, s2], int(mag_n), (w0, w1, w2), wsq, int(wn),
                                          (f0, f1, f2), fsq, int(fn), g_init > 0, m_init > 0, re_g > 0, re_m > 0))
-    return starts, decisions
+    return starts, decisions, (x1, x2, xm)
 
 
 def _pass2(X: np.ndarray, lay: _Layout, fl: dict, starts: list, decisions: list, n: int):
@@ -322,6 +334,7 @@ def run_ahrs(imu: np.ndarray, mag: np.ndarray, settings: AhrsSettings | None = N
 
     imu: (N, 7) [t_s, gx, gy, gz rad/s, ax, ay, az m/s²];  mag: (M, 4) [t_s, mx, my, mz mG]
     (calibrated), body FRD.  Returns arrays on the IMU time base; outputs are always finite.
+    The blocks are processed ``CHUNK_BLOCKS`` at a time (memory stays small and in cache).
     """
     s = settings or AhrsSettings()
     imu = np.asarray(imu, dtype=float).reshape(-1, 7)
@@ -330,27 +343,38 @@ def run_ahrs(imu: np.ndarray, mag: np.ndarray, settings: AhrsSettings | None = N
     if n == 0:
         z, z3, zb = np.zeros(0), np.zeros((0, 3)), np.zeros(0, bool)
         return AhrsResult(z, z, z, z, z, z3, zb, zb, zb, zb, zb, z3, z3, z3)
-    tab, fl, stats = _steps(imu, mag, s)
-    bid, starts, lengths = _blocks(fl["t"], s)
-    lay = _Layout(starts, lengths, n)
-    X = np.ascontiguousarray(tab[:, lay.idx].transpose(1, 0, 2))   # (L, N_COLS, B)
-    p1 = _pass1(X)
-    p1["stats"] = np.add.reduceat(stats, starts, axis=0)     # to round-off the per-sample running sums
-    ends = starts + lengths - 1
-    nb = len(starts)
-    counts = dict(mag_n=np.bincount(bid, fl["fresh"], nb).astype(int),
-                  g_init=fl["g_init"][ends], m_init=fl["m_init"][ends],
-                  reinit_g=np.bincount(bid, fl["reinit_g"], nb) > 0, reinit_m=np.bincount(bid, fl["reinit_m"], nb) > 0)
-    starts_x, decisions = _block_loop(p1, counts, Supervisor(s, expected_field, gyro_bias_rad_s))
-    raw, tau, var = _pass2(X, lay, fl, starts_x, decisions, n)
-    bias = np.array([d[3] for d in decisions])[bid]
-    flags = np.array([(d[2], d[4]) for d in decisions], dtype=bool)[bid]
-    return _outputs(fl, raw, tau, var, bias, flags)
+    ms = _measurements(imu, mag, s)
+    _, starts, lengths = _blocks(ms["t"], s)
+    sup = Supervisor(s, expected_field, gyro_bias_rad_s)
+    x_start = ([0.0] * 3, [0.0] * 3, [0.0] * 3)
+    parts = []
+    for j0 in range(0, len(starts), CHUNK_BLOCKS):
+        j1 = min(len(starts), j0 + CHUNK_BLOCKS)
+        k0, k1 = int(starts[j0]), int(starts[j1]) if j1 < len(starts) else n
+        st, ln = starts[j0:j1] - k0, lengths[j0:j1]
+        tab, stats = _table(ms, k0, k1)
+        lay = _Layout(st, ln, k1 - k0)
+        X = np.ascontiguousarray(tab[:, lay.idx].transpose(1, 0, 2))   # (L, N_COLS, blocks)
+        p1 = _pass1(X)
+        p1["stats"] = np.add.reduceat(stats, st, axis=0)     # to round-off the per-sample running sums
+        fl = {k: ms[k][k0:k1] for k in ("t", "fresh", "m", "latest", "reinit_g", "reinit_m", "g_init", "m_init")}
+        ends = st + ln - 1
+        bid = np.repeat(np.arange(j1 - j0), ln)
+        counts = dict(mag_n=np.add.reduceat(fl["fresh"].astype(int), st), g_init=fl["g_init"][ends],
+                      m_init=fl["m_init"][ends], reinit_g=np.add.reduceat(fl["reinit_g"].astype(int), st) > 0,
+                      reinit_m=np.add.reduceat(fl["reinit_m"].astype(int), st) > 0)
+        starts_x, decisions, x_start = _block_loop(p1, counts, sup, x_start)
+        raw, tau, var = _pass2(X, lay, fl, starts_x, decisions, k1 - k0)
+        bias = np.array([d[3] for d in decisions])[bid]
+        flags = np.array([(d[2], d[4]) for d in decisions], dtype=bool)[bid]
+        parts.append(_outputs(fl, raw, tau, var, bias, flags))
+    return AhrsResult(*(np.concatenate(a) for a in zip(*parts)))
 
 
 def _outputs(fl: dict, raw: np.ndarray, tau: np.ndarray, var: np.ndarray, bias: np.ndarray,
-             flags: np.ndarray) -> AhrsResult:
-    """Bias rotation to first order (x + (b̂τ) × x, as ``Ahrs._state``), angles and flags."""
+             flags: np.ndarray) -> tuple:
+    """Bias rotation to first order (x + (b̂τ) × x, as ``Ahrs._state``), angles and flags, in the
+    order of ``AhrsResult``'s fields."""
     p = bias * tau[:, None]
     px, py, pz = p[:, 0], p[:, 1], p[:, 2]
     v = []
@@ -359,7 +383,7 @@ def _outputs(fl: dict, raw: np.ndarray, tau: np.ndarray, var: np.ndarray, bias: 
         v.append(np.stack([x + py * z - pz * y, y + pz * x - px * z, z + px * y - py * x], axis=1))
     g, m = v
     valid = fl["g_init"] & fl["m_init"]
-    latest, _ = _last_value(fl["fresh"], fl["m"])
+    latest = fl["latest"]
     roll = np.arctan2(-g[:, 1], -g[:, 2])
     pitch = np.arctan2(g[:, 0], np.hypot(g[:, 1], g[:, 2]))
     sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
@@ -367,5 +391,5 @@ def _outputs(fl: dict, raw: np.ndarray, tau: np.ndarray, var: np.ndarray, bias: 
     heads = [wrap_heading_rad(np.arctan2(-(h[:, 1] * cr - h[:, 2] * sr),
                                          h[:, 0] * cp + h[:, 1] * spsr + h[:, 2] * spcr)) for h in (m, latest)]
     roll, pitch, yaw, mag_heading = (np.where(valid, a, 0.0) for a in (roll, pitch, *heads))
-    return AhrsResult(fl["t"], roll, pitch, yaw, mag_heading, bias, fl["g_init"] & (var[:, 0] == REJECT),
-                      var[:, 1] == REJECT, flags[:, 1], flags[:, 0], valid, g, m, latest)
+    return (fl["t"], roll, pitch, yaw, mag_heading, bias, fl["g_init"] & (var[:, 0] == REJECT),
+            var[:, 1] == REJECT, flags[:, 1], flags[:, 0], valid, g, m, latest)

@@ -37,11 +37,6 @@ class BlockSums:
     reinit_field: bool
 
 
-def _unit(v) -> tuple[float, float, float, float]:
-    n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-    return (v[0] / n, v[1] / n, v[2] / n, n) if n > 0.0 else (0.0, 0.0, 0.0, 0.0)
-
-
 def _cross(a, b):
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
@@ -82,8 +77,8 @@ class Supervisor:
         """Decide the next block from block ``b``.  Returns the start vectors (x1, x2, x_m) of the
         next block: the block-end vectors rotated by the bias that was in effect, R(b̂·T)."""
         T = b.duration_s
-        if T != self._T:
-            self._gains(T)
+        if round(T, 9) != self._T:             # block durations repeat up to round-off
+            self._gains(round(T, 9))
         self._rest(b, T)
         r_g = self._gravity(b, T)
         psi, up = self._field(b, T)
@@ -149,9 +144,16 @@ class Supervisor:
             self.acc_trig, self.acc_recovering, self.var_g = 0.0, False, ACCEPT
             return zero
         used = self.var_g == ACCEPT
-        u1, u2 = _unit(b.fast_end), _unit(b.gravity_end)
+        a0, a1, a2 = b.fast_end
+        c0, c1, c2 = b.gravity_end
+        n1 = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        n2 = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        if n1 == 0.0 or n2 == 0.0:
+            return zero
+        u1 = (a0 / n1, a1 / n1, a2 / n1)
+        u2 = (c0 / n2, c1 / n2, c2 / n2)
         bad = (u1[0] * u2[0] + u1[1] * u2[1] + u1[2] * u2[2] < self._cos_acc
-               or abs(u1[3] - s.gravity_mps2) > s.acc_norm_tol_mps2)
+               or abs(n1 - s.gravity_mps2) > s.acc_norm_tol_mps2)
         self.acc_trig = trig = self._trigger(self.acc_trig, bad, T, s.acc_recovery_s)
         if trig >= s.acc_recovery_s:
             self.acc_recovering = True
@@ -170,11 +172,15 @@ class Supervisor:
             self.field_disturbed = False
         if not (b.mag_n and b.field_init and b.gravity_init):
             return none
-        ux, uy, uz, gn = _unit(b.gravity_end)                  # x2 points up (−down)
+        c0, c1, c2 = b.gravity_end                               # x2 points up (−down)
+        gn = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        if gn == 0.0:
+            return none
+        ux, uy, uz = c0 / gn, c1 / gn, c2 / gn
         n = b.mag_n
         mx, my, mz = b.mag_sum[0] / n, b.mag_sum[1] / n, b.mag_sum[2] / n
         norm = math.sqrt(mx * mx + my * my + mz * mz)
-        if gn == 0.0 or norm == 0.0:
+        if norm == 0.0:
             return none
         q = ux * mx + uy * my + uz * mz
         dip = math.asin(max(-1.0, min(1.0, -q / norm)))
