@@ -147,7 +147,8 @@ def test_live_link_drop_garbage_and_recording(tmp_path):
         assert any("link lost" in t for t in texts)
         assert any("link restored" in t for t in texts)
         assert fv.finished.wait(15)
-        time.sleep(0.5)
+        delivered = sum(fv.delivered.values())
+        assert wait_for(lambda: session.snapshot()["rx_count"] >= delivered, timeout=5)   # all read
         rec = session.snapshot()["source"]["recording"]
     finally:
         fv.stop()

@@ -23,12 +23,13 @@ from groundstation.paths import RECORDINGS_DIR, WEB_DIR
 from groundstation.station.deps import install_error_handlers
 from groundstation.station.hub.session import Session
 from groundstation.station.push import Pusher
-from groundstation.station.routers import alarms, calibration, downloads, line, replay, source, status, ws
+from groundstation.station.routers import (alarms, calibration, downloads, line, plots, recordings, replay, source,
+                                           status, ws)
 from groundstation.station.settings import StationSettings
 
 __all__ = ["create_app", "Station", "serve"]
 
-ROUTERS = (status, source, replay, calibration, line, alarms, downloads, ws)
+ROUTERS = (status, source, recordings, replay, plots, calibration, line, alarms, downloads, ws)
 
 
 def create_app(hub: Session, viser_port: int | None = None) -> FastAPI:
@@ -67,7 +68,8 @@ class Station:
         import uvicorn
 
         self.settings = settings = settings or StationSettings(**options)
-        self.session = Session(settings.recordings_dir, record_live=settings.record_live)
+        self.session = Session(settings.recordings_dir, record_live=settings.record_live,
+                               max_upload_bytes=int(settings.max_upload_mb * 1e6))
         self.scene = None
         if settings.viser_port is not None:
             from groundstation.station.scene import Scene

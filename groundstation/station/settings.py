@@ -20,6 +20,7 @@ class StationSettings:
     allow_remote:      allow a non-loopback ``host``.
     recordings_dir:    live sessions are recorded here; replays and downloads come only from here.
     record_live:       record every live link to ``recordings_dir/session-*.tlog``.
+    max_upload_mb:     the largest log the browser may upload to ``recordings_dir`` [MB, 10^6 bytes].
 
     Raises ValueError when a non-loopback host is asked for without ``allow_remote``.
     """
@@ -29,6 +30,7 @@ class StationSettings:
     allow_remote: bool = False
     recordings_dir: Path = field(default=RECORDINGS_DIR)
     record_live: bool = True
+    max_upload_mb: float = 512.0
 
     def __post_init__(self) -> None:
         if self.host not in LOOPBACK_HOSTS and not self.allow_remote:
