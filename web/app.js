@@ -34,7 +34,8 @@ const CORRECTION_TEXT = { station: "station-corrected", autopilot: "autopilot-co
 
 function render(s) {
   last = s;
-  $("status").textContent = linkText(s);
+  $("status").textContent = linkText(s) + (s.source.kind === "live" && s.reorder_delay_s >= 0.3 ?
+    " — analysis " + fmt(s.reorder_delay_s, 1) + " s behind (late packets put back in time order)" : "");
   const b = $("alarm-banner");
   if (s.alarm.active) {
     b.className = "banner alarm";
@@ -129,7 +130,8 @@ async function refreshPlots() {
   if (document.hidden || !last || last.source.kind === "none" && !last.vehicle.roll_deg) return;
   let p;
   try { p = await api("GET", "/api/plots?window_s=60"); } catch (e) { return; }
-  const t = p.t_s, t1 = p.t_end_s, t0 = t1 - p.window_s, S = p.series, common = { t, t0, t1, alarms: p.alarms };
+  const t = p.t_s, t1 = p.t_end_s, t0 = Math.max(t1 - p.window_s, t.length ? t[0] : 0), S = p.series;
+  const common = { t, t0, t1, alarms: p.alarms };
   const headings = [
     { label: "attitude", color: "#1f5fd0", y: S.heading_deg, wrap: true, width: 2 },
     { label: "magnetic", color: "#d03030", y: S.mag_heading_deg, wrap: true },
@@ -150,11 +152,12 @@ async function loadRecordings() {
   const list = await api("GET", "/api/recordings/info");
   if (!list.some((r) => r.name === selected)) selected = list.length ? list[0].name : null;
   const tb = $("recordings").querySelector("tbody");
-  tb.innerHTML = list.map((r) => `<tr data-name="${escapeHtml(r.name)}" class="${r.name === selected ? "selected" : ""}${r.error ? " bad" : ""}"
+  const html = list.map((r) => `<tr data-name="${escapeHtml(r.name)}" class="${r.name === selected ? "selected" : ""}${r.error ? " bad" : ""}"
     title="${escapeHtml(r.error || (r.autopilot || "") + " " + r.name)}"><td>${escapeHtml(r.name)}</td>
     <td>${r.recording ? "recording…" : (r.duration_s === null ? "—" : fmt(r.duration_s / 60, 1) + " min")}</td>
     <td>${fmtDate(r.start_unix_s)}</td><td>${fmtSize(r.size_bytes)}</td>
     <td>${escapeHtml(r.error ? "unreadable" : (r.vehicle || "—"))}</td><td>${r.compasses === null ? "—" : r.compasses}</td></tr>`).join("");
+  if (tb.innerHTML !== html) tb.innerHTML = html;      // unchanged: leave the rows (clicks, hover) alone
   $("replay").disabled = !selected;
 }
 

@@ -67,7 +67,7 @@ function drawPlot(canvas, series, opts) {
   g.save(); g.beginPath(); g.rect(L, T, pw, ph); g.clip();
   for (const r of opts.refs || []) {
     if (r.value === null) continue;
-    g.strokeStyle = r.color; g.setLineDash([5, 4]); g.beginPath(); g.moveTo(L, Y(r.value)); g.lineTo(L + pw, Y(r.value)); g.stroke();
+    g.strokeStyle = r.color; g.lineWidth = 2; g.setLineDash([6, 4]); g.beginPath(); g.moveTo(L, Y(r.value)); g.lineTo(L + pw, Y(r.value)); g.stroke();
   }
   g.setLineDash([]);
   for (const s of series) {

@@ -87,6 +87,17 @@ class LiveAnalyzer:
         self.calibration = calibration
         self._policy = None
 
+    def restarted(self, calibration: dict | None) -> "LiveAnalyzer":
+        """A fresh analyzer (heading chain and detector learn again) for a new calibration of
+        the same source: what is known of the source (parameters, autopilot, primary sensors,
+        WMM at the first fix) carries over."""
+        new = LiveAnalyzer(calibration, None, self.start_unix_s, self.settings, self._applied)
+        new.legs = self.legs
+        new.params, new.autopilot, new._primary = dict(self.params), self.autopilot, dict(self._primary)
+        new.earth_field = self.earth_field
+        new.chain.declination_deg = self.chain.declination_deg
+        return new
+
     def set_mission(self, mission: list | None) -> None:
         self.legs = mission_legs(mission)
 

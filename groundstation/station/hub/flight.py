@@ -74,7 +74,7 @@ class FlightState:
         """Live: the analyzer starts over with it (the detector learns again); a replay is
         analysed again by the hub (``needs_review``)."""
         self.calibration = calibration
-        self.analyzer = LiveAnalyzer(calibration, line_mission(self.line), self.start_unix_s)
+        self.analyzer = self.analyzer.restarted(calibration)
 
     def needs_review(self) -> bool:
         """The replay's analysis was made with another calibration or line than the current."""

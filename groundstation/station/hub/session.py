@@ -316,6 +316,7 @@ class Session(SessionViews):
         """Move the replay to ``t_s``: route, alarms, plots and vehicle as they were then."""
         with self._lock:
             self.sources.seek(t_s)
+            t_s = min(t_s, self.sources.replay.duration_s)
             self.flight.show_until(t_s, seek=True)
             self.event(f"seek to {t_s:.1f} s ({len(self.flight.tracker.alarms)} alarms so far)", t_s=t_s)
             self.changed()

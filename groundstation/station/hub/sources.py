@@ -209,9 +209,9 @@ class SourceControl:
 
     def seek(self, t_s: float) -> None:
         r = self.need_replay()
-        if not math.isfinite(t_s) or t_s < 0 or t_s > r.duration_s:
+        if not math.isfinite(t_s) or t_s < 0 or t_s > r.duration_s + 0.01:     # the page has it rounded
             raise SessionError(f"seek time must be within 0..{r.duration_s:.1f} s")
-        r.seek(t_s)
+        r.seek(min(t_s, r.duration_s))
         self._finished_told = False
 
     def replay_snapshot(self) -> dict | None:
