@@ -132,6 +132,16 @@ def view_pixels(page, settle_ms: int = 1500) -> tuple[bytes, dict]:
     return png, {"size": (w, h), **classify(im, exclude=[(w - VISER_PANEL[0], 0, w, VISER_PANEL[1])])}
 
 
+def view_pixels_until(page, least: dict[str, int], timeout_s: float = 90.0) -> tuple[bytes, dict]:
+    """``view_pixels`` again until every colour class has at least its count (the view loads and
+    draws in its own time on a loaded machine); the last screenshot either way."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        png, px = view_pixels(page, 1500)
+        if all(px[name][0] >= n for name, n in least.items()) or time.monotonic() > deadline:
+            return png, px
+
+
 def classify(im: np.ndarray, exclude=()) -> dict:
     r, g, b = im[..., 0], im[..., 1], im[..., 2]
     mx, mn = im.max(-1), im.min(-1)

@@ -12,8 +12,11 @@ import time
 import pytest
 
 from browser_checks import (ROOT, api, click, console_errors, has, inside, label_boxes, new_page,  # noqa: F401
-                            open_page, overlaps, replay, shared_browser, shared_station, view_pixels, wait_js,
-                            wait_until)
+                            open_page, overlaps, replay, shared_browser, shared_station, view_pixels_until,
+                            wait_js, wait_until)
+
+FLIGHT_PIXELS = {"violet": 150, "red": 150, "cyan": 150, "orange": 100}
+CALIBRATION_PIXELS = {"orange": 100, "blue": 300, "amber": 300, "green": 300}
 from conftest import free_tcp_port, free_udp_port
 
 DEMO_ONSET_S = json.loads((ROOT / "recordings" / "demo.truth.json").read_text())["interference_onset_s"]
@@ -199,10 +202,10 @@ def test_view_frames_the_activity(shared_station, new_page, artifacts):
         page = new_page(*size, view=True)
         open_page(page, st)
         has(page, "#alarm-banner.alarm")
-        png, px = view_pixels(page, 2500)
+        png, px = view_pixels_until(page, FLIGHT_PIXELS)
         (artifacts / f"frame_flight_{size[0]}.png").write_bytes(png)
         w, h = px["size"]
-        for name, least in (("violet", 150), ("red", 150), ("cyan", 150), ("orange", 100)):
+        for name, least in FLIGHT_PIXELS.items():
             assert px[name][0] >= least, (size, name, px)
         for name in ("violet", "cyan", "orange"):
             assert inside(px[name][1], (w, h)), (size, name, px[name], (w, h))
@@ -217,9 +220,9 @@ def test_view_frames_the_activity(shared_station, new_page, artifacts):
         page = new_page(*size, view=True)
         open_page(page, st, "/calibrate.html")
         has(page, "#result-card")
-        png, px = view_pixels(page, 2500)
+        png, px = view_pixels_until(page, CALIBRATION_PIXELS)
         (artifacts / f"frame_calibration_{size[0]}.png").write_bytes(png)
-        for name, least in (("orange", 100), ("blue", 300), ("amber", 300), ("green", 300)):
+        for name, least in CALIBRATION_PIXELS.items():
             assert px[name][0] >= least, (size, name, px)
             assert inside(px[name][1], px["size"]), (size, name, px[name], px["size"])
         _calibration_labels_apart(st, px["size"])

@@ -145,3 +145,22 @@ def test_headings_are_in_0_360_everywhere():
     for name in ("yaw_deg", "mag_heading_deg", "heading_true_deg"):
         v = cols[name][np.isfinite(cols[name])]
         assert v.min() >= 0.0 and v.max() < 360.0, name
+
+
+def test_rolling_imu_rate_live_chunks_equal_batch():
+    """The heading test's IMU-rate gate: the live form (its last RATE_WINDOW + 1 times and a few
+    new ones per call) gives every step the rate the batch form gives it."""
+    from groundstation.jobs.inputs import RATE_WINDOW, imu_rate_hz
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.uniform(0.01, 0.4, 300))
+    t[50:53] = t[49]                                           # repeated stamps: zero intervals
+    batch = imu_rate_hz(t)
+    d = np.diff(t)
+    assert batch[0] == 0.0 and batch[10] == pytest.approx(1 / np.median(d[:10]))
+    assert batch[200] == pytest.approx(1 / np.median(d[200 - RATE_WINDOW:200]))
+    live, hist = [], []
+    for k in range(0, len(t), 7):
+        h = np.asarray(hist[-(RATE_WINDOW + 1):])
+        live += list(imu_rate_hz(np.r_[h, t[k:k + 7]], start=len(h)))
+        hist += list(t[k:k + 7])
+    np.testing.assert_array_equal(live, batch)

@@ -7,7 +7,7 @@ Screenshots at each step go to tests/artifacts/walkthrough_*.png; what must be v
 from __future__ import annotations
 
 from browser_checks import (api, click, console_errors, has, inside, new_page, open_page,  # noqa: F401
-                            shared_browser, shared_station, view_pixels, wait_js, wait_until)
+                            shared_browser, shared_station, view_pixels_until, wait_js, wait_until)
 from conftest import free_udp_port
 from groundstation.sim.fake_vehicle import FakeVehicle
 from groundstation.sim.scenarios import simulate
@@ -36,7 +36,7 @@ def test_walkthrough(shared_station, new_page, artifacts):
     has(page, "#pause", "Resume")
     _seek(page, 175.0)
     has(page, "#alarm-banner.alarm")
-    png, px = view_pixels(page, 2500)
+    png, px = view_pixels_until(page, {"violet": 100, "red": 100, "cyan": 100, "orange": 100})
     (artifacts / "walkthrough_1_demo.png").write_bytes(png)
     for name in ("violet", "red", "cyan", "orange"):
         assert px[name][0] >= 100 and inside(px[name][1], px["size"]), (name, px)
@@ -56,7 +56,7 @@ def test_walkthrough(shared_station, new_page, artifacts):
     _seek(page, 120.0)
     assert page.locator("#v-rp").inner_text() != "— / —"
     assert api(st, "GET", "/api/state")["t_s"] == 120.0
-    png, px = view_pixels(page, 2000)
+    png, px = view_pixels_until(page, {"violet": 50, "orange": 50})
     (artifacts / "walkthrough_3_real_seek.png").write_bytes(png)
     assert px["violet"][0] >= 50 and px["orange"][0] >= 50, px      # the real flight's route and the vehicle
 
@@ -86,7 +86,7 @@ def test_walkthrough(shared_station, new_page, artifacts):
         has(page, "#result-card", timeout_ms=120_000)                         # ~15 s on an idle machine
         assert page.locator("#result-status").inner_text() == "ok"
         assert "WMM" not in page.locator("#warnings").inner_text()        # fitted field agrees with WMM
-        png, px = view_pixels(page, 2500)
+        png, px = view_pixels_until(page, {"orange": 100, "blue": 300, "green": 300, "amber": 300})
         assert st.scene.cloud_points_shown > 500
         (artifacts / "walkthrough_5_calibration.png").write_bytes(png)
         for name, least in (("orange", 100), ("blue", 300), ("green", 300), ("amber", 300)):

@@ -222,28 +222,34 @@ class Held:
         return self._nan
 
 
-def imu_rate_hz(t_s: np.ndarray, last_only: bool = False) -> np.ndarray:
+def imu_rate_hz(t_s: np.ndarray, start: int = 0) -> np.ndarray:
     """IMU rate at each step: 1 / median of the last RATE_WINDOW intervals ending there (0 at
-    the first step, inf when the intervals are zero).  ``last_only``: only the last step's (the
-    live form passes its last RATE_WINDOW + 1 times)."""
+    the first step, inf when the intervals are zero).  Returns the steps from ``start`` on (the
+    live form passes its last RATE_WINDOW + 1 times before its new steps)."""
     t = np.asarray(t_s, dtype=float)
     n = len(t)
-    if last_only:
-        dt = sorted(np.diff(t[-(RATE_WINDOW + 1):]).tolist())
-        k = len(dt)
-        med = np.array([(dt[(k - 1) // 2] + dt[k // 2]) / 2 if k else 0.0])   # np.median's value
-        first = np.array([k == 0])
-    else:
-        med = np.zeros(n)
-        first = np.arange(n) == 0
-        dt = np.diff(t)
-        for i in range(1, min(n - 1, RATE_WINDOW) + 1):
-            med[i] = np.median(dt[:i])
-        if n - 1 > RATE_WINDOW:
-            windows = np.lib.stride_tricks.sliding_window_view(dt, RATE_WINDOW)
-            med[RATE_WINDOW + 1:] = np.median(windows[1:], axis=1)
+    start = min(max(int(start), 0), n)
+    med = np.zeros(n - start)
+    dt = np.diff(t)
+    small = n - start <= 8                                    # a few live steps: plain Python is faster
+    for i in range(start, n if small else min(n, RATE_WINDOW + 1)):
+        med[i - start] = _median(dt[max(0, i - RATE_WINDOW):i].tolist())
+    first = n if small else max(start, RATE_WINDOW + 1)
+    if n > first:
+        windows = np.lib.stride_tricks.sliding_window_view(dt, RATE_WINDOW)   # windows[k] = dt[k:k+W]
+        med[first - start:] = np.median(windows[first - RATE_WINDOW:n - RATE_WINDOW], axis=1)
+    idx = np.arange(start, n)
     with np.errstate(divide="ignore"):
-        return np.where(med > 0, 1.0 / np.maximum(med, 1e-300), np.where(first, 0.0, np.inf))
+        return np.where(med > 0, 1.0 / np.maximum(med, 1e-300), np.where(idx == 0, 0.0, np.inf))
+
+
+def _median(values: list[float]) -> float:
+    """np.median of a short list (the same value: the middle one, or the mean of the middle two)."""
+    if not values:
+        return 0.0
+    v = sorted(values)
+    k = len(v)
+    return v[k // 2] if k % 2 else (v[k // 2 - 1] + v[k // 2]) / 2
 
 
 def too_steep(roll_rad, pitch_rad, settings: DetectionSettings):
@@ -285,7 +291,8 @@ def step_inputs(t, chain, mag_held, att_rp, gps_held, rate_hz, gyro, policy: Fie
     pitch = np.where(np.isfinite(att_rp[:, 1]), att_rp[:, 1], chain.pitch_rad)
     field_mG = np.linalg.norm(mag_held, axis=1)
     incl = field_inclination_deg(mag_held, roll, pitch)
-    last = np.maximum.accumulate(np.r_[state.last_steep_t, np.where(too_steep(roll, pitch, settings), t, -np.inf)])
+    last = np.maximum.accumulate(np.concatenate([[state.last_steep_t],
+                                                 np.where(too_steep(roll, pitch, settings), t, -np.inf)]))
     state.last_steep_t = float(last[-1])
     steep = t - last[1:] <= settings.turn_settle_s
     heading_on = (np.asarray(rate_hz) >= settings.min_imu_rate_hz) & (policy.correction != "none")

@@ -179,7 +179,7 @@ class LiveAnalyzer:
                                 heading_true_rad=np.asarray(cols[5]), valid=np.asarray(cols[6], dtype=bool))
         gyro, mag, att, gps = (np.vstack(cols[k]) for k in (7, 8, 9, 10))
         history = np.asarray(self._imu_t, dtype=float)
-        rate = imu_rate_hz(np.r_[history, t])[len(history):]
+        rate = imu_rate_hz(np.concatenate([history, t]), start=len(history))
         self._imu_t.extend(t.tolist())
         x = step_inputs(t, chain, mag, att[:, :2], gps, rate, gyro, self.policy, self.settings, self._steps)
         k = len(t)

@@ -30,6 +30,10 @@ MAV_TYPES = {1: "fixed wing", 2: "quadrotor", 3: "coaxial", 4: "helicopter", 10:
              21: "VTOL tiltrotor", 22: "VTOL", 23: "VTOL tailsitter", 24: "VTOL tiltwing"}
 
 
+UNREAD = {"duration_s": None, "start_unix_s": None, "autopilot": None, "vehicle": None, "compasses": None,
+          "error": None}
+
+
 class UploadError(Exception):
     """An upload the station refuses (wrong type, unreadable, too large: ``too_large``)."""
 
@@ -127,6 +131,7 @@ class RecordingsFolder:
         self.dir = Path(directory).resolve()
         self.max_upload_bytes = int(max_upload_bytes)
         self._cache: dict[str, tuple[tuple, dict]] = {}
+        self._reading: set[str] = set()          # names being read by another request
         self._lock = threading.Lock()
 
     def names(self) -> list[str]:
@@ -160,7 +165,8 @@ class RecordingsFolder:
 
     # ------------------------------------------------------------------ metadata
     def info(self, recording_now: Path | None = None) -> list[dict]:
-        """One entry per recording (see ``describe``); the live session being written is not read."""
+        """One entry per recording (see ``describe``); the live session being written and a
+        log another request is reading right now are listed without being read."""
         out = []
         for name in self.names():
             path = self.dir / name
@@ -168,20 +174,29 @@ class RecordingsFolder:
                 st = path.stat()
             except OSError:
                 continue
-            key = (st.st_mtime_ns, st.st_size)
             base = {"name": name, "size_bytes": st.st_size, "modified_unix_s": round(st.st_mtime, 1)}
-            if recording_now is not None and path.resolve() == recording_now.resolve():
-                out.append(dict(base, recording=True, duration_s=None, start_unix_s=None, autopilot=None,
-                                vehicle=None, compasses=None, error=None))
-                continue
-            with self._lock:
-                cached = self._cache.get(name)
-            if cached is None or cached[0] != key:
-                cached = (key, self.describe(path))
-                with self._lock:
-                    self._cache[name] = cached
-            out.append(dict(base, recording=False, **cached[1]))
+            live = recording_now is not None and path.resolve() == recording_now.resolve()
+            entry = None if live else self._entry(name, path, (st.st_mtime_ns, st.st_size))
+            out.append(dict(base, recording=live, **(entry or UNREAD)))
         return out
+
+    def _entry(self, name: str, path: Path, key: tuple) -> dict | None:
+        """The cached description of this file version, read now if needed (None: being read)."""
+        with self._lock:
+            cached = self._cache.get(name)
+            if cached is not None and cached[0] == key:
+                return cached[1]
+            if name in self._reading:
+                return None
+            self._reading.add(name)
+        try:
+            entry = self.describe(path)
+            with self._lock:
+                self._cache[name] = (key, entry)
+            return entry
+        finally:
+            with self._lock:
+                self._reading.discard(name)
 
     @staticmethod
     def describe(path: Path) -> dict:
