@@ -1,7 +1,7 @@
 // Station overview page.
 "use strict";
 const $ = (id) => document.getElementById(id);
-let last = null, seeking = false, selected = null, timelineKey = null;
+let last = null, seeking = false, selected = null, timelineKey = null, lastReplayed = null;
 
 // A heading in [0, 360) with one decimal: 359.96 shows as 0.0, never 360.0.
 function fmtHeading(v) {
@@ -90,6 +90,10 @@ function renderReplay(s) {
   const r = s.replay;
   $("replay-controls").hidden = !r;
   if (!r) { timelineKey = null; return; }
+  if (s.source.name !== selected && s.source.name !== lastReplayed) {     // the list shows what plays
+    lastReplayed = selected = s.source.name;
+    for (const row of $("recordings").querySelectorAll("tr[data-name]")) row.classList.toggle("selected", row.dataset.name === selected);
+  }
   $("pause").textContent = r.paused ? "Resume" : "Pause";
   $("seek").max = r.duration_s;
   if (!seeking) $("seek").value = r.t_s;

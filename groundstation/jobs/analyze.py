@@ -74,7 +74,6 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
     t, d, ef, pos, chain, valid, g = (x[k] for k in ("t", "d", "ef", "pos", "chain", "valid", "g"))
     d_gps, legs, rtk, path_test, cal = (x[k] for k in ("d_gps", "legs", "rtk", "path_test", "cal"))
     strength = x["strength"]
-    n = len(t)
     gps = x["gps_held"]
     hdg_true = np.where(valid, chain.heading_true_rad, np.nan)
     v_fwd, v_lat = split_velocity(gps[:, 5], gps[:, 6], hdg_true)

@@ -37,6 +37,7 @@ from groundstation.samples import (AttitudeSample, GpsSample, ImuSample, MagSamp
 __all__ = ["LiveAnalyzer", "GpsOutageWatch", "ReorderBuffer", "MAX_REORDER_S"]
 
 MAX_REORDER_S = 3.0         # samples later than this are processed out of order
+STALL_WAIT_S = 0.1          # with no newer sample, one waits at least this long (wall time) for it
 REORDER_MEMORY_S = 60.0     # the reorder delay forgets a lateness over this long (wall time)
 
 
@@ -237,8 +238,8 @@ class ReorderBuffer:
     """Samples of a live stream released in time order (ties: IMU last, else arrival order).
 
     A sample is released once a sample more than ``delay_s`` newer has arrived (so samples of
-    one time all arrive first), or it has waited longer than ``delay_s`` of wall time (the stream
-    stopped).  ``delay_s`` follows the lateness seen (how far
+    one time all arrive first), or it has waited longer than ``delay_s`` (at least STALL_WAIT_S)
+    of wall time (the stream stopped).  ``delay_s`` follows the lateness seen (how far
     a sample's time is behind the newest time already received, x1.25), decays with a
     REORDER_MEMORY_S time constant and is capped at MAX_REORDER_S; on a link whose samples arrive
     in order it stays 0 and nothing waits.
@@ -268,7 +269,8 @@ class ReorderBuffer:
         wall = time.monotonic() if wall_s is None else wall_s
         out = []
         heap, limit = self._heap, self._newest - self.delay_s
-        while heap and (heap[0][0] < limit or wall - heap[0][3] > self.delay_s):
+        stall = max(self.delay_s, STALL_WAIT_S)
+        while heap and (heap[0][0] < limit or wall - heap[0][3] > stall):
             out.append(heapq.heappop(heap)[4])
         return out
 

@@ -13,6 +13,7 @@ reports.  Readers (snapshots, plots, scene) go through ``rows()``, ``route()`` a
 from __future__ import annotations
 
 import math
+import time
 from typing import Callable
 
 import numpy as np
@@ -26,8 +27,10 @@ from groundstation.station.tables import GrowingTable
 __all__ = ["FlightState", "ROUTE_MAX_POINTS", "LIVE_ROWS_MAX"]
 
 ROUTE_MAX_POINTS = 200_000          # live GPS fixes kept (11 h at 5 Hz)
+ANALYSE_EVERY_S = 0.02              # live: due samples are analysed together at most this often
 LIVE_ROWS_MAX = 360_000             # live record rows kept (2 h at 50 Hz); the oldest quarter goes first
-EVIDENCE_COLS = [COL["ev_heading"], COL["ev_path"], COL["ev_field"]]
+EVIDENCE_COLS = slice(COL["ev_heading"], COL["ev_field"] + 1)   # ev_heading, ev_path, ev_field: adjacent
+
 
 EventFn = Callable[..., None]
 
@@ -51,6 +54,8 @@ class FlightState:
         self._route = GrowingTable(5, ROUTE_MAX_POINTS)        # t_s, lat, lon, fix_type, alarm
         self.analyzer = LiveAnalyzer(self.calibration, line_mission(self.line), self.start_unix_s)
         self.reorder = ReorderBuffer()
+        self._due: list[Sample] = []
+        self._analysed_at = -math.inf
         self.watch = GpsOutageWatch()
         self.tracker = AlarmTracker()
         self.t_s = 0.0
@@ -87,15 +92,23 @@ class FlightState:
 
     # ------------------------------------------------------------------ live
     def push(self, samples: list[Sample]) -> None:
-        """Live samples (any order); those due go through the analyzer."""
-        self._live(self.reorder.push(samples))
+        """Live samples (any order); those due go through the analyzer, a few at a time (at a
+        high IMU rate one call per packet would cost more than the analysis itself)."""
+        self._due += self.reorder.push(samples)
+        self.flush_due()
 
     def flush_due(self) -> None:
-        self._live(self.reorder.due())
+        self._due += self.reorder.due()
+        now = time.monotonic()
+        if self._due and (now - self._analysed_at >= ANALYSE_EVERY_S or len(self._due) > 500):
+            self._analysed_at = now
+            due, self._due = self._due, []
+            self._live(due)
 
     def flush_all(self) -> None:
-        """Everything waiting in the reorder buffer, now (the stream ended)."""
-        self._live(self.reorder.flush())
+        """Everything waiting, now (the stream ended)."""
+        due, self._due = self._due + self.reorder.flush(), []
+        self._live(due)
 
     def _live(self, samples: list[Sample]) -> None:
         samples = [s for s in samples if self.analyzer.accepts(s)]
