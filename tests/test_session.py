@@ -153,6 +153,8 @@ def test_live_link_drop_garbage_and_recording(tmp_path):
         assert any("link lost" in t for t in texts)
         assert any("link restored" in t for t in texts)
         assert fv.finished.wait(15)
+        delivered = sum(fv.delivered.values())
+        assert wait_for(lambda: session.snapshot()["rx_count"] >= delivered, timeout=5)   # all read
         rec = tmp_path / session.snapshot()["source"]["recording"]
 
         def recorded() -> tuple[int, int]:

@@ -27,13 +27,14 @@ from groundstation.station import security
 from groundstation.station.deps import install_error_handlers
 from groundstation.station.hub.session import Session, SessionError
 from groundstation.station.push import Pusher
-from groundstation.station.routers import alarms, calibration, downloads, line, replay, source, status, ws
+from groundstation.station.routers import (alarms, calibration, downloads, line, plots, recordings, replay, source,
+                                           status, ws)
 from groundstation.station.security import AccessPolicy, StationGuard, protect_viser, require_operator
 from groundstation.station.settings import WILDCARD_HOSTS, StationSettings
 
 __all__ = ["create_app", "Station", "StationStartError", "serve"]
 
-ROUTERS = (status, source, replay, calibration, line, alarms, downloads)
+ROUTERS = (status, source, recordings, replay, plots, calibration, line, alarms, downloads)
 
 
 class StationStartError(Exception):
@@ -113,7 +114,8 @@ class Station:
 
         self.settings = settings = settings or StationSettings(**options)
         self.socket = bind_listening_socket(settings.host, settings.port)
-        self.session = Session(settings.recordings_dir, record_live=settings.record_live)
+        self.session = Session(settings.recordings_dir, record_live=settings.record_live,
+                               max_upload_bytes=int(settings.max_upload_mb * 1e6))
         self.scene = None
         try:
             self.access = AccessPolicy.from_settings(settings)

@@ -13,7 +13,9 @@ LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
 WILDCARD_HOSTS = ("0.0.0.0", "::", "")
 MIB = 1 << 20
 # (path prefix, largest request body in bytes); the longest matching prefix wins.  JSON requests
-# are small; an upload route gets its own, larger entry, e.g. ("/api/uploads/", 200 * MIB).
+# are small; the log upload route is bounded by ``max_upload_mb`` (UPLOAD_PATH).
+UPLOAD_PATH = "/api/recordings/upload"
+MULTIPART_OVERHEAD = 64 * 1024        # form boundaries and part headers around the uploaded file
 DEFAULT_BODY_LIMITS: tuple[tuple[str, int], ...] = (("/", 1 * MIB),)
 
 
@@ -35,6 +37,7 @@ class StationSettings:
     body_limits:       (path prefix, bytes) pairs bounding request bodies; longest prefix wins.
     recordings_dir:    live sessions are recorded here; replays and downloads come only from here.
     record_live:       record every live link to ``recordings_dir/session-*.tlog``.
+    max_upload_mb:     the largest log the browser may upload to ``recordings_dir`` [MB, 10^6 bytes].
 
     Raises ValueError when a non-loopback host is asked for without ``allow_remote``, a port is
     out of range, only one of the TLS files is given or one is not a file, or a body limit is not
@@ -51,6 +54,7 @@ class StationSettings:
     body_limits: tuple[tuple[str, int], ...] = DEFAULT_BODY_LIMITS
     recordings_dir: Path = field(default=RECORDINGS_DIR)
     record_live: bool = True
+    max_upload_mb: float = 512.0
 
     def __post_init__(self) -> None:
         if self.host not in LOOPBACK_HOSTS and not self.allow_remote:
@@ -92,5 +96,7 @@ class StationSettings:
 
     def body_limit_for(self, path: str) -> int:
         """The largest request body accepted on ``path`` (longest matching prefix)."""
-        best = max((p for p, _ in self.body_limits if path.startswith(p)), key=len, default=None)
-        return dict(self.body_limits)[best] if best is not None else min(n for _, n in self.body_limits)
+        limits = dict(self.body_limits)
+        limits.setdefault(UPLOAD_PATH, int(self.max_upload_mb * 1e6) + MULTIPART_OVERHEAD)
+        best = max((p for p in limits if path.startswith(p)), key=len, default=None)
+        return limits[best] if best is not None else min(limits.values())

@@ -42,7 +42,7 @@ class AfterWrite:
     # ------------------------------------------------------------------ writing our result
     def write_ours(self) -> dict:
         w, hub = self._w, self._hub
-        hub.flight.stack.set_calibration(w.result)      # the detector re-learns with it
+        hub.use_calibration(w.result)      # the detector re-learns with it
         w.state, w.in_use = "accepted", "station"
         autopilot = hub.vehicle.autopilot or "ardupilot"
         params = w.result.get(f"{autopilot}_params") or {}
@@ -85,7 +85,7 @@ class AfterWrite:
                 # the vehicle now corrects its own field: applying the result here too would
                 # correct twice (its onboard calibration was un-applied for the fit)
                 w.in_use = "vehicle"
-                hub.flight.stack.set_calibration(None)
+                hub.use_calibration(None)
             w.param_write = pw
             hub.changed()
 
@@ -193,7 +193,7 @@ class AfterWrite:
         roll, pitch, _ = w.latest_att
         if not (math.isfinite(roll) and math.isfinite(pitch)):
             return
-        m = self._hub.flight.stack.calibrated(s.mag_body_mG)
+        m = self._hub.flight.policy.apply(np.asarray(s.mag_body_mG, dtype=float))[0]
         if w.heading_check is not None and w.heading_check.state == "measuring":
             h = float(compass_heading_deg(np.asarray(m), roll, pitch, w.declination_deg or 0.0))
             w.heading_check.add_heading(s.t_s, h)

@@ -42,6 +42,7 @@ class Hub(Protocol):
     flight: object       # hub.flight.FlightState
 
     def event(self, text: str, level: str = "info") -> None: ...
+    def use_calibration(self, calibration: dict | None) -> None: ...
     def changed(self) -> None: ...
 
 
@@ -125,7 +126,7 @@ class CalibrationControl:
     def _vehicle_in_use(self, why: str) -> None:
         """The vehicle corrects its own field now: the station stops applying its copy."""
         self.wizard.in_use = "vehicle"
-        self._hub.flight.stack.set_calibration(None)
+        self._hub.use_calibration(None)
         self._hub.event(why)
 
     # ------------------------------------------------------------------ the dance
@@ -150,6 +151,11 @@ class CalibrationControl:
                        "onboard": "onboard calibration started (MAV_CMD_DO_START_MAG_CAL): turn about X",
                        "fixed_yaw": "large-vehicle calibration: enter the heading"}[mode])
             hub.changed()
+
+    def new_source(self) -> None:
+        """A new source: the wizard starts over, silently (lock held; nothing is sent, the old
+        link is gone)."""
+        self.wizard.reset()
 
     def reset(self) -> None:
         with self._lock:
@@ -270,7 +276,7 @@ class CalibrationControl:
 
     # ------------------------------------------------------------------ reading (lock held)
     def in_use(self) -> bool:
-        return self._hub.flight.stack.calibration is not None or self.wizard.in_use == "vehicle"
+        return self._hub.flight.calibration is not None or self.wizard.in_use == "vehicle"
 
     def snapshot(self) -> dict:
         if self.wizard.fixed_yaw is not None:
