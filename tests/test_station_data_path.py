@@ -92,11 +92,12 @@ def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
     for name in decisions + (estimates if path == DEMO else ()):
         np.testing.assert_allclose(live_rows[:, COL[name]], batch_rows[:, COL[name]], atol=1e-6, err_msg=name)
     if path == REAL:
-        # the log changes its compass offsets in flight and reports some values late: batch
-        # un-applies the values in force at each sample (a value first reported later counts from
-        # the start), live those it has heard so far, so the corrected field differs around the
-        # changes; the estimates agree on 98 % of the rows and the decisions on every row
-        for name, tol in (("roll_deg", 0.01), ("pitch_deg", 0.01), ("field_mG", 0.5), ("inclination_deg", 0.05)):
+        # batch un-applies the autopilot's corrections in force at each sample (a value first
+        # reported later counts from the start, motor compensation with the logged current); live
+        # only those heard so far, without motor compensation: the corrected field differs (tens
+        # of mG until the offsets arrive, ~3.5 mG after), the attitude on a few rows, the
+        # decisions on none
+        for name, tol in (("roll_deg", 0.01), ("pitch_deg", 0.01)):
             diff = np.abs(live_rows[:, COL[name]] - batch_rows[:, COL[name]])
             assert np.mean(np.nan_to_num(diff, nan=0.0) <= tol) >= 0.98, (name, np.nanmax(diff))
     if path == DEMO:      # the interference episode of the demo (onset 150 s) and nothing before it
