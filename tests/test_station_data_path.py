@@ -92,14 +92,13 @@ def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
     for name in decisions + (estimates if path == DEMO else ()):
         np.testing.assert_allclose(live_rows[:, COL[name]], batch_rows[:, COL[name]], atol=1e-6, err_msg=name)
     if path == REAL:
-        # batch un-applies the autopilot's corrections in force at each sample (a value first
-        # reported later counts from the start, motor compensation with the logged current); live
-        # only those heard so far, without motor compensation: the corrected field differs (tens
-        # of mG until the offsets arrive, ~3.5 mG after), the attitude on a few rows, the
-        # decisions on none
-        for name, tol in (("roll_deg", 0.01), ("pitch_deg", 0.01)):
-            diff = np.abs(live_rows[:, COL[name]] - batch_rows[:, COL[name]])
-            assert np.mean(np.nan_to_num(diff, nan=0.0) <= tol) >= 0.98, (name, np.nanmax(diff))
+        # known defect (closing note): on this 2.8 Hz log with gaps above the AHRS's max_gap_s,
+        # the per-sample and batch AHRS part on 11 of 2856 rows (a field re-initialisation inside
+        # a block is decided per block in batch), until the next gap re-initialises both; the
+        # detector's score follows them (its decisions above do not)
+        for name in ("roll_deg", "pitch_deg", "field_mG", "inclination_deg"):
+            close = np.isclose(live_rows[:, COL[name]], batch_rows[:, COL[name]], atol=1e-6, equal_nan=True)
+            assert np.mean(close) >= 0.99, (name, np.mean(close))
     if path == DEMO:      # the interference episode of the demo (onset 150 s) and nothing before it
         assert len(analyzed) == 1 and 145 < analyzed[0]["start_s"] < 160
         assert calibration is not None and line is not None
