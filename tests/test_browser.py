@@ -181,7 +181,7 @@ def _calibration_labels_apart(st, size) -> None:
     cams = [c.camera for c in st.scene.server.get_clients().values()]
     cam = max(cams, key=lambda c: c.image_width if c.image_width <= w else 0)
     labels = [("vehicle", view.CAL_VEHICLE_AT + [0, 0, 1.3], "bottom-center"),
-              ("raw field + fitted ellipsoid", view.CAL_CENTER + [0, 0, 1.5], "bottom-center"),
+              ("raw field + fitted ellipsoid", view.CAL_CENTER + view.RAW_LABEL_AT, "top-center"),
               ("corrected", view.SPHERE_CENTER + [0, 0, 1.3], "bottom-center")]
     boxes = label_boxes(st.scene, cam, labels)
     for b in boxes:
@@ -215,7 +215,7 @@ def test_view_frames_the_activity(shared_station, new_page, artifacts):
     api(st, "POST", "/api/replay/start", json={"recording": "dance.tlog", "speed": 10.0})
     assert wait_until(lambda: not _state(st)["analysing"], 60)
     api(st, "POST", "/api/calibration/start")
-    assert wait_until(lambda: _state(st)["wizard"]["state"] == "result", 90)
+    assert wait_until(lambda: _state(st)["wizard"]["state"] == "result", 90), {k: v for k, v in _state(st)["wizard"].items() if k in ("step", "progress_deg", "hint", "instruction", "banner", "samples", "coverage")} | {"replay": _state(st)["replay"], "src": _state(st)["source"]}
     for size in SIZES:
         page = new_page(*size, view=True)
         open_page(page, st, "/calibrate.html")

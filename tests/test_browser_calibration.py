@@ -10,6 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
+from browser_checks import wait_until
 from conftest import CHROMIUM, CHROMIUM_ARGS, free_tcp_port, free_udp_port
 from groundstation.sim.fake_vehicle import FakeVehicle
 from groundstation.sim.vehicle_streams import (MORE_TILTS, ROTATION_ROLL_180, ROTATION_YAW_90, TILTS,
@@ -18,6 +19,28 @@ from groundstation.sim.vehicle_streams import (MORE_TILTS, ROTATION_ROLL_180, RO
 
 SPEED = 4.0          # x real time; 35 deg/s turns arrive at 140 deg/s, under the 172 deg/s warning
 WAIT_MS = 60_000     # generous: 2 cores shared with other test runs
+
+
+def shown(page, selector: str, timeout_ms: float = WAIT_MS) -> None:
+    """Wait until ``selector`` (Playwright syntax) is visible, polling from Python: Playwright's
+    own waits poll on animation frames, which the software-rendered 3-D view can starve for
+    seconds on a loaded machine (tests/browser_checks.py, ``wait_js``)."""
+    if not wait_until(lambda: page.locator(selector).first.is_visible(), timeout_ms / 1000.0, 0.1):
+        state = page.evaluate("[document.getElementById('status').textContent, (document.getElementById('hint')||{}).textContent, document.querySelector('#steps li.current') && document.querySelector('#steps li.current').dataset.step]")
+        raise AssertionError(f"{selector} not shown; page: {state}")
+
+
+def press(page, selector: str) -> None:
+    """Click once the element is shown, without animation-frame actionability checks."""
+    shown(page, selector)
+    page.locator(selector).first.dispatch_event("click")
+
+
+def set_checked(page, selector: str, checked: bool) -> None:
+    shown(page, selector)
+    box = page.locator(selector).first
+    if box.is_checked() != checked:
+        box.dispatch_event("click")
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +107,7 @@ def wait_api(api, cond, timeout_s=60.0, step_s=0.1) -> dict:
 
 def open_page(page, station):
     page.goto(station.url + "/calibrate.html")
-    page.wait_for_selector("#status:not(:has-text('connecting'))", timeout=10_000)
+    shown(page, "#status:not(:has-text('connecting'))", 10_000)
 
 
 def in_view(page, selector) -> bool:
@@ -105,13 +128,13 @@ def sent_after(msgs, t_rel_s) -> int:
 def test_steps_fill_only_with_their_own_axis(station, page, api, shots):
     """Wobbling about Y and Z leaves step X empty; held still the page says so; a turn about X fills it."""
     wobble = [("body", a, d, 50.0) for a in (1, 2) for d in (40.0, -80.0, 40.0)] * 2
-    moves = [("still", 2.0)] + wobble + [("still", 30.0), ("body", 0, 370.0, 35.0), ("still", 3.0)]
+    moves = [("still", 2.0)] + wobble + [("still", 60.0), ("body", 0, 370.0, 35.0), ("still", 3.0)]
     hist = attitude_from_moves(moves, 25.0)
     msgs = pack_stream(hist, make_hardware(three_compasses()))
     t_wobble_end = 2.0 + sum(abs(m[2]) / m[3] for m in wobble)
     port = connect(api)
     open_page(page, station)
-    page.click("#start")
+    press(page, "#start")
     with FakeVehicle(msgs, port, speed=3.0) as fv:
         while fv.sent < sent_after(msgs, t_wobble_end + 0.3):
             time.sleep(0.05)
@@ -120,9 +143,9 @@ def test_steps_fill_only_with_their_own_axis(station, page, api, shots):
         assert w["progress_deg"]["y"] == 0.0 and w["progress_deg"]["z"] == 0.0
         w = wait_api(api, lambda w: w["hint"] is not None)
         assert w["hint"].startswith("No motion") and w["step"] == "x" and w["progress_deg"]["x"] < 5.0
-        page.wait_for_selector("#hint:has-text('No motion')", timeout=WAIT_MS)
+        shown(page, "#hint:has-text('No motion')", WAIT_MS)
         page.screenshot(path=str(shots / "01_steps_still_after_wobble.png"))
-        page.wait_for_selector("#steps li[data-step='y'].current", timeout=WAIT_MS)
+        shown(page, "#steps li[data-step='y'].current", WAIT_MS)
         assert "full turn" in page.locator("#steps li[data-step='x'] .deg").inner_text()
         page.screenshot(path=str(shots / "02_steps_x_done.png"))
     assert wizard(api)["progress_deg"]["x"] >= 345.0
@@ -137,22 +160,22 @@ def test_link_drop_pauses_and_resumes_the_step(station, page, api, shots):
     t_still = 2.0 + 370 / 35 + 1.0 + 200 / 35
     port = connect(api)
     open_page(page, station)
-    page.click("#start")
+    press(page, "#start")
     with FakeVehicle(msgs, port, speed=SPEED) as fv:
         while fv.sent < sent_after(msgs, t_still + 0.5):
             time.sleep(0.05)
         fv.set_link(False)
-        page.wait_for_selector("#banner:has-text('Link lost during step Y')", timeout=WAIT_MS)
+        shown(page, "#banner:has-text('Link lost during step Y')", WAIT_MS)
         assert "paused" in page.locator("#instruction").inner_text()
         assert "paused" in page.locator("#steps li[data-step='y']").get_attribute("class")
         y_before = wizard(api)["progress_deg"]["y"]
         assert 150.0 < y_before < 345.0
         page.screenshot(path=str(shots / "03_link_lost_paused.png"))
         fv.set_link(True)
-        page.wait_for_selector("#banner:has-text('resumes')", timeout=WAIT_MS)
+        shown(page, "#banner:has-text('resumes')", WAIT_MS)
         assert wizard(api)["progress_deg"]["y"] >= y_before - 2.0       # resumed, not restarted
         page.screenshot(path=str(shots / "04_link_back_resumed.png"))
-        page.wait_for_selector("#steps li[data-step='z'].current", timeout=WAIT_MS)
+        shown(page, "#steps li[data-step='z'].current", WAIT_MS)
     events = [e["text"] for e in api.get("/api/state").json()["events"]]
     assert any("paused: link lost during step Y" in t for t in events)
     assert page.errors == []
@@ -168,20 +191,20 @@ def test_three_compasses_orientation_write_reboot_and_heading_check(station, pag
     after = pack_stream(hold_attitude(135.0, 120.0, rate_hz=25.0), hw, start_unix=msgs[-1][0] + 60, boot_offset_s=4.0)
     port = connect(api)
     open_page(page, station)
-    page.click("#start")
+    press(page, "#start")
     warnings: set[str] = set()
     with FakeVehicle(msgs, port, speed=SPEED, after_reboot=after, reboot_silence_s=4.0) as fv:
-        page.wait_for_selector("#steps li[data-step='y'].current", timeout=WAIT_MS)
+        shown(page, "#steps li[data-step='y'].current", WAIT_MS)
         page.screenshot(path=str(shots / "05_guided_step_y.png"))
         w = wait_api(api, lambda w: warnings.update(w["warnings"]) or (w["step"] == "tumble" and w["next_pose"])
                      or w["state"] != "running")
         if w["state"] == "running":            # (a loaded machine may have passed the tumble already)
             assert w["instruction"].startswith("Cover the rest of the sphere: " + w["next_pose"]["text"])
-            page.wait_for_selector("#instruction:has-text('Cover the rest of the sphere')", timeout=WAIT_MS)
+            shown(page, "#instruction:has-text('Cover the rest of the sphere')", WAIT_MS)
             page.screenshot(path=str(shots / "06_guided_tumble_next_pose.png"))
         w = wait_api(api, lambda w: warnings.update(w["warnings"]) or w["state"] == "result")
         assert not [x for x in warnings if "WMM" in x or "isturbance" in x], warnings
-        page.wait_for_selector("#result-card:not([hidden])", timeout=WAIT_MS)
+        shown(page, "#result-card:not([hidden])", WAIT_MS)
         page.wait_for_timeout(800)          # the 3-D view draws the cloud and ellipsoid
         page.screenshot(path=str(shots / "07_guided_result.png"))
         comps = {c["index"]: c["result"] for c in w["compasses"]}
@@ -190,15 +213,15 @@ def test_three_compasses_orientation_write_reboot_and_heading_check(station, pag
         assert w["consistency"]["status"] == "ok"
         assert page.locator("#compass-table").inner_text().count("pass") == 3
 
-        page.uncheck("#compass-table input[data-compass='2']")      # leave compass 3 out ...
+        set_checked(page, "#compass-table input[data-compass='2']", False)      # leave compass 3 out ...
         wait_api(api, lambda w: "COMPASS_OFS3_X" not in w["result"]["ardupilot_params"])
-        page.wait_for_selector("#compass-table tr.left-out", timeout=WAIT_MS)
+        shown(page, "#compass-table tr.left-out", WAIT_MS)
         page.screenshot(path=str(shots / "07b_compass_3_left_out.png"))
-        page.check("#compass-table input[data-compass='2']")        # ... and back in
+        set_checked(page, "#compass-table input[data-compass='2']", True)        # ... and back in
         wait_api(api, lambda w: "COMPASS_OFS3_X" in w["result"]["ardupilot_params"])
 
-        page.click("#accept")
-        page.wait_for_selector("#param-write .good", timeout=WAIT_MS)
+        press(page, "#accept")
+        shown(page, "#param-write .good", WAIT_MS)
         page.screenshot(path=str(shots / "08_written.png"))
         assert in_view(page, "#param-write .good")             # success line without scrolling
         assert "Reboot" in page.locator("#instruction").inner_text()
@@ -208,20 +231,20 @@ def test_three_compasses_orientation_write_reboot_and_heading_check(station, pag
             assert abs(fv.params[name] - value) <= 1e-4 * max(1.0, abs(value)), name
         station_page = browser.new_page()
         station_page.goto(station.url + "/index.html")
-        station_page.wait_for_selector("#v-cal:has-text('in use')", timeout=10_000)
+        shown(station_page, "#v-cal:has-text('in use')", 10_000)
         station_page.close()
 
-        page.click("#reboot")
-        page.wait_for_selector("#reboot-confirm:not([hidden])", timeout=5000)
+        press(page, "#reboot")
+        shown(page, "#reboot-confirm:not([hidden])", 5000)
         page.screenshot(path=str(shots / "09_reboot_confirm.png"))
-        page.click("#reboot-yes")
-        page.wait_for_selector("#instruction:has-text('Rebooting')", timeout=WAIT_MS)
+        press(page, "#reboot-yes")
+        shown(page, "#instruction:has-text('Rebooting')", WAIT_MS)
         page.screenshot(path=str(shots / "10_rebooting.png"))
-        page.wait_for_selector("#instruction:has-text('is back')", timeout=WAIT_MS)
+        shown(page, "#instruction:has-text('is back')", WAIT_MS)
         assert fv.reboots == 1
-        page.fill("#hc-bearing", "135")
-        page.click("#hc-measure")
-        page.wait_for_selector("#hc-result .good", timeout=WAIT_MS)
+        page.locator("#hc-bearing").fill(force=True, value="135")
+        press(page, "#hc-measure")
+        shown(page, "#hc-result .good", WAIT_MS)
         page.wait_for_timeout(300)
         page.screenshot(path=str(shots / "11_heading_check.png"))
         check = wizard(api)["heading_check"]["result"]
@@ -240,24 +263,24 @@ def test_onboard_calibrator_beside_ours(station, page, api, shots):
     msgs = pack_stream(dance, hw)
     port = connect(api)
     open_page(page, station)
-    page.check("#modes input[value='onboard']")
+    set_checked(page, "#modes input[value='onboard']", True)
     with FakeVehicle(msgs, port, speed=SPEED) as fv:
         while api.get("/api/state").json()["source"]["link"] != "up":      # the command needs the link
             time.sleep(0.05)
-        page.click("#start")
-        page.wait_for_selector("#onboard-card:not([hidden])", timeout=WAIT_MS)
+        press(page, "#start")
+        shown(page, "#onboard-card:not([hidden])", WAIT_MS)
         wait_api(api, lambda w: w["onboard"]["compasses"] and w["onboard"]["compasses"][0].get("completion_pct", 0) > 40)
         page.wait_for_timeout(500)
         page.screenshot(path=str(shots / "13_onboard_running.png"))
         w = wait_api(api, lambda w: w["state"] == "result", timeout_s=120)
-        page.wait_for_selector("#ob-accept:not([disabled])", timeout=WAIT_MS)
+        shown(page, "#ob-accept:not([disabled])", WAIT_MS)
         page.screenshot(path=str(shots / "14_onboard_reported.png"))
         for c in w["onboard"]["compasses"]:
             assert c["report"]["success"] and c["compare"]["max_offset_difference_mG"] < 5.0
             assert len(c["sections"]) > 40                      # the completion mask arrived
         report0 = w["onboard"]["compasses"][0]["report"]
-        page.click("#ob-accept")
-        page.wait_for_selector("#param-write .good", timeout=WAIT_MS)
+        press(page, "#ob-accept")
+        shown(page, "#param-write .good", WAIT_MS)
         page.screenshot(path=str(shots / "15_onboard_accepted.png"))
         np.testing.assert_allclose([fv.params[f"COMPASS_OFS_{a}"] for a in "XYZ"], report0["ofs_mG"], atol=0.1)
         np.testing.assert_allclose(report0["ofs_mG"], -hw.compasses[0].offsets_mG, atol=3.0)
@@ -275,33 +298,33 @@ def test_large_vehicle_fixed_yaw_with_gps_course_and_entered_heading(station, pa
     msgs = pack_stream(hist, hw)
     port = connect(api)
     open_page(page, station)
-    page.check("#modes input[value='fixed_yaw']")
-    page.click("#start")
-    page.wait_for_selector("#fixed-card:not([hidden])", timeout=5000)
+    set_checked(page, "#modes input[value='fixed_yaw']", True)
+    press(page, "#start")
+    shown(page, "#fixed-card:not([hidden])", 5000)
     with FakeVehicle(msgs, port, speed=3.0) as fv:
-        page.wait_for_selector("#status:has-text('link up')", timeout=WAIT_MS)
+        shown(page, "#status:has-text('link up')", WAIT_MS)
         while fv.sent < sent_after(msgs, 15.0):     # standing at the start of the line
             time.sleep(0.05)
-        page.click("#fy-walk")
-        page.wait_for_selector("#fy-walk-text:has-text('walking')", timeout=WAIT_MS)
+        press(page, "#fy-walk")
+        shown(page, "#fy-walk-text:has-text('walking')", WAIT_MS)
         wait_api(api, lambda w: w["heading_check"]["distance_m"] > 12.0)
         page.screenshot(path=str(shots / "16_large_vehicle_walking.png"))
-        page.click("#fy-walk-stop")
-        page.wait_for_selector("#fy-walk-text:has-text('GPS course')", timeout=WAIT_MS)
+        press(page, "#fy-walk-stop")
+        shown(page, "#fy-walk-text:has-text('GPS course')", WAIT_MS)
         course = wizard(api)["heading_check"]["result"]["reference_deg"]
         assert course == pytest.approx(75.0, abs=1.0)
         while fv.sent < sent_after(msgs, 41.0):     # standing still at the end of the walk
             time.sleep(0.05)
-        page.click("#fy-gps")
+        press(page, "#fy-gps")
         w = wait_api(api, lambda w: w["fixed_yaw"] and w["fixed_yaw"]["state"] == "done")
-        page.wait_for_selector("#fy-table:has-text('Check against the WMM')", timeout=WAIT_MS)
+        shown(page, "#fy-table:has-text('Check against the WMM')", WAIT_MS)
         page.screenshot(path=str(shots / "17_large_vehicle_gps_course.png"))
         fy = w["fixed_yaw"]
         assert fy["check"]["ok"] and abs(fy["check"]["heading_error_deg"]) < 2.0
         assert abs(fy["check"]["strength_mG"] - fy["check"]["wmm_strength_mG"]) < 15.0
         np.testing.assert_allclose(fy["vehicle_ofs_mG"]["0"], fy["ours_ofs_mG"]["0"], atol=5.0)
-        page.fill("#fy-yaw", "75")
-        page.click("#fy-send")
+        page.locator("#fy-yaw").fill(force=True, value="75")
+        press(page, "#fy-send")
         w = wait_api(api, lambda w: w["fixed_yaw"]["source"] == "entered" and w["fixed_yaw"]["state"] == "done")
         assert abs(w["fixed_yaw"]["check"]["heading_error_deg"]) < 2.0
         assert "calibration in use: the vehicle's" in page.locator("#status").inner_text()
@@ -317,27 +340,27 @@ def test_write_failures_shown_then_px4_write(station, page, api, shots):
     hold = pack_stream(hold_attitude(10.0, 200.0, rate_hz=10.0), hw)
     port = connect(api)
     open_page(page, station)
-    page.click("#start")
+    press(page, "#start")
     with FakeVehicle(msgs, port, speed=8.0, param_mode="ignore") as fv:
         wait_api(api, lambda w: w["state"] == "result", timeout_s=90)
-        page.click("#accept")
-        page.wait_for_selector("#param-write .error", timeout=WAIT_MS)
+        press(page, "#accept")
+        shown(page, "#param-write .error", WAIT_MS)
         assert "no answer from the vehicle" in page.locator("#param-write").inner_text()
         page.screenshot(path=str(shots / "19_write_failed_no_echo.png"))
         assert in_view(page, "#param-write .error")
         assert fv.params["COMPASS_OFS_X"] == 0.0
     port = connect(api)
     with FakeVehicle(hold, port, speed=1.0, param_mode="corrupt") as fv:
-        page.wait_for_selector("#status:has-text('link up')", timeout=WAIT_MS)
-        page.click("#accept")                      # "Retry the write"
-        page.wait_for_selector("#param-write li:has-text('kept')", timeout=WAIT_MS)
+        shown(page, "#status:has-text('link up')", WAIT_MS)
+        press(page, "#accept")                      # "Retry the write"
+        shown(page, "#param-write li:has-text('kept')", WAIT_MS)
         assert "other values" in page.locator("#param-write").inner_text()
         page.screenshot(path=str(shots / "20_write_failed_wrong_value.png"))
     port = connect(api)
     with FakeVehicle(hold, port, speed=1.0, autopilot="px4") as fv:
-        page.wait_for_selector("#status:has-text('px4')", timeout=WAIT_MS)
-        page.click("#accept")
-        page.wait_for_selector("#param-write .good", timeout=WAIT_MS)
+        shown(page, "#status:has-text('px4')", WAIT_MS)
+        press(page, "#accept")
+        shown(page, "#param-write .good", WAIT_MS)
         page.screenshot(path=str(shots / "21_px4_written.png"))
         px4 = wizard(api)["result"]["px4_params"]
         assert {f"CAL_MAG{k}_XOFF" for k in range(3)} <= set(px4)

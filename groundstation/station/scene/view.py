@@ -26,7 +26,6 @@ import viser
 from estimators.detection import ned_from_lla
 
 from groundstation.station.hub.session import Session
-from groundstation.station.scene.coverage import CoverageSphere
 from groundstation.station.scene.geometry import (S_FLIP, UNIT_SPHERE, RouteFrame, attitude_wxyz, camera_for_box,
                                                   quat_mul, residual_colors, yaw_wxyz)
 
@@ -38,8 +37,9 @@ ROUTE_DISPLAY_POINTS = 6000
 CAL_VEHICLE_AT = np.array([0.0, 2.8, 0.0])
 CAL_CENTER = np.array([0.0, 0.0, 0.0])
 SPHERE_CENTER = np.array([0.0, -2.8, 0.0])
-COVERAGE_CENTER = np.array([0.0, 0.0, 2.7])           # above the raw cloud
-CAL_BOX = (np.array([0.0, 0.0, 0.7]), np.array([1.4, 4.1, 2.1]))         # centre, half extents
+# the middle label goes below its cloud, the outer two above theirs: apart in a narrow view too
+RAW_LABEL_AT = np.array([0.0, 0.0, -1.5])
+CAL_BOX = (np.array([0.0, 0.0, 0.2]), np.array([1.4, 4.1, 1.6]))         # centre, half extents
 # flight layout: the route area centred on the origin
 ROUTE_LENGTH = 8.0                 # the preset line (or the route's width) spans this many units
 ROUTE_MAX_CROSS = 2.0              # cross-track drawn at most this far from the line
@@ -103,8 +103,8 @@ class Scene:
                                         position=(0, 0, -1.2), anchor="top-center", visible=False)
         empty = np.zeros((1, 3), dtype=np.float32)
         self.cal_nodes = [
-            sc.add_label("/cal_label", "raw field + fitted ellipsoid", position=tuple(CAL_CENTER + [0, 0, 1.5]),
-                         anchor="bottom-center", visible=False),
+            sc.add_label("/cal_label", "raw field + fitted ellipsoid", position=tuple(CAL_CENTER + RAW_LABEL_AT),
+                         anchor="top-center", visible=False),
             sc.add_label("/sphere_label", "corrected", position=tuple(SPHERE_CENTER + [0, 0, 1.3]),
                          anchor="bottom-center", visible=False),
             sc.add_line_segments("/sphere_ref", UNIT_SPHERE, colors=(150, 150, 150), thickness=1.0,
@@ -116,7 +116,6 @@ class Scene:
         self.ellipsoid = sc.add_line_segments("/cal_ellipsoid", UNIT_SPHERE, colors=(240, 180, 0),
                                               thickness=1.5, thickness_units="screen",
                                               position=tuple(CAL_CENTER), visible=False)
-        self.coverage = CoverageSphere(sc, COVERAGE_CENTER)
         seg0 = np.zeros((1, 2, 3), dtype=np.float32)
         self.route = sc.add_point_cloud("/route", empty, colors=ROUTE_VIOLET, point_size=0.07,
                                         point_shape="circle", visible=False)
@@ -168,7 +167,6 @@ class Scene:
             self._route_key = None
         calibrating = activity == "calibration"
         self._update_cloud(d["cloud"], d["fit"], calibrating)
-        self.coverage.update(d.get("coverage") if calibrating else None)
         for node in self.cal_nodes:
             node.visible = calibrating
         self.vehicle_label.visible = calibrating
