@@ -132,6 +132,7 @@ class FakeVehicle:
     def _send(self, msg) -> None:
         with self._send_lock:
             buf = bytes(msg.pack(self._enc))
+            self._enc.seq = (self._enc.seq + 1) % 256      # pack() alone leaves the sequence number
             if not self.link_up or self.rebooting:
                 return
             try:
