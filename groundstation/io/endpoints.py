@@ -158,6 +158,9 @@ def open_endpoint(endpoint: Endpoint):
     """
     from pymavlink import mavutil
 
+    # MAVLink 2 from the start: pymavlink would switch at the first MAVLink 2 packet by replacing
+    # the connection's parser, which drops its signing set-up (and it sets the same variable then)
+    os.environ["MAVLINK20"] = "1"
     mavutil.set_dialect("ardupilotmega")
     ids = {"source_system": 255, "source_component": 190}
     address = f"{endpoint.host}:{endpoint.port}"

@@ -1,6 +1,7 @@
 """Live MAVLink links (UDP/TCP/serial through pymavlink) as a typed sample stream."""
 from __future__ import annotations
 
+import socket
 import threading
 import time
 from collections import deque
@@ -9,12 +10,13 @@ from dataclasses import dataclass, field
 from .decode import MAV_CMD_SET_MESSAGE_INTERVAL, MavlinkDecoder
 from .endpoints import Endpoint, open_endpoint, parse_connection_string, validate_connection_string
 from .mavlink import mavlink2
-from .roster import SystemRoster
+from .roster import SystemRoster, is_signed_packet
 from ..samples import Sample, StatusSample
 
 __all__ = ["LiveLink", "LinkOptions", "STREAMED_MESSAGES", "Endpoint", "parse_connection_string", "validate_connection_string",
            "open_endpoint"]
 
+UDP_RECEIVE_BUFFER_BYTES = 4 << 20
 STREAMED_MESSAGES = ("SCALED_IMU", "RAW_IMU", "ATTITUDE", "GPS_RAW_INT", "GLOBAL_POSITION_INT",
                      "HIGHRES_IMU")
 
@@ -28,6 +30,10 @@ def _drop_partial_packets_between_datagrams(conn) -> None:
 
     if not isinstance(conn, mavutil.mavudp):
         return
+    try:    # room for ~1 s of a busy link while the station is held up (capped by net.core.rmem_max)
+        conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER_BYTES)
+    except OSError:
+        pass
     parser = conn.mav
     raw_recv = conn.recv
 
@@ -102,6 +108,7 @@ class LiveLink:
         self.connected = False
         self.bad_packets = 0
         self._select_request: int | None = None
+        self._told_signed = False
         self._last_heartbeat = 0.0
         self._streams_requested_at: float | None = None
         self._interval_acked = False
@@ -209,6 +216,10 @@ class LiveLink:
             self._follow(src, unix, out)
         if self.roster.systems[src].is_gcs or src == 255:
             return
+        if self.signing is None and not self._told_signed and is_signed_packet(packet):
+            self._told_signed = True
+            out.append(StatusSample(self.t_s(unix), "signing", f"system {src} signs its packets (MAVLink 2 "
+                                    "signing): parameter writes and commands need its key (--signing-key-file)"))
         self.last_rx_unix = unix
         if not self.connected:
             self.connected = True

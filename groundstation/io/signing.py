@@ -12,9 +12,12 @@ inject unsigned (MAVProxy makes the same exception).
 from __future__ import annotations
 
 import hashlib
+import hmac
 import os
 import re
 import stat
+import struct
+import types
 from pathlib import Path
 
 from .errors import IngestError
@@ -85,6 +88,7 @@ class LinkSigning:
         conn.setup_signing(self._key, sign_outgoing=True, allow_unsigned_callback=self._allow_unsigned,
                            link_id=link_id)
         self._mav = conn.mav
+        conn.mav.check_signature = types.MethodType(check_signature_first, conn.mav)
 
     def _allow_unsigned(self, _mav, msg_id: int) -> bool:
         self.unsigned_or_bad += 1
@@ -96,6 +100,32 @@ class LinkSigning:
         return {"on": True, "key_id": self.key_id, "good": int(getattr(s, "goodsig_count", 0)),
                 "bad_signature": bad, "unsigned": max(0, self.unsigned_or_bad - bad),
                 "refused": int(getattr(s, "reject_count", 0))}
+
+
+NEW_STREAM_SLACK = 6000 * 1000       # a new stream may be up to 60 s behind (10 us units), as pymavlink
+
+
+def check_signature_first(mav, msgbuf: bytearray, src_system: int, src_component: int) -> bool:
+    """pymavlink's ``MAVLink.check_signature`` with the signature checked before the stream's
+    timestamp is stored.  pymavlink 2.4 stores the timestamp of a packet whose signature then
+    fails, so one forged packet with a future timestamp makes every genuine packet of that stream
+    look like a replay; here only a packet signed with our key moves the stream's timestamp.
+    The rules (MAVLink 2 message signing): SHA-256(key + packet without the 6 signature bytes),
+    first 48 bits; the timestamp (10 us since 2015-01-01) must grow per (link id, system,
+    component) stream, and a new stream may start at most a minute behind our own timestamp."""
+    signing = mav.signing
+    expected = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
+    if not hmac.compare_digest(expected, bytes(msgbuf[-6:])):
+        return False
+    tlow, thigh = struct.unpack("<IH", bytes(msgbuf[-12:-6]))
+    timestamp = tlow + (thigh << 32)
+    stream = (msgbuf[-13], src_system, src_component)
+    last = signing.stream_timestamps.get(stream)
+    if (last is not None and timestamp <= last) or (last is None and timestamp + NEW_STREAM_SLACK < signing.timestamp):
+        return False
+    signing.stream_timestamps[stream] = timestamp
+    signing.timestamp = max(signing.timestamp, timestamp)
+    return True
 
 
 def passphrase_from_env(name: str) -> bytes:

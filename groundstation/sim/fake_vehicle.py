@@ -17,7 +17,8 @@ Sends the simulation's messages (``[(unix_s, pymavlink message)]``) to the stati
   COMMAND_ACK (UNSUPPORTED for the rest).
 
 The link can be dropped and restored (``set_link``) to exercise the station's reconnect handling.
-``rx_datagrams`` counts every datagram the station sent (passive mode must send none).  With
+``rx_datagrams`` counts every datagram the station sent (passive mode must send none); ``mirror``
+sends a copy of every packet straight to another address (a latency reference).  With
 ``signing_key`` it signs what it sends; with ``require_signing`` too it refuses (counts in
 ``refused_unsigned``, does not act on) every packet without a valid signature, as ArduPilot does
 once a key is set.
@@ -81,6 +82,7 @@ class FakeVehicle:
         self._reboot_request = threading.Event()
         self.rx_datagrams = 0
         self.refused_unsigned = 0
+        self.mirror: tuple[str, int] | None = None    # also send every packet here (latency reference)
         self.send_log: list[tuple[int, float]] = []   # (MAVLink seq, time.monotonic()) with record_send_times
         self._enc = new_encoder(system_id, 1)
         self._parser = mavlink2.MAVLink(None)
@@ -141,6 +143,8 @@ class FakeVehicle:
                 return
             if self.record_send_times:
                 self.send_log.append((buf[4] if buf[0] == 0xFD else buf[2], time.monotonic()))
+            if self.mirror is not None:
+                self._sock.sendto(buf, self.mirror)
             kind = msg.get_type()
             self.delivered[kind] = self.delivered.get(kind, 0) + 1
 

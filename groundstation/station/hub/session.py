@@ -149,7 +149,7 @@ class Session(SessionViews):
             self.calibration.on_link(up, s.t_s)
         elif s.kind == "statustext":
             self.event("vehicle: " + s.text)
-        elif s.kind == "passive":
+        elif s.kind in ("passive", "signing"):
             self.event(s.text, "warning")
         elif s.kind == "vehicle_found":
             self.event(s.text)
