@@ -286,3 +286,46 @@ def test_signed_write_succeeds_unsigned_is_refused_and_reported(tmp_path):
     finally:
         fv.stop()
         hub.close()
+
+
+# ------------------------------------------------------------------------------------ parameter cache
+
+def test_compass_params_loaded_by_another_station_are_seen_and_the_calibration_follows(tmp_path):
+    """The passive way: the station fits, cannot write; the other ground station loads the result
+    (its PARAM_SETs go straight to the vehicle); the station sees the unrequested PARAM_VALUEs and
+    stops applying its own copy, since the vehicle now corrects its field itself."""
+    port = free_udp_port()
+    hub = Session(tmp_path, link_options=LinkOptions(passive=True))
+    hub.connect(f"udpin:127.0.0.1:{port}")
+    hub.wizard_start()
+    fv = FakeVehicle(rotation_dance_messages(turn_s=2.0, tumble_s=10.0), port, speed=4.0).start()
+    other, enc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM), new_encoder(255, 190)
+    vehicle_addr = fv._sock.getsockname()
+
+    def other_sends(msg) -> None:
+        other.sendto(bytes(msg.pack(enc)), vehicle_addr)
+        enc.seq = (enc.seq + 1) % 256
+
+    try:
+        other_sends(m.MAVLink_param_request_list_message(1, 1))     # the other station's download
+        assert wait_for(lambda: "COMPASS_OFS_X" in hub.params, 5)
+        assert wait_for(lambda: hub.snapshot()["wizard"]["state"] == "result", 30)
+        with pytest.raises(ConflictError, match=r"\.param"):
+            hub.wizard_accept()
+        ours = hub.snapshot()["wizard"]["result"]["ardupilot_params"]
+        assert abs(ours["COMPASS_OFS_X"]) > 10                        # a real change to load
+        for name, value in ours.items():
+            other_sends(m.MAVLink_param_set_message(1, 1, name.encode(), value, m.MAV_PARAM_TYPE_REAL32))
+        assert wait_for(lambda: hub.snapshot()["wizard"].get("in_use") == "vehicle", 5)
+        snap = hub.snapshot()
+        changed = snap["vehicles"]["params_changed_elsewhere"]
+        assert changed["COMPASS_OFS_X"][1] == pytest.approx(ours["COMPASS_OFS_X"], abs=1e-3)
+        texts = [e["text"] for e in snap["events"]]
+        assert any("changed by another ground station" in t for t in texts)
+        assert any("now holds this station's calibration" in t for t in texts)
+        assert snap["calibration_in_use"] and hub.flight.calibration is None    # the vehicle's, not a copy
+        assert fv.rx_datagrams == 1 + len(ours)                       # all from the other station, none from us
+    finally:
+        other.close()
+        fv.stop()
+        hub.close()

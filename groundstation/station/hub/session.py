@@ -29,6 +29,7 @@ from groundstation.samples import FlightLog, MissionSample, ParamSample, Sample,
 from groundstation.station.hub.calibration import CalibrationControl
 from groundstation.station.hub.flight import FlightState
 from groundstation.station.hub.recordings import RecordingsFolder
+from groundstation.station.hub.param_watch import on_compass_params_changed
 from groundstation.station.hub.review import build_review
 from groundstation.station.hub.sources import (ConflictError, NotFoundError, SessionError, SourceControl,
                                                check_speed)
@@ -110,6 +111,7 @@ class Session(SessionViews):
     def process_batch(self, samples: list[Sample]) -> None:
         live = self.sources.kind != "replay"
         flight_samples = []
+        changed_elsewhere: list[str] = []
         for s in samples:
             if isinstance(s, StatusSample) and s.kind == "vehicle":
                 flight_samples = []            # the previous vehicle's samples go with its state
@@ -118,7 +120,8 @@ class Session(SessionViews):
             if isinstance(s, StatusSample):
                 self._on_status(s)
             elif isinstance(s, ParamSample):
-                self.vehicle.on_param(s)
+                if self.vehicle.on_param(s) and live:
+                    changed_elsewhere.append(s.name)
             elif isinstance(s, MissionSample):
                 if self._log_mission is None:
                     self.vehicle.on_mission_item(s)      # live: the mission comes item by item
@@ -127,6 +130,8 @@ class Session(SessionViews):
             flight_samples.append(s)
         if live:
             self.flight.push(flight_samples)
+        if changed_elsewhere:
+            on_compass_params_changed(self, changed_elsewhere)
         self.calibration.after_batch()
 
     def flush_live(self) -> None:
@@ -185,13 +190,17 @@ class Session(SessionViews):
             return self.sources.vehicles_snapshot()
 
     def vehicles(self) -> dict:
+        """The live link's systems, the followed vehicle, passive mode, signing, forwarding, and
+        the compass parameters another ground station changed ({name: [old, new]})."""
         with self._lock:
-            return self.sources.vehicles_snapshot()
+            out = self.sources.vehicles_snapshot()
+            out["params_changed_elsewhere"] = {k: list(v) for k, v in self.vehicle.changed_elsewhere.items()}
+            return out
 
     def snapshot(self) -> dict:
         with self._lock:
             snap = super().snapshot()
-            snap["vehicles"] = self.sources.vehicles_snapshot()
+            snap["vehicles"] = self.vehicles()
             return snap
 
     def restart_flight(self) -> None:

@@ -29,6 +29,7 @@ RESULT_TEXT = {0: "accepted", 1: "temporarily rejected", 2: "denied", 3: "unsupp
 
 
 COMPASS_PARAM_PREFIXES = ("COMPASS_", "CAL_MAG")
+OWN_COMMAND_EFFECT_S = 10.0     # compass parameters the autopilot saves this soon after our command are its answer
 
 
 def is_compass_param(name: str) -> bool:
@@ -57,6 +58,7 @@ class VehicleLink:
         self._waiters: dict[str, list[float]] = {}
         self._inbox: deque = deque(maxlen=1000)
         self._watched = None
+        self._last_command_s = -1e9
         self.reset(None, {})
 
     def reset(self, autopilot: str | None, params: dict[str, float]) -> None:
@@ -78,6 +80,8 @@ class VehicleLink:
             return False
         if old is None or same_float32(old, s.value) or not is_compass_param(s.name):
             return False
+        if time.monotonic() - self._last_command_s < OWN_COMMAND_EFFECT_S:
+            return False        # the autopilot saving its own calibration after our command
         self.changed_elsewhere[s.name] = (old, s.value)
         return True
 
@@ -102,8 +106,7 @@ class VehicleLink:
         except Exception:  # no peer yet (UDP before the first packet): asked again on link up
             pass
 
-    @staticmethod
-    def send_command(link, command: int, *params: float) -> bool:
+    def send_command(self, link, command: int, *params: float) -> bool:
         """COMMAND_LONG to the autopilot (component 1); False when it could not be sent.
 
         Raises:
@@ -112,6 +115,7 @@ class VehicleLink:
         if getattr(link, "passive", False):
             raise ConflictError(passive_refusal(link))
         p = [float(v) for v in params] + [0.0] * (7 - len(params))
+        self._last_command_s = time.monotonic()
         try:
             link.mav.mav.command_long_send(link.decoder.vehicle_sysid or 1, 1, int(command), 0, *p[:7])
             return True
