@@ -40,7 +40,7 @@ RATE_HZ = 400.0
 GCS_COMMAND = 31010
 
 STATION = """
-import sys, time, tempfile
+import os, sys, time, tempfile
 from groundstation.io.forward import Forwarder
 from groundstation.station.hub.session import Session
 port, gcs_port = int(sys.argv[1]), int(sys.argv[2])
@@ -48,9 +48,13 @@ fw = Forwarder([f"udpout:127.0.0.1:{gcs_port}"]).start()
 hub = Session(tempfile.mkdtemp(), record_live=True, forwarder=fw)
 hub.connect(f"udpin:127.0.0.1:{port}")
 print("ready", flush=True)
+cpu0, wall0 = os.times(), time.monotonic()
 sys.stdin.readline()
+cpu1, wall1 = os.times(), time.monotonic()
 snap = hub.snapshot()
-print("rx", snap["rx_count"], "to_vehicle", snap["vehicles"]["forwarding"]["to_vehicle"], flush=True)
+cpu = (cpu1.user + cpu1.system - cpu0.user - cpu0.system) / (wall1 - wall0) * 100
+print("rx", snap["rx_count"], "to_vehicle", snap["vehicles"]["forwarding"]["to_vehicle"],
+      f"CPU {cpu:.0f} % of one core", flush=True)
 hub.close()
 """
 
