@@ -329,3 +329,58 @@ def test_compass_params_loaded_by_another_station_are_seen_and_the_calibration_f
         other.close()
         fv.stop()
         hub.close()
+
+
+# ------------------------------------------------------------------------------------ command line
+
+def test_serve_link_options_are_checked_in_one_line_and_the_key_never_shown(tmp_path, capsys, monkeypatch):
+    from groundstation.cli import main
+    from groundstation.station.app import link_lines
+    from groundstation.station.settings import StationSettings
+
+    monkeypatch.setenv("MAGSTATION_TEST_PASS", "very secret words")
+    demo = str(tmp_path / "x.tlog")
+    (tmp_path / "x.tlog").write_bytes(b"")
+    for args, why in ((["--forward", "udpin:127.0.0.1:14550"], "cannot be a forwarding output"),
+                      (["--forward", "/usr/bin/python3"], "not a connection string"),
+                      (["--forward", "tcpin:0.0.0.0:5760"], "only listen on loopback"),
+                      (["--sysid", "0"], "system id is 1..255"),
+                      (["--signing-passphrase-env", "MAGSTATION_NO_SUCH_VAR"], "holds no signing passphrase")):
+        code = main(["serve", "--replay", demo, "--signing-passphrase-env", "MAGSTATION_TEST_PASS", *args]
+                    if "--signing-passphrase-env" not in args else ["serve", "--replay", demo, *args])
+        err = capsys.readouterr().err
+        assert code == 1 and why in err and err.count("\n") == 1, err
+        assert "very secret" not in err
+    key = key_from_passphrase("very secret words")
+    settings = StationSettings(viser_port=None, signing_key=key, sysid=3, passive=True,
+                               forward=("udpout:127.0.0.1:14550",))
+    shown = " ".join(link_lines(settings)) + repr(settings)
+    assert key.hex() not in shown and str(key) not in shown and "very secret" not in shown
+    assert "key id" in shown and "following vehicle (system id) 3" in shown and "passive" in shown
+
+
+def test_a_vehicle_without_heartbeat_is_followed_after_a_while():
+    """Some bridges forward sensor messages without the autopilot's heartbeat: after
+    NO_HEARTBEAT_FOLLOW_S the busiest system is followed, and its samples come through."""
+    from groundstation.io.link import NO_HEARTBEAT_FOLLOW_S, LiveLink
+    from groundstation.samples import MagSample, StatusSample
+
+    port = free_udp_port()
+    link = LiveLink(f"udpin:127.0.0.1:{port}", options=LinkOptions(passive=True))
+    sender, enc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM), new_encoder(7, 1)
+    got: list = []
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < NO_HEARTBEAT_FOLLOW_S + 1.0:
+            imu = m.MAVLink_scaled_imu_message(int((time.monotonic() - t0) * 1000), 0, 0, -1000, 0, 0, 0, 200, -50, 400)
+            sender.sendto(bytes(imu.pack(enc)), ("127.0.0.1", port))
+            enc.seq = (enc.seq + 1) % 256
+            got += link.poll()
+            time.sleep(0.02)
+    finally:
+        sender.close()
+        link.close()
+    found = [s for s in got if isinstance(s, StatusSample) and s.kind == "vehicle_found"]
+    assert link.sysid == 7 and len(found) == 1 and "following vehicle 7" in found[0].text
+    first_mag = next(i for i, s in enumerate(got) if isinstance(s, MagSample))
+    assert first_mag > got.index(found[0])                        # none before it was chosen

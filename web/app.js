@@ -43,21 +43,26 @@ function renderLink(s) {
     "): MagStation sends nothing to the vehicle. Calibration writes need the active mode, or export the " +
     ".param file and load it with the other ground station." : "";
   const body = $("vehicles").tBodies[0];
-  body.replaceChildren(...v.systems.map((x) => {
-    const tr = document.createElement("tr");
-    const cells = [x.sysid + (x.sysid === v.selected ? " ●" : ""), x.kind, x.type || "—", x.autopilot || "—",
-      fmt(x.rate_hz, 0, " /s"), fmt(x.loss_pct, 1, " %"), fmt(x.last_seen_s, 1, " s ago")];
-    for (const text of cells) { const td = document.createElement("td"); td.textContent = text; tr.append(td); }
-    const td = document.createElement("td");
-    if (x.kind === "vehicle" && x.sysid !== v.selected) {
+  const rows = new Map([...body.rows].map((tr) => [tr.dataset.sysid, tr]));
+  const heard = new Set(v.systems.map((x) => String(x.sysid)));
+  for (const [id, tr] of rows) if (!heard.has(id)) { tr.remove(); rows.delete(id); }   // a new link
+  for (const x of v.systems) {             // rows updated in place: the Follow button stays clickable
+    let tr = rows.get(String(x.sysid));
+    if (!tr) {
+      tr = document.createElement("tr");
+      tr.dataset.sysid = x.sysid;
+      for (let i = 0; i < 8; i++) tr.append(document.createElement("td"));
       const b = document.createElement("button");
       b.textContent = "Follow";
       b.onclick = guarded("source-error", () => api("POST", "/api/vehicles/select", { sysid: x.sysid }));
-      td.append(b);
+      tr.cells[7].append(b);
+      body.append(tr);
     }
-    tr.append(td);
-    return tr;
-  }));
+    const cells = [x.sysid + (x.sysid === v.selected ? " ●" : ""), x.kind, x.type || "—", x.autopilot || "—",
+      fmt(x.rate_hz, 0, " /s"), fmt(x.loss_pct, 1, " %"), fmt(x.last_seen_s, 1, " s ago")];
+    cells.forEach((text, i) => { if (tr.cells[i].textContent !== text) tr.cells[i].textContent = text; });
+    tr.cells[7].firstChild.hidden = !(x.kind === "vehicle" && x.sysid !== v.selected);
+  }
   const extra = [];
   if (v.signing && v.signing.on) extra.push("signing on (key " + v.signing.key_id + "): " + v.signing.good +
     " signed, " + v.signing.unsigned + " unsigned and " + v.signing.bad_signature + " badly signed refused");

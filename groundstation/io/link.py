@@ -17,6 +17,7 @@ __all__ = ["LiveLink", "LinkOptions", "STREAMED_MESSAGES", "Endpoint", "parse_co
            "open_endpoint"]
 
 UDP_RECEIVE_BUFFER_BYTES = 4 << 20
+NO_HEARTBEAT_FOLLOW_S = 3.0      # without an autopilot heartbeat, follow the busiest system after this
 STREAMED_MESSAGES = ("SCALED_IMU", "RAW_IMU", "ATTITUDE", "GPS_RAW_INT", "GLOBAL_POSITION_INT",
                      "HIGHRES_IMU")
 
@@ -109,6 +110,7 @@ class LiveLink:
         self.bad_packets = 0
         self._select_request: int | None = None
         self._told_signed = False
+        self._link_up_unix = 0.0
         self._last_heartbeat = 0.0
         self._streams_requested_at: float | None = None
         self._interval_acked = False
@@ -192,6 +194,8 @@ class LiveLink:
         out: list[Sample] = []
         if self._select_request is not None:
             self._follow(self._select_request, now, out)
+        elif self.sysid is None and self.connected and now - self._link_up_unix > NO_HEARTBEAT_FOLLOW_S:
+            self._follow_busiest(now, out)
         self._housekeeping(now, out)
         self._rx_ready.clear()
         for _ in range(min(max_messages, len(self._rx))):
@@ -223,6 +227,7 @@ class LiveLink:
         self.last_rx_unix = unix
         if not self.connected:
             self.connected = True
+            self._link_up_unix = unix
             out.append(StatusSample(self.t_s(unix), "link", f"link up on {self.url}"))
         if src != self.sysid:
             return
@@ -243,6 +248,12 @@ class LiveLink:
         self._streams_requested_at = None
         out.append(StatusSample(self.t_s(unix), "vehicle" if switch else "vehicle_found",
                                 f"following vehicle {sysid}" + (" (switched)" if switch else "")))
+
+    def _follow_busiest(self, now: float, out: list[Sample]) -> None:
+        """No autopilot heartbeat yet (some bridges send none): follow the system heard most."""
+        heard = [s for s in self.roster.systems.values() if not s.is_gcs and s.sysid != 255]
+        if heard:
+            self._follow(max(heard, key=lambda s: s.packets).sysid, now, out)
 
     def vehicles_snapshot(self) -> dict:
         now = time.time()

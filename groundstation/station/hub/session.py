@@ -144,7 +144,7 @@ class Session(SessionViews):
             self.vehicle.autopilot = s.text
         elif s.kind == "link":
             up = s.text.startswith("link up")
-            if up:
+            if up and getattr(self.sources.link, "sysid", None) is not None:   # else once a vehicle is found
                 self.vehicle.request_params(self.sources.link)
             if up and self.sources.link_state == "lost":
                 self.event("link restored: " + s.text, "info")
@@ -158,6 +158,7 @@ class Session(SessionViews):
             self.event(s.text, "warning")
         elif s.kind == "vehicle_found":
             self.event(s.text)
+            self.vehicle.request_params(self.sources.link)
 
     # ------------------------------------------------------------------ vehicles on the link
     def _new_vehicle(self, s: StatusSample) -> None:
