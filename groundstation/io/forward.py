@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import select
 import socket
+import sys
 import threading
 from typing import Callable
 
@@ -22,6 +23,7 @@ __all__ = ["Forwarder", "MavlinkFramer", "parse_forward_url", "FORWARD_KINDS"]
 
 FORWARD_KINDS = ("udpout", "tcpin")
 MAX_TCP_CLIENTS = 8
+FORWARD_SWITCH_INTERVAL_S = 0.001
 STX_V1, STX_V2 = 0xFE, 0xFD
 SIGNATURE_LEN = 13
 
@@ -224,6 +226,12 @@ class Forwarder:
         self._writer = writer
 
     def start(self) -> "Forwarder":
+        """Start the outputs' thread.  Also shortens the interpreter's thread switch interval
+        (process-wide, ``sys.setswitchinterval``) to FORWARD_SWITCH_INTERVAL_S: every socket
+        read releases the interpreter lock, and with the estimators' thread busy the reader would
+        wait the default 5 ms to get it back, for each packet."""
+        if self.outputs and sys.getswitchinterval() > FORWARD_SWITCH_INTERVAL_S:
+            sys.setswitchinterval(FORWARD_SWITCH_INTERVAL_S)
         if self._thread is None and self.outputs:
             self._thread = threading.Thread(target=self._run, daemon=True, name="forwarder")
             self._thread.start()
