@@ -193,7 +193,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     settings = StationSettings(host=args.host, port=args.port, viser_port=args.viser_port,
                                allow_remote=args.allow_remote, allowed_hosts=tuple(args.allowed_host),
-                               tls_cert=args.tls_cert, tls_key=args.tls_key)
+                               tls_cert=args.tls_cert, tls_key=args.tls_key, sysid=args.sysid,
+                               passive=args.passive, forward=tuple(args.forward), signing_key=_signing_key(args))
     from groundstation.station.app import StationStartError, serve
 
     try:
@@ -201,6 +202,34 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except StationStartError as err:
         raise CliError(str(err)) from err
     return 0
+
+
+def _signing_key(args: argparse.Namespace) -> bytes | None:
+    """The MAVLink 2 signing key of --signing-key-file or --signing-passphrase-env (never printed)."""
+    from groundstation.io.signing import passphrase_from_env, read_key_file
+
+    if args.signing_key_file and args.signing_passphrase_env:
+        raise CliError("give --signing-key-file or --signing-passphrase-env, not both")
+    if args.signing_key_file:
+        return read_key_file(args.signing_key_file)
+    if args.signing_passphrase_env:
+        return passphrase_from_env(args.signing_passphrase_env)
+    return None
+
+
+def _add_link_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("beside another ground station")
+    g.add_argument("--sysid", type=int, metavar="N", help="follow vehicle N (MAVLink system id) when several "
+                                                          "share the link (default: the first heard)")
+    g.add_argument("--passive", action="store_true",
+                   help="listen only: no heartbeat, stream-rate or parameter requests, no writes")
+    g.add_argument("--forward", action="append", default=[], metavar="URL",
+                   help="pass the vehicle link on to another ground station: udpout:HOST:PORT or "
+                        "tcpin:127.0.0.1:PORT (repeatable); their packets go back to the vehicle")
+    g.add_argument("--signing-key-file", metavar="FILE",
+                   help="MAVLink 2 signing key: 32 bytes, 64 hex digits, or a passphrase (SHA-256, as MAVProxy)")
+    g.add_argument("--signing-passphrase-env", metavar="VAR",
+                   help="MAVLink 2 signing with the passphrase in environment variable VAR")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -222,6 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a host name or address the station is reached by (Host header), repeatable")
     p.add_argument("--tls-cert", metavar="CERT.pem", help="serve HTTPS with this certificate (with --tls-key)")
     p.add_argument("--tls-key", metavar="KEY.pem", help="the certificate's private key")
+    _add_link_options(p)
     p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("calibrate", help="magnetometer calibration from one or more logs")

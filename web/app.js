@@ -32,6 +32,47 @@ const STATE_TEXT = { on: "on", off: "off", paused: "paused", untrusted: "untrust
 const CORRECTION_TEXT = { station: "station-corrected", autopilot: "autopilot-corrected", raw: "raw (uncorrected)",
   unknown: "unknown", none: "no magnetometer" };
 
+// The live link beside other ground stations: systems heard, the vehicle followed, passive mode,
+// signing counts, forwarding outputs, compass parameters another station changed.
+function renderLink(s) {
+  const v = s.vehicles, live = s.source.kind === "live";
+  $("link-panel").hidden = !live || !v;
+  if (!live || !v) return;
+  $("passive-note").hidden = !v.passive;
+  $("passive-note").textContent = v.passive ? "Listening only (" + (v.passive_reason || "passive mode") +
+    "): MagStation sends nothing to the vehicle. Calibration writes need the active mode, or export the " +
+    ".param file and load it with the other ground station." : "";
+  const body = $("vehicles").tBodies[0];
+  const rows = new Map([...body.rows].map((tr) => [tr.dataset.sysid, tr]));
+  const heard = new Set(v.systems.map((x) => String(x.sysid)));
+  for (const [id, tr] of rows) if (!heard.has(id)) { tr.remove(); rows.delete(id); }   // a new link
+  for (const x of v.systems) {             // rows updated in place: the Follow button stays clickable
+    let tr = rows.get(String(x.sysid));
+    if (!tr) {
+      tr = document.createElement("tr");
+      tr.dataset.sysid = x.sysid;
+      for (let i = 0; i < 8; i++) tr.append(document.createElement("td"));
+      const b = document.createElement("button");
+      b.textContent = "Follow";
+      b.onclick = guarded("source-error", () => api("POST", "/api/vehicles/select", { sysid: x.sysid }));
+      tr.cells[7].append(b);
+      body.append(tr);
+    }
+    const cells = [x.sysid + (x.sysid === v.selected ? " ●" : ""), x.kind, x.type || "—", x.autopilot || "—",
+      fmt(x.rate_hz, 0, " /s"), fmt(x.loss_pct, 1, " %"), fmt(x.last_seen_s, 1, " s ago")];
+    cells.forEach((text, i) => { if (tr.cells[i].textContent !== text) tr.cells[i].textContent = text; });
+    tr.cells[7].firstChild.hidden = !(x.kind === "vehicle" && x.sysid !== v.selected);
+  }
+  const extra = [];
+  if (v.signing && v.signing.on) extra.push("signing on (key " + v.signing.key_id + "): " + v.signing.good +
+    " signed, " + v.signing.unsigned + " unsigned and " + v.signing.bad_signature + " badly signed refused");
+  if (v.forwarding) extra.push("forwarding to " + v.forwarding.outputs.map((o) => o.url + " (" + o.to_gcs +
+    " out, " + o.from_gcs + " in)").join(", "));
+  const changed = Object.keys(v.params_changed_elsewhere || {});
+  if (changed.length) extra.push("changed by another ground station: " + changed.join(", "));
+  $("link-extra").textContent = extra.join(" · ");
+}
+
 function render(s) {
   last = s;
   $("status").textContent = linkText(s) + (s.source.kind === "live" && s.reorder_delay_s >= 0.3 ?
@@ -48,6 +89,7 @@ function render(s) {
   $("pending").hidden = !s.source.pending;
   $("pending").textContent = s.source.pending ? "connecting to " + s.source.pending + ": " + s.source.name +
     " goes on until the first packet arrives (Stop cancels)" : "";
+  renderLink(s);
   $("line-text").textContent = s.line ? "A " + s.line.a.map((x) => x.toFixed(6)).join(", ") + " → B " +
     s.line.b.map((x) => x.toFixed(6)).join(", ") + " (" + s.line.source + ")" : "none: no path-deviation test";
   $("line-clear").disabled = !s.line;

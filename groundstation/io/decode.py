@@ -89,13 +89,14 @@ class MavlinkDecoder:
     SCALED_IMU/2/3 and ArduPilot's RAW_IMU: acc mG (milli-g), gyro mrad/s, mag mgauss.
     HIGHRES_IMU: acc m/s^2, gyro rad/s, mag gauss.  ATTITUDE: rad.  GPS_RAW_INT: degE7, mm,
     cm/s, cdeg.  Messages from a GCS (our own heartbeats echoed, other ground stations) are
-    ignored.
+    ignored.  ``vehicle_sysid``: the system to decode (None: the first autopilot heartbeat's);
+    messages of other systems give no samples.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, vehicle_sysid: int | None = None) -> None:
         self.clock = _BootClock()
         self.autopilot: str | None = None
-        self.vehicle_sysid: int | None = None
+        self.vehicle_sysid: int | None = vehicle_sysid
         self.start_unix_s: float | None = None
         self.warnings: Counter = Counter()
         self._last_gps_raw_t = -math.inf

@@ -1,22 +1,23 @@
 """Live MAVLink links (UDP/TCP/serial through pymavlink) as a typed sample stream."""
 from __future__ import annotations
 
-import errno
-import ipaddress
-import os
-import re
-import stat
+import socket
+import threading
 import time
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 
 from .decode import MAV_CMD_SET_MESSAGE_INTERVAL, MavlinkDecoder
-from .errors import IngestError
+from .endpoints import Endpoint, open_endpoint, parse_connection_string, validate_connection_string
 from .mavlink import mavlink2
+from .roster import SystemRoster, is_signed_packet
 from ..samples import Sample, StatusSample
 
-__all__ = ["LiveLink", "STREAMED_MESSAGES", "Endpoint", "parse_connection_string", "validate_connection_string",
+__all__ = ["LiveLink", "LinkOptions", "STREAMED_MESSAGES", "Endpoint", "parse_connection_string", "validate_connection_string",
            "open_endpoint"]
 
+UDP_RECEIVE_BUFFER_BYTES = 4 << 20
+NO_HEARTBEAT_FOLLOW_S = 3.0      # without an autopilot heartbeat, follow the busiest system after this
 STREAMED_MESSAGES = ("SCALED_IMU", "RAW_IMU", "ATTITUDE", "GPS_RAW_INT", "GLOBAL_POSITION_INT",
                      "HIGHRES_IMU")
 
@@ -30,6 +31,10 @@ def _drop_partial_packets_between_datagrams(conn) -> None:
 
     if not isinstance(conn, mavutil.mavudp):
         return
+    try:    # room for ~1 s of a busy link while the station is held up (capped by net.core.rmem_max)
+        conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER_BYTES)
+    except OSError:
+        pass
     parser = conn.mav
     raw_recv = conn.recv
 
@@ -45,73 +50,229 @@ def _drop_partial_packets_between_datagrams(conn) -> None:
     conn.recv = recv
 
 
+@dataclass(frozen=True)
+class LinkOptions:
+    """How the station behaves on a live link.
+
+    sysid:        the vehicle to follow (None: the first autopilot heard).
+    passive:      send nothing (no heartbeat, stream-rate or parameter requests, no writes);
+                  also switched on by itself when another ground station's heartbeat is heard.
+    signing_key:  MAVLink 2 signing key (32 bytes) or None; never shown (repr off).
+    """
+    sysid: int | None = None
+    passive: bool = False
+    signing_key: bytes | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.sysid is not None and not 1 <= int(self.sysid) <= 255:
+            raise ValueError(f"a MAVLink system id is 1..255, not {self.sysid}")
+
+
 class LiveLink:
     """A live MAVLink link through a pymavlink connection string.
 
     ``udpin:127.0.0.1:14550``, ``tcp:HOST:PORT``, ``/dev/ttyUSB0,57600`` (checked by
-    ``parse_connection_string``; refused strings raise IngestError).  Sends a GCS
-    heartbeat every second, asks for the streams we need with SET_MESSAGE_INTERVAL and falls
-    back to REQUEST_DATA_STREAM when the vehicle does not acknowledge it, and records every
-    packet received (raw bytes) through ``recorder`` when given.
+    ``parse_connection_string``; refused strings raise IngestError).  A reader thread takes every
+    packet off the link as it arrives (and passes it to the forwarding outputs, ``attach_forwarder``);
+    ``poll`` records each (raw bytes, through ``recorder``), lists its system (``roster``) and
+    decodes the packets of the followed vehicle only (``options.sysid``, else the first autopilot
+    heard; ``select`` changes it).  Unless passive, it sends a GCS heartbeat every second, asks
+    the followed vehicle for the streams we need with SET_MESSAGE_INTERVAL and falls back to
+    REQUEST_DATA_STREAM when the vehicle does not acknowledge it.
     """
 
     RATE_HZ = 50
     LOST_AFTER_S = 3.0
 
-    def __init__(self, url: str, recorder=None, *, listen_any: bool = True) -> None:
+    def __init__(self, url: str, recorder=None, *, listen_any: bool = True,
+                 options: LinkOptions | None = None) -> None:
         endpoint = parse_connection_string(url, listen_any=listen_any)
+        self.options = options or LinkOptions()
         self.url = endpoint.text
         self.mav = open_endpoint(endpoint)
         _drop_partial_packets_between_datagrams(self.mav)
+        self._lock_writes(self.mav)
+        self.signing = None
+        if self.options.signing_key is not None:
+            from .signing import LinkSigning
+            self.signing = LinkSigning(self.options.signing_key)
+            self.signing.install(self.mav)
         self.recorder = recorder
-        self.decoder = MavlinkDecoder()
+        self.roster = SystemRoster()
+        self.sysid: int | None = self.options.sysid
+        self.decoder = MavlinkDecoder(vehicle_sysid=self.sysid)
+        self.passive = self.options.passive
+        self.passive_reason = "started with --passive" if self.passive else None
+        self.forwarder = None
         self.t0_unix = time.time()
         self.last_rx_unix: float | None = None
         self.connected = False
         self.bad_packets = 0
+        self._select_request: int | None = None
+        self._told_signed = False
+        self._link_up_unix = 0.0
         self._last_heartbeat = 0.0
         self._streams_requested_at: float | None = None
         self._interval_acked = False
         self._fallback_sent = False
+        self._rx: deque = deque()
+        self._rx_ready = threading.Event()
+        self._reader_stop = threading.Event()
+        self._reader = threading.Thread(target=self._read_loop, daemon=True, name="link-reader")
+        self._reader.start()
 
     def t_s(self, unix_s: float | None = None) -> float:
         return (time.time() if unix_s is None else unix_s) - self.t0_unix
 
-    def poll(self, max_messages: int = 1000) -> list[Sample]:
-        """Everything that arrived since the last call (non-blocking), as samples."""
-        now = time.time()
-        out: list[Sample] = []
-        self._housekeeping(now, out)
+    # ------------------------------------------------------------------ reading
+    @staticmethod
+    def _lock_writes(conn) -> None:
+        """One writer at a time (the worker, parameter writes and the forwarder all send)."""
+        raw_write, lock = conn.write, threading.Lock()
+
+        def write(buf):
+            with lock:
+                return raw_write(buf)
+
+        conn.write = write
+
+    def _read_loop(self) -> None:
+        while not self._reader_stop.is_set():
+            try:
+                self.mav.select(0.05)
+            except Exception:
+                self._reader_stop.wait(0.05)
+            got = self._read_available()
+            if got:
+                self._rx.extend(got)
+                self._rx_ready.set()
+
+    def _read_available(self, max_messages: int = 1000) -> list[tuple]:
+        got = []
         for _ in range(max_messages):
             try:
                 msg = self.mav.recv_msg()
             except (OSError, ValueError, TypeError, IndexError) as err:
+                if self._reader_stop.is_set():
+                    break
                 self.bad_packets += 1
                 self.decoder.warnings[f"link read error: {type(err).__name__}"] += 1
                 break
             if msg is None:
                 break
-            mtype = msg.get_type()
-            if mtype == "BAD_DATA":
+            if msg.get_type() == "BAD_DATA":
                 self.bad_packets += 1
                 continue
-            unix = time.time()
+            packet = bytes(msg.get_msgbuf())
+            forwarder = self.forwarder
+            if forwarder is not None:
+                forwarder.to_outputs(packet)
+            got.append((msg, packet, time.time()))
+        return got
+
+    def wait(self, timeout_s: float) -> None:
+        """Until packets are waiting for ``poll`` (or ``timeout_s``)."""
+        self._rx_ready.wait(timeout_s)
+
+    def write_raw(self, packet: bytes) -> None:
+        """Send bytes as they are (packets of forwarded ground stations)."""
+        self.mav.write(packet)
+
+    def attach_forwarder(self, forwarder) -> None:
+        """Pass every packet received to ``forwarder`` and its outputs' packets to this link."""
+        self.forwarder = forwarder
+        if forwarder is not None:
+            forwarder.attach(self.write_raw)
+
+    def select(self, sysid: int) -> None:
+        """Follow another vehicle from the next ``poll`` on (which says so with a "vehicle" status first)."""
+        self._select_request = int(sysid)
+
+    def poll(self, max_messages: int = 1000) -> list[Sample]:
+        """Everything that arrived since the last call (non-blocking), as samples."""
+        now = time.time()
+        out: list[Sample] = []
+        if self._select_request is not None:
+            self._follow(self._select_request, now, out)
+        elif self.sysid is None and self.connected and now - self._link_up_unix > NO_HEARTBEAT_FOLLOW_S:
+            self._follow_busiest(now, out)
+        self._housekeeping(now, out)
+        self._rx_ready.clear()
+        for _ in range(min(max_messages, len(self._rx))):
+            msg, packet, unix = self._rx.popleft()
             if self.recorder is not None:
-                self.recorder.write_packet(bytes(msg.get_msgbuf()), unix)
-            if msg.get_srcSystem() == 255:  # our own or another GCS's traffic
-                continue
-            self.last_rx_unix = unix
-            if not self.connected:
-                self.connected = True
-                out.append(StatusSample(self.t_s(unix), "link", f"link up on {self.url}"))
-            if mtype == "COMMAND_ACK" and msg.command == MAV_CMD_SET_MESSAGE_INTERVAL and msg.result == 0:
-                self._interval_acked = True
-            out.extend(self.decoder.decode(msg, self.t_s(unix)))
+                self.recorder.write_packet(packet, unix)
+            self._route(msg, packet, unix, out)
+        if self._rx:
+            self._rx_ready.set()
         return out
 
+    def _route(self, msg, packet: bytes, unix: float, out: list[Sample]) -> None:
+        """Roster every packet; decode only the followed vehicle's."""
+        found = self.roster.observe(msg, unix, packet)
+        src = msg.get_srcSystem()
+        if found == "gcs" and not self.passive:
+            self.passive = True
+            self.passive_reason = f"another ground station (system {src}) is on this link"
+            out.append(StatusSample(self.t_s(unix), "passive", f"{self.passive_reason}: MagStation now only "
+                                    "listens (no stream-rate requests, heartbeats or parameter writes)"))
+        elif found == "vehicle" and self.sysid is None:
+            self._follow(src, unix, out)
+        if self.roster.systems[src].is_gcs or src == 255:
+            return
+        if self.signing is None and not self._told_signed and is_signed_packet(packet):
+            self._told_signed = True
+            out.append(StatusSample(self.t_s(unix), "signing", f"system {src} signs its packets (MAVLink 2 "
+                                    "signing): parameter writes and commands need its key (--signing-key-file)"))
+        self.last_rx_unix = unix
+        if not self.connected:
+            self.connected = True
+            self._link_up_unix = unix
+            out.append(StatusSample(self.t_s(unix), "link", f"link up on {self.url}"))
+        if src != self.sysid:
+            return
+        mtype = msg.get_type()
+        if mtype == "COMMAND_ACK" and msg.command == MAV_CMD_SET_MESSAGE_INTERVAL and msg.result == 0:
+            self._interval_acked = True
+        out.extend(self.decoder.decode(msg, self.t_s(unix)))
+
+    def _follow(self, sysid: int, unix: float, out: list[Sample]) -> None:
+        """Decode ``sysid`` from now on.  A switch from another vehicle is a "vehicle" status (the
+        hub starts over); the first vehicle followed is a "vehicle_found" status."""
+        self._select_request = None
+        switch = self.sysid is not None and sysid != self.sysid
+        if sysid == self.sysid and not switch and self.decoder.vehicle_sysid == sysid:
+            return
+        self.sysid = sysid
+        self.decoder = MavlinkDecoder(vehicle_sysid=sysid)
+        self._streams_requested_at = None
+        out.append(StatusSample(self.t_s(unix), "vehicle" if switch else "vehicle_found",
+                                f"following vehicle {sysid}" + (" (switched)" if switch else "")))
+
+    def _follow_busiest(self, now: float, out: list[Sample]) -> None:
+        """No autopilot heartbeat yet (some bridges send none): follow the system heard most."""
+        heard = [s for s in self.roster.systems.values() if not s.is_gcs and s.sysid != 255]
+        if heard:
+            self._follow(max(heard, key=lambda s: s.packets).sysid, now, out)
+
+    def vehicles_snapshot(self) -> dict:
+        now = time.time()
+        return {"selected": self.sysid, "systems": self.roster.snapshot(now), "passive": self.passive,
+                "passive_reason": self.passive_reason,
+                "signing": self.signing.snapshot() if self.signing is not None else {"on": False},
+                "forwarding": self.forwarder.snapshot() if self.forwarder is not None else None}
+
+    # ------------------------------------------------------------------ sending
     def _housekeeping(self, now: float, out: list[Sample]) -> None:
         from pymavlink import mavutil
 
+        if self.connected and self.last_rx_unix is not None and now - self.last_rx_unix > self.LOST_AFTER_S:
+            self.connected = False
+            self._streams_requested_at = None
+            out.append(StatusSample(self.t_s(now), "link",
+                                    f"link lost: nothing heard for {self.LOST_AFTER_S:.0f} s, waiting"))
+        if self.passive:
+            return
         if now - self._last_heartbeat >= 1.0:
             self._last_heartbeat = now
             try:
@@ -119,12 +280,7 @@ class LiveLink:
                                             mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
             except OSError:
                 pass  # UDP-in before the vehicle has spoken has no peer yet
-        if self.connected and self.last_rx_unix is not None and now - self.last_rx_unix > self.LOST_AFTER_S:
-            self.connected = False
-            self._streams_requested_at = None
-            out.append(StatusSample(self.t_s(now), "link",
-                                    f"link lost: nothing heard for {self.LOST_AFTER_S:.0f} s, waiting"))
-        if self.connected and self.decoder.vehicle_sysid is not None:
+        if self.connected and self.sysid is not None:
             if self._streams_requested_at is None:
                 self._request_streams(now)
             elif (not self._interval_acked and not self._fallback_sent
@@ -135,12 +291,11 @@ class LiveLink:
         self._streams_requested_at = now
         self._interval_acked = False
         self._fallback_sent = False
-        sysid = self.decoder.vehicle_sysid
         interval_us = 1e6 / self.RATE_HZ
         for name in STREAMED_MESSAGES:
             msg_id = getattr(mavlink2, "MAVLINK_MSG_ID_" + name)
             try:
-                self.mav.mav.command_long_send(sysid, 0, MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                self.mav.mav.command_long_send(self.sysid, 0, MAV_CMD_SET_MESSAGE_INTERVAL, 0,
                                                msg_id, interval_us, 0, 0, 0, 0, 0)
             except OSError:
                 return
@@ -149,199 +304,20 @@ class LiveLink:
         self._fallback_sent = True
         try:
             # MAV_DATA_STREAM_ALL (0) at our rate: the pre-MAVLink-2 way ArduPilot still honours.
-            self.mav.mav.request_data_stream_send(self.decoder.vehicle_sysid, 0, 0, self.RATE_HZ, 1)
+            self.mav.mav.request_data_stream_send(self.sysid, 0, 0, self.RATE_HZ, 1)
         except OSError:
             pass
 
     def close(self) -> None:
+        self._reader_stop.set()
+        if self._reader is not threading.current_thread():
+            self._reader.join(timeout=2)
+        if self.forwarder is not None:
+            self.forwarder.attach(None)
+            self.forwarder = None
         try:
             self.mav.close()
         except Exception:
             pass
         if self.recorder is not None:
             self.recorder.flush()
-
-
-# ------------------------------------------------------------------------------ connection strings
-
-NETWORK_KINDS = ("udpin", "udp", "udpout", "tcp", "tcpin")
-LISTENING_KINDS = ("udpin", "udp", "tcpin")        # pymavlink binds these ("udp:" listens too)
-DEFAULT_BAUD = 57600
-_HOST_RE = re.compile(r"^[A-Za-z0-9](?:[A-Za-z0-9.-]{0,252})$")
-_COM_RE = re.compile(r"^COM[1-9][0-9]{0,2}$", re.IGNORECASE)
-_USAGE = "use udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT or a serial port /dev/ttyUSB0,57600"
-_NOT_SERIAL = ("/dev/tty", "/dev/console", "/dev/ptmx")   # the controlling terminal, not a port
-
-
-@dataclass(frozen=True)
-class Endpoint:
-    """A checked live-link endpoint: ``kind`` is one of NETWORK_KINDS or "serial".
-
-    host / port:  network endpoints (host a name or an IPv4 address, port 1..65535).
-    device / baud: serial ports (device the resolved node under /dev, or COMn on Windows).
-    """
-    kind: str
-    text: str
-    host: str = ""
-    port: int = 0
-    device: str = ""
-    baud: int = DEFAULT_BAUD
-
-    @property
-    def listens(self) -> bool:
-        return self.kind in LISTENING_KINDS
-
-
-def _is_loopback(host: str) -> bool:
-    if host.lower() == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-def _refuse(text: str, why: str) -> IngestError:
-    shown = text if len(text) <= 80 else text[:77] + "..."
-    return IngestError(f"{shown.encode('unicode_escape').decode('ascii')!s} is not a connection string we "
-                       f"open: {why} ({_USAGE})")
-
-
-def _network_endpoint(text: str, kind: str, rest: str, listen_any: bool) -> Endpoint:
-    host, sep, port = rest.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise _refuse(text, f"{kind} needs HOST:PORT with a port 1..65535")
-    if not _HOST_RE.match(host):
-        raise _refuse(text, "the host must be a name or an IPv4 address")
-    if kind in LISTENING_KINDS and not listen_any and not _is_loopback(host):
-        raise _refuse(text, f"a request may only listen on loopback (127.0.0.1); {host} listens on "
-                            "other interfaces (start the station with --connect, or with --allow-remote)")
-    return Endpoint(kind, text, host=host, port=int(port))
-
-
-def _serial_endpoint(text: str) -> Endpoint:
-    device, sep, baud = text.partition(",")
-    if sep and not (baud.isdigit() and 50 <= int(baud) <= 20_000_000):
-        raise _refuse(text, "the baud rate after ',' must be a number")
-    baud_rate = int(baud) if sep else DEFAULT_BAUD
-    if os.name == "nt" and _COM_RE.match(device):
-        return Endpoint("serial", text, device=device.upper(), baud=baud_rate)
-    if not device.startswith("/dev/"):
-        raise _refuse(text, "serial ports are device nodes under /dev (or COMn on Windows)")
-    resolved = os.path.realpath(device)
-    if not resolved.startswith("/dev/"):
-        raise _refuse(text, f"it resolves to {resolved}, outside /dev")
-    try:
-        mode = os.stat(resolved).st_mode
-    except OSError:
-        raise _refuse(text, f"no such device {device} (is the radio or autopilot plugged in?)") from None
-    if not stat.S_ISCHR(mode):
-        raise _refuse(text, f"{resolved} is not a character device")
-    if resolved in _NOT_SERIAL or re.fullmatch(r"/dev/tty[0-9]+", resolved) or resolved in _own_terminals():
-        raise _refuse(text, f"{resolved} is a console or this program's own terminal, not a serial port")
-    return Endpoint("serial", text, device=resolved, baud=baud_rate)
-
-
-def _own_terminals() -> set[str]:
-    names = set()
-    for fd in (0, 1, 2):
-        try:
-            names.add(os.path.realpath(os.ttyname(fd)))
-        except OSError:
-            pass
-    return names
-
-
-def parse_connection_string(url: str, *, listen_any: bool = True) -> Endpoint:
-    """Check a live-link connection string and say exactly what it opens.
-
-    Accepted: ``udpin|udp|tcpin:HOST:PORT`` (listen), ``udpout|tcp:HOST:PORT`` (connect), and
-    serial ports: a character device under /dev (symlinks such as /dev/serial/by-id/... are
-    resolved first) or ``COMn`` on Windows, with an optional ``,BAUD``.  Anything else, above all
-    files, folders and programs (pymavlink replays unknown strings as log files and runs paths
-    containing /bin/ or ending in .elf), is refused.
-
-    Args:
-        url: the connection string.
-        listen_any: allow listeners (udpin/udp/tcpin) on non-loopback addresses such as 0.0.0.0;
-            the operator on the command line may, a request over HTTP may not (unless remote).
-    Returns:
-        the Endpoint to open with ``open_endpoint``.
-    Raises:
-        IngestError: with a one-line message saying why.
-    """
-    text = (url or "").strip() if isinstance(url, str) else ""
-    if not text:
-        raise _refuse(str(url or ""), "it is empty")
-    if len(text) > 512 or any(ord(c) < 0x20 or 0x7F <= ord(c) < 0xA0 for c in text):
-        raise _refuse(text, "it is too long or holds control characters")
-    kind, sep, rest = text.partition(":")
-    if sep and kind in NETWORK_KINDS:
-        return _network_endpoint(text, kind, rest, listen_any)
-    if sep and not (os.name == "nt" and _COM_RE.match(text.split(",")[0])):
-        raise _refuse(text, f"'{kind}:' is not a link type we open")
-    return _serial_endpoint(text)
-
-
-def validate_connection_string(url: str, *, listen_any: bool = True) -> str:
-    """The checked connection string (stripped); see ``parse_connection_string``.
-
-    Raises:
-        IngestError: with a one-line message when the string is refused.
-    """
-    return parse_connection_string(url, listen_any=listen_any).text
-
-
-def open_endpoint(endpoint: Endpoint):
-    """Open a checked endpoint with the matching pymavlink class directly (never through
-    ``mavlink_connection``, whose fall-through branches replay files and run programs).
-
-    Raises:
-        IngestError: one line, e.g. a busy or missing serial port, pyserial missing, a port in use.
-    """
-    from pymavlink import mavutil
-
-    mavutil.set_dialect("ardupilotmega")
-    ids = {"source_system": 255, "source_component": 190}
-    address = f"{endpoint.host}:{endpoint.port}"
-    try:
-        if endpoint.kind == "serial":
-            return _open_serial(mavutil, endpoint, ids)
-        if endpoint.kind in ("udpin", "udp"):
-            return mavutil.mavudp(address, input=True, **ids)
-        if endpoint.kind == "udpout":
-            return mavutil.mavudp(address, input=False, **ids)
-        if endpoint.kind == "tcp":
-            return mavutil.mavtcp(address, autoreconnect=True, retries=3, **ids)
-        if endpoint.kind == "tcpin":
-            return mavutil.mavtcpin(address, **ids)
-    except IngestError:
-        raise
-    except OSError as err:
-        why = os.strerror(err.errno) if err.errno else str(err)
-        raise IngestError(f"cannot open link '{endpoint.text}': {why}") from err
-    except Exception as err:
-        raise IngestError(f"cannot open link '{endpoint.text}': {type(err).__name__}: "
-                          f"{str(err).splitlines()[0] if str(err) else ''}") from err
-    raise IngestError(f"cannot open link '{endpoint.text}': unknown kind {endpoint.kind}")
-
-
-def _open_serial(mavutil, endpoint: Endpoint, ids: dict):
-    try:
-        import serial
-    except ImportError:
-        raise IngestError("serial links need pyserial (pip install pyserial)") from None
-    try:
-        return mavutil.mavserial(endpoint.device, baud=endpoint.baud, autoreconnect=True, **ids)
-    except (serial.SerialException, OSError) as err:
-        code = getattr(err, "errno", None)
-        if code is None and err.args and isinstance(err.args[0], int):
-            code = err.args[0]
-        why = {errno.EBUSY: "busy (another program has it open: close it, e.g. a second ground station)",
-               errno.EACCES: "permission denied (add your user to the dialout group)",
-               errno.ENOENT: "no such device (unplugged?)",
-               errno.ENOTTY: "not a serial port", errno.EINVAL: "not a serial port"}.get(code)
-        if why is None:
-            text = str(err).splitlines()[0] if str(err) else type(err).__name__
-            why = "busy" + f" ({text})" if "busy" in text.lower() else text
-        raise IngestError(f"cannot open serial port {endpoint.device}: {why}") from err

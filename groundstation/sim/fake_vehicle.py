@@ -17,6 +17,11 @@ Sends the simulation's messages (``[(unix_s, pymavlink message)]``) to the stati
   COMMAND_ACK (UNSUPPORTED for the rest).
 
 The link can be dropped and restored (``set_link``) to exercise the station's reconnect handling.
+``rx_datagrams`` counts every datagram the station sent (passive mode must send none); ``mirror``
+sends a copy of every packet straight to another address (a latency reference).  With
+``signing_key`` it signs what it sends; with ``require_signing`` too it refuses (counts in
+``refused_unsigned``, does not act on) every packet without a valid signature, as ArduPilot does
+once a key is set.
 """
 from __future__ import annotations
 
@@ -44,7 +49,8 @@ class FakeVehicle:
                  host: str = "127.0.0.1", params: dict[str, float] | None = None,
                  reject_params: Iterable[str] = (), loop: bool = False, system_id: int = 1,
                  param_mode: str = "normal", after_reboot: Iterable | None = None,
-                 reboot_silence_s: float = 4.0) -> None:
+                 reboot_silence_s: float = 4.0, signing_key: bytes | None = None,
+                 require_signing: bool = False) -> None:
         self.messages = self._prepare(messages, speed)
         self.target = (host, int(port))
         self.speed = float(speed)
@@ -74,9 +80,15 @@ class FakeVehicle:
         self.last_position: tuple[float, float, float] | None = None
         self.finished = threading.Event()
         self._reboot_request = threading.Event()
+        self.rx_datagrams = 0
+        self.refused_unsigned = 0
+        self.mirror: tuple[str, int] | None = None    # also send every packet here (latency reference)
+        self.send_log: list[tuple[int, float]] = []   # (MAVLink seq, time.monotonic()) with record_send_times
         self._enc = new_encoder(system_id, 1)
         self._parser = mavlink2.MAVLink(None)
         self._parser.robust_parsing = True
+        if signing_key is not None:
+            _sign(self._enc, self._parser, signing_key, require_signing)
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind((host, 0))
         self._sock.settimeout(0.1)
@@ -122,12 +134,17 @@ class FakeVehicle:
     def _send(self, msg) -> None:
         with self._send_lock:
             buf = bytes(msg.pack(self._enc))
+            self._enc.seq = (self._enc.seq + 1) % 256      # pack() alone leaves the sequence number
             if not self.link_up or self.rebooting:
                 return
             try:
                 self._sock.sendto(buf, self.target)
             except OSError:
                 return
+            if self.record_send_times:
+                self.send_log.append((buf[4] if buf[0] == 0xFD else buf[2], time.monotonic()))
+            if self.mirror is not None:
+                self._sock.sendto(buf, self.mirror)
             kind = msg.get_type()
             self.delivered[kind] = self.delivered.get(kind, 0) + 1
 
@@ -225,6 +242,7 @@ class FakeVehicle:
                 data = self._sock.recv(4096)
             except (socket.timeout, OSError):
                 continue
+            self.rx_datagrams += 1
             if not self.link_up or self.rebooting:
                 continue
             try:
@@ -232,6 +250,9 @@ class FakeVehicle:
             except Exception:
                 continue
             for msg in msgs:
+                if msg.get_type() == "BAD_DATA":
+                    self.refused_unsigned += "signature" in str(getattr(msg, "reason", ""))
+                    continue
                 self._handle(msg)
 
     def _handle(self, msg) -> None:
@@ -355,6 +376,18 @@ def compress_time(msg, speed: float):
             value = value * speed
         setattr(out, name, value)
     return out
+
+
+def _sign(encoder, parser, key: bytes, require: bool) -> None:
+    """MAVLink 2 signing on the vehicle side: sign what it sends; with ``require`` refuse
+    unsigned or badly signed packets (ArduPilot with a key set)."""
+    epoch_2015 = 1420070400
+    for mav in (encoder, parser):
+        mav.signing.secret_key = bytes(key)
+        mav.signing.link_id = 0
+        mav.signing.timestamp = int((time.time() - epoch_2015) * 1e5)
+    encoder.signing.sign_outgoing = True
+    parser.signing.allow_unsigned_callback = None if require else (lambda _mav, _msg_id: True)
 
 
 def _param_name(raw) -> str:

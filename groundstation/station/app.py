@@ -22,19 +22,20 @@ from fastapi import Depends, FastAPI
 from fastapi.responses import RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
+from groundstation.io.errors import IngestError
 from groundstation.paths import RECORDINGS_DIR, WEB_DIR
 from groundstation.station import security
 from groundstation.station.deps import install_error_handlers
 from groundstation.station.hub.session import Session, SessionError
 from groundstation.station.push import Pusher
 from groundstation.station.routers import (alarms, calibration, downloads, line, plots, recordings, replay, source,
-                                           status, ws)
+                                           status, vehicles, ws)
 from groundstation.station.security import AccessPolicy, StationGuard, protect_viser, require_operator
 from groundstation.station.settings import WILDCARD_HOSTS, StationSettings
 
 __all__ = ["create_app", "Station", "StationStartError", "serve"]
 
-ROUTERS = (status, source, recordings, replay, plots, calibration, line, alarms, downloads)
+ROUTERS = (status, source, recordings, replay, plots, calibration, line, alarms, downloads, vehicles)
 
 
 class StationStartError(Exception):
@@ -79,6 +80,15 @@ def create_app(hub: Session, viser_port: int | None = None, settings: StationSet
     return app
 
 
+def open_forwarder(settings: StationSettings):
+    """The forwarding outputs of ``settings.forward`` (None without); raises IngestError."""
+    if not settings.forward:
+        return None
+    from groundstation.io.forward import Forwarder
+
+    return Forwarder(settings.forward, listen_any=settings.allow_remote).start()
+
+
 def bind_listening_socket(host: str, port: int) -> socket.socket:
     """Bind and listen on host:port now, so a busy port is reported before anything is printed.
 
@@ -114,9 +124,15 @@ class Station:
 
         self.settings = settings = settings or StationSettings(**options)
         self.socket = bind_listening_socket(settings.host, settings.port)
-        self.session = Session(settings.recordings_dir, record_live=settings.record_live,
-                               max_upload_bytes=int(settings.max_upload_mb * 1e6))
         self.scene = None
+        try:
+            forwarder = open_forwarder(settings)
+        except IngestError as err:
+            self.socket.close()
+            raise StationStartError(str(err)) from err
+        self.session = Session(settings.recordings_dir, record_live=settings.record_live,
+                               max_upload_bytes=int(settings.max_upload_mb * 1e6),
+                               link_options=settings.link_options(), forwarder=forwarder)
         try:
             self.access = AccessPolicy.from_settings(settings)
             if settings.viser_port is not None:
@@ -211,7 +227,24 @@ def serve(settings: StationSettings, connect: str | None, replay: Path | None, s
     token = f"?token={settings.access_token}" if settings.allow_remote else ""
     print(f"MagStation: web page {station.url}/{token} (calibration: /calibrate.html, API: /docs), "
           f"3-D view {station.viser_url or 'off'}", flush=True)
+    for line_text in link_lines(settings):
+        print(f"MagStation: {line_text}", flush=True)
     if settings.allow_remote:
         print(f"MagStation: remote mode: scripts send 'Authorization: Bearer {settings.access_token}'; "
               f"allowed host names: {', '.join(sorted(station.access.hosts))}", flush=True)
     station.run()
+
+
+def link_lines(settings: StationSettings) -> list[str]:
+    """What the operator chose for the live link, one line each (the signing key never shown)."""
+    out = []
+    if settings.sysid is not None:
+        out.append(f"following vehicle (system id) {settings.sysid}")
+    if settings.passive:
+        out.append("passive: listening only, nothing is sent to the vehicle")
+    for url in settings.forward:
+        out.append(f"forwarding the vehicle link to {url}")
+    if settings.signing_key is not None:
+        from groundstation.io.signing import key_id
+        out.append(f"MAVLink 2 signing on (key id {key_id(settings.signing_key)})")
+    return out

@@ -38,10 +38,16 @@ class StationSettings:
     recordings_dir:    live sessions are recorded here; replays and downloads come only from here.
     record_live:       record every live link to ``recordings_dir/session-*.tlog``.
     max_upload_mb:     the largest log the browser may upload to ``recordings_dir`` [MB, 10^6 bytes].
+    sysid:             the vehicle (MAVLink system id) to follow on a live link; None: the first heard.
+    passive:           listen only: send nothing to the vehicle (no heartbeat, stream rates, writes).
+    forward:           forwarding outputs (``udpout:HOST:PORT``, ``tcpin:127.0.0.1:PORT``): every
+                       packet of the vehicle link goes to them, theirs go to the vehicle.
+    signing_key:       MAVLink 2 signing key (32 bytes; ``groundstation.io.signing``), never shown.
 
     Raises ValueError when a non-loopback host is asked for without ``allow_remote``, a port is
-    out of range, only one of the TLS files is given or one is not a file, or a body limit is not
-    a positive size.
+    out of range, only one of the TLS files is given or one is not a file, a body limit is not
+    a positive size, a forwarding output is refused (``tcpin`` off loopback needs ``allow_remote``),
+    the system id is not 1..255 or the signing key is not 32 bytes.
     """
     host: str = "127.0.0.1"
     port: int = 8000
@@ -55,8 +61,13 @@ class StationSettings:
     recordings_dir: Path = field(default=RECORDINGS_DIR)
     record_live: bool = True
     max_upload_mb: float = 512.0
+    sysid: int | None = None
+    passive: bool = False
+    forward: tuple[str, ...] = ()
+    signing_key: bytes | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
+        self._check_link()
         if self.host not in LOOPBACK_HOSTS and not self.allow_remote:
             raise ValueError(f"refusing to bind {self.host}: the station listens on loopback unless "
                              "--allow-remote is given")
@@ -80,6 +91,28 @@ class StationSettings:
             raise ValueError("the access token must have at least 16 characters")
         object.__setattr__(self, "allowed_hosts", tuple(h.strip().lower() for h in self.allowed_hosts if h.strip()))
         object.__setattr__(self, "recordings_dir", Path(self.recordings_dir).resolve())
+
+    def _check_link(self) -> None:
+        from groundstation.io.errors import IngestError
+        from groundstation.io.forward import parse_forward_url
+        from groundstation.io.link import LinkOptions
+
+        try:
+            forward = tuple(parse_forward_url(u, listen_any=self.allow_remote).text for u in self.forward)
+        except IngestError as err:
+            raise ValueError(str(err)) from None
+        if len(set(forward)) != len(forward):
+            raise ValueError("a forwarding output is given twice")
+        object.__setattr__(self, "forward", forward)
+        if self.signing_key is not None and len(self.signing_key) != 32:
+            raise ValueError("a MAVLink signing key has 32 bytes")
+        LinkOptions(self.sysid, self.passive, self.signing_key)     # checks the system id
+
+    def link_options(self):
+        """The live link's options (groundstation.io.link.LinkOptions)."""
+        from groundstation.io.link import LinkOptions
+
+        return LinkOptions(sysid=self.sysid, passive=self.passive, signing_key=self.signing_key)
 
     @property
     def tls(self) -> bool:

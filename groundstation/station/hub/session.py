@@ -29,10 +29,11 @@ from groundstation.samples import FlightLog, MissionSample, ParamSample, Sample,
 from groundstation.station.hub.calibration import CalibrationControl
 from groundstation.station.hub.flight import FlightState
 from groundstation.station.hub.recordings import RecordingsFolder
+from groundstation.station.hub.param_watch import on_compass_params_changed
 from groundstation.station.hub.review import build_review
 from groundstation.station.hub.sources import (ConflictError, NotFoundError, SessionError, SourceControl,
                                                check_speed)
-from groundstation.station.hub.vehicle import VehicleLink
+from groundstation.station.hub.vehicle import VehicleLink, passive_refusal
 from groundstation.station.hub.views import SessionViews
 
 __all__ = ["Session", "SessionError", "NotFoundError", "ConflictError"]
@@ -46,14 +47,14 @@ class Session(SessionViews):
     """The hub.  Thread-safe; all public methods may be called from any thread."""
 
     def __init__(self, recordings_dir: str | Path = "recordings", record_live: bool = True,
-                 max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES) -> None:
+                 max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES, link_options=None, forwarder=None) -> None:
         self._lock = threading.RLock()
         self._listeners: list[Callable[[], None]] = []
         self.version = 0
         self._json_cache: tuple[int, str] | None = None
         self.events: deque = deque(maxlen=EVENTS_KEPT)
         self.recordings = RecordingsFolder(Path(recordings_dir), max_upload_bytes)
-        self.sources = SourceControl(self, self._lock, self.recordings, record_live)
+        self.sources = SourceControl(self, self._lock, self.recordings, record_live, link_options, forwarder)
         self.vehicle = VehicleLink(self._lock)
         self.flight = FlightState(self.event)
         self.calibration = CalibrationControl(self._lock, self)
@@ -110,11 +111,17 @@ class Session(SessionViews):
     def process_batch(self, samples: list[Sample]) -> None:
         live = self.sources.kind != "replay"
         flight_samples = []
+        changed_elsewhere: list[str] = []
         for s in samples:
+            if isinstance(s, StatusSample) and s.kind == "vehicle":
+                flight_samples = []            # the previous vehicle's samples go with its state
+                self._new_vehicle(s)
+                continue
             if isinstance(s, StatusSample):
                 self._on_status(s)
             elif isinstance(s, ParamSample):
-                self.vehicle.on_param(s)
+                if self.vehicle.on_param(s) and live:
+                    changed_elsewhere.append(s.name)
             elif isinstance(s, MissionSample):
                 if self._log_mission is None:
                     self.vehicle.on_mission_item(s)      # live: the mission comes item by item
@@ -123,6 +130,8 @@ class Session(SessionViews):
             flight_samples.append(s)
         if live:
             self.flight.push(flight_samples)
+        if changed_elsewhere:
+            on_compass_params_changed(self, changed_elsewhere)
         self.calibration.after_batch()
 
     def flush_live(self) -> None:
@@ -135,7 +144,7 @@ class Session(SessionViews):
             self.vehicle.autopilot = s.text
         elif s.kind == "link":
             up = s.text.startswith("link up")
-            if up:
+            if up and getattr(self.sources.link, "sysid", None) is not None:   # else once a vehicle is found
                 self.vehicle.request_params(self.sources.link)
             if up and self.sources.link_state == "lost":
                 self.event("link restored: " + s.text, "info")
@@ -145,6 +154,55 @@ class Session(SessionViews):
             self.calibration.on_link(up, s.t_s)
         elif s.kind == "statustext":
             self.event("vehicle: " + s.text)
+        elif s.kind in ("passive", "signing"):
+            self.event(s.text, "warning")
+        elif s.kind == "vehicle_found":
+            self.event(s.text)
+            self.vehicle.request_params(self.sources.link)
+
+    # ------------------------------------------------------------------ vehicles on the link
+    def _new_vehicle(self, s: StatusSample) -> None:
+        """The link follows another vehicle: flight, alarms, wizard and parameters start over
+        (the events and the recording go on; lock held)."""
+        self.flight.new_source(None)
+        self.vehicle.reset(None, {})
+        self.calibration.new_source()
+        self.log_calibration = None
+        self._log_mission = None
+        self.event(s.text)
+        if self.sources.link_state == "up":
+            self.vehicle.request_params(self.sources.link)
+
+    def select_vehicle(self, sysid: int) -> dict:
+        """Follow vehicle ``sysid`` on the live link (from its next packets, with a clean state).
+
+        Raises:
+            ConflictError: no live link.  NotFoundError: no such vehicle heard on the link.
+        """
+        with self._lock:
+            link = self.sources.link
+            if link is None or self.sources.kind != "live":
+                raise ConflictError("choosing a vehicle needs a live link")
+            if int(sysid) not in link.roster.vehicles():
+                heard = ", ".join(str(v) for v in link.roster.vehicles()) or "none yet"
+                raise NotFoundError(f"no vehicle with system id {sysid} heard on the link (vehicles: {heard})")
+            link.select(int(sysid))
+            self.changed()
+            return self.sources.vehicles_snapshot()
+
+    def vehicles(self) -> dict:
+        """The live link's systems, the followed vehicle, passive mode, signing, forwarding, and
+        the compass parameters another ground station changed ({name: [old, new]})."""
+        with self._lock:
+            out = self.sources.vehicles_snapshot()
+            out["params_changed_elsewhere"] = {k: list(v) for k, v in self.vehicle.changed_elsewhere.items()}
+            return out
+
+    def snapshot(self) -> dict:
+        with self._lock:
+            snap = super().snapshot()
+            snap["vehicles"] = self.vehicles()
+            return snap
 
     def restart_flight(self) -> None:
         """The flight starts over (a replay looped); the preset line and calibration stay."""
@@ -339,7 +397,14 @@ class Session(SessionViews):
         return self.calibration.finish_now()
 
     def wizard_accept(self) -> dict:
-        """Use the result for heading; on a live link write it to the vehicle (background)."""
+        """Use the result for heading; on a live link write it to the vehicle (background).
+
+        Raises:
+            ConflictError: the link is passive (nothing may be sent): export the .param file.
+        """
+        link = self.sources.link
+        if link is not None and link.passive:
+            raise ConflictError(passive_refusal(link))
         return self.calibration.accept()
 
     # ------------------------------------------------------------------ preset line
@@ -377,3 +442,5 @@ class Session(SessionViews):
     def close(self) -> None:
         self.sources.cancel_pending()
         self.sources.stop()
+        if self.sources.forwarder is not None:
+            self.sources.forwarder.close()

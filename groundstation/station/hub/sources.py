@@ -78,8 +78,11 @@ def probe_tcp(url: str) -> None:
 class SourceControl:
     """Live link or replay, its worker thread and its pacing."""
 
-    def __init__(self, feed: Feed, lock: threading.RLock, folder: RecordingsFolder, record_live: bool) -> None:
+    def __init__(self, feed: Feed, lock: threading.RLock, folder: RecordingsFolder, record_live: bool,
+                 link_options=None, forwarder=None) -> None:
         self._feed = feed
+        self.link_options = link_options          # groundstation.io.link.LinkOptions (None: defaults)
+        self.forwarder = forwarder                # groundstation.io.forward.Forwarder or None
         self._lock = lock
         self.folder = folder
         self.recordings_dir = folder.dir
@@ -128,7 +131,7 @@ class SourceControl:
             probe_tcp(url)
         recording = LazyRecording(self.folder.new_session_path) if self.record_live else None
         try:
-            link = LiveLink(url, recorder=recording)
+            link = LiveLink(url, recorder=recording, options=self.link_options)
         except IngestError as err:
             raise SessionError(str(err)) from err
         return url, link, recording
@@ -136,6 +139,7 @@ class SourceControl:
     def start_live(self, url: str, link, recording) -> None:
         """Called with the hub lock held, after ``stop``."""
         self.link, self.recording = link, recording
+        link.attach_forwarder(self.forwarder)
         self.replay = self.replay_path = None
         self.kind, self.name, self.link_state = "live", url, "waiting"
         self.rx_count, self.rx_last_unix = 0, None
@@ -229,6 +233,17 @@ class SourceControl:
                 "log_file": path.name if path is not None else None,
                 "pending": self.pending[0] if self.pending else None}
 
+    def vehicles_snapshot(self) -> dict:
+        """The systems heard on the live link, the one followed, passive mode, signing, forwarding."""
+        link = self.link
+        if link is not None:
+            return link.vehicles_snapshot()
+        options = self.link_options
+        return {"selected": getattr(options, "sysid", None), "systems": [],
+                "passive": bool(getattr(options, "passive", False)), "passive_reason": None,
+                "signing": {"on": getattr(options, "signing_key", None) is not None},
+                "forwarding": self.forwarder.snapshot() if self.forwarder is not None else None}
+
     def flush_recording(self) -> None:
         if self.recording is not None:
             self.recording.flush()
@@ -306,10 +321,7 @@ class SourceControl:
 
 
 def _poll(link, feed: Feed, stop: threading.Event) -> list[Sample]:
-    try:
-        link.mav.select(0.05)
-    except Exception:
-        stop.wait(0.05)
+    link.wait(0.05)
     try:
         return link.poll()
     except Exception as err:  # a link read error must not kill the station

@@ -19,12 +19,30 @@ import numpy as np
 
 from groundstation.io.mavlink import mavlink2
 from groundstation.samples import MissionSample, ParamSample
+from groundstation.station.hub.sources import ConflictError
 
-__all__ = ["VehicleLink", "same_float32", "WATCHED_MESSAGES", "RESULT_TEXT"]
+__all__ = ["VehicleLink", "same_float32", "WATCHED_MESSAGES", "RESULT_TEXT", "passive_refusal", "is_compass_param"]
 
 WATCHED_MESSAGES = ("COMMAND_ACK", "MAG_CAL_PROGRESS", "MAG_CAL_REPORT")
 RESULT_TEXT = {0: "accepted", 1: "temporarily rejected", 2: "denied", 3: "unsupported", 4: "failed",
                5: "in progress", 6: "cancelled"}
+
+
+COMPASS_PARAM_PREFIXES = ("COMPASS_", "CAL_MAG")
+OWN_COMMAND_EFFECT_S = 10.0     # compass parameters the autopilot saves this soon after our command are its answer
+
+
+def is_compass_param(name: str) -> bool:
+    """ArduPilot COMPASS_* and PX4 CAL_MAG* parameters: the autopilot's compass calibration."""
+    return name.startswith(COMPASS_PARAM_PREFIXES)
+
+
+def passive_refusal(link) -> str:
+    """Why nothing is written on a passive link, and what to do instead."""
+    why = getattr(link, "passive_reason", None) or "passive mode"
+    return (f"MagStation only listens on this link ({why}): it writes nothing to the vehicle. Export the "
+            "parameters (.param) and load them with the other ground station, or start MagStation "
+            "without --passive as the only ground station sending to the vehicle")
 
 
 def same_float32(a: float, b: float) -> bool:
@@ -40,20 +58,32 @@ class VehicleLink:
         self._waiters: dict[str, list[float]] = {}
         self._inbox: deque = deque(maxlen=1000)
         self._watched = None
+        self._last_command_s = -1e9
         self.reset(None, {})
 
     def reset(self, autopilot: str | None, params: dict[str, float]) -> None:
         """A new source: its autopilot (None until the HEARTBEAT says) and parameter table."""
         self.autopilot = autopilot
         self.params: dict[str, float] = dict(params)
+        self.changed_elsewhere: dict[str, tuple[float, float]] = {}   # name -> (old, new), not by our writes
         self.mission_items: dict[int, tuple[float, float, float]] = {}   # live: raw sequence numbers
 
     # ------------------------------------------------------------------ receiving
-    def on_param(self, s: ParamSample) -> None:
+    def on_param(self, s: ParamSample) -> bool:
+        """Cache a PARAM_VALUE; True when it changed a compass parameter we did not write
+        (another ground station did: the cached value differs and no write of ours awaits it)."""
+        old = self.params.get(s.name)
         self.params[s.name] = s.value
         echoes = self._waiters.get(s.name)
         if echoes is not None:
             echoes.append(s.value)
+            return False
+        if old is None or same_float32(old, s.value) or not is_compass_param(s.name):
+            return False
+        if time.monotonic() - self._last_command_s < OWN_COMMAND_EFFECT_S:
+            return False        # the autopilot saving its own calibration after our command
+        self.changed_elsewhere[s.name] = (old, s.value)
+        return True
 
     def on_mission_item(self, s: MissionSample) -> None:
         self.mission_items[s.seq] = (s.lat_deg, s.lon_deg, s.alt_m)
@@ -69,17 +99,23 @@ class VehicleLink:
     @staticmethod
     def request_params(link) -> None:
         """Ask a live vehicle for its parameter table (PARAM_REQUEST_LIST)."""
-        if link is None:
+        if link is None or getattr(link, "passive", False):
             return
         try:
             link.mav.mav.param_request_list_send(link.decoder.vehicle_sysid or 1, 0)
         except Exception:  # no peer yet (UDP before the first packet): asked again on link up
             pass
 
-    @staticmethod
-    def send_command(link, command: int, *params: float) -> bool:
-        """COMMAND_LONG to the autopilot (component 1); False when it could not be sent."""
+    def send_command(self, link, command: int, *params: float) -> bool:
+        """COMMAND_LONG to the autopilot (component 1); False when it could not be sent.
+
+        Raises:
+            ConflictError: the link is passive (the message says what to do instead).
+        """
+        if getattr(link, "passive", False):
+            raise ConflictError(passive_refusal(link))
         p = [float(v) for v in params] + [0.0] * (7 - len(params))
+        self._last_command_s = time.monotonic()
         try:
             link.mav.mav.command_long_send(link.decoder.vehicle_sysid or 1, 1, int(command), 0, *p[:7])
             return True
@@ -113,6 +149,8 @@ class VehicleLink:
         Blocks (run it in a thread); ``progress(confirmed)`` is called under the hub lock as
         echoes arrive.  Confirmed values enter the parameter cache as the vehicle stores them.
         """
+        if getattr(link, "passive", False):      # became passive since the write was asked for
+            return [], sorted(params), {}
         pending = dict(params)
         confirmed: list[str] = []
         echoed: dict[str, float] = {}

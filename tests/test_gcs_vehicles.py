@@ -1,0 +1,198 @@
+"""Several vehicles on one UDP link (real loopback sockets): the station follows the chosen one,
+no sample of the other enters the estimates, and its outputs equal those of the vehicle alone."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from conftest import free_udp_port
+from groundstation.io.link import LinkOptions
+from groundstation.io.logs import read_log
+from groundstation.jobs.record import COL
+from groundstation.samples import StatusSample
+from groundstation.sim.fake_vehicle import FakeVehicle
+from groundstation.sim.scenarios import simulate
+from groundstation.station.app import create_app
+from groundstation.station.hub.session import Session
+
+SPEED = 2.0        # faster streams compress the flight's time and the step no longer raises an alarm
+SIM_S = 60.0
+
+
+def wait_for(cond, timeout=30.0, step=0.05) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(step)
+    return False
+
+
+class CapturingSession(Session):
+    """A hub that keeps every sample it was given since the last vehicle switch."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.captured: list = []
+
+    def process_batch(self, samples) -> None:
+        for s in samples:
+            if isinstance(s, StatusSample) and s.kind == "vehicle":
+                self.captured = []
+            else:
+                self.captured.append(s)
+        super().process_batch(samples)
+
+
+def values(samples) -> list[tuple]:
+    """The samples without their times (arrival times differ between runs, values must not)."""
+    out = []
+    for s in samples:
+        if isinstance(s, StatusSample):
+            continue
+        fields = tuple(getattr(s, f) for f in s.__slots__ if f != "t_s")
+        out.append((type(s).__name__, fields))
+    return out
+
+
+@pytest.fixture(scope="module")
+def sims():
+    return {1: simulate("mission-step", 1, duration_s=SIM_S,
+                        interference=dict(onset_s=25.0, duration_s=25.0, amplitude_mG=250.0)),
+            2: simulate("mission-clean", 2, duration_s=SIM_S)}
+
+
+class LiveRun:
+    """One hub on its own udpin port with the vehicles ``sysids`` streaming to it at once."""
+
+    def __init__(self, folder, sims, sysids, follow: int | None = None, select: int | None = None) -> None:
+        port = free_udp_port()
+        self.select = select
+        self.hub = CapturingSession(folder, link_options=LinkOptions(sysid=follow))
+        self.hub.connect(f"udpin:127.0.0.1:{port}")
+        self.vehicles = [FakeVehicle(sims[k].messages, port, speed=SPEED, system_id=k) for k in sysids]
+
+    def start(self) -> None:
+        for v in self.vehicles:
+            v.start()
+
+    def choose(self) -> None:
+        if self.select is not None:
+            hub = self.hub
+            assert wait_for(lambda: self.select in [s["sysid"] for s in hub.vehicles()["systems"]
+                                                    if s["kind"] == "vehicle"], 10)
+            hub.select_vehicle(self.select)
+            assert wait_for(lambda: hub.vehicles()["selected"] == self.select, 5)
+
+    def finish(self) -> dict:
+        hub = self.hub
+        try:
+            assert all(v.finished.wait(SIM_S / SPEED + 60) for v in self.vehicles)
+            delivered = sum(sum(v.delivered.values()) for v in self.vehicles)
+            assert wait_for(lambda: hub.snapshot()["rx_count"] >= delivered, 15)
+            time.sleep(0.3)
+            with hub._lock:
+                hub.flight.flush_all()
+                return {"samples": values(hub.captured), "alarms": hub.alarm_list(),
+                        "rows": hub.flight.rows().copy(), "vehicles": hub.vehicles(), "snapshot": hub.snapshot(),
+                        "recording": hub.sources.recording_path}
+        finally:
+            for v in self.vehicles:
+                v.stop()
+            hub.close()
+
+
+def sensor_values(samples: list[tuple]) -> list[tuple]:
+    """Sensor samples only: parameter answers arrive whenever the station asked for them."""
+    return [v for v in samples if v[0] != "ParamSample"]
+
+
+def same_tail(a: list, b: list, slack: int = 20) -> bool:
+    """Equal but for the first few samples (a preset --sysid decodes from the first packet, an
+    automatic choice from the first heartbeat on)."""
+    n = min(len(a), len(b))
+    return abs(len(a) - len(b)) <= slack and a[-n:] == b[-n:]
+
+
+def headings(rows: np.ndarray, n: int) -> np.ndarray:
+    return rows[-n:, COL["heading_deg"]]
+
+
+def assert_same_outputs(mixed: dict, alone: dict) -> None:
+    assert same_tail(sensor_values(mixed["samples"]), sensor_values(alone["samples"]))   # all, only the vehicle's
+    assert [a["start_s"] for a in mixed["alarms"]] == pytest.approx([a["start_s"] for a in alone["alarms"]], abs=2.0)
+    n = min(len(mixed["rows"]), len(alone["rows"]))
+    assert abs(len(mixed["rows"]) - len(alone["rows"])) <= 20
+    # the same samples at (almost) the same times: GPS times are arrival times, which jitter by
+    # milliseconds on a loaded machine, so the headings agree closely, not bit for bit
+    h1, h2 = headings(mixed["rows"], n)[n // 5:], headings(alone["rows"], n)[n // 5:]
+    ok = np.isfinite(h1) & np.isfinite(h2)
+    diff = np.abs((h1[ok] - h2[ok] + 180.0) % 360.0 - 180.0)
+    assert ok.mean() > 0.9 and np.median(diff) < 0.5 and np.percentile(diff, 99) < 5.0, \
+        (np.median(diff), np.percentile(diff, 99))
+
+
+def test_two_vehicles_each_followed_in_turn_equals_each_alone(tmp_path, sims):
+    """Four hubs at once (same streams, same time): vehicle 1 alone, vehicle 2 alone, both on one
+    link following 1 (serve --sysid 1), both on one link switched to 2 (chosen on the page)."""
+    runs = {"alone1": LiveRun(tmp_path / "a1", sims, [1]), "alone2": LiveRun(tmp_path / "a2", sims, [2]),
+            "mixed1": LiveRun(tmp_path / "m1", sims, [1, 2], follow=1),
+            "mixed2": LiveRun(tmp_path / "m2", sims, [1, 2], follow=1, select=2)}
+    for run in runs.values():
+        run.start()
+    runs["mixed2"].choose()
+    out = {name: run.finish() for name, run in runs.items()}
+    assert len(out["alone1"]["alarms"]) >= 1 and len(out["alone2"]["alarms"]) == 0   # step: vehicle 1 only
+
+    first = out["mixed1"]
+    assert_same_outputs(first, out["alone1"])
+    listed = {s["sysid"]: s for s in first["vehicles"]["systems"]}
+    assert set(listed) == {1, 2} and first["vehicles"]["selected"] == 1
+    for s in listed.values():
+        assert s["kind"] == "vehicle" and s["autopilot"] == "ardupilot" and s["type"] == "quadrotor"
+        assert s["packets"] > 1000 and s["loss_pct"] < 5.0
+    recorded = read_log(first["recording"]).message_counts      # every vehicle's packets recorded
+    assert recorded["SCALED_IMU"] == sum(1 for _, m in sims[1].messages + sims[2].messages
+                                         if m.get_type() == "SCALED_IMU")
+
+    second = out["mixed2"]                                       # switched to 2: a clean start
+    assert second["vehicles"]["selected"] == 2
+    assert second["snapshot"]["alarm_count"] == 0
+    assert any("following vehicle 2" in e["text"] for e in second["snapshot"]["events"])
+    # from the switch on vehicle 2's samples, none of vehicle 1
+    alone2, got2 = sensor_values(out["alone2"]["samples"]), sensor_values(second["samples"])
+    assert len(got2) > 0.8 * len(alone2) and got2 == alone2[-len(got2):]
+    h = second["rows"][:, COL["heading_deg"]]
+    h2 = headings(out["alone2"]["rows"], len(h))
+    ok = np.isfinite(h) & np.isfinite(h2)
+    late = ok & (np.arange(len(h)) > len(h) // 2)                # after its own start-up
+    assert np.median(np.abs((h[late] - h2[late] + 180.0) % 360.0 - 180.0)) < 0.5
+
+
+def test_vehicles_api_lists_and_selects_behind_the_guard(tmp_path, sims):
+    port = free_udp_port()
+    hub = Session(tmp_path / "rec")
+    client = TestClient(create_app(hub), base_url="http://127.0.0.1")
+    assert client.post("/api/vehicles/select", json={"sysid": 1}).status_code == 409
+    hub.connect(f"udpin:127.0.0.1:{port}")
+    vehicles = [FakeVehicle(sims[k].messages, port, speed=2.0, system_id=k).start() for k in (1, 2)]
+    try:
+        assert wait_for(lambda: [s["kind"] for s in client.get("/api/vehicles").json()["systems"]] == ["vehicle"] * 2, 10)
+        got = client.get("/api/vehicles").json()
+        assert got["selected"] in (1, 2) and got["passive"] is False
+        assert client.post("/api/vehicles/select", json={"sysid": 7}).status_code == 404
+        cross_site = client.post("/api/vehicles/select", json={"sysid": 2},
+                                 headers={"Origin": "http://evil.example"})
+        assert cross_site.status_code == 403 and hub.vehicles()["selected"] == got["selected"]
+        other = 3 - got["selected"]
+        r = client.post("/api/vehicles/select", json={"sysid": other})
+        assert r.status_code == 200, r.text
+        assert wait_for(lambda: client.get("/api/state").json().get("source", {}).get("kind") == "live"
+                        and hub.snapshot()["vehicles"]["selected"] == other, 5)
+    finally:
+        for v in vehicles:
+            v.stop()
+        hub.close()
