@@ -132,7 +132,7 @@ function renderReplay(s) {
   const r = s.replay;
   $("replay-controls").hidden = !r;
   if (!r) { timelineKey = null; return; }
-  if (s.source.name !== selected && s.source.name !== lastReplayed) {     // the list shows what plays
+  if (s.source.name !== lastReplayed) {         // what plays changed: the list selects it
     lastReplayed = selected = s.source.name;
     for (const row of $("recordings").querySelectorAll("tr[data-name]")) row.classList.toggle("selected", row.dataset.name === selected);
   }
@@ -225,7 +225,8 @@ $("upload").onchange = guarded("source-error", async () => {
   $("upload-status").textContent = "uploading " + file.name + "…";
   try {
     const res = await fetch("/api/recordings/upload?filename=" + encodeURIComponent(file.name),
-      { method: "POST", headers: { "Content-Type": "application/octet-stream" }, body: file });
+      { method: "POST", credentials: "same-origin", body: file,
+        headers: { "Content-Type": "application/octet-stream", "X-MagStation-Token": await writeToken(false) } });
     const data = await res.json().catch(() => ({}));
     if (!res.ok) throw new Error(data.detail || res.statusText);
     selected = data.name;

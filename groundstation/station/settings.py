@@ -15,7 +15,7 @@ MIB = 1 << 20
 # (path prefix, largest request body in bytes); the longest matching prefix wins.  JSON requests
 # are small; the log upload route is bounded by ``max_upload_mb`` (UPLOAD_PATH).
 UPLOAD_PATH = "/api/recordings/upload"
-MULTIPART_OVERHEAD = 64 * 1024        # form boundaries and part headers around the uploaded file
+UPLOAD_OVERHEAD = 64 * 1024           # slack over max_upload_mb (the hub refuses beyond the limit itself)
 DEFAULT_BODY_LIMITS: tuple[tuple[str, int], ...] = (("/", 1 * MIB),)
 
 
@@ -130,6 +130,6 @@ class StationSettings:
     def body_limit_for(self, path: str) -> int:
         """The largest request body accepted on ``path`` (longest matching prefix)."""
         limits = dict(self.body_limits)
-        limits.setdefault(UPLOAD_PATH, int(self.max_upload_mb * 1e6) + MULTIPART_OVERHEAD)
+        limits.setdefault(UPLOAD_PATH, int(self.max_upload_mb * 1e6) + UPLOAD_OVERHEAD)
         best = max((p for p in limits if path.startswith(p)), key=len, default=None)
         return limits[best] if best is not None else min(limits.values())
