@@ -23,12 +23,12 @@ from groundstation.paths import RECORDINGS_DIR, WEB_DIR
 from groundstation.station.deps import install_error_handlers
 from groundstation.station.hub.session import Session
 from groundstation.station.push import Pusher
-from groundstation.station.routers import alarms, calibration, downloads, line, replay, source, status, ws
+from groundstation.station.routers import alarms, calibration, downloads, fleet, line, replay, source, status, ws
 from groundstation.station.settings import StationSettings
 
 __all__ = ["create_app", "Station", "serve"]
 
-ROUTERS = (status, source, replay, calibration, line, alarms, downloads, ws)
+ROUTERS = (status, source, replay, calibration, line, alarms, downloads, fleet, ws)
 
 
 def create_app(hub: Session, viser_port: int | None = None) -> FastAPI:
