@@ -5,15 +5,17 @@ accepted calibration to a vehicle.
 Method (rows = ``groundstation.io.fleet_db`` flight rows with status "ok"):
 
 * **Sites**: take-off positions clustered greedily within ``site_radius_km``.
-* **Anomaly sites**: the field-strength residual against the WMM (corrections in force, fitted
-  motor field removed) of each flight is split by a two-way median polish into airframe + site +
-  rest; a site whose effect exceeds ``anomaly_strength_mG`` (or ``anomaly_inclination_deg``), seen
-  by ``anomaly_min_airframes`` airframes, is an anomaly site.  The same polish of the fitted
+* **Anomaly sites**: the field-strength and inclination residuals against the WMM (corrections in
+  force, fitted motor field removed) of each flight are split by a two-way median polish into
+  airframe + site + rest; a site seen by ``anomaly_min_airframes`` airframes whose effect exceeds
+  max(``anomaly_strength_mG`` | ``anomaly_inclination_deg``, ``sigma_k`` · 1.2533 · σ / √n) is an
+  anomaly site (σ: robust sd of the rest over the fleet, n: the site's flights).  The same polish of the fitted
   offsets gives each site's apparent offset (a local field adds a body-fixed vector in level
   flight), removed before the drift test, so flights at an anomaly site do not look like drift.
 * **Offset drift**: per airframe and calibration segment (a recorded calibration, or a change of the
   corrections in force in the logs, starts a segment), the median of the fitted offsets over the
-  last ``window_flights`` flights is compared with the median over the first ``window_flights``.
+  last ``window_flights`` flights is compared with the median over the first ``window_flights``
+  (W = 3 or 4 when a segment holds fewer than 2 × ``window_flights`` flights).
   Alarm when |Δ| > max(``floor_mG``, ``sigma_k`` · s), s = 1.2533 · σ · √(2 / W): σ the airframe's
   flight-to-flight scatter per axis (robust: 1.4826 · MAD of successive differences / √2, so a slow
   drift does not inflate it; never below ``min_scatter_mG``), 1.2533 the standard error factor of a
@@ -55,14 +57,14 @@ _MEDIAN_SE = 1.2533          # standard error of a median / standard error of a 
 @dataclass(frozen=True)
 class DriftSettings:
     """Thresholds of the fleet findings (units in the names); the module docstring justifies them."""
-    window_flights: int = 5
+    window_flights: int = 5            # flights per median (fewer, down to 3, on short histories)
     sigma_k: float = 5.0
     floor_mG: float = 10.0
     min_scatter_mG: float = 1.0
     max_fit_sd_mG: float = 5.0
     site_radius_km: float = 2.0
     anomaly_strength_mG: float = 15.0
-    anomaly_inclination_deg: float = 1.5
+    anomaly_inclination_deg: float = 2.0
     anomaly_min_airframes: int = 2
     payload_floor_pct: float = 4.0
     payload_min_flights: int = 4
@@ -117,21 +119,31 @@ def assign_sites(rows: list[dict], radius_km: float) -> tuple[list[dict], dict[s
     return sites, site_of
 
 
-def median_polish(values: np.ndarray, rows_a: list, rows_s: list, sweeps: int = 4) -> tuple[dict, dict]:
-    """values (n, k) = airframe effect + site effect + rest (Tukey's median polish, NaN ignored)."""
+def _groups(keys: list) -> dict:
+    out: dict = {}
+    for i, k in enumerate(keys):
+        out.setdefault(k, []).append(i)
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def median_polish(values: np.ndarray, rows_a: list, rows_s: list, sweeps: int = 4) -> tuple[dict, dict, np.ndarray]:
+    """values (n, k) = airframe effect + site effect + rest (Tukey's median polish, NaN ignored);
+    returns (airframe effects, site effects, rest)."""
     v = np.array(values, dtype=float, copy=True)
-    a_eff = {a: np.zeros(v.shape[1]) for a in set(rows_a)}
-    s_eff = {s: np.zeros(v.shape[1]) for s in set(rows_s)}
+    groups = (_groups(rows_a), _groups(rows_s))
+    effects = ({a: np.zeros(v.shape[1]) for a in groups[0]}, {s: np.zeros(v.shape[1]) for s in groups[1]})
     for _ in range(sweeps):
-        for eff, keys in ((a_eff, rows_a), (s_eff, rows_s)):
-            for key in eff:
-                sel = np.array([k == key for k in keys])
-                if sel.any() and np.isfinite(v[sel]).any():
-                    m = np.nanmedian(v[sel], axis=0)
-                    m = np.where(np.isfinite(m), m, 0.0)
-                    eff[key] = eff[key] + m
-                    v[sel] -= m
-    return a_eff, s_eff
+        for eff, grp in zip(effects, groups):
+            for key, idx in grp.items():
+                block = v[idx]
+                finite = np.isfinite(block)
+                if finite.all():
+                    m = np.median(block, axis=0)
+                else:     # np.nanmedian is slow on small blocks; NaN rows are rare
+                    m = np.array([np.median(c[f]) if f.any() else 0.0 for c, f in zip(block.T, finite.T)])
+                eff[key] = eff[key] + m
+                v[idx] -= m
+    return effects[0], effects[1], v
 
 
 # ------------------------------------------------------------------------------ findings
@@ -146,16 +158,19 @@ def _site_alerts(ok: list[dict], sites: list[dict], site_of: dict, s: DriftSetti
     keys_a = [r["airframe"] for r in ok]
     keys_s = [site_of.get(r["log_hash"], "?") for r in ok]
     field = np.stack([_col(ok, "strength_resid_mG"), _col(ok, "inclination_resid_deg")], axis=1)
-    _, site_field = median_polish(field, keys_a, keys_s)
-    _, site_offsets = median_polish(_vec(ok, "fit_ofs"), keys_a, keys_s)
+    _, site_field, rest = median_polish(field, keys_a, keys_s)
+    _, site_offsets, _ = median_polish(_vec(ok, "fit_ofs"), keys_a, keys_s)
+    sigma = np.array([1.4826 * np.median(np.abs(c[np.isfinite(c)])) if np.isfinite(c).any() else np.inf
+                      for c in rest.T])
     alerts = []
     for site in sites:
         eff = site_field.get(site["name"], np.zeros(2))
         site.update(strength_effect_mG=round(float(eff[0]), 2), inclination_effect_deg=round(float(eff[1]), 3),
                     offset_effect_mG=[round(float(v), 2) for v in site_offsets.get(site["name"], np.zeros(3))])
         seen = len(site["airframes"] - {None})
-        site["anomaly"] = bool(seen >= s.anomaly_min_airframes and (
-            abs(eff[0]) > s.anomaly_strength_mG or abs(eff[1]) > s.anomaly_inclination_deg))
+        limit = np.maximum([s.anomaly_strength_mG, s.anomaly_inclination_deg],
+                           s.sigma_k * _MEDIAN_SE * sigma / math.sqrt(max(site["flights"], 1)))
+        site["anomaly"] = bool(seen >= s.anomaly_min_airframes and np.any(np.abs(eff) > limit))
         if site["anomaly"]:
             alerts.append(_alert("anomaly_site", f"site {site['name']}: field {eff[0]:+.0f} mG, inclination "
                                  f"{eff[1]:+.1f} deg against the WMM, seen by {seen} airframes",
@@ -188,8 +203,8 @@ def _segments(rows: list[dict], cal_times: list[float]) -> list[list[dict]]:
 def _drift_in_segment(seg: list[dict], site_of: dict, site_offsets: dict, s: DriftSettings) -> dict | None:
     sd = np.nanmax(_vec(seg, "fit_ofs_sd"), axis=1) if seg else np.zeros(0)
     use = [r for r, v in zip(seg, sd) if np.isfinite(v) and v <= s.max_fit_sd_mG]
-    W = s.window_flights
-    if len(use) < 2 * W:
+    W = min(s.window_flights, len(use) // 2)
+    if W < 3:
         return None
     ofs = _vec(use, "fit_ofs") - np.array([site_offsets.get(site_of.get(r["log_hash"]), np.zeros(3)) for r in use])
     sigma = _scatter(ofs, s.min_scatter_mG)
@@ -277,8 +292,11 @@ def analyse_fleet(rows: list[dict], calibrations: list[dict] = (), settings: Dri
     sites, site_of = assign_sites(ok, settings.site_radius_km)
     alerts, site_offsets = _site_alerts(ok, sites, site_of, settings) if ok else ([], {})
     cals = sorted(calibrations, key=lambda c: (c.get("unix_s") or 0.0))
-    for airframe in sorted({r["airframe"] for r in ok}):
-        mine = [r for r in ok if r["airframe"] == airframe and (r.get("compass") or 0) == 0]
+    by_airframe: dict[str, list[dict]] = {}
+    for r in ok:
+        if (r.get("compass") or 0) == 0:
+            by_airframe.setdefault(r["airframe"], []).append(r)
+    for airframe, mine in sorted(by_airframe.items()):
         for seg in _segments(mine, [c["unix_s"] for c in cals if c["airframe"] == airframe]):
             a = _drift_in_segment(seg, site_of, site_offsets, settings)
             if a:

@@ -1,0 +1,145 @@
+"""`magstation review` through real Dask clusters, checked against the simulated fleet's truth:
+a LocalCluster of 2 worker processes (run_review), and an explicitly started `dask scheduler` +
+`dask worker` pair of processes on loopback driven by the CLI (`--scheduler`)."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from contextlib import closing
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+from groundstation.io import fleet_db
+from groundstation.jobs.airframes import load_airframes
+from groundstation.jobs.compass_history import analyse_fleet
+from groundstation.jobs.fleet import fleet_client, run_review
+from groundstation.jobs.fleet_report import write_parquet
+from groundstation.sim.fleet import FleetSettings, simulate_fleet
+from groundstation.sim.fleet_score import score_review
+
+from conftest import free_tcp_port
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    out = tmp_path_factory.mktemp("fleet")
+    settings = FleetSettings(vehicles=3, flights=8, drift_vehicles=1, payload_vehicles=1, flight_s=(66.0, 70.0),
+                             interference_fraction=0.15, corrupt_files=5, seed=3, drift_total_mG=70.0)
+    truth = simulate_fleet(out, settings, workers=2)
+    return out, truth
+
+
+def _check_against_truth(rows: list[dict], alerts: list[dict], truth: dict) -> dict:
+    score = score_review(truth, rows, alerts)
+    assert score["logs"] == {"planted": 29, "rows": 29}, score["logs"]
+    assert score["corrupt"]["reported"] == 5, score["corrupt"]
+    assert score["drift"]["found"] == 1 and not score["drift"]["false"], score["drift"]
+    assert score["anomaly_sites"]["found"] == 1 and not score["anomaly_sites"]["false"], score["anomaly_sites"]
+    assert score["interference"]["found"] == score["interference"]["planted"] > 0, score["interference"]
+    assert {r["airframe"] for r in rows if r["status"] == "ok"} == {v["airframe"] for v in truth["vehicles"]}
+    return score
+
+
+def test_review_on_a_local_cluster_matches_truth_and_reruns_skip(fleet, tmp_path):
+    out, truth = fleet
+    db = tmp_path / "fleet.sqlite"
+    mapping = load_airframes(out / "airframes.json")
+    seen = []
+    with fleet_client(workers=2) as (client, dashboard):
+        assert len(client.scheduler_info()["workers"]) == 2
+        assert dashboard is None or dashboard.startswith("http://127.0.0.1:")
+        for w in client.scheduler_info()["workers"]:
+            assert w.startswith("tcp://127.0.0.1:")                         # loopback only
+        summary = run_review(client, [out], db, airframes=mapping,
+                             on_progress=lambda p: seen.append((p.done, p.failed, p.left)))
+        p = summary.progress
+        assert (p.total, p.done, p.failed, p.skipped, p.left) == (29, 29, 3, 0, 0)
+        assert seen[0] == (1, seen[0][1], 28) and seen[-1] == (29, 3, 0) and len(seen) == 29
+        again = run_review(client, [out], db, airframes=mapping)
+        assert (again.progress.done, again.progress.skipped) == (3, 26)        # only the failed ones again
+    with closing(fleet_db.connect(db, read_only=True)) as con:
+        rows, alerts = fleet_db.flight_rows(con), fleet_db.alert_rows(con)
+    assert len({r["worker"] for r in rows if r["worker"]}) == 2                # both workers did logs
+    assert summary.peak_worker_rss_MB and summary.peak_worker_rss_MB < 1024
+    score = _check_against_truth(rows, alerts, truth)
+    assert score["payload"]["found"] == 1 and not score["payload"]["false"], score["payload"]
+
+    findings = analyse_fleet(rows)
+    table = pq.read_table(write_parquet(rows, findings.site_of, tmp_path / "rows.parquet"))
+    assert table.num_rows == 29 and table.column_names[:3] == ["log_hash", "compass", "path"]
+    quarry = next(s for s in truth["sites"] if s["anomaly_ned_mG"])
+    anomaly_site = next(s["name"] for s in findings.sites if s["anomaly"])
+    data = table.to_pylist()
+    for f in truth["flights"]:
+        row = next(r for r in data if r["path"].endswith(f["file"]))
+        assert (row["site"] == anomaly_site) == (f["site"] == quarry["name"]), (f["file"], row["site"])
+        assert row["airframe"] == f["airframe"] and row["status"] == "ok"
+
+
+def _start(args: list[str], log: Path) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.Popen([sys.executable, "-m", "dask", *args], cwd=ROOT, env=env, stdout=log.open("wb"),
+                            stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=5)
+
+
+def test_review_cli_on_explicit_scheduler_and_worker_processes(fleet, tmp_path):
+    """Two airframes' folders (the drifting one and a steady one) through the CLI."""
+    out, truth = fleet
+    drifting = next(v["airframe"] for v in truth["vehicles"] if v["role"] == "drift")
+    steady = next(v["airframe"] for v in truth["vehicles"] if v["role"] == "steady")
+    files = sorted(p.relative_to(out).as_posix() for p in (out / drifting).iterdir()) + \
+        sorted(p.relative_to(out).as_posix() for p in (out / steady).iterdir())
+    port, dash = free_tcp_port(), free_tcp_port()
+    address = f"tcp://127.0.0.1:{port}"
+    scheduler = _start(["scheduler", "--host", "127.0.0.1", "--port", str(port), "--dashboard-address",
+                        f"127.0.0.1:{dash}"], tmp_path / "scheduler.log")
+    worker = None
+    try:
+        worker = _start(["worker", address, "--nworkers", "2", "--nthreads", "1", "--host", "127.0.0.1",
+                         "--dashboard-address", "127.0.0.1:0", "--memory-limit", "2GiB"], tmp_path / "worker.log")
+        from dask.distributed import Client
+        with Client(address, timeout="30s") as c:
+            c.wait_for_workers(2, timeout=60)
+        db, report = tmp_path / "history.sqlite", tmp_path / "report"
+        cmd = [sys.executable, "-m", "groundstation.cli", "review", str(out / drifting), str(out / steady),
+               "--scheduler", address, "--db", str(db), "--out", str(report), "--airframes", str(out / "airframes.json")]
+        res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=240)
+        assert res.returncode == 0, res.stderr[-3000:]
+        errors = [c["file"] for c in truth["corrupt"] if c["expected"] == "error" and c["file"] in files]
+        assert f"reviewed {len(files)} logs ({len(errors)} failed)" in res.stdout, res.stdout
+        assert f"offset_drift: 1\n  {drifting}: fitted offsets moved" in res.stdout, res.stdout
+        assert "s per flight-minute" in res.stdout and f"Dask dashboard: http://127.0.0.1:{dash}/status" in res.stderr
+    finally:
+        for proc in (worker, scheduler):
+            if proc is not None:
+                _stop(proc)
+    assert scheduler.poll() is not None and worker.poll() is not None          # cleaned up
+    with closing(fleet_db.connect(db, read_only=True)) as con:
+        rows = fleet_db.flight_rows(con)
+    assert sorted(r["path"] for r in rows) == sorted(str(out / f) for f in files)
+    assert {r["worker"].rsplit(":", 1)[0] for r in rows if r["worker"]} == {"tcp://127.0.0.1"}
+    assert sorted(r["path"] for r in rows if r["status"] == "error") == sorted(str(out / f) for f in errors)
+    assert {r["airframe"] for r in rows if r["status"] == "ok"} == {drifting, steady}
+    table = pq.read_table(report / "rows.parquet")
+    assert table.num_rows == len(files) and "site" in table.column_names
+    page = (report / "report.html").read_text()
+    assert "fleet.html?replay=flight-" in page and "copy the log there first" in page and "data:image/png" in page
+    for f in errors:
+        assert Path(f).name in page                                             # listed under failed logs
