@@ -22,6 +22,9 @@ Contents
   issue asks to minimise, |m_cal| − F), with Huber IRLS weights (scale from the MAD) so spikes do not
   pull the fit, and hard rejection of points beyond ``outlier_sigma`` robust sigmas.  9 parameters,
   ~5–10 iterations, a few ms for 10,000 samples.
+* ``fit_sphere_robust`` — offsets + radius only, for sparse windows (a telemetry-rate dance).
+  Both robust fits return the offsets covariance (σ²(JᵀWJ)⁻¹ of the last step), the quality
+  measure of estimators.cal_windows.
 * ``estimate_misalignment`` — seed 004 step 2 (claim 4): sensor-to-body rotation from attitude
   (roll, pitch, yaw) and the expected Earth field in NED.  Small-angle linear LS (the seed's
   C = I + [φ×]) and the general rotation (Wahba's problem solved by SVD / Kabsch).
@@ -43,7 +46,7 @@ from estimators.rotations import dcm_body_to_ned, rotation_from_vector_rad, rota
 
 __all__ = [
     "RlsEllipsoidCalibrator", "seed000_solve_batch", "seed000_params_from_c", "refine_seed000_batch",
-    "RlsGeneralEllipsoid", "EllipsoidFit", "fit_ellipsoid_robust",
+    "RlsGeneralEllipsoid", "EllipsoidFit", "fit_ellipsoid_robust", "fit_sphere_robust",
     "MisalignmentFit", "estimate_misalignment", "combine_calibration",
     "apply_calibration", "polar_decomposition",
     "fit_ellipse_2d", "sphere_coverage", "coverage_cells", "rotation_progress_deg",
@@ -309,6 +312,9 @@ class EllipsoidFit:
     n_used: int
     condition_number: float          # of the normalised algebraic design matrix
     iterations: int
+    # Covariance [mG²] of offsets_mG: σ²(JᵀWJ)⁻¹ of the final LM step (σ: inlier residual scale);
+    # None for a failed fit.
+    offsets_cov_mG2: np.ndarray | None = None
 
 
 def _failed_fit(reason: str, n: int, cond: float = float("inf")) -> EllipsoidFit:
@@ -419,7 +425,71 @@ def fit_ellipsoid_robust(mag_raw_mG: np.ndarray, field_strength_mG: float | None
         return _failed_fit("refined fit is not an ellipsoid", n, cond)
     b, C, F = _calibration_from_shape(mu + s * p[:3], L / s, field_strength_mG)
     rms = float(F * np.sqrt(np.mean(res[inl] ** 2))) if np.any(inl) else float("nan")
-    return EllipsoidFit(True, "", b, C, F, rms, inl, int(inl.sum()), cond, it)
+    cov = _offsets_covariance(jacobian(aux), res, wt, s, 9)
+    return EllipsoidFit(True, "", b, C, F, rms, inl, int(inl.sum()), cond, it, cov)
+
+
+def _offsets_covariance(J: np.ndarray, res: np.ndarray, wt: np.ndarray, scale: float, n_params: int) -> np.ndarray:
+    """σ²(JᵀWJ)⁻¹ restricted to the centre (first 3 parameters, normalised units) times scale²."""
+    dof = max(float(np.sum(wt > 0)) - n_params, 1.0)
+    sigma2 = float(np.sum(wt * res * res) / dof)
+    try:
+        cov = np.linalg.inv((J * wt[:, None]).T @ J)[:3, :3] * sigma2 * scale * scale
+    except np.linalg.LinAlgError:
+        cov = np.full((3, 3), np.inf)
+    return cov if np.all(np.isfinite(cov)) else np.full((3, 3), np.inf)
+
+
+def fit_sphere_robust(mag_raw_mG: np.ndarray, max_iter: int = 30, huber_k: float = 1.345,
+                      outlier_sigma: float = 5.0) -> EllipsoidFit:
+    """Robust sphere fit (offsets + radius, 4 parameters): the model for sparse windows (a 1–4 Hz
+    telemetry dance of 20–60 samples), as ArduPilot's calibrator runs a sphere fit before its
+    ellipsoid fit (CompassCalibrator::run_sphere_fit).  Start: linear LS |m|² = 2m·c + k; then
+    Gauss–Newton on |m − c| − R with Huber weights and rejection beyond ``outlier_sigma``.
+    Returns an EllipsoidFit with matrix = I and field_strength_mG = R."""
+    m = _finite_rows(mag_raw_mG)
+    n = len(m)
+    if n < 8:
+        return _failed_fit(f"too few finite samples ({n})", n)
+    mu = m.mean(axis=0)
+    sc = float(np.sqrt(np.mean(np.sum((m - mu) ** 2, axis=1))))
+    if not np.isfinite(sc) or sc <= 0:
+        return _failed_fit("samples do not vary", n)
+    z = (m - mu) / sc
+    A = np.column_stack([2 * z, np.ones(n)])
+    ev = np.linalg.eigvalsh(A.T @ A)
+    cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
+    sol, *_ = np.linalg.lstsq(A, np.sum(z * z, axis=1), rcond=None)
+    c = sol[:3]
+    R = float(np.sqrt(max(sol[3] + c @ c, 1e-12)))
+    wt = np.ones(n)
+    inl = np.ones(n, bool)
+    it = 0
+    for it in range(1, max_iter + 1):
+        d = z - c
+        nd = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+        res = nd - R
+        sig = 1.4826 * np.median(np.abs(res[inl])) + 1e-12
+        a = np.abs(res) / sig
+        inl = a < outlier_sigma
+        wt = np.where(a <= huber_k, 1.0, huber_k / np.maximum(a, 1e-12)) * inl
+        J = np.column_stack([-d / nd[:, None], -np.ones(n)])
+        try:
+            step = np.linalg.solve((J * wt[:, None]).T @ J, -(J * wt[:, None]).T @ res)
+        except np.linalg.LinAlgError:
+            return _failed_fit("sphere fit is singular", n, cond)
+        c, R = c + step[:3], R + step[3]
+        if np.max(np.abs(step)) < 1e-9:
+            break
+    d = z - c
+    nd = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+    res = nd - R
+    J = np.column_stack([-d / nd[:, None], -np.ones(n)])
+    if not (np.isfinite(R) and R > 0):
+        return _failed_fit("sphere fit diverged", n, cond)
+    rms = float(sc * np.sqrt(np.mean(res[inl] ** 2))) if np.any(inl) else float("nan")
+    cov = _offsets_covariance(J, res, wt, sc, 4)
+    return EllipsoidFit(True, "", mu + sc * c, np.eye(3), sc * R, rms, inl, int(inl.sum()), cond, it, cov)
 
 
 def apply_calibration(mag_raw_mG: np.ndarray, offsets_mG: np.ndarray, matrix: np.ndarray) -> np.ndarray:
@@ -571,8 +641,3 @@ def planarity_ratio(mag_raw_mG: np.ndarray) -> float:
         return 0.0
     ev = np.linalg.eigvalsh(np.cov(m.T))
     return float(np.sqrt(max(ev[0], 0.0) / ev[-1])) if ev[-1] > 0 else 0.0
-
-
-# ---------------------------------------------------------------------------------------------
-# Simulation helper (tests / benchmark)
-# ---------------------------------------------------------------------------------------------

@@ -1,0 +1,335 @@
+"""In-flight compass fit against the World Magnetic Model, for logs without a calibration dance.
+
+With the autopilot's attitude and the WMM field at the flight's position and date the body-frame
+field is predicted, so offsets are observable from ordinary flight (the idea of pymavlink's
+``tools/magfit_WMM.py``).  Done here (see estimators/field_model.py for the model and solver):
+
+* samples are gated first: NaN rows, attitude rotating faster than ``max_rate_deg_s`` (at 1–4 Hz
+  telemetry the attitude interpolated to a field sample is off by rate × timing error), and — when
+  the yaw is used — stretches where the attitude heading disagrees with the GPS course while moving
+  straight and fast (a bad attitude source);
+* the fit is a closed-form start + robust Gauss–Newton with priors (magfit_WMM: SLSQP on numerical
+  gradients of a Python loop, L1 cost, no uncertainty): offsets always; diagonal and motor terms
+  element by element only where the data supports them (posterior sd < ``supported_ratio`` × prior
+  sd, else held at nominal), within ArduPilot/magfit bounds; the covariance is returned;
+* the heading source: ArduPilot's EKF yaw is computed from the compass, and a vector fit that uses
+  it is pulled toward the offsets the EKF was using (and 1° of yaw error is ~4 mG of horizontal
+  offset error).  So "auto" (and "compass") fit yaw-free: the attitude's heading is not used at
+  all, the horizontal offsets are observed through heading changes, and when too few headings were
+  flown (largest offset sd > ``max_offset_sd_mG``) the status is ``attitude_depends_on_compass``
+  (or ``insufficient_data`` when the yaw demonstrably does not follow this compass).  The yaw is
+  diagnosed, never trusted unasked: the RMS disagreement between the attitude yaw and the fitted
+  compass heading, and the slope of (attitude yaw − fitted heading) on (in-force heading − fitted
+  heading): ≈ 1 when the attitude follows this compass, ≈ 0 when not.  A caller that knows the
+  yaw is independent and accurate (GPS yaw, EK3_SRC1_YAW) asks for "independent": the full-vector
+  residual, with the GPS-course gate.
+
+Statuses: ok | attitude_depends_on_compass | insufficient_data | no_attitude | no_expected_field |
+offsets_out_of_range.  Units: mG, rad, A (or throttle 0..1), m/s.  Pure numpy.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimators.field_model import (PARAM_NAMES, FieldData, Solution, SolverOptions, corrected_field,
+                                    matrix_from_params, nominal_params, residuals, solve)
+from estimators.rotations import dcm_body_to_ned, wrap_angle_rad
+
+__all__ = ["WmmFitSettings", "WmmFit", "fit_wmm", "compass_heading_rad"]
+
+
+@dataclass(frozen=True)
+class WmmFitSettings:
+    """In-flight fit settings (units in the names).  Bounds follow magfit_WMM.py's defaults
+    (diag 0.8–1.2, off-diagonal ±0.2) and ArduPilot's COMPASS_OFFS_MAX (1800 mG)."""
+    yaw_source: str = "auto"                  # "auto"/"compass": yaw-free | "independent": vector
+    fit_diagonal: bool | None = None          # None: each element kept when supported
+    fit_offdiagonal: bool = True              # True: each element kept when supported
+    fit_motor: bool | None = None             # None: when the motor signal varies enough
+    min_motor_signal_std: float = 1.0         # [A] (use ~0.05 for throttle)
+    max_rate_deg_s: float = 20.0
+    course_min_speed_mps: float = 4.0
+    max_course_turn_deg_s: float = 5.0
+    max_course_disagreement_deg: float = 30.0
+    offset_limit_mG: float = 1800.0
+    diag_limits: tuple[float, float] = (0.8, 1.2)
+    offdiag_limit: float = 0.2
+    motor_limit_mG_per_unit: float = 20.0
+    offset_prior_sd_mG: float = 1000.0
+    diag_prior_sd: float = 0.1
+    offdiag_prior_sd: float = 0.05
+    motor_prior_sd_mG_per_unit: float = 5.0
+    supported_ratio: float = 0.3
+    huber_k: float = 1.345
+    outlier_sigma: float = 5.0
+    max_iter: int = 25
+    max_offset_sd_mG: float = 5.0
+    min_samples: int = 30
+    yaw_dependence_slope: float = 0.5
+    min_heading_spread_deg: float = 1.0
+
+
+@dataclass(frozen=True)
+class WmmFit:
+    """Result of ``fit_wmm``.  Calibration: m_cal = matrix · (m_raw − offsets_mG) − motor · x.
+    ArduPilot export: COMPASS_OFS = −offsets_mG, DIA/ODI from matrix, COMPASS_MOT = −motor."""
+    status: str
+    message: str
+    model: str                                # "vector" | "yaw_free" | ""
+    yaw_used: bool                            # the attitude's yaw entered the fit (vector model)
+    offsets_mG: np.ndarray
+    matrix: np.ndarray
+    motor_mG_per_unit: np.ndarray
+    covariance: np.ndarray                    # (12,12) over field_model.PARAM_NAMES (b, A = M⁻¹, f)
+    offsets_sd_mG: np.ndarray
+    motor_sd_mG_per_unit: np.ndarray
+    fitted: tuple[str, ...]                   # PARAM_NAMES entries that were fitted
+    residual_rms_mG: float
+    n_used: int
+    n_input: int
+    rejected: dict
+    heading_coverage: float                   # fraction of 12 heading sectors visited (used samples)
+    yaw_dependence: float                     # slope, NaN when not determinable
+    yaw_disagreement_deg: float               # RMS(attitude yaw − fitted compass heading)
+    settings: WmmFitSettings = field(default_factory=WmmFitSettings)
+
+
+def _failed(status: str, message: str, n: int, rejected: dict, settings: WmmFitSettings) -> WmmFit:
+    nan3 = np.full(3, np.nan)
+    return WmmFit(status, message, "", False, nan3, np.full((3, 3), np.nan), nan3.copy(), np.full((12, 12), np.nan),
+                  nan3.copy(), nan3.copy(), (), float("nan"), 0, n, rejected, 0.0, float("nan"), float("nan"), settings)
+
+
+def compass_heading_rad(corrected_mG: np.ndarray, roll_rad, pitch_rad, field_ned_mG) -> np.ndarray:
+    """Tilt-compensated heading (true, rad) of corrected body fields, declination from the field:
+    l = Ry(θ)Rx(φ) c,  ψ = atan2(−l_y, l_x) + atan2(H_E, H_N)."""
+    T = dcm_body_to_ned(np.asarray(roll_rad, float), np.asarray(pitch_rad, float), np.zeros(np.shape(roll_rad)))
+    lv = np.einsum("nij,nj->ni", T, np.asarray(corrected_mG, float))
+    H = np.asarray(field_ned_mG, float)
+    return wrap_angle_rad(np.arctan2(-lv[:, 1], lv[:, 0]) + np.arctan2(H[1], H[0]))
+
+
+def _course_disagrees(t_s, yaw_rad, vel_ne_mps, s: WmmFitSettings) -> np.ndarray:
+    """True where moving straight and fast while the attitude heading is far from the GPS course."""
+    v = np.asarray(vel_ne_mps, float).reshape(-1, 2)
+    speed = np.hypot(v[:, 0], v[:, 1])
+    fast = np.isfinite(speed) & (speed >= s.course_min_speed_mps)
+    out = np.zeros(len(speed), bool)
+    if fast.sum() < 3:
+        return out
+    course = np.arctan2(v[:, 1], v[:, 0])
+    tc, cc = np.asarray(t_s, float)[fast], np.unwrap(course[fast])
+    turn = np.full(len(speed), np.inf)
+    if len(tc) >= 2 and np.all(np.diff(tc) > 0):
+        turn[fast] = np.degrees(np.abs(np.gradient(cc, tc)))
+    straight = fast & (turn <= s.max_course_turn_deg_s)
+    diff = np.degrees(np.abs(wrap_angle_rad(np.asarray(yaw_rad, float) - course)))
+    out[straight] = diff[straight] > s.max_course_disagreement_deg
+    return out
+
+
+def _gate(t_s, raw, roll, pitch, yaw, rate_deg_s, s: WmmFitSettings) -> tuple[np.ndarray, dict]:
+    """Mask of usable samples and the counts of each rejection reason (yaw-independent gates)."""
+    att = np.column_stack([roll, pitch, yaw])
+    finite_mag = np.all(np.isfinite(raw), axis=1) & np.isfinite(t_s)
+    finite_att = np.all(np.isfinite(att), axis=1)
+    rate = np.asarray(rate_deg_s, float) if rate_deg_s is not None else np.zeros(len(raw))
+    fast = finite_att & np.isfinite(rate) & (rate > s.max_rate_deg_s)
+    rej = {"non_finite_field": int((~finite_mag).sum()), "no_attitude": int((finite_mag & ~finite_att).sum()),
+           "fast_rotation": int((finite_mag & fast).sum())}
+    return finite_mag & finite_att & ~fast, rej
+
+
+def _heading_coverage(yaw_rad: np.ndarray, sectors: int = 12) -> float:
+    y = np.mod(np.asarray(yaw_rad, float), 2 * np.pi)
+    y = y[np.isfinite(y)]
+    if len(y) == 0:
+        return 0.0
+    return float(len(np.unique((y / (2 * np.pi) * sectors).astype(int) % sectors)) / sectors)
+
+
+def _options(model: str, active: np.ndarray, s: WmmFitSettings) -> SolverOptions:
+    prior = np.array([s.offset_prior_sd_mG] * 3 + [s.diag_prior_sd] * 3 + [s.offdiag_prior_sd] * 3
+                     + [s.motor_prior_sd_mG_per_unit] * 3)
+    return SolverOptions(model, active, prior, s.huber_k, s.outlier_sigma, s.max_iter)
+
+
+def _initial_offsets(data: FieldData, M: np.ndarray) -> np.ndarray:
+    """Closed-form start: b = median(m − A h), A = M⁻¹ (exact when the yaw and M are right)."""
+    return np.median(data.mag_raw_mG - data.expected_body_mG() @ np.linalg.inv(M).T, axis=0)
+
+
+def _fit_terms(data: FieldData, model: str, p0: np.ndarray, auto: np.ndarray, forced: np.ndarray,
+               s: WmmFitSettings) -> tuple[Solution, np.ndarray]:
+    """Fit with forced + auto terms; drop auto elements whose posterior sd is not well below the
+    prior sd; clamp to bounds.  Returns the final solution and the active mask."""
+    prior = _options(model, forced | auto, s).prior_sd
+    active = forced | auto
+    p_init = p0.copy()
+    p_init[:3] = _initial_offsets(data, matrix_from_params(p0))
+    sol = solve(data, p_init, p0, _options(model, active, s))
+    for _ in range(3):
+        sd = np.sqrt(np.clip(np.diag(sol.covariance), 0, None))
+        weak = auto & active & ~(sd < s.supported_ratio * prior)
+        if not weak.any():
+            break
+        active = active & ~weak
+        sol = solve(data, np.where(active, sol.params, p0), p0, _options(model, active, s))
+    # diag_limits bound the correction matrix M = A⁻¹: A's diagonal within [1/hi, 1/lo]
+    lo = np.array([-np.inf] * 3 + [1.0 / s.diag_limits[1]] * 3 + [-s.offdiag_limit] * 3 + [-s.motor_limit_mG_per_unit] * 3)
+    hi = -lo
+    hi[3:6] = 1.0 / s.diag_limits[0]
+    clamped = active & ((sol.params < lo) | (sol.params > hi))
+    clamped[:3] = False
+    if clamped.any():
+        p_fix = np.where(clamped, np.clip(sol.params, lo, hi), sol.params)
+        active = active & ~clamped
+        sol = solve(data, p_fix, np.where(clamped, p_fix, p0), _options(model, active, s))
+    return sol, active
+
+
+def _yaw_checks(data: FieldData, p: np.ndarray, corrected_in_force: np.ndarray | None,
+                s: WmmFitSettings) -> tuple[float, float]:
+    """(dependence slope, disagreement RMS deg) of the attitude yaw against the yaw-free fit.
+
+    disagreement: RMS of (attitude yaw − heading of the fitted compass); small only when the yaw
+    is right (whatever its source), so the full-vector residual may use it.
+    slope: of (attitude yaw − fitted heading) on (in-force heading − fitted heading): ≈ 1 when the
+    attitude follows this compass with its in-force corrections, ≈ 0 when it does not; NaN when the
+    in-force corrections are unknown or give the same headings (spread < min_heading_spread_deg)."""
+    psi_fit = compass_heading_rad(corrected_field(p, data), data.roll_rad, data.pitch_rad, data.field_ned_mG)
+    d_att = wrap_angle_rad(data.yaw_rad - psi_fit)
+    rms = float(np.degrees(np.sqrt(np.mean(d_att ** 2))))
+    if corrected_in_force is None:
+        return float("nan"), rms
+    psi_in = compass_heading_rad(corrected_in_force, data.roll_rad, data.pitch_rad, data.field_ned_mG)
+    d_in = wrap_angle_rad(psi_in - psi_fit)
+    good = np.isfinite(d_in) & np.isfinite(d_att)
+    if good.sum() < 10:
+        return float("nan"), rms
+    x, y = d_in[good] - d_in[good].mean(), d_att[good] - d_att[good].mean()
+    if np.degrees(np.std(x)) < s.min_heading_spread_deg:
+        return float("nan"), rms
+    return float(np.dot(x, y) / np.dot(x, x)), rms
+
+
+def _term_masks(s: WmmFitSettings, use_motor: bool, motor_forced: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(forced, auto) masks over PARAM_NAMES."""
+    forced = np.zeros(12, bool)
+    auto = np.zeros(12, bool)
+    forced[:3] = True
+    if s.fit_diagonal is True:
+        forced[3:6] = True
+    elif s.fit_diagonal is None:
+        auto[3:6] = True
+    if s.fit_offdiagonal:
+        auto[6:9] = True
+    if use_motor:
+        (forced if motor_forced else auto)[9:12] = True
+    return forced, auto
+
+
+def _motor_choice(signal, ok, s: WmmFitSettings) -> tuple[bool, bool, str]:
+    """(use motor term, forced, note)."""
+    if signal is None or s.fit_motor is False:
+        return False, False, ""
+    fin = ok & np.isfinite(signal)
+    sd = float(np.std(signal[fin])) if fin.sum() > 1 else 0.0
+    if s.fit_motor is True:
+        return True, True, ""
+    if sd >= s.min_motor_signal_std:
+        return True, False, ""
+    return False, False, f"motor term not fitted: signal varies by {sd:.2f} (sd) only"
+
+
+def _worst_offset_sd(cov: np.ndarray) -> float:
+    c = cov[:3, :3]
+    return float(np.sqrt(max(np.linalg.eigvalsh(c)[-1], 0.0))) if np.all(np.isfinite(c)) else float("inf")
+
+
+def _result(sol: Solution, active: np.ndarray, model: str, yaw: tuple[float, float], data: FieldData,
+            n_in: int, rej: dict, notes: list[str], s: WmmFitSettings) -> WmmFit:
+    p, cov = sol.params, sol.covariance
+    slope, disagree = yaw
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    worst_sd = _worst_offset_sd(cov)
+    rej = dict(rej, outliers=int((~sol.inliers).sum()))
+    status = "ok"
+    if np.any(np.abs(p[:3]) > s.offset_limit_mG):
+        status = "offsets_out_of_range"
+        notes.append(f"offsets beyond ±{s.offset_limit_mG:.0f} mG")
+    elif worst_sd > s.max_offset_sd_mG:
+        depends = model == "yaw_free" and not (np.isfinite(slope) and slope < s.yaw_dependence_slope)
+        status = "attitude_depends_on_compass" if depends else "insufficient_data"
+        notes.append(f"offsets unobservable: sd up to {worst_sd:.1f} mG (limit {s.max_offset_sd_mG:.1f})"
+                     + ", too few headings flown" + (" and the attitude's yaw may follow this compass" if depends else "")
+                     + ("; if the attitude's yaw is independent and accurate (GPS yaw), fit with yaw_source 'independent'"
+                        if model == "yaw_free" else ""))
+    head = f"{model} fit of {int(sol.inliers.sum())} samples, residual RMS {sol.residual_rms_mG:.1f} mG"
+    fitted = tuple(n for n, a in zip(PARAM_NAMES, active) if a)
+    return WmmFit(status, "; ".join([head] + notes), model, model == "vector", p[:3].copy(), matrix_from_params(p),
+                  p[9:12].copy(), cov, sd[:3], sd[9:12], fitted, sol.residual_rms_mG, int(sol.inliers.sum()), n_in,
+                  rej, _heading_coverage(data.yaw_rad[sol.inliers]), slope, disagree, s)
+
+
+def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, attitude_rate_deg_s=None,
+            motor_signal=None, gps_vel_ne_mps=None, corrected_in_force_mG=None, nominal_matrix=None,
+            settings: WmmFitSettings = WmmFitSettings()) -> WmmFit:
+    """Fit offsets (and supported diagonal / motor terms) of one compass against the WMM.
+
+    Args (N samples on the field's time base; use estimators.log_alignment to get there):
+        t_s (N,) s; mag_raw_mG (N,3) raw body field (corrections in force un-applied,
+        estimators.compass_corrections); roll/pitch/yaw_rad (N,) autopilot attitude (NaN: none);
+        field_ned_mG (3,) WMM field; attitude_rate_deg_s (N,) from ``attitude_at`` (rate gate);
+        motor_signal (N,) current A or throttle 0..1; gps_vel_ne_mps (N,2) GPS velocity (course gate);
+        corrected_in_force_mG (N,3) the logged corrected field (yaw-dependence test);
+        nominal_matrix (3,3) M held where not fitted (e.g. the DIA/ODI in force).
+    Returns a ``WmmFit``; never raises on bad input (status and message say what was wrong).
+    """
+    s = settings
+    raw = np.asarray(mag_raw_mG, float).reshape(-1, 3)
+    n = len(raw)
+    H = np.asarray(field_ned_mG, float).ravel()
+    if H.shape != (3,) or not np.all(np.isfinite(H)) or np.linalg.norm(H) <= 0:
+        return _failed("no_expected_field", "no finite WMM field given", n, {}, s)
+    cols = [np.full(n, np.nan) if a is None else np.asarray(a, float).ravel() for a in (roll_rad, pitch_rad, yaw_rad)]
+    if any(len(c) != n for c in cols) or not np.any(np.all(np.isfinite(np.column_stack(cols)), axis=1)):
+        return _failed("no_attitude", "no attitude at the field samples", n, {"no_attitude": n}, s)
+    t = np.asarray(t_s, float).ravel()
+    signal = None if motor_signal is None else np.asarray(motor_signal, float).ravel()
+    ok, rej = _gate(t, raw, *cols, attitude_rate_deg_s, s)
+    use_motor, motor_forced, motor_note = _motor_choice(signal, ok, s)
+    if use_motor:
+        rej["no_motor_signal"] = int((ok & ~np.isfinite(signal)).sum())
+        ok &= np.isfinite(signal)
+    notes = [motor_note] if motor_note else []
+    if ok.sum() < s.min_samples:
+        return _failed("insufficient_data", f"{int(ok.sum())} usable samples of {n} (need {s.min_samples}); "
+                       f"rejected: {rej}", n, rej, s)
+    M0 = np.eye(3) if nominal_matrix is None else np.asarray(nominal_matrix, float)
+    p0 = nominal_params(M0)
+    forced, auto = _term_masks(s, use_motor, motor_forced)
+    sig = signal if use_motor else np.zeros(n)
+
+    def data_for(mask):
+        return FieldData(raw[mask], cols[0][mask], cols[1][mask], cols[2][mask], sig[mask], H)
+
+    model = "vector" if s.yaw_source == "independent" else "yaw_free"
+    data = data_for(ok)
+    sol, active = _fit_terms(data, model, p0, auto, forced, s)
+    cin = None if corrected_in_force_mG is None else np.asarray(corrected_in_force_mG, float).reshape(-1, 3)[ok]
+    slope, disagree = _yaw_checks(data, sol.params, cin, s)
+    notes.append(f"attitude yaw vs fitted heading: {disagree:.1f} deg RMS"
+                 + (f", dependence on this compass: slope {slope:.2f}" if np.isfinite(slope) else ""))
+    if model == "vector" and gps_vel_ne_mps is not None:
+        bad = ok & _course_disagrees(t, cols[2], gps_vel_ne_mps, s)
+        rej["course_disagreement"] = int(bad.sum())
+        ok &= ~bad
+        if ok.sum() < s.min_samples:
+            return _failed("insufficient_data", f"{int(ok.sum())} samples left after the course check", n, rej, s)
+        data = data_for(ok)
+    if model == "vector" and gps_vel_ne_mps is not None:
+        sol, active = _fit_terms(data, model, p0, auto, forced, s)     # refit without the gated samples
+    return _result(sol, active, model, (slope, disagree), data, n, rej, notes, s)

@@ -1,0 +1,116 @@
+"""In-flight fit against the WMM (estimators.wmm_fit): known truth, the yaw-source question, bad input."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimators.wmm_fit import WmmFitSettings, compass_heading_rad, fit_wmm
+from sim_arrays import H_NED, ardupilot_flight, level_flight, real_logs
+
+pytestmark = pytest.mark.filterwarnings("error")
+
+
+@pytest.mark.parametrize("yaw_source", ["independent", "compass"])
+def test_recovers_offsets_soft_iron_and_motor_field(yaw_source):
+    d = level_flight(noise_mG=2.0)
+    r = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED, motor_signal=d["current"],
+                settings=WmmFitSettings(yaw_source=yaw_source))
+    assert r.status == "ok", r.message
+    assert r.model == ("vector" if yaw_source == "independent" else "yaw_free")
+    np.testing.assert_allclose(r.offsets_mG, d["b"], atol=3.0)
+    np.testing.assert_allclose(r.matrix, np.linalg.inv(d["A"]), atol=0.01)
+    np.testing.assert_allclose(r.motor_mG_per_unit, d["f"], rtol=0.1, atol=0.05)
+    assert np.all(np.abs(r.offsets_mG - d["b"]) < 4 * r.offsets_sd_mG + 0.5)     # the sd means something
+    assert 1.5 < r.residual_rms_mG < 2.6                                           # ≈ the 2 mG noise
+
+
+def test_yaw_from_the_compass_itself_biases_the_vector_fit_not_the_yaw_free_one():
+    d = level_flight(seed=1)
+    stale = d["b"] + np.array([40.0, -30.0, 10.0])                  # corrections the EKF was using
+    cin = d["raw"] - stale
+    ekf_yaw = compass_heading_rad(cin, d["roll"], d["pitch"], H_NED)
+    forced = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], ekf_yaw, H_NED, motor_signal=d["current"],
+                     settings=WmmFitSettings(yaw_source="independent"))
+    assert np.max(np.abs(forced.offsets_mG - d["b"])) > 10.0         # pulled toward the stale offsets
+    auto = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], ekf_yaw, H_NED, motor_signal=d["current"],
+                   corrected_in_force_mG=cin)
+    assert auto.status == "ok" and auto.model == "yaw_free" and not auto.yaw_used
+    assert auto.yaw_dependence == pytest.approx(1.0, abs=0.1)
+    # unbiased within its own uncertainty (z is the weak axis in level flight: the scale of z and its
+    # offset are told apart by the ±3° tilt only)
+    assert np.all(np.abs(auto.offsets_mG - d["b"]) < np.maximum(3.0, 3.0 * auto.offsets_sd_mG))
+    assert auto.yaw_disagreement_deg > 2.0
+
+
+def test_a_trustworthy_yaw_rescues_a_flight_with_too_few_headings():
+    d = level_flight(seed=8, headings_deg=(30, 210), n=600)
+    cin = d["raw"] - (d["b"] + np.array([25.0, -20.0, 5.0]))
+    kw = dict(corrected_in_force_mG=cin, nominal_matrix=np.linalg.inv(d["A"]), motor_signal=d["current"],
+              settings=WmmFitSettings(fit_diagonal=False, fit_offdiagonal=False))
+    auto = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED, **kw)
+    assert auto.status in ("attitude_depends_on_compass", "insufficient_data")     # the yaw is never trusted unasked
+    assert "yaw_source 'independent'" in auto.message
+    kw["settings"] = WmmFitSettings(fit_diagonal=False, fit_offdiagonal=False, yaw_source="independent")
+    good = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED, **kw)   # e.g. a GPS-compass yaw
+    assert good.status == "ok" and good.model == "vector" and good.yaw_used, good.message
+    np.testing.assert_allclose(good.offsets_mG, d["b"], atol=3.0)
+
+
+def test_too_few_headings_with_compass_yaw_is_attitude_depends_on_compass():
+    d = level_flight(seed=2, headings_deg=(30, 210), n=600)          # out and back on one line
+    stale = d["b"] + np.array([25.0, -20.0, 5.0])
+    cin = d["raw"] - stale
+    yaw = compass_heading_rad(cin, d["roll"], d["pitch"], H_NED)
+    r = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], yaw, H_NED, corrected_in_force_mG=cin,
+                settings=WmmFitSettings(fit_diagonal=False, fit_offdiagonal=False),
+                nominal_matrix=np.linalg.inv(d["A"]), motor_signal=None)
+    assert r.status == "attitude_depends_on_compass", r.message
+    assert np.max(r.offsets_sd_mG) > 5.0 and r.heading_coverage < 0.5
+
+
+def test_gates_and_outliers():
+    d = level_flight(seed=3)
+    raw = d["raw"].copy()
+    raw[::50] += 400.0                                               # spikes
+    rate = np.zeros(len(raw))
+    rate[100:140] = 90.0                                             # a fast manoeuvre
+    vel = np.column_stack([8 * np.cos(d["yaw"]), 8 * np.sin(d["yaw"])])
+    yaw = d["yaw"].copy()
+    yaw[600:700] += np.radians(50)                                   # an attitude source gone bad
+    r = fit_wmm(d["t"], raw, d["roll"], d["pitch"], yaw, H_NED, motor_signal=d["current"], attitude_rate_deg_s=rate,
+                gps_vel_ne_mps=vel, settings=WmmFitSettings(yaw_source="independent"))
+    assert r.status == "ok", r.message
+    assert r.rejected["fast_rotation"] == 40 and r.rejected["course_disagreement"] >= 90
+    assert r.rejected["outliers"] >= 20
+    np.testing.assert_allclose(r.offsets_mG, d["b"], atol=3.0)
+
+
+def test_bad_input_gives_a_status_never_a_traceback():
+    d = level_flight(seed=4, n=200)
+    args = (d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"])
+    assert fit_wmm(*args, [np.nan, 0, 0]).status == "no_expected_field"
+    assert fit_wmm(d["t"], d["raw"], None, None, None, H_NED).status == "no_attitude"
+    nan_att = np.full(200, np.nan)
+    assert fit_wmm(d["t"], d["raw"], nan_att, nan_att, nan_att, H_NED).status == "no_attitude"
+    few = fit_wmm(d["t"][:10], d["raw"][:10], d["roll"][:10], d["pitch"][:10], d["yaw"][:10], H_NED)
+    assert few.status == "insufficient_data" and "10 usable samples" in few.message
+    raw = d["raw"].copy()
+    raw[:150] = np.nan                                              # a window of NaNs
+    r = fit_wmm(d["t"], raw, d["roll"], d["pitch"], d["yaw"], H_NED)
+    assert r.rejected["non_finite_field"] == 150
+    assert r.status in ("ok", "insufficient_data", "attitude_depends_on_compass")
+    cur = d["current"].copy()
+    cur[:100] = np.nan                                              # current drops out
+    r = fit_wmm(*args, H_NED, motor_signal=cur, settings=WmmFitSettings(fit_motor=True))
+    assert r.rejected["no_motor_signal"] == 100 and r.n_used <= 100
+    assert fit_wmm(np.zeros(0), np.zeros((0, 3)), [], [], [], H_NED).status == "no_attitude"
+
+
+def test_simulated_ardupilot_flight_within_5_mG_of_truth():
+    sim, arr, H = ardupilot_flight(seed=1)
+    for k in range(3):
+        fit = real_logs.wmm_fit_compass(arr, k, H)
+        truth = np.asarray(sim.truth["compasses"][k]["offsets_rot_mG"])
+        assert fit.status == "ok", (k, fit.message)
+        assert np.max(np.abs(fit.offsets_mG - truth)) < 5.0, (k, fit.offsets_mG - truth)
+    assert fit.model == "yaw_free"          # the EKF yaw follows compass 0 with stale offsets
