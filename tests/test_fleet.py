@@ -20,7 +20,7 @@ from groundstation.io import fleet_db
 from groundstation.jobs.airframes import load_airframes, resolve_airframe
 from groundstation.jobs.compass_history import DriftSettings, analyse_fleet, record_calibration, refresh_alerts
 from groundstation.jobs.fleet import discover_logs, run_job_with_timeout
-from groundstation.jobs.review_row import review_log
+from groundstation.jobs.review_row import ReviewSettings, review_log
 from groundstation.sim.fleet import FleetSettings, Site, plan_fleet, write_flight
 from groundstation.station.routers import fleet as fleet_router
 
@@ -61,6 +61,20 @@ def test_review_row_recovers_offset_change_and_motor_field(flights):
     assert max(motor_errors) < 0.15, motor_errors
 
 
+def test_review_row_with_the_real_logs_wmm_fit(one_flight):
+    """The other in-flight fit (estimators.motor_field / wmm_fit) fills the same columns."""
+    path, truth = one_flight
+    (r,) = review_log(path, ReviewSettings(fit_model="wmm"))
+    assert r["status"] == "ok" and r["fit_model"] == "wmm", r
+    assert r["fit_status"] in ("ok", "attitude_depends_on_compass", "insufficient_data"), r["fit_status"]
+    if r["fit_status"] == "ok":
+        assert r["fit_ofs_x_mG"] is not None and np.isfinite(r["fit_yaw_dependence"] or 0.0)
+    motor = np.array([r[f"motor_{a}_mG_per_A"] or np.nan for a in "xyz"])
+    assert np.linalg.norm(motor - truth["motor_mG_per_A"]) < 0.4 * np.linalg.norm(truth["motor_mG_per_A"])
+    with pytest.raises(ValueError, match="unknown in-flight fit"):
+        ReviewSettings(fit_model="magic")
+
+
 def test_review_row_fields(one_flight):
     path, truth = one_flight
     (r,) = review_log(path)
@@ -71,6 +85,7 @@ def test_review_row_fields(one_flight):
     assert r["date"].startswith("2026-01-0") and abs(r["lat_deg"] - 30.26) < 0.01
     assert abs(r["strength_resid_mG"]) < 60 and r["wmm_strength_mG"] == pytest.approx(489, abs=3)
     assert len(r["log_hash"]) == 64 and r["review_s"] > 0 and r["row_version"] == 1
+    assert r["fit_model"] == "residual_matrix"
 
 
 def test_review_row_for_bad_files_is_an_error_row_not_an_exception(tmp_path):

@@ -143,3 +143,15 @@ def test_review_cli_on_explicit_scheduler_and_worker_processes(fleet, tmp_path):
     assert "fleet.html?replay=flight-" in page and "copy the log there first" in page and "data:image/png" in page
     for f in errors:
         assert Path(f).name in page                                             # listed under failed logs
+
+
+def test_review_benchmark_smoke(fleet):
+    """The benchmark's table on six logs of the test fleet (speed figures are not asserted: load)."""
+    out, _ = fleet
+    res = subprocess.run([sys.executable, "benchmarks/review.py", "--fleet", str(out), "--vehicles", "3", "--flights",
+                          "8", "--seed", "3", "--max-logs", "6", "--serial-logs", "2"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=240)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "(reused)" in res.stdout and "| 2 workers / 1 worker |" in res.stdout, res.stdout
+    for metric in ("serial loop, no Dask (peer)", "per-log cost", "peak memory per worker", "planted drifts found"):
+        assert f"| {metric}" in res.stdout, res.stdout

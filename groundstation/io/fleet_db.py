@@ -48,7 +48,7 @@ ROW_COLUMNS: tuple[tuple[str, str], ...] = tuple([
     ("start_unix_s", "REAL"), ("date", "TEXT"), ("duration_s", "REAL"),
     ("lat_deg", "REAL"), ("lon_deg", "REAL"), ("alt_m", "REAL"),
     ("cal_state", "TEXT"), *_vec("cal_ofs", "mG"),
-    ("fit_status", "TEXT"), ("fit_samples", "INTEGER"), *_vec("fit_ofs", "mG"), *_vec("fit_ofs_sd", "mG"),
+    ("fit_model", "TEXT"), ("fit_status", "TEXT"), ("fit_samples", "INTEGER"), ("fit_yaw_dependence", "REAL"), *_vec("fit_ofs", "mG"), *_vec("fit_ofs_sd", "mG"),
     *_vec("ofs_change", "mG"), ("ofs_change_mG", "REAL"), ("fit_residual_rms_mG", "REAL"),
     *_vec("motor", "mG_per_A"), ("motor_sd_mG_per_A", "REAL"), ("current_max_A", "REAL"), ("interference_pct", "REAL"),
     ("wmm_strength_mG", "REAL"), ("wmm_inclination_deg", "REAL"), ("wmm_declination_deg", "REAL"),
@@ -114,6 +114,10 @@ def _create(con: sqlite3.Connection) -> None:
     con.execute("CREATE TABLE IF NOT EXISTS flight_sites (log_hash TEXT PRIMARY KEY, site TEXT)")
     con.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT)")
     con.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+    have = {r[1] for r in con.execute("PRAGMA table_info(flights)")}
+    for name, kind in ROW_COLUMNS:          # a history written by an older version gains new columns
+        if name not in have:
+            con.execute(f'ALTER TABLE flights ADD COLUMN "{name}" {kind}')
 
 
 def connect(path: str | Path, read_only: bool = False) -> sqlite3.Connection:

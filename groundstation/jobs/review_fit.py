@@ -1,10 +1,19 @@
-"""In-flight fit of the compass against the WMM for `magstation review` (offset change, motor field).
+"""In-flight fit of the compass against the WMM for `magstation review` (offsets, motor field).
 
-Interim: the real-logs work brings ``estimators.wmm_fit`` / ``estimators.motor_field`` (yaw-free
-fits, soft-iron terms kept only where supported, every compass); ``review_row`` calls this module
-through one function, ``fit_inflight``, so the swap is local.
+``fit_compass(model, ...)`` is what ``review_row`` calls; two models:
 
-Model, in the frame of the corrections in force (m_c = C (m_raw − b), the autopilot's own
+* "residual_matrix" (default, ``fit_inflight`` below): the corrections in force as a strong prior,
+  a general 3×3 residual matrix (soft iron *and* small misalignment) and the motor field per ampere,
+  fitted against the attitude's yaw.
+* "wmm" (the real-logs work, ``estimators.motor_field.fit_motor_field`` /
+  ``estimators.wmm_fit.fit_wmm``): yaw-free unless the yaw is known independent, a symmetric
+  soft-iron matrix, the yaw's dependence on this compass diagnosed.  On the fleet simulator
+  (2° misalignment, two-leg flights, an autopilot yaw independent of the offsets) it is ~4× less
+  accurate and ~10× slower than "residual_matrix" (benchmarks/review.py prints both); on real
+  logs, whose EKF yaw follows the compass, its yaw-free fit is the honest one when enough
+  headings are flown.
+
+Model of "residual_matrix", in the frame of the corrections in force (m_c = C (m_raw − b), the autopilot's own
 calibration), with the autopilot's attitude C_b^n and the WMM field H (NED):
 
     m_c,i − C_b^n,iᵀ H  =  d + E · C_b^n,iᵀ H + k · I_i + noise
@@ -31,7 +40,9 @@ import numpy as np
 
 from estimators.rotations import dcm_body_to_ned
 
-__all__ = ["InflightFitSettings", "InflightFit", "fit_inflight"]
+__all__ = ["InflightFitSettings", "InflightFit", "fit_inflight", "CompassFit", "fit_compass", "FIT_MODELS"]
+
+FIT_MODELS = ("residual_matrix", "wmm")
 
 
 @dataclass(frozen=True)
@@ -119,3 +130,68 @@ def fit_inflight(corrected_mG: np.ndarray, roll_rad: np.ndarray, pitch_rad: np.n
                                         "; motor field not fitted (no current or it hardly varies)")
     return InflightFit("ok", msg, n, theta[:3].copy(), sd[:3].copy(), np.asarray(k, float), np.asarray(k_sd, float),
                        i_max, pct, float(np.sqrt(np.mean(e[w >= 1.0] ** 2))))
+
+
+@dataclass(frozen=True)
+class CompassFit:
+    """What the review row keeps of either model.  Offsets in the body-aligned raw frame
+    (m_cal = C (m_raw − b)); motor field per ampere in the corrected (≈ body) frame."""
+    model: str
+    status: str
+    message: str
+    samples: int
+    offsets_mG: np.ndarray
+    offsets_sd_mG: np.ndarray
+    motor_mG_per_A: np.ndarray
+    motor_sd_mG_per_A: np.ndarray
+    current_max_A: float
+    interference_pct: float
+    residual_rms_mG: float
+    yaw_dependence: float = float("nan")      # "wmm" only: ≈ 1 when the attitude yaw follows this compass
+
+
+def _from_residual_matrix(fit: InflightFit, b: np.ndarray, C: np.ndarray) -> CompassFit:
+    Ci = np.linalg.inv(C)
+    b_fit = b + Ci @ fit.offsets_change_mG
+    sd = np.sqrt(np.diag(Ci @ np.diag(fit.offsets_change_sd_mG ** 2) @ Ci.T))
+    return CompassFit("residual_matrix", fit.status, fit.message, fit.samples, b_fit, sd, fit.motor_mG_per_A,
+                      fit.motor_sd_mG_per_A, fit.current_max_A, fit.interference_pct, fit.residual_rms_mG)
+
+
+def _from_wmm(t_s, raw, att, field_ned_mG, current_A, C, corrected) -> CompassFit:
+    from estimators.motor_field import fit_motor_field
+    from estimators.wmm_fit import fit_wmm
+
+    args = (t_s, raw, att[:, 0], att[:, 1], att[:, 2], field_ned_mG)
+    kw = dict(attitude_rate_deg_s=att[:, 3], corrected_in_force_mG=corrected, nominal_matrix=C)
+    nan3 = np.full(3, np.nan)
+    if current_A is not None and np.isfinite(current_A).any():
+        mf = fit_motor_field(*args, current_A, **kw)
+        w = mf.wmm
+        if w is None:
+            return CompassFit("wmm", mf.status, mf.message, 0, nan3, nan3, nan3, nan3, np.nan, np.nan, np.nan)
+        motor, motor_sd = (mf.motor_mG_per_unit, mf.motor_sd_mG_per_unit) if mf.status == "ok" else (nan3, nan3)
+        pct = mf.interference_pct if mf.status == "ok" else np.nan
+        i_max = mf.signal_max
+    else:
+        w = fit_wmm(*args, **kw)
+        motor, motor_sd, pct, i_max = nan3, nan3, np.nan, np.nan
+    return CompassFit("wmm", w.status, w.message, w.n_used, w.offsets_mG, w.offsets_sd_mG, motor, motor_sd, i_max, pct,
+                      w.residual_rms_mG, w.yaw_dependence)
+
+
+def fit_compass(model: str, t_s: np.ndarray, raw_mG: np.ndarray, b_mG: np.ndarray, C: np.ndarray,
+                attitude: np.ndarray, field_ned_mG: np.ndarray, current_A: np.ndarray | None,
+                corrected_mG: np.ndarray, settings: InflightFitSettings = InflightFitSettings()) -> CompassFit:
+    """One compass's in-flight fit with ``model`` (``FIT_MODELS``) on samples already gated.
+
+    Args: t_s (N,); raw_mG (N,3) body-aligned raw field; b_mG, C the corrections in force;
+    attitude (N,4) roll, pitch, yaw [rad] and attitude rotation rate [deg/s]; field_ned_mG (3,) WMM;
+    current_A (N,) or None; corrected_mG (N,3) the field with the corrections in force.
+    Raises ValueError for an unknown model."""
+    if model == "residual_matrix":
+        fit = fit_inflight(corrected_mG, attitude[:, 0], attitude[:, 1], attitude[:, 2], field_ned_mG, current_A, settings)
+        return _from_residual_matrix(fit, b_mG, C)
+    if model == "wmm":
+        return _from_wmm(t_s, raw_mG, attitude, field_ned_mG, current_A, C, corrected_mG)
+    raise ValueError(f"unknown in-flight fit {model!r} (choose from {', '.join(FIT_MODELS)})")

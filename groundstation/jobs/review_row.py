@@ -33,7 +33,8 @@ from groundstation.io.params import (ardupilot_matrix, ardupilot_never_calibrate
 from groundstation.jobs.analyze import analyze_log
 from groundstation.jobs.calibrate import calibrate_log
 from groundstation.jobs.inputs import field_reference, rounded
-from groundstation.jobs.review_fit import InflightFitSettings, fit_inflight
+from groundstation.jobs.review_fit import FIT_MODELS, InflightFitSettings, fit_compass
+from estimators.log_alignment import attitude_at, interp_series
 from groundstation.samples import FlightLog
 
 __all__ = ["ReviewSettings", "review_log", "file_hash", "vehicle_identity", "corrections_in_force", "ROW_VERSION"]
@@ -44,10 +45,15 @@ _UID_TEXT = re.compile(r"^\S+\s+([0-9A-Fa-f]{8}\s+[0-9A-Fa-f]{8}\s+[0-9A-Fa-f]{8
 
 @dataclass(frozen=True)
 class ReviewSettings:
-    """What the per-log job does (units in the names)."""
+    """What the per-log job does (units in the names).  ``fit_model``: see ``review_fit.FIT_MODELS``."""
+    fit_model: str = "residual_matrix"
     fit: InflightFitSettings = field(default_factory=InflightFitSettings)
     alarm_margin_s: float = 5.0          # samples this close to an alarm are not fitted
     max_tilt_deg: float = 45.0           # steeper samples (dance, carried) are not fitted
+
+    def __post_init__(self) -> None:
+        if self.fit_model not in FIT_MODELS:
+            raise ValueError(f"unknown in-flight fit {self.fit_model!r} (choose from {', '.join(FIT_MODELS)})")
 
 
 def file_hash(path: str | os.PathLike, chunk_bytes: int = 1 << 20) -> str:
@@ -195,48 +201,42 @@ def corrections_in_force(params: dict, autopilot: str | None) -> tuple[np.ndarra
     return np.zeros(3), np.eye(3), "unknown"
 
 
-def _at(table: np.ndarray, t_s: np.ndarray, cols: slice, angle: bool = False) -> np.ndarray:
-    """Table columns interpolated at t_s; NaN outside the table's span."""
-    if len(table) < 2:
-        return np.full((len(t_s), cols.stop - cols.start), np.nan)
-    v = table[:, cols]
-    v = np.unwrap(v, axis=0) if angle else v
-    out = np.stack([np.interp(t_s, table[:, 0], v[:, j]) for j in range(v.shape[1])], axis=1)
-    out[(t_s < table[0, 0]) | (t_s > table[-1, 0])] = np.nan
-    return out
-
-
 def compass_fields(log: FlightLog, report: dict, ef, settings: ReviewSettings) -> dict:
     """Corrections in force, in-flight fit, field and heading residuals of the primary compass."""
     b, C, state = corrections_in_force(log.params, log.autopilot)
     raw, _ = unapply_onboard_calibration(log.mag[:, 1:4], log.params, log.autopilot, log.mag_calibration_applied)
     t = log.mag[:, 0]
     m_c = (raw - b) @ C.T
-    rp = _at(log.attitude, t, slice(1, 3))
-    yaw = _at(log.attitude, t, slice(3, 4), angle=True)[:, 0]
+    a = log.attitude
+    at = attitude_at(t, a[:, 0], a[:, 1], a[:, 2], a[:, 3]) if len(a) >= 2 else None
+    att = (np.column_stack([at.roll_rad, at.pitch_rad, at.yaw_rad, at.rate_deg_s]) if at is not None
+           else np.full((len(t), 4), np.nan))
     out: dict = {"cal_state": state, **{f"cal_ofs_{a}_mG": rounded(v, 2) for a, v in zip("xyz", b)}}
-    use = np.cos(rp[:, 0]) * np.cos(rp[:, 1]) >= np.cos(np.radians(settings.max_tilt_deg))
+    use = np.cos(att[:, 0]) * np.cos(att[:, 1]) >= np.cos(np.radians(settings.max_tilt_deg))
     for start, end in _windows(report):
         use &= ~((t >= start - settings.alarm_margin_s) & (t <= end + settings.alarm_margin_s))
     if ef is None:
         out["fit_status"] = "no_expected_field"
         return out
-    current = _at(log.battery, t, slice(1, 2))[:, 0] if len(log.battery) >= 10 else None
-    fit = fit_inflight(m_c[use], rp[use, 0], rp[use, 1], yaw[use], ef.field_ned_mG,
-                       current[use] if current is not None else None, settings.fit)
-    out.update(fit_status=fit.status, fit_samples=fit.samples)
+    current = None
+    if len(log.battery) >= 10:
+        cur, ok = interp_series(t, log.battery[:, 0], log.battery[:, 1], max_gap_s=1.0)
+        current = np.where(ok, cur[:, 0], np.nan)
+    fit = fit_compass(settings.fit_model, t[use], raw[use], b, C, att[use], ef.field_ned_mG,
+                      current[use] if current is not None else None, m_c[use], settings.fit)
+    out.update(fit_model=fit.model, fit_status=fit.status, fit_samples=fit.samples,
+               fit_yaw_dependence=rounded(fit.yaw_dependence, 3))
     if current is not None and np.all(np.isfinite(fit.motor_mG_per_A)):
         m_c = m_c - np.nan_to_num(current)[:, None] * fit.motor_mG_per_A   # the fitted motor field removed
-    out.update(field_residuals(m_c[use], rp[use], yaw[use], ef))
+    out.update(field_residuals(m_c[use], att[use, :2], att[use, 2], ef))
     if fit.status != "ok":
         return out
-    b_fit = b + np.linalg.solve(C, fit.offsets_change_mG)
-    sd = np.sqrt(np.diag(np.linalg.inv(C) @ np.diag(fit.offsets_change_sd_mG ** 2) @ np.linalg.inv(C).T))
-    out.update({f"fit_ofs_{a}_mG": rounded(v, 2) for a, v in zip("xyz", b_fit)})
-    out.update({f"fit_ofs_sd_{a}_mG": rounded(v, 3) for a, v in zip("xyz", sd)})
-    out.update({f"ofs_change_{a}_mG": rounded(v, 2) for a, v in zip("xyz", b_fit - b)})
-    out.update(ofs_change_mG=rounded(np.linalg.norm(b_fit - b), 2), fit_residual_rms_mG=rounded(fit.residual_rms_mG, 2),
-               current_max_A=rounded(fit.current_max_A, 2), interference_pct=rounded(fit.interference_pct, 2))
+    out.update({f"fit_ofs_{a}_mG": rounded(v, 2) for a, v in zip("xyz", fit.offsets_mG)})
+    out.update({f"fit_ofs_sd_{a}_mG": rounded(v, 3) for a, v in zip("xyz", fit.offsets_sd_mG)})
+    out.update({f"ofs_change_{a}_mG": rounded(v, 2) for a, v in zip("xyz", fit.offsets_mG - b)})
+    out.update(ofs_change_mG=rounded(np.linalg.norm(fit.offsets_mG - b), 2),
+               fit_residual_rms_mG=rounded(fit.residual_rms_mG, 2), current_max_A=rounded(fit.current_max_A, 2),
+               interference_pct=rounded(fit.interference_pct, 2))
     if np.all(np.isfinite(fit.motor_mG_per_A)):
         out.update({f"motor_{a}_mG_per_A": rounded(v, 3) for a, v in zip("xyz", fit.motor_mG_per_A)})
         out["motor_sd_mG_per_A"] = rounded(np.linalg.norm(fit.motor_sd_mG_per_A), 4)
