@@ -6,7 +6,8 @@ throughput with 1 and 2 Dask workers measured in the same run.
 
 The fleet (``groundstation.sim.fleet``) is generated once into ``--fleet DIR`` and reused.  Then:
 1. a plain loop over ``--serial-logs`` logs in this process (the peer: no Dask, as `magstation
-   calibrate` loops today);
+   calibrate` loops today), once with each in-flight fit (ours, and the real-logs WMM fit as peer),
+   scored against the truth on flights without interference away from the anomaly site;
 2. review with 1 worker, 2. review with 2 workers: each a fresh LocalCluster and a fresh history;
    the 2-worker run is scored against the truth (``groundstation.sim.fleet_score``).
 Prints one table: our figure, the target, the verdict; and the machine load (`uptime`) around each
@@ -23,13 +24,15 @@ import time
 from contextlib import closing
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from groundstation.io import fleet_db  # noqa: E402
 from groundstation.jobs.airframes import load_airframes  # noqa: E402
 from groundstation.jobs.fleet import discover_logs, fleet_client, run_review  # noqa: E402
-from groundstation.jobs.review_row import review_log  # noqa: E402
+from groundstation.jobs.review_row import ReviewSettings, review_log  # noqa: E402
 from groundstation.sim.fleet import TRUTH_NAME, FleetSettings, simulate_fleet  # noqa: E402
 from groundstation.sim.fleet_score import score_review  # noqa: E402
 
@@ -72,24 +75,38 @@ def timed_review(logs: list[Path], workers: int, db: Path, mapping) -> tuple[obj
                      "load_after": load_avg(), "rss_MB": per_worker, "rows": rows}
 
 
-def serial_peer(logs: list[Path]) -> dict:
+def serial_peer(logs: list[Path], truth: dict, model: str) -> dict:
+    """A plain loop (no Dask) of the per-log job with in-flight fit ``model``; its accuracy on the
+    flights without interference away from anomaly sites."""
     before = load_avg()
+    by_file = {f["file"]: f for f in truth["flights"]}
+    anomalous = {s["name"] for s in truth["sites"] if s["anomaly_ned_mG"]}
     t0 = time.perf_counter()
-    flight_s = 0.0
+    flight_s, ofs_err, motor_err = 0.0, [], []
     for p in logs:
-        head = review_log(p)[0]
+        head = review_log(p, ReviewSettings(fit_model=model))[0]
         if head.get("status") == "ok":
             flight_s += head.get("duration_s") or 0.0
+        f = by_file.get(f"{p.parent.name}/{p.name}")
+        if not f or f["interference"] or f["site"] in anomalous or head.get("fit_ofs_x_mG") is None:
+            continue
+        ofs_err.append(float(np.linalg.norm([head[f"fit_ofs_{a}_mG"] - v for a, v in zip("xyz", f["offsets_mG"])])))
+        if head.get("motor_x_mG_per_A") is not None:
+            k = np.array([head[f"motor_{a}_mG_per_A"] for a in "xyz"])
+            motor_err.append(float(np.linalg.norm(k - f["motor_mG_per_A"]) / np.linalg.norm(f["motor_mG_per_A"])))
     wall = time.perf_counter() - t0
+    pct = lambda v, q: float(np.percentile(v, q)) if v else float("nan")  # noqa: E731
     return {"wall_s": wall, "logs_per_s": len(logs) / wall, "s_per_flight_min": wall / (flight_s / 60.0)
-            if flight_s else float("nan"), "load_before": before, "load_after": load_avg(), "logs": len(logs)}
+            if flight_s else float("nan"), "load_before": before, "load_after": load_avg(), "logs": len(logs),
+            "ofs_med": pct(ofs_err, 50), "ofs_p90": pct(ofs_err, 90), "motor_med": pct(motor_err, 50),
+            "fitted": len(ofs_err)}
 
 
 def verdict(ok: bool) -> str:
     return "met" if ok else "MISSED"
 
 
-def table(score: dict, one, two, serial: dict, generated_s: float | None, flights_total: int) -> list[str]:
+def table(score: dict, one, two, serial: dict, wmm: dict, generated_s: float | None, flights_total: int) -> list[str]:
     d, p, s, i, c, f = (score[k] for k in ("drift", "payload", "anomaly_sites", "interference", "corrupt", "fit"))
     s1, m1 = one
     s2, m2 = two
@@ -112,6 +129,12 @@ def table(score: dict, one, two, serial: dict, generated_s: float | None, flight
          "(reported)", ""),
         ("motor field per A error, median", f"{100 * f['motor_rel_error_median']:.1f} %", "(reported)", ""),
         ("serial loop, no Dask (peer)", f"{serial['logs_per_s']:.2f} logs/s ({serial['logs']} logs)", "", ""),
+        ("in-flight fit residual_matrix (ours, default): offsets median / p90, motor",
+         f"{serial['ofs_med']:.1f} / {serial['ofs_p90']:.1f} mG, {100 * serial['motor_med']:.1f} % "
+         f"({serial['fitted']} flights, {serial['s_per_flight_min']:.3f} s per flight-minute)", "(reported)", ""),
+        ("in-flight fit wmm (estimators.wmm_fit, peer): offsets median / p90, motor",
+         f"{wmm['ofs_med']:.1f} / {wmm['ofs_p90']:.1f} mG, {100 * wmm['motor_med']:.1f} % "
+         f"({wmm['fitted']} flights, {wmm['s_per_flight_min']:.3f} s per flight-minute)", "(reported)", ""),
         ("1 worker", f"{m1['logs_per_s']:.2f} logs/s ({m1['wall_s']:.0f} s)", "", ""),
         ("2 workers", f"{m2['logs_per_s']:.2f} logs/s ({m2['wall_s']:.0f} s)", "", ""),
         ("2 workers / 1 worker", f"{speedup:.2f}x", f">= {TARGET_SPEEDUP}x", verdict(speedup >= TARGET_SPEEDUP)),
@@ -144,14 +167,15 @@ def main(argv: list[str] | None = None) -> int:
     truth, generated_s = ensure_fleet(fleet, a.vehicles, a.flights, a.seed)
     mapping = load_airframes(fleet / "airframes.json")
     logs = discover_logs([fleet])[: a.max_logs]
-    serial = serial_peer(logs[: a.serial_logs])
+    serial = serial_peer(logs[: a.serial_logs], truth, "residual_matrix")
+    wmm = serial_peer(logs[: a.serial_logs], truth, "wmm")
     with tempfile.TemporaryDirectory() as tmp:
         one = timed_review(logs, 1, Path(tmp) / "one.sqlite", mapping)
         two = timed_review(logs, 2, Path(tmp) / "two.sqlite", mapping)
         with closing(fleet_db.connect(Path(tmp) / "two.sqlite", read_only=True)) as con:
             alerts = fleet_db.alert_rows(con)
     score = score_review(truth, two[1]["rows"], alerts)
-    print("\n".join(table(score, one, two, serial, generated_s, len(truth["flights"]))))
+    print("\n".join(table(score, one, two, serial, wmm, generated_s, len(truth["flights"]))))
     missed = {k: v for k, v in score.items() if isinstance(v, dict) and (v.get("missed") or v.get("false")
                                                                         or v.get("not_reported"))}
     if missed:

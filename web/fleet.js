@@ -39,7 +39,9 @@ function drawHistory(h) {
   const svg = $("chart"), W = 900, H = 260, pad = 36;
   const flights = h.flights.filter((f) => f.start_unix_s && f.fit_ofs_x_mG !== null);
   if (!flights.length) { svg.innerHTML = "<text x='20' y='30'>no fitted flights</text>"; return; }
-  const ofs = flights.map((f) => [f.fit_ofs_x_mG, f.fit_ofs_y_mG, f.fit_ofs_z_mG]);
+  // the site's apparent offset (a local field) removed, as the drift test does
+  const ofs = flights.map((f) => [f.fit_ofs_x_mG - (f.site_offset_x_mG || 0), f.fit_ofs_y_mG - (f.site_offset_y_mG || 0),
+    f.fit_ofs_z_mG - (f.site_offset_z_mG || 0)]);
   const ref = [0, 1, 2].map((k) => { const v = ofs.slice(0, 5).map((o) => o[k]).sort((a, b) => a - b); return v[Math.floor(v.length / 2)]; });
   const drift = ofs.map((o) => Math.hypot(o[0] - ref[0], o[1] - ref[1], o[2] - ref[2]));
   const t = flights.map((f) => f.start_unix_s), t0 = Math.min(...t), t1 = Math.max(...t) + 1;

@@ -86,7 +86,8 @@ def default_db_path() -> Path:
 
 SITE_COLUMNS: tuple[tuple[str, str], ...] = (
     ("name", "TEXT"), ("lat_deg", "REAL"), ("lon_deg", "REAL"), ("flights", "INTEGER"), ("airframes_json", "TEXT"),
-    ("strength_effect_mG", "REAL"), ("inclination_effect_deg", "REAL"), ("anomaly", "INTEGER"))
+    ("strength_effect_mG", "REAL"), ("inclination_effect_deg", "REAL"), ("anomaly", "INTEGER"),
+    *_vec("offset_effect", "mG"))
 
 # worst flights first: combined alarms, then compass-vs-autopilot heading disagreement, then cross-track
 _CONCERN_SQL = "COALESCE(alarm_count, 0) DESC, COALESCE(heading_vs_autopilot_max_deg, 0) DESC, " \
@@ -109,6 +110,10 @@ def _create(con: sqlite3.Connection) -> None:
     con.execute(f"CREATE TABLE IF NOT EXISTS flights ({cols}, PRIMARY KEY (log_hash, compass))")
     con.execute("CREATE INDEX IF NOT EXISTS flights_airframe ON flights (airframe, start_unix_s)")
     con.execute(f"CREATE TABLE IF NOT EXISTS calibrations ({', '.join(f'{n} {t}' for n, t in CALIBRATION_COLUMNS)})")
+    for table, spec in (("alerts", ALERT_COLUMNS), ("sites", SITE_COLUMNS)):   # derived: rebuilt when the spec changed
+        have = [r[1] for r in con.execute(f"PRAGMA table_info({table})")]
+        if have and have != [n for n, _ in spec]:
+            con.execute(f"DROP TABLE {table}")
     con.execute(f"CREATE TABLE IF NOT EXISTS alerts ({', '.join(f'{n} {t}' for n, t in ALERT_COLUMNS)})")
     con.execute(f"CREATE TABLE IF NOT EXISTS sites ({', '.join(f'{n} {t}' for n, t in SITE_COLUMNS)})")
     con.execute("CREATE TABLE IF NOT EXISTS flight_sites (log_hash TEXT PRIMARY KEY, site TEXT)")
@@ -161,14 +166,17 @@ def known_hashes(con: sqlite3.Connection, only_ok: bool = False) -> dict[str, tu
 
 def flight_rows(con: sqlite3.Connection, airframe: str | None = None, limit: int | None = None,
                 order: str = "start_unix_s") -> list[dict]:
-    """Flight rows as dicts, oldest first (``order`` is one of a fixed set of columns)."""
+    """Flight rows as dicts, oldest first (``order`` is one of a fixed set of columns).  With an
+    ``airframe``, each row also has its site and that site's apparent offset (``site_offset_*_mG``)."""
     if order not in ("start_unix_s", "reviewed_unix_s", "ofs_change_mG", "alarm_count"):
         raise ValueError(f"cannot order by {order!r}")
-    sql, args = "SELECT * FROM flights", []
+    sql, args = "SELECT * FROM flights f", []
     if airframe is not None:
-        sql += " WHERE airframe = ?"
+        sql = ("SELECT f.*, s.name AS site, s.offset_effect_x_mG AS site_offset_x_mG, s.offset_effect_y_mG AS "
+               "site_offset_y_mG, s.offset_effect_z_mG AS site_offset_z_mG FROM flights f LEFT JOIN flight_sites fs "
+               "ON fs.log_hash = f.log_hash LEFT JOIN sites s ON s.name = fs.site WHERE f.airframe = ?")
         args.append(airframe)
-    sql += f' ORDER BY "{order}", log_hash, compass'
+    sql += f' ORDER BY f."{order}", f.log_hash, f.compass'
     if limit is not None:
         sql += " LIMIT ?"
         args.append(int(limit))
@@ -208,7 +216,8 @@ def replace_findings(con: sqlite3.Connection, alerts: Iterable[dict], sites: Ite
     names = [n for n, _ in ALERT_COLUMNS]
     snames = [n for n, _ in SITE_COLUMNS]
     site_data = [(s["name"], s["lat_deg"], s["lon_deg"], s["flights"], json.dumps(list(s.get("airframes", []))),
-                  s.get("strength_effect_mG"), s.get("inclination_effect_deg"), int(bool(s.get("anomaly"))))
+                  s.get("strength_effect_mG"), s.get("inclination_effect_deg"), int(bool(s.get("anomaly"))),
+                  *(list(s.get("offset_effect_mG") or [None] * 3)))
                  for s in sites]
     with con:
         for table in ("alerts", "sites", "flight_sites"):
@@ -241,7 +250,7 @@ def alert_rows(con: sqlite3.Connection) -> list[dict]:
 def airframe_summary(con: sqlite3.Connection) -> list[dict]:
     """Per airframe: flights, failed logs, first/last date, alarms, latest offset change and interference."""
     sql = """
-        SELECT airframe, COUNT(*) AS flights,
+        SELECT COALESCE(airframe, '(unreadable logs)') AS airframe, COUNT(*) AS flights,
                SUM(status NOT IN ('ok', 'no_mag')) AS failed,
                MIN(start_unix_s) AS first_unix_s, MAX(start_unix_s) AS last_unix_s,
                SUM(COALESCE(alarm_count, 0)) AS alarms,

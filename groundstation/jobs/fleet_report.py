@@ -62,20 +62,22 @@ def _dates(rows: list[dict]) -> np.ndarray:
     return np.array([np.datetime64(int(r["start_unix_s"]), "s") for r in rows])
 
 
-def _plot_drift(rows: list[dict], alerted: set[str]):
+def _plot_drift(rows: list[dict], alerted: set[str], findings: FleetFindings):
     import matplotlib.pyplot as plt
 
+    site_ofs = {s["name"]: np.asarray(s.get("offset_effect_mG") or np.zeros(3), float) for s in findings.sites}
     fig, ax = plt.subplots(figsize=(9, 4))
     for airframe in sorted({r["airframe"] for r in rows}):
         mine = [r for r in rows if r["airframe"] == airframe and r.get("fit_ofs_x_mG") is not None and r.get("start_unix_s")]
         if len(mine) < 2:
             continue
         ofs = np.array([[r[f"fit_ofs_{a}_mG"] for a in "xyz"] for r in mine], float)
+        ofs -= np.array([site_ofs.get(findings.site_of.get(r["log_hash"]), np.zeros(3)) for r in mine])
         ref = np.median(ofs[: min(5, len(ofs))], axis=0)
         ax.plot(_dates(mine), np.linalg.norm(ofs - ref, axis=1), "-" if airframe in alerted else ":",
                 lw=1.8 if airframe in alerted else 0.8, label=airframe if airframe in alerted else None)
     ax.set_ylabel("|fitted offsets − first flights| [mG]")
-    ax.set_title("Offset drift per airframe (solid: drift alert)")
+    ax.set_title("Offset drift per airframe, site effects removed (solid: drift alert)")
     if alerted:
         ax.legend(fontsize=8)
     fig.autofmt_xdate()
@@ -117,6 +119,8 @@ def _plot_sites(findings: FleetFindings, rows: list[dict]):
                     fontsize=7, xytext=(6, 6), textcoords="offset points")
     if findings.sites:
         fig.colorbar(sc, ax=ax, label="share of flights with alarms")
+    ax.ticklabel_format(useOffset=False)
+    ax.tick_params(axis="x", labelrotation=45)
     ax.set_xlabel("longitude [deg]")
     ax.set_ylabel("latitude [deg]")
     ax.set_title("Sites (size: flights; red ring: anomaly site)")
@@ -158,7 +162,7 @@ def write_html(rows: list[dict], findings: FleetFindings, path: str | Path, *, f
              f"{len(findings.sites)} sites, {len(failed)} failed logs; written {time.strftime('%Y-%m-%d %H:%M')}.</p>",
              "<h2>Alerts</h2>", _table([a for a in findings.alerts if a["kind"] != "interference"],
                                        [("kind", "kind"), ("airframe", "airframe"), ("site", "site"), ("message", "finding")]),
-             "<h2>Offset drift</h2>", _png(_plot_drift(ok, alerted)),
+             "<h2>Offset drift</h2>", _png(_plot_drift(ok, alerted, findings)),
              "<h2>Motor interference</h2>", _png(_plot_interference(ok)),
              "<h2>Sites and alarms</h2>", _png(_plot_sites(findings, ok)),
              "<h2>Worst flights</h2>", _table(worst, [

@@ -15,7 +15,8 @@ from groundstation.io import fleet_db
 router = APIRouter(prefix="/api/fleet", tags=["fleet"])
 
 HISTORY_COLUMNS = ("log_hash", "file_name", "date", "start_unix_s", "duration_s", "payload", "status", "error",
-                   "fit_status", "fit_ofs_x_mG", "fit_ofs_y_mG", "fit_ofs_z_mG", "ofs_change_mG", "interference_pct",
+                   "fit_status", "fit_ofs_x_mG", "fit_ofs_y_mG", "fit_ofs_z_mG", "site", "site_offset_x_mG",
+                   "site_offset_y_mG", "site_offset_z_mG", "ofs_change_mG", "interference_pct",
                    "strength_resid_mG", "inclination_resid_deg", "alarm_count", "alarm_evidence",
                    "heading_vs_autopilot_max_deg", "max_cross_track_m", "lat_deg", "lon_deg")
 
@@ -60,5 +61,5 @@ def airframe_history(airframe: str, request: Request) -> dict:
 @router.get("/flights", summary="reviewed flights, most concerning first")
 def worst_flights(request: Request, limit: int = Query(50, ge=1, le=1000)) -> list[dict]:
     with _reader(request) as con:
-        return [{k: r.get(k) for k in HISTORY_COLUMNS + ("airframe", "site")}
+        return [{k: r.get(k) for k in HISTORY_COLUMNS + ("airframe",)}
                 for r in fleet_db.worst_flight_rows(con, limit)]
