@@ -69,8 +69,8 @@ def timed_review(logs: list[Path], workers: int, db: Path, mapping) -> tuple[obj
         rows = fleet_db.flight_rows(con)
     per_worker: dict[str, float] = {}
     for r in rows:
-        if r.get("worker") and r.get("worker_rss_MB") is not None:
-            per_worker[r["worker"]] = max(per_worker.get(r["worker"], 0.0), r["worker_rss_MB"])
+        if r.get("worker") and r.get("worker_peak_rss_MB") is not None:
+            per_worker[r["worker"]] = max(per_worker.get(r["worker"], 0.0), r["worker_peak_rss_MB"])
     return summary, {"wall_s": wall, "logs_per_s": summary.progress.done / wall, "load_before": before,
                      "load_after": load_avg(), "rss_MB": per_worker, "rows": rows}
 

@@ -268,6 +268,25 @@ def test_airframe_mapping_json_and_csv(tmp_path):
         load_airframes(js)
 
 
+def test_vehicle_identity_order_and_the_station_helper(tmp_path):
+    from groundstation.jobs.airframes import airframe_for_vehicle, identity_key
+    from groundstation.jobs.review_row import vehicle_identity
+    from groundstation.samples import FlightLog, StatusSample
+
+    log = FlightLog("x", params={"SYSID_THISMAV": 1.0, "BRD_SERIAL_NUM": 0.0})
+    log.status.append(StatusSample(1.0, "statustext", "CubeOrange 00360024 3039510c 30393437"))
+    ident = vehicle_identity(log, Path("/logs/hexa/a.tlog"))
+    assert ident["identity"] == "uid:00360024 3039510C 30393437" and ident["identity_source"] == "board_uid"
+    assert identity_key({"MAV_SYS_ID": 7.0})["identity"] == "sysid:7"
+    assert identity_key({"SYSID_THISMAV": 1.0}, folder="hexa")["identity"] == "folder:hexa"   # default sysid 1
+    assert identity_key({"BRD_SERIAL_NUM": 7100.0, "SYSID_THISMAV": 4.0})["identity"] == "serial:7100"
+    (tmp_path / "m.json").write_text(json.dumps({"airframes": [{"match": {"sysid": 4}, "airframe": "quad-4"}]}))
+    entries = load_airframes(tmp_path / "m.json")
+    assert airframe_for_vehicle({"SYSID_THISMAV": 4.0}, entries) == "quad-4"
+    assert airframe_for_vehicle({"SYSID_THISMAV": 5.0}, entries) == "sysid:5"
+
+
+
 # ------------------------------------------------------------------------------ station router
 @pytest.fixture
 def fleet_app(tmp_path):

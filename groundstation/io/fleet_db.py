@@ -59,7 +59,7 @@ ROW_COLUMNS: tuple[tuple[str, str], ...] = tuple([
     ("mag_rate_hz", "REAL"), ("imu_rate_hz", "REAL"), ("att_rate_hz", "REAL"), ("gps_rate_hz", "REAL"),
     ("max_gap_s", "REAL"), ("corrupt_packets", "INTEGER"), ("warnings", "TEXT"),
     ("ellipsoid_status", "TEXT"), *_vec("ellipsoid_ofs", "mG"),
-    ("review_s", "REAL"), ("worker_rss_MB", "REAL"), ("worker", "TEXT"), ("reviewed_unix_s", "REAL"),
+    ("review_s", "REAL"), ("worker_peak_rss_MB", "REAL"), ("worker", "TEXT"), ("reviewed_unix_s", "REAL"),
     ("row_version", "INTEGER"),
 ])
 ROW_NAMES = tuple(n for n, _ in ROW_COLUMNS)

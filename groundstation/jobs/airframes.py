@@ -19,7 +19,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["AirframeEntry", "load_airframes", "resolve_airframe"]
+__all__ = ["AirframeEntry", "load_airframes", "resolve_airframe", "identity_key", "airframe_for_vehicle"]
 
 _KINDS = ("serial", "uid", "sysid", "folder", "path")
 
@@ -112,3 +112,34 @@ def resolve_airframe(row: dict, entries: list[AirframeEntry]) -> tuple[str, str 
     if best is None:
         return str(row.get("identity") or row.get("airframe") or "unknown"), None
     return best.airframe, best.payload
+
+
+def identity_key(params: dict, board_uid: str | None = None, folder: str | None = None) -> dict:
+    """sysid, serial, board_uid, identity (the key that names a vehicle) and identity_source.
+
+    Key order: ``serial:N`` (ArduPilot BRD_SERIAL_NUM when set), ``uid:...`` (the board's unique id
+    ArduPilot prints at boot), ``sysid:N`` (SYSID_THISMAV / MAV_SYS_ID when not the default 1),
+    ``folder:NAME`` (the log's folder), else ``unknown``."""
+    sysid = params.get("SYSID_THISMAV", params.get("MAV_SYS_ID"))
+    serial = params.get("BRD_SERIAL_NUM")
+    serial = str(int(serial)) if serial else None
+    if serial:
+        key, source = f"serial:{serial}", "serial"
+    elif board_uid:
+        key, source = f"uid:{board_uid}", "board_uid"
+    elif sysid is not None and int(sysid) != 1:
+        key, source = f"sysid:{int(sysid)}", "sysid"
+    elif folder:
+        key, source = f"folder:{folder}", "folder"
+    else:
+        key, source = "unknown", "none"
+    return {"sysid": int(sysid) if sysid is not None else None, "serial": serial, "board_uid": board_uid,
+            "identity": key, "identity_source": source}
+
+
+def airframe_for_vehicle(params: dict, entries: list[AirframeEntry] = (), board_uid: str | None = None,
+                         unix_s: float | None = None) -> str:
+    """The airframe name of a connected vehicle from its parameters (what the station passes to
+    ``record_calibration``): the mapping's name when an entry matches, else the identity key."""
+    row = dict(identity_key(params, board_uid), start_unix_s=unix_s)
+    return resolve_airframe(row, list(entries))[0]

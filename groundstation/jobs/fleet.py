@@ -76,8 +76,7 @@ def fleet_client(scheduler: str | None = None, workers: int = 2, memory_limit: s
         with Client(scheduler, timeout="20s") as client:
             yield client, client.dashboard_link if "dashboard" in client.scheduler_info().get("services", {}) else None
         return
-    config = {"distributed.scheduler.allowed-failures": 1, "distributed.worker.daemon": False,
-              "distributed.admin.tick.limit": "10s"}
+    config = {"distributed.scheduler.allowed-failures": 1}   # a log that kills its worker twice: an error row
     with dask.config.set(config), LocalCluster(
             n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
             dashboard_address="127.0.0.1:0", memory_limit=memory_limit, silence_logs=logging.ERROR) as cluster, \
@@ -203,7 +202,7 @@ def _account(summary: ReviewSummary, rows: list[dict]) -> list[dict]:
     if head.get("status") in FAILED:
         p.failed += 1
         summary.failures.append({k: head.get(k) for k in ("path", "status", "error")})
-    rss = [r["worker_rss_MB"] for r in rows if r.get("worker_rss_MB") is not None]
+    rss = [r["worker_peak_rss_MB"] for r in rows if r.get("worker_peak_rss_MB") is not None]
     if rss:
         summary.peak_worker_rss_MB = max(rss + [summary.peak_worker_rss_MB or 0.0])
     summary.log_seconds += head.get("review_s") or 0.0

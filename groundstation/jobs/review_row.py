@@ -30,6 +30,7 @@ from groundstation.io.fleet_db import empty_row
 from groundstation.io.logs import read_log
 from groundstation.io.params import (ardupilot_matrix, ardupilot_never_calibrated, detect_autopilot, px4_matrix,
                                      px4_slot, unapply_onboard_calibration)
+from groundstation.jobs.airframes import identity_key
 from groundstation.jobs.analyze import analyze_log
 from groundstation.jobs.calibrate import calibrate_log
 from groundstation.jobs.inputs import field_reference, rounded
@@ -96,42 +97,27 @@ def review_log(path: str | os.PathLike, settings: ReviewSettings = ReviewSetting
 def _finish(row: dict, t0: float) -> dict:
     """Runtime fields added; numpy scalars made plain Python (SQLite, pickling, Parquet)."""
     row["review_s"] = round(time.perf_counter() - t0, 4)
-    row["worker_rss_MB"] = _rss_MB()
+    row["worker_peak_rss_MB"] = _peak_rss_MB()
     return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in row.items()}
 
 
-def _rss_MB() -> float | None:
+def _peak_rss_MB() -> float | None:
+    """High-water mark of this process's resident memory (a worker's, when run on Dask)."""
     try:
-        import psutil
-        return round(psutil.Process().memory_info().rss / 2**20, 1)
-    except Exception:   # psutil missing or no /proc: not worth failing a row for
+        import resource
+        return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)   # kB on Linux
+    except (ImportError, OSError):
         return None
 
 
 # ------------------------------------------------------------------------------ per log
 def vehicle_identity(log: FlightLog, path: Path) -> dict:
-    """System id, board serial, board UID and the key that names the vehicle.
-
-    Key order: ``serial:N`` (ArduPilot BRD_SERIAL_NUM when set), ``uid:...`` (the board's unique id
-    ArduPilot prints at boot), ``sysid:N`` (SYSID_THISMAV / MAV_SYS_ID when not the default 1),
-    else ``folder:NAME`` (the log's folder).  An airframe mapping file overrides the name."""
-    p = log.params
-    sysid = p.get("SYSID_THISMAV", p.get("MAV_SYS_ID"))
-    serial = p.get("BRD_SERIAL_NUM")
-    serial = str(int(serial)) if serial else None
+    """System id, board serial, board UID and the key that names the vehicle
+    (``groundstation.jobs.airframes.identity_key``)."""
     uid = next((m.group(1).upper() for s in log.status if s.kind == "statustext"
                 for m in [_UID_TEXT.match(s.text)] if m), None)
-    if serial:
-        key, source = f"serial:{serial}", "serial"
-    elif uid:
-        key, source = f"uid:{uid}", "board_uid"
-    elif sysid is not None and int(sysid) != 1:
-        key, source = f"sysid:{int(sysid)}", "sysid"
-    else:
-        key, source = f"folder:{path.parent.name or '.'}", "folder"
-    return {"sysid": int(sysid) if sysid is not None else None, "serial": serial, "board_uid": uid,
-            "identity": key, "identity_source": source, "airframe": key,
-            "autopilot": log.autopilot or detect_autopilot(p)}
+    ident = identity_key(log.params, board_uid=uid, folder=path.parent.name or ".")
+    return {**ident, "airframe": ident["identity"], "autopilot": log.autopilot or detect_autopilot(log.params)}
 
 
 def _rate_hz(table: np.ndarray) -> float | None:
