@@ -117,6 +117,8 @@ def cmd_review(args: argparse.Namespace) -> int:
         _check_scheduler(args.scheduler)
     airframes = load_airframes(args.airframes) if args.airframes else None
     total = len(discover_logs(args.paths))
+    if not total:
+        raise ValueError(f"no .tlog/.bin/.ulg/.csv logs under {', '.join(args.paths)}")
     db = Path(args.db) if args.db else fleet_db.default_db_path()
     out = Path(args.out)
     progress = _Progress(total)

@@ -329,3 +329,23 @@ def test_station_app_serves_the_fleet_page_and_router(tmp_path, monkeypatch):
         assert page.status_code == 200 and "fleet.js" in page.text
     finally:
         session.close()
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    from groundstation.cli import main
+
+    (tmp_path / "empty").mkdir()
+    bad_map = tmp_path / "m.csv"
+    bad_map.write_text("key,airframe\nnokey,x\n")
+    log = tmp_path / "a.tlog"
+    log.write_bytes(b"1")
+    cases = [(["review", str(tmp_path / "empty")], "no .tlog/.bin/.ulg/.csv logs"),
+             (["review", str(tmp_path / "missing")], "no such file or folder"),
+             (["review", str(log), "--scheduler", "nohost"], "expected tcp://HOST:PORT"),
+             (["review", str(log), "--airframes", str(bad_map)], "must look like serial:7100"),
+             (["review", str(log), "--workers", "0"], "at least 1"),
+             (["simulate", "fleet", "--vehicles", "0", "--out", str(tmp_path / "f")], "at least 1 vehicle")]
+    for argv, text in cases:
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and text in err and "Traceback" not in err, (argv, err)
