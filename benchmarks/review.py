@@ -8,8 +8,9 @@ The fleet (``groundstation.sim.fleet``) is generated once into ``--fleet DIR`` a
 1. a plain loop over ``--serial-logs`` logs in this process (the peer: no Dask, as `magstation
    calibrate` loops today), once with each in-flight fit (ours, and the real-logs WMM fit as peer),
    scored against the truth on flights without interference away from the anomaly site;
-2. review with 1 worker, 2. review with 2 workers: each a fresh LocalCluster and a fresh history;
-   the 2-worker run is scored against the truth (``groundstation.sim.fleet_score``).
+2. review of the whole fleet with 2 workers, scored against the truth (``groundstation.sim.fleet_score``);
+3. review with 1 worker and with 2 workers of the first ``--throughput-logs`` logs (default all: then
+   the 2-worker figure is run 2's), each a fresh LocalCluster and a fresh history.
 Prints one table: our figure, the target, the verdict; and the machine load (`uptime`) around each
 timed part: the machine is shared, so speed figures depend on what else runs.
 """
@@ -106,12 +107,14 @@ def verdict(ok: bool) -> str:
     return "met" if ok else "MISSED"
 
 
-def table(score: dict, one, two, serial: dict, wmm: dict, generated_s: float | None, flights_total: int) -> list[str]:
+def table(score: dict, one, two, full, serial: dict, wmm: dict, generated_s: float | None, flights_total: int,
+          timed_logs: int) -> list[str]:
     d, p, s, i, c, f = (score[k] for k in ("drift", "payload", "anomaly_sites", "interference", "corrupt", "fit"))
     s1, m1 = one
     s2, m2 = two
+    sf, mf = full
     speedup = m2["logs_per_s"] / m1["logs_per_s"]
-    flight_min = s2.flight_seconds / 60.0
+    flight_min = sf.flight_seconds / 60.0
     rows = [
         ("planted drifts found", f"{d['found']}/{d['planted']}", "all", verdict(d["found"] == d["planted"])),
         ("false drift alerts on steady airframes", f"{len(d['false'])}/{d['steady_airframes']}", "0",
@@ -123,8 +126,9 @@ def table(score: dict, one, two, serial: dict, wmm: dict, generated_s: float | N
         ("interference events found", f"{i['found']}/{i['planted']} (median delay {i['median_delay_s']:.1f} s)"
          if i["median_delay_s"] is not None else f"{i['found']}/{i['planted']}", "all", verdict(i["found"] == i["planted"])),
         ("clean flights with an alarm", f"{i['false_alarm_flights']}/{i['clean_flights']}", "(reported)", ""),
-        ("damaged files reported, run not stopped", f"{c['reported']}/{c['planted']}, {s2.progress.done} logs done",
-         "all", verdict(c["reported"] == c["planted"] and s2.progress.left == 0)),
+        ("damaged files reported, run not stopped", f"{c['reported']}/{c['planted']}, {sf.progress.done} logs done",
+         "all", verdict(c["reported"] == c["planted"] and sf.progress.left == 0)),
+        ("whole fleet, 2 workers", f"{mf['logs_per_s']:.2f} logs/s ({mf['wall_s']:.0f} s)", "", ""),
         ("fitted offsets error median / p90", f"{f['offset_error_median_mG']:.1f} / {f['offset_error_p90_mG']:.1f} mG",
          "(reported)", ""),
         ("motor field per A error, median", f"{100 * f['motor_rel_error_median']:.1f} %", "(reported)", ""),
@@ -135,10 +139,10 @@ def table(score: dict, one, two, serial: dict, wmm: dict, generated_s: float | N
         ("in-flight fit wmm (estimators.wmm_fit, peer): offsets median / p90, motor",
          f"{wmm['ofs_med']:.1f} / {wmm['ofs_p90']:.1f} mG, {100 * wmm['motor_med']:.1f} % "
          f"({wmm['fitted']} flights, {wmm['s_per_flight_min']:.3f} s per flight-minute)", "(reported)", ""),
-        ("1 worker", f"{m1['logs_per_s']:.2f} logs/s ({m1['wall_s']:.0f} s)", "", ""),
-        ("2 workers", f"{m2['logs_per_s']:.2f} logs/s ({m2['wall_s']:.0f} s)", "", ""),
+        (f"1 worker ({timed_logs} logs)", f"{m1['logs_per_s']:.2f} logs/s ({m1['wall_s']:.0f} s)", "", ""),
+        (f"2 workers ({timed_logs} logs)", f"{m2['logs_per_s']:.2f} logs/s ({m2['wall_s']:.0f} s)", "", ""),
         ("2 workers / 1 worker", f"{speedup:.2f}x", f">= {TARGET_SPEEDUP}x", verdict(speedup >= TARGET_SPEEDUP)),
-        ("per-log cost (worker time / flight time)", f"{s2.log_seconds / flight_min:.3f} s per flight-minute",
+        ("per-log cost (worker time / flight time)", f"{sf.log_seconds / flight_min:.3f} s per flight-minute",
          "(reported)", ""),
         ("serial peer cost", f"{serial['s_per_flight_min']:.3f} s per flight-minute", "(reported)", ""),
         ("peak memory per worker (1 / 2 workers)", f"{max(m1['rss_MB'].values()):.0f} / "
@@ -149,8 +153,9 @@ def table(score: dict, one, two, serial: dict, wmm: dict, generated_s: float | N
            + (f", generated in {generated_s:.0f} s" if generated_s else " (reused)"),
            "| metric | ours | target | verdict |", "|---|---|---|---|"]
     out += [f"| {a} | {b} | {t} | {v} |" for a, b, t, v in rows]
-    out.append(f"load average (1/5/15 min) serial {serial['load_before']} -> {serial['load_after']}; "
-               f"1 worker {m1['load_before']} -> {m1['load_after']}; 2 workers {m2['load_before']} -> {m2['load_after']}")
+    out.append(f"load average (1/5/15 min) serial {serial['load_before']} -> {serial['load_after']}; whole fleet "
+               f"{mf['load_before']} -> {mf['load_after']}; 1 worker {m1['load_before']} -> {m1['load_after']}; "
+               f"2 workers {m2['load_before']} -> {m2['load_after']}")
     return out
 
 
@@ -162,6 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fleet", type=Path, help="fleet folder (default: a temp folder per size, reused)")
     ap.add_argument("--serial-logs", type=int, default=60, help="logs in the no-Dask peer loop")
     ap.add_argument("--max-logs", type=int, help="review only the first N logs (smoke runs; findings then incomplete)")
+    ap.add_argument("--throughput-logs", type=int,
+                    help="time 1 vs 2 workers on the first N logs (default: all, the 2-worker run is the scored one)")
     a = ap.parse_args(argv)
     fleet = a.fleet or Path(tempfile.gettempdir()) / f"magstation-fleet-{a.vehicles}x{a.flights}-s{a.seed}"
     truth, generated_s = ensure_fleet(fleet, a.vehicles, a.flights, a.seed)
@@ -169,13 +176,15 @@ def main(argv: list[str] | None = None) -> int:
     logs = discover_logs([fleet])[: a.max_logs]
     serial = serial_peer(logs[: a.serial_logs], truth, "residual_matrix")
     wmm = serial_peer(logs[: a.serial_logs], truth, "wmm")
+    subset = logs[: a.throughput_logs] if a.throughput_logs else logs
     with tempfile.TemporaryDirectory() as tmp:
-        one = timed_review(logs, 1, Path(tmp) / "one.sqlite", mapping)
-        two = timed_review(logs, 2, Path(tmp) / "two.sqlite", mapping)
-        with closing(fleet_db.connect(Path(tmp) / "two.sqlite", read_only=True)) as con:
+        full = timed_review(logs, 2, Path(tmp) / "full.sqlite", mapping)
+        with closing(fleet_db.connect(Path(tmp) / "full.sqlite", read_only=True)) as con:
             alerts = fleet_db.alert_rows(con)
-    score = score_review(truth, two[1]["rows"], alerts)
-    print("\n".join(table(score, one, two, serial, wmm, generated_s, len(truth["flights"]))))
+        one = timed_review(subset, 1, Path(tmp) / "one.sqlite", mapping)
+        two = full if subset == logs else timed_review(subset, 2, Path(tmp) / "two.sqlite", mapping)
+    score = score_review(truth, full[1]["rows"], alerts)
+    print("\n".join(table(score, one, two, full, serial, wmm, generated_s, len(truth["flights"]), len(subset))))
     missed = {k: v for k, v in score.items() if isinstance(v, dict) and (v.get("missed") or v.get("false")
                                                                         or v.get("not_reported"))}
     if missed:
