@@ -11,7 +11,8 @@ Method (rows = ``groundstation.io.fleet_db`` flight rows with status "ok"):
   max(``anomaly_strength_mG`` | ``anomaly_inclination_deg``, ``sigma_k`` · 1.2533 · σ / √n) is an
   anomaly site (σ: robust sd of the rest over the fleet, n: the site's flights).  The same polish of the fitted
   offsets gives each site's apparent offset (a local field adds a body-fixed vector in level
-  flight), removed before the drift test, so flights at an anomaly site do not look like drift.
+  flight), removed before the drift test; flights at an anomaly site are left out of it altogether
+  (how much of the local field goes into the fitted offsets depends on the headings flown).
 * **Offset drift**: per airframe and calibration segment (a recorded calibration, or a change of the
   corrections in force in the logs, starts a segment), the median of the fitted offsets over the
   last ``window_flights`` flights is compared with the median over the first ``window_flights``
@@ -23,8 +24,10 @@ Method (rows = ``groundstation.io.fleet_db`` flight rows with status "ok"):
   freedom: P(χ₃ > 5) = 1.5e-5 per test, ≈ 1.5 % for a thousand tests (20 airframes × 50 flights).
   The fit's own noise sd (``fit_ofs_sd_*``, from the sensor noise) is 5–20× smaller than the
   flight-to-flight scatter (attitude errors, soft-iron terms the short flights cannot separate);
-  flights whose fit sd exceeds ``max_fit_sd_mG`` (one heading only, most samples under an alarm)
-  are left out.
+  flights whose fit sd exceeds ``max_fit_sd_mG`` or ``fit_sd_ratio`` × the airframe's median fit
+  sd are left out (the headings flown did not separate the offsets: on the simulated fleet these
+  are the legs along magnetic east–west, 15–55 mG off against 2–5 mG for the rest), and so are flights with an interference alarm (the fit saw the disturbance) and
+  second copies of a flight (a GCS .tlog beside the onboard .bin: same airframe, same start).
 * **Calibration change**: each recorded calibration against the previous one of the same
   airframe and compass, alarm above ``floor_mG`` + ``sigma_k`` · √(f₁² + f₂²) (f: fitness, mG).
 * **Payload change**: the fitted motor field per ampere over an airframe's flights; the split that
@@ -62,12 +65,14 @@ class DriftSettings:
     floor_mG: float = 10.0
     min_scatter_mG: float = 1.0
     max_fit_sd_mG: float = 5.0
+    fit_sd_ratio: float = 2.0          # flights whose fit sd is above this × the airframe's median are left out
     site_radius_km: float = 2.0
     anomaly_strength_mG: float = 15.0
     anomaly_inclination_deg: float = 2.0
     anomaly_min_airframes: int = 2
     payload_floor_pct: float = 4.0
     payload_min_flights: int = 4
+    same_flight_s: float = 60.0        # rows of one airframe starting closer than this are one flight
 
 
 @dataclass
@@ -200,9 +205,28 @@ def _segments(rows: list[dict], cal_times: list[float]) -> list[list[dict]]:
     return [g for g in segs if g]
 
 
-def _drift_in_segment(seg: list[dict], site_of: dict, site_offsets: dict, s: DriftSettings) -> dict | None:
+def _distinct_clean_flights(rows: list[dict], same_flight_s: float) -> list[dict]:
+    """An airframe's rows (time order) without interference alarms, one per flight: a flight logged
+    twice (the GCS .tlog and the onboard .bin, or a damaged copy) keeps the row with fewer warnings."""
+    out: list[dict] = []
+    for r in rows:
+        if (r.get("alarm_count") or 0) > 0:
+            continue
+        if out and abs((r.get("start_unix_s") or 0.0) - (out[-1].get("start_unix_s") or 0.0)) < same_flight_s:
+            if (r.get("warnings") is None) and out[-1].get("warnings") is not None:
+                out[-1] = r
+            continue
+        out.append(r)
+    return out
+
+
+def _drift_in_segment(seg: list[dict], site_of: dict, site_offsets: dict, anomalous: set[str],
+                      s: DriftSettings) -> dict | None:
+    seg = [r for r in _distinct_clean_flights(seg, s.same_flight_s) if site_of.get(r["log_hash"]) not in anomalous]
     sd = np.nanmax(_vec(seg, "fit_ofs_sd"), axis=1) if seg else np.zeros(0)
-    use = [r for r, v in zip(seg, sd) if np.isfinite(v) and v <= s.max_fit_sd_mG]
+    typical = float(np.nanmedian(sd)) if np.isfinite(sd).any() else np.inf
+    limit = min(s.max_fit_sd_mG, s.fit_sd_ratio * typical)
+    use = [r for r, v in zip(seg, sd) if np.isfinite(v) and v <= limit]
     W = min(s.window_flights, len(use) // 2)
     if W < 3:
         return None
@@ -226,6 +250,7 @@ def _drift_in_segment(seg: list[dict], site_of: dict, site_offsets: dict, s: Dri
 
 
 def _payload_alert(rows: list[dict], s: DriftSettings) -> dict | None:
+    rows = _distinct_clean_flights(rows, s.same_flight_s)
     k = _vec(rows, "motor", "mG_per_A")
     keep = np.all(np.isfinite(k), axis=1)
     rows, k = [r for r, ok in zip(rows, keep) if ok], k[keep]
@@ -292,13 +317,14 @@ def analyse_fleet(rows: list[dict], calibrations: list[dict] = (), settings: Dri
     sites, site_of = assign_sites(ok, settings.site_radius_km)
     alerts, site_offsets = _site_alerts(ok, sites, site_of, settings) if ok else ([], {})
     cals = sorted(calibrations, key=lambda c: (c.get("unix_s") or 0.0))
+    anomalous = {site["name"] for site in sites if site.get("anomaly")}
     by_airframe: dict[str, list[dict]] = {}
     for r in ok:
         if (r.get("compass") or 0) == 0:
             by_airframe.setdefault(r["airframe"], []).append(r)
     for airframe, mine in sorted(by_airframe.items()):
         for seg in _segments(mine, [c["unix_s"] for c in cals if c["airframe"] == airframe]):
-            a = _drift_in_segment(seg, site_of, site_offsets, settings)
+            a = _drift_in_segment(seg, site_of, site_offsets, anomalous, settings)
             if a:
                 alerts.append(a)
         p = _payload_alert(mine, settings)
