@@ -32,7 +32,7 @@ from estimators.calibration import (EllipsoidFit, apply_calibration, fit_ellipso
                                     planarity_ratio, sphere_coverage)
 
 __all__ = ["WindowSettings", "CalWindow", "WindowSearch", "find_calibration_windows", "field_direction_rate_deg_s",
-           "fit_window"]
+           "fit_window", "judge_window"]
 
 
 @dataclass(frozen=True)
@@ -150,7 +150,8 @@ def fit_window(mag_raw_mG: np.ndarray, settings: WindowSettings = WindowSettings
     return "sphere", sphere
 
 
-def _judge(t0: float, t1: float, src: str, m: np.ndarray, s: WindowSettings) -> CalWindow:
+def judge_window(t0: float, t1: float, src: str, m: np.ndarray, s: WindowSettings = WindowSettings()) -> CalWindow:
+    """Fit one window's raw samples (N,3) and judge its sufficiency (step 3 of the module docstring)."""
     nan3 = np.full(3, np.nan)
     n = int(np.all(np.isfinite(m), axis=1).sum())
     model, fit = fit_window(m, s)
@@ -201,7 +202,7 @@ def find_calibration_windows(t_s: np.ndarray, mag_raw_mG: np.ndarray, *, rate_de
     if not spans:
         return WindowSearch("no_window", f"no stretch rotating faster than {s.min_rate_deg_s:.0f} deg/s for "
                             f"{s.min_span_s:.0f} s and no calibration markers", (), None, s)
-    windows = tuple(_judge(a, b, src, m[(t >= a) & (t <= b)], s) for a, b, src in _merge(spans))
+    windows = tuple(judge_window(a, b, src, m[(t >= a) & (t <= b)], s) for a, b, src in _merge(spans))
     ok = [i for i, w in enumerate(windows) if w.sufficient]
     if not ok:
         why = "; ".join(f"{w.start_s:.0f}-{w.end_s:.0f} s: {w.reason}" for w in windows)

@@ -15,14 +15,14 @@ Contents
 * ``RlsGeneralEllipsoid`` — seed 004 step 1 (claim 3, step 12): RLS on the 9-parameter general
   quadric  v·[x², y², z², 2xy, 2xz, 2yz, 2x, 2y, 2z] = 1  (offsets + full symmetric matrix:
   sensitivity, non-orthogonality and soft iron together).
-* ``fit_ellipsoid_robust`` — batch refinement.  Choice and why: an algebraic least-squares quadric
+* ``fit_ellipsoid_robust`` (in estimators.ellipsoid_fit, re-exported here) — batch refinement.  Choice and why: an algebraic least-squares quadric
   fit (closed form, no start value needed, in centred/normalised coordinates for conditioning)
   gives the start; it is biased (the algebraic distance weights points unevenly), so it is refined
   by Levenberg–Marquardt on the geometric residual r = |L(m − b)| − 1 (the physical quantity the
   issue asks to minimise, |m_cal| − F), with Huber IRLS weights (scale from the MAD) so spikes do not
   pull the fit, and hard rejection of points beyond ``outlier_sigma`` robust sigmas.  9 parameters,
   ~5–10 iterations, a few ms for 10,000 samples.
-* ``fit_sphere_robust`` — offsets + radius only, for sparse windows (a telemetry-rate dance).
+* ``fit_sphere_robust`` (estimators.ellipsoid_fit) — offsets + radius only, for sparse windows (a telemetry-rate dance).
   Both robust fits return the offsets covariance (σ²(JᵀWJ)⁻¹ of the last step), the quality
   measure of estimators.cal_windows.
 * ``estimate_misalignment`` — seed 004 step 2 (claim 4): sensor-to-body rotation from attitude
@@ -42,7 +42,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.rotations import dcm_body_to_ned, rotation_from_vector_rad, rotation_to_vector_deg
+from estimators.ellipsoid_fit import (EllipsoidFit, _calibration_from_shape, _finite_rows, _quadric_design,
+                                     _quadric_to_center_shape, _sym_sqrt, fit_ellipsoid_robust, fit_sphere_robust)
+from estimators.rotations import dcm_body_to_ned, rotation_to_vector_deg
 
 __all__ = [
     "RlsEllipsoidCalibrator", "seed000_solve_batch", "seed000_params_from_c", "refine_seed000_batch",
@@ -52,11 +54,6 @@ __all__ = [
     "fit_ellipse_2d", "sphere_coverage", "coverage_cells", "rotation_progress_deg",
     "planarity_ratio",
 ]
-
-
-def _finite_rows(x: np.ndarray) -> np.ndarray:
-    x = np.asarray(x, dtype=float).reshape(-1, 3)
-    return x[np.all(np.isfinite(x), axis=1)]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -227,42 +224,6 @@ class RlsEllipsoidCalibrator:
 # General ellipsoid (offsets + full symmetric matrix)
 # ---------------------------------------------------------------------------------------------
 
-def _quadric_design(z: np.ndarray) -> np.ndarray:
-    x, y, w = z[:, 0], z[:, 1], z[:, 2]
-    return np.stack([x * x, y * y, w * w, 2 * x * y, 2 * x * w, 2 * y * w, 2 * x, 2 * y, 2 * w], axis=1)
-
-
-def _quadric_to_center_shape(v: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """v·[x², y², z², 2xy, 2xz, 2yz, 2x, 2y, 2z] = 1  ->  (centre c, Q) with (x−c)ᵀQ(x−c) = 1, Q ≻ 0."""
-    A = np.array([[v[0], v[3], v[4]], [v[3], v[1], v[5]], [v[4], v[5], v[2]]])
-    g = v[6:9]
-    try:
-        c = -np.linalg.solve(A, g)
-    except np.linalg.LinAlgError:
-        return None
-    k = 1.0 + c @ A @ c
-    if not np.isfinite(k) or abs(k) < 1e-12:
-        return None
-    Q = A / k
-    w = np.linalg.eigvalsh(Q)
-    if not np.all(np.isfinite(w)) or w[0] <= 0:
-        return None
-    return c, Q
-
-
-def _sym_sqrt(Q: np.ndarray) -> np.ndarray:
-    w, V = np.linalg.eigh(Q)
-    return (V * np.sqrt(np.maximum(w, 0))) @ V.T
-
-
-def _calibration_from_shape(center: np.ndarray, L: np.ndarray, field_strength_mG: float | None
-                            ) -> tuple[np.ndarray, np.ndarray, float]:
-    """|L(m − center)| = 1  ->  (b, C, F): C = F·L with det C = 1 unless F is given."""
-    det = float(np.linalg.det(L))
-    F = float(field_strength_mG) if field_strength_mG else det ** (-1.0 / 3.0)
-    return center, F * L, F
-
-
 class RlsGeneralEllipsoid:
     """Seed 004 step 1: recursive LS on the general quadric (9 parameters), per-sample update.
 
@@ -297,199 +258,6 @@ class RlsGeneralEllipsoid:
         c, Q = cs
         b, C, _ = _calibration_from_shape(c * self.scale, _sym_sqrt(Q) / self.scale, field_strength_mG)
         return b, C
-
-
-@dataclass(frozen=True)
-class EllipsoidFit:
-    """Result of ``fit_ellipsoid_robust``.  ``ok`` False -> ``reason`` says why; arrays then NaN."""
-    ok: bool
-    reason: str
-    offsets_mG: np.ndarray
-    matrix: np.ndarray               # symmetric C, m_cal = C (m − b)
-    field_strength_mG: float         # |m_cal| of the fit
-    residual_rms_mG: float           # RMS of |m_cal| − F over inliers
-    inliers: np.ndarray              # bool mask over the *finite* input rows
-    n_used: int
-    condition_number: float          # of the normalised algebraic design matrix
-    iterations: int
-    # Covariance [mG²] of offsets_mG: σ²(JᵀWJ)⁻¹ of the final LM step (σ: inlier residual scale);
-    # None for a failed fit.
-    offsets_cov_mG2: np.ndarray | None = None
-
-
-def _failed_fit(reason: str, n: int, cond: float = float("inf")) -> EllipsoidFit:
-    nan3 = np.full(3, np.nan)
-    return EllipsoidFit(False, reason, nan3, np.full((3, 3), np.nan), float("nan"), float("nan"),
-                        np.zeros(n, bool), 0, cond, 0)
-
-
-def _sym_from6(p: np.ndarray) -> np.ndarray:
-    return np.array([[p[0], p[3], p[4]], [p[3], p[1], p[5]], [p[4], p[5], p[2]]])
-
-
-def fit_ellipsoid_robust(mag_raw_mG: np.ndarray, field_strength_mG: float | None = None,
-                         max_iter: int = 30, huber_k: float = 1.345, outlier_sigma: float = 5.0,
-                         ) -> EllipsoidFit:
-    """Robust batch ellipsoid fit (offsets + full symmetric C); see module docstring for the method.
-
-    Non-finite rows are dropped first (``inliers`` indexes the finite rows only; use
-    ``np.all(np.isfinite(m), 1)`` to map back).  Gross outliers are removed before the algebraic
-    start (radius from the median centre beyond 8 robust sigmas), the LM loop uses Huber
-    weights with hard rejection beyond ``outlier_sigma`` robust sigmas.
-    """
-    m = _finite_rows(mag_raw_mG)
-    n = len(m)
-    if n < 12:
-        return _failed_fit(f"too few finite samples ({n})", n)
-    # Gross-outlier screen around the median centre.
-    med = np.median(m, axis=0)
-    r = np.linalg.norm(m - med, axis=1)
-    r_med = np.median(r)
-    r_mad = 1.4826 * np.median(np.abs(r - r_med)) + 1e-9 * (r_med + 1.0)
-    keep = np.abs(r - r_med) < 8.0 * r_mad + 0.5 * r_med
-    mu = m[keep].mean(axis=0)
-    s = float(np.sqrt(np.mean(np.sum((m[keep] - mu) ** 2, axis=1))))
-    if not np.isfinite(s) or s <= 0:
-        return _failed_fit("samples do not vary", n)
-    z_all = (m - mu) / s
-    D = _quadric_design(z_all[keep])
-    DtD = D.T @ D
-    ev = np.linalg.eigvalsh(DtD)
-    cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
-    try:
-        v = np.linalg.solve(DtD, D.sum(axis=0))
-    except np.linalg.LinAlgError:
-        return _failed_fit("algebraic fit is singular (data too planar or sparse)", n, cond)
-    cs = _quadric_to_center_shape(v)
-    if cs is None:
-        return _failed_fit("algebraic fit is not an ellipsoid (data too planar or sparse)", n, cond)
-    c, Q = cs
-    L = _sym_sqrt(Q)
-    p = np.concatenate([c, [L[0, 0], L[1, 1], L[2, 2], L[0, 1], L[0, 2], L[1, 2]]])
-
-    def residual(p):
-        w = z_all - p[:3]
-        Lm = _sym_from6(p[3:])
-        vv = w @ Lm  # = L w (L symmetric)
-        nv = np.sqrt(np.einsum("ij,ij->i", vv, vv))
-        return nv - 1.0, (w, Lm, vv, nv)
-
-    def jacobian(aux):
-        w, Lm, vv, nv = aux
-        u = vv / np.maximum(nv, 1e-12)[:, None]
-        J = np.empty((n, 9))
-        J[:, :3] = -(u @ Lm)
-        J[:, 3:6] = u * w
-        J[:, 6] = u[:, 0] * w[:, 1] + u[:, 1] * w[:, 0]
-        J[:, 7] = u[:, 0] * w[:, 2] + u[:, 2] * w[:, 0]
-        J[:, 8] = u[:, 1] * w[:, 2] + u[:, 2] * w[:, 1]
-        return J
-
-    def weights(res, mask):
-        sig = 1.4826 * np.median(np.abs(res[mask])) + 1e-12
-        a = np.abs(res) / sig
-        wt = np.where(a <= huber_k, 1.0, huber_k / np.maximum(a, 1e-12))
-        inl = a < outlier_sigma
-        return wt * inl, inl
-
-    res, aux = residual(p)
-    wt, inl = weights(res, keep)
-    wt, inl = wt * keep, inl & keep
-    lam = 1e-4
-    it = 0
-    for it in range(1, max_iter + 1):
-        J = jacobian(aux)
-        cost = np.sum(wt * res * res)
-        JW = J * wt[:, None]
-        H = JW.T @ J
-        g = JW.T @ res
-        improved = False
-        step = np.zeros(9)
-        for _ in range(8):
-            try:
-                step = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), -g)
-            except np.linalg.LinAlgError:
-                break
-            res_new, aux_new = residual(p + step)
-            if np.all(np.isfinite(res_new)) and np.sum(wt * res_new * res_new) <= cost:
-                p, res, aux = p + step, res_new, aux_new
-                lam = max(lam / 10, 1e-9)
-                improved = True
-                break
-            lam *= 10
-        wt, inl = weights(res, inl)
-        if not improved or np.max(np.abs(step)) < 1e-7:
-            break
-    L = _sym_from6(p[3:])
-    if np.linalg.eigvalsh(L)[0] <= 0:
-        return _failed_fit("refined fit is not an ellipsoid", n, cond)
-    b, C, F = _calibration_from_shape(mu + s * p[:3], L / s, field_strength_mG)
-    rms = float(F * np.sqrt(np.mean(res[inl] ** 2))) if np.any(inl) else float("nan")
-    cov = _offsets_covariance(jacobian(aux), res, wt, s, 9)
-    return EllipsoidFit(True, "", b, C, F, rms, inl, int(inl.sum()), cond, it, cov)
-
-
-def _offsets_covariance(J: np.ndarray, res: np.ndarray, wt: np.ndarray, scale: float, n_params: int) -> np.ndarray:
-    """σ²(JᵀWJ)⁻¹ restricted to the centre (first 3 parameters, normalised units) times scale²."""
-    dof = max(float(np.sum(wt > 0)) - n_params, 1.0)
-    sigma2 = float(np.sum(wt * res * res) / dof)
-    try:
-        cov = np.linalg.inv((J * wt[:, None]).T @ J)[:3, :3] * sigma2 * scale * scale
-    except np.linalg.LinAlgError:
-        cov = np.full((3, 3), np.inf)
-    return cov if np.all(np.isfinite(cov)) else np.full((3, 3), np.inf)
-
-
-def fit_sphere_robust(mag_raw_mG: np.ndarray, max_iter: int = 30, huber_k: float = 1.345,
-                      outlier_sigma: float = 5.0) -> EllipsoidFit:
-    """Robust sphere fit (offsets + radius, 4 parameters): the model for sparse windows (a 1–4 Hz
-    telemetry dance of 20–60 samples), as ArduPilot's calibrator runs a sphere fit before its
-    ellipsoid fit (CompassCalibrator::run_sphere_fit).  Start: linear LS |m|² = 2m·c + k; then
-    Gauss–Newton on |m − c| − R with Huber weights and rejection beyond ``outlier_sigma``.
-    Returns an EllipsoidFit with matrix = I and field_strength_mG = R."""
-    m = _finite_rows(mag_raw_mG)
-    n = len(m)
-    if n < 8:
-        return _failed_fit(f"too few finite samples ({n})", n)
-    mu = m.mean(axis=0)
-    sc = float(np.sqrt(np.mean(np.sum((m - mu) ** 2, axis=1))))
-    if not np.isfinite(sc) or sc <= 0:
-        return _failed_fit("samples do not vary", n)
-    z = (m - mu) / sc
-    A = np.column_stack([2 * z, np.ones(n)])
-    ev = np.linalg.eigvalsh(A.T @ A)
-    cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
-    sol, *_ = np.linalg.lstsq(A, np.sum(z * z, axis=1), rcond=None)
-    c = sol[:3]
-    R = float(np.sqrt(max(sol[3] + c @ c, 1e-12)))
-    wt = np.ones(n)
-    inl = np.ones(n, bool)
-    it = 0
-    for it in range(1, max_iter + 1):
-        d = z - c
-        nd = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
-        res = nd - R
-        sig = 1.4826 * np.median(np.abs(res[inl])) + 1e-12
-        a = np.abs(res) / sig
-        inl = a < outlier_sigma
-        wt = np.where(a <= huber_k, 1.0, huber_k / np.maximum(a, 1e-12)) * inl
-        J = np.column_stack([-d / nd[:, None], -np.ones(n)])
-        try:
-            step = np.linalg.solve((J * wt[:, None]).T @ J, -(J * wt[:, None]).T @ res)
-        except np.linalg.LinAlgError:
-            return _failed_fit("sphere fit is singular", n, cond)
-        c, R = c + step[:3], R + step[3]
-        if np.max(np.abs(step)) < 1e-9:
-            break
-    d = z - c
-    nd = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
-    res = nd - R
-    J = np.column_stack([-d / nd[:, None], -np.ones(n)])
-    if not (np.isfinite(R) and R > 0):
-        return _failed_fit("sphere fit diverged", n, cond)
-    rms = float(sc * np.sqrt(np.mean(res[inl] ** 2))) if np.any(inl) else float("nan")
-    cov = _offsets_covariance(J, res, wt, sc, 4)
-    return EllipsoidFit(True, "", mu + sc * c, np.eye(3), sc * R, rms, inl, int(inl.sum()), cond, it, cov)
 
 
 def apply_calibration(mag_raw_mG: np.ndarray, offsets_mG: np.ndarray, matrix: np.ndarray) -> np.ndarray:

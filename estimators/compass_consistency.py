@@ -8,7 +8,8 @@ with the primary's corrected body-frame field; it is inconsistent when
 (3.x firmware used 50°, 30° and 100 mG).  Those limits only catch gross faults, so every pair is
 also summarised (median and 95th percentile of the 3-D angle and of the field-strength difference)
 and the compass that disagrees is named: with three compasses, the one whose median angle to both
-others exceeds ``name_angle_deg`` while the other two agree within half of it; with two, the one
+others exceeds ``name_angle_deg`` while the other two agree within that and within a third of it
+(likewise for the field strength: beyond ``name_strength_mG``, the other two within half of it); with two, the one
 whose field strength is farther from the WMM strength when that is given, else none.
 
 Statuses: ok | inconsistent (a pair fails ArduPilot's check on more than ``fail_fraction`` of the
@@ -88,11 +89,11 @@ def _odd_one(pairs: list[PairConsistency], k: int, strengths: list[float], expec
         for c in range(3):
             mine = [p for p in pairs if c in (p.a, p.b)]
             rest = [p for p in pairs if c not in (p.a, p.b)][0]
-            if (all(p.angle_median_deg > s.name_angle_deg for p in mine)
-                    and rest.angle_median_deg <= s.name_angle_deg / 2):
+            ang = min(p.angle_median_deg for p in mine)
+            if ang > s.name_angle_deg and rest.angle_median_deg <= min(s.name_angle_deg, ang / 3):
                 return c
-            if (all(abs(p.strength_diff_median_mG) > s.name_strength_mG for p in mine)
-                    and abs(rest.strength_diff_median_mG) <= s.name_strength_mG / 2):
+            dif = min(abs(p.strength_diff_median_mG) for p in mine)
+            if dif > s.name_strength_mG and abs(rest.strength_diff_median_mG) <= min(s.name_strength_mG, dif / 2):
                 return c
     if len(pairs) == 1 and expected is not None and np.isfinite(expected):
         p = pairs[0]

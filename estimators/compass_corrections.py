@@ -32,7 +32,8 @@ import numpy as np
 
 __all__ = ["CorrectionsInForce", "RawRebuild", "values_in_force", "ardupilot_param_names",
            "corrections_from_param_changes", "motor_offset_mG", "apply_ardupilot_corrections",
-           "unapply_ardupilot_corrections", "changes_summary", "correction_matrices", "MOTCT_DISABLED", "MOTCT_THROTTLE", "MOTCT_CURRENT"]
+           "unapply_ardupilot_corrections", "changes_summary", "correction_matrices", "CorrectionsTracker",
+           "MOTCT_DISABLED", "MOTCT_THROTTLE", "MOTCT_CURRENT"]
 
 MOTCT_DISABLED, MOTCT_THROTTLE, MOTCT_CURRENT = 0, 1, 2   # COMPASS_MOTCT
 
@@ -100,7 +101,7 @@ def values_in_force(t_s: np.ndarray, change_t_s: np.ndarray, change_values: np.n
 
 def ardupilot_param_names(instance: int) -> dict[str, list[str]]:
     """ArduPilot parameter names of compass ``instance`` (0-based): COMPASS_OFS_X, COMPASS_OFS2_X, ...
-    (the convention of groundstation.autopilot_params; COMPASS_MOTCT is shared by all compasses)."""
+    (the convention of groundstation.io.params; COMPASS_MOTCT is shared by all compasses)."""
     n = "" if instance == 0 else str(instance + 1)
     return {"offsets": [f"COMPASS_OFS{n}_{a}" for a in "XYZ"], "diag": [f"COMPASS_DIA{n}_{a}" for a in "XYZ"],
             "offdiag": [f"COMPASS_ODI{n}_{a}" for a in "XYZ"], "scale": [f"COMPASS_SCALE{n}"],
@@ -197,6 +198,24 @@ def apply_ardupilot_corrections(raw_mG: np.ndarray, corr: CorrectionsInForce, cu
     return x + mot if motor_after_matrix else x
 
 
+def _inverse_per_sample(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(det (N,), inverse (N,3,3)) of per-sample matrices that change only a few times in a log:
+    computed once per stretch of equal matrices (a singular or non-finite one gives det 0/NaN and
+    the identity as its 'inverse')."""
+    n = len(M)
+    if n == 0:
+        return np.zeros(0), np.zeros((0, 3, 3))
+    flat = M.reshape(n, 9)
+    starts = np.flatnonzero(np.r_[True, np.any(flat[1:] != flat[:-1], axis=1)])
+    seg = np.cumsum(np.isin(np.arange(n), starts)) - 1
+    Mu = M[starts]
+    det_u = np.linalg.det(np.where(np.isfinite(Mu), Mu, 0.0))
+    det_u[~np.all(np.isfinite(Mu.reshape(len(Mu), 9)), axis=1)] = np.nan
+    ok = np.isfinite(det_u) & (np.abs(det_u) > 1e-6)
+    inv_u = np.linalg.inv(np.where(ok[:, None, None], Mu, np.eye(3)))
+    return det_u[seg], inv_u[seg]
+
+
 def unapply_ardupilot_corrections(corrected_mG: np.ndarray, corr: CorrectionsInForce, current_A=None,
                                   throttle=None, logged_motor_offset_mG: np.ndarray | None = None,
                                   motor_after_matrix: bool = True) -> RawRebuild:
@@ -211,12 +230,11 @@ def unapply_ardupilot_corrections(corrected_mG: np.ndarray, corr: CorrectionsInF
     n = len(c)
     if n == 0:
         return RawRebuild(np.empty((0, 3)), np.zeros(0, bool), "no_data", "no samples")
-    M = correction_matrices(corr.diag, corr.offdiag)
-    det = np.linalg.det(M)
+    det, Minv = _inverse_per_sample(correction_matrices(corr.diag, corr.offdiag))
     good = corr.known & np.all(np.isfinite(c), axis=1) & np.isfinite(det) & (np.abs(det) > 1e-6)
     mot = motor_offset_mG(corr, current_A, throttle) if logged_motor_offset_mG is None \
         else np.nan_to_num(np.asarray(logged_motor_offset_mG, float).reshape(-1, 3))
-    Minv = np.linalg.inv(np.where(good[:, None, None], M, np.eye(3)))
+    Minv = np.where(good[:, None, None], Minv, np.eye(3))
     x = c - mot if motor_after_matrix else c
     x = np.einsum("nij,nj->ni", Minv, np.where(good[:, None], x, 0.0))
     if not motor_after_matrix:
@@ -242,3 +260,42 @@ def changes_summary(corr: CorrectionsInForce, t_s: Sequence[float]) -> list[tupl
     ch = np.nonzero(~same)[0] + 1
     idx = np.concatenate([[0], ch])
     return [(float(t[i]), [float(v) for v in corr.offsets_mG[i]]) for i in idx]
+
+
+class CorrectionsTracker:
+    """Per-sample twin of ``corrections_from_param_changes`` + ``unapply_ardupilot_corrections``
+    for a live link: parameter values go in as they arrive (PARAM_VALUE, SENSOR_OFFSETS as
+    COMPASS_OFS_*), each corrected sample is un-applied with the values in force at that moment.
+    Gives the batch numbers on every sample after the first offsets arrived (tested); before
+    that the raw field is unknown (NaN), where the batch form may assume the first reported values.
+    """
+
+    def __init__(self, instance: int = 0, motor_after_matrix: bool = True) -> None:
+        self.names = ardupilot_param_names(instance)
+        self.motor_after_matrix = motor_after_matrix
+        self.values: dict[str, float] = {}
+
+    def update(self, name: str, value: float) -> None:
+        """A parameter value seen now (names of other compasses are ignored)."""
+        if any(name in group for group in self.names.values()):
+            self.values[name] = float(value)
+
+    def in_force(self) -> CorrectionsInForce:
+        """The corrections in force now, as a one-sample CorrectionsInForce (defaults as the batch form)."""
+        get = lambda key, default: [self.values.get(n, default) for n in self.names[key]]  # noqa: E731
+        ofs = get("offsets", np.nan)
+        corr = CorrectionsInForce(np.array([ofs]), np.array([get("diag", 0.0)]), np.array([get("offdiag", 0.0)]),
+                                  np.array(get("scale", 0.0)), np.array([get("motor", 0.0)]),
+                                  np.array([int(self.values.get(self.names["motor_type"][0], 0))]),
+                                  np.array([bool(np.all(np.isfinite(ofs)))]))
+        return corr
+
+    def unapply(self, corrected_mG, current_A: float | None = None, throttle: float | None = None,
+                logged_motor_offset_mG=None) -> np.ndarray:
+        """Raw (3,) of one corrected sample; NaN while the offsets are unknown."""
+        logged = None if logged_motor_offset_mG is None else np.asarray(logged_motor_offset_mG, float).reshape(1, 3)
+        rebuilt = unapply_ardupilot_corrections(
+            np.asarray(corrected_mG, float).reshape(1, 3), self.in_force(),
+            None if current_A is None else np.array([current_A], float),
+            None if throttle is None else np.array([throttle], float), logged, self.motor_after_matrix)
+        return rebuilt.raw_mG[0]

@@ -32,6 +32,7 @@ telemetry samples are not independent).  Units: mG, rad.  Pure numpy.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -55,9 +56,18 @@ class FieldData:
     field_ned_mG: np.ndarray    # (3,)
 
     def tilt(self) -> np.ndarray:
+        """Ry(θ)Rx(φ) per sample (N,3,3); computed once (the solver asks for it every iteration)."""
+        return self._tilt
+
+    @cached_property
+    def _tilt(self) -> np.ndarray:
         return dcm_body_to_ned(self.roll_rad, self.pitch_rad, np.zeros_like(self.roll_rad))
 
     def expected_body_mG(self) -> np.ndarray:
+        return self._expected_body
+
+    @cached_property
+    def _expected_body(self) -> np.ndarray:
         C = dcm_body_to_ned(self.roll_rad, self.pitch_rad, self.yaw_rad)
         return np.einsum("nji,j->ni", C, self.field_ned_mG)
 

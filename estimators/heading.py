@@ -1,12 +1,14 @@
 """Tilt-compensated magnetic heading, true heading, velocity split and the heading chain (seed 000 sec. 2).
 
 Chain per IMU sample (seed 000 sec. 2.1–2.2):
-  1. gravity vector filter (accelerometer + gyro, eq. 9 form) → roll φ, pitch θ;
-  2. field vector filter (calibrated magnetometer + gyro, eq. 9/10) → Ĥ^b;
-  3. eqs. (11)–(12) project Ĥ^b onto the horizontal plane, eq. (13) gives the magnetic heading in
-     all four quadrants (we use atan2(−H_Y, H_X), wrapped to [0, 2π), which is eq. (13) case by
-     case); true heading ψ = ψ_m + α with α the declination (WMM, estimators.geomag).
-  4. GPS NED velocity split into forward/lateral with the heading (seed 000 sec. 3.3).
+  1. attitude: by default the AHRS of estimators/ahrs.py (two-stage gravity and field vector
+     filters with gyro-bias estimation, acceleration and magnetic rejection); with
+     ``HeadingChainSettings(estimator="seed000")`` seed 000's two vector complementary filters
+     (estimators/attitude.py: gravity → roll φ, pitch θ; field eq. 9/10 → Ĥ^b);
+  2. eqs. (11)–(12) project the field onto the horizontal plane, eq. (13) gives the magnetic heading
+     in all four quadrants (atan2(−H_Y, H_X) in [0, 2π), which is eq. (13) case by case); true
+     heading ψ = ψ_m + α with α the declination (WMM, estimators.geomag);
+  3. GPS NED velocity split into forward/lateral with the heading (seed 000 sec. 3.3).
 
 ``run_heading_chain`` (batch, replay) and ``HeadingChain`` (per sample, live) give the same numbers.
 Units: rad internally, mG, rad/s, m/s^2; body FRD, navigation NED; headings clockwise from north.
@@ -18,16 +20,18 @@ from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
-from estimators.rotations import TWO_PI
-
+from estimators.ahrs import Ahrs, AhrsSettings, ExpectedField
+from estimators.ahrs_batch import run_ahrs
 from estimators.attitude import (FieldVectorFilter, GravityVectorFilter, VectorFilterSettings,
                                  roll_pitch_from_specific_force, run_vector_filter)
+from estimators.rotations import wrap_heading_rad, wrap_heading_rad_float
 
 __all__ = [
     "tilt_compensated_heading_rad", "split_velocity",
     "HeadingChainSettings", "HeadingChainResult", "HeadingState", "HeadingChain", "run_heading_chain",
+    "ESTIMATORS",
 ]
-
+ESTIMATORS = ("ahrs", "seed000")
 
 
 def tilt_compensated_heading_rad(mag_body_mG, roll_rad, pitch_rad):
@@ -44,7 +48,7 @@ def tilt_compensated_heading_rad(mag_body_mG, roll_rad, pitch_rad):
     sr, cr, sp, cp = np.sin(r), np.cos(r), np.sin(p), np.cos(p)
     hx = m[..., 0] * cp + m[..., 1] * sp * sr + m[..., 2] * sp * cr
     hy = m[..., 1] * cr - m[..., 2] * sr
-    return np.mod(np.arctan2(-hy, hx), TWO_PI)
+    return wrap_heading_rad(np.arctan2(-hy, hx))
 
 
 def split_velocity(vel_north_mps, vel_east_mps, heading_rad):
@@ -58,24 +62,47 @@ def split_velocity(vel_north_mps, vel_east_mps, heading_rad):
 
 @dataclass(frozen=True)
 class HeadingChainSettings:
+    """``estimator``: "ahrs" (default, estimators/ahrs.py with ``ahrs``) or "seed000" (seed 000's
+    vector complementary filters with ``field`` and ``gravity``)."""
+    estimator: str = "ahrs"
+    ahrs: AhrsSettings = dc_field(default_factory=AhrsSettings)
     field: VectorFilterSettings = dc_field(default_factory=lambda: VectorFilterSettings(gain_per_s=0.5))
     gravity: VectorFilterSettings = dc_field(default_factory=lambda: VectorFilterSettings(gain_per_s=0.2))
+
+    def __post_init__(self):
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"estimator must be one of {ESTIMATORS}, not {self.estimator!r}")
+
+
+def _zeros3() -> np.ndarray:
+    return np.zeros((0, 3))
+
+
+def _no_flags() -> np.ndarray:
+    return np.zeros(0, bool)
 
 
 @dataclass
 class HeadingChainResult:
     """Arrays on the IMU time base (length N). Headings in [0, 2π).
 
-    ``valid``: both filters initialised and a magnetometer sample held (before that the angles are 0).
+    ``valid``: attitude and field initialised (before that the angles are 0).  The AHRS fields
+    (bias, rejection, rest) are zero/False with the seed-000 estimator.
     """
     t_s: np.ndarray
     roll_rad: np.ndarray
     pitch_rad: np.ndarray
-    yaw_rad: np.ndarray            # filter heading (magnetic) from Ĥ^b
+    yaw_rad: np.ndarray            # filter heading (magnetic)
     mag_heading_rad: np.ndarray    # raw tilt-compensated magnetic heading of the latest mag sample
     heading_true_rad: np.ndarray   # yaw_rad + declination
-    field_body_mG: np.ndarray      # Ĥ^b (N, 3)
+    field_body_mG: np.ndarray      # filtered field in the body frame (N, 3)
     valid: np.ndarray
+    gyro_bias_rad_s: np.ndarray = dc_field(default_factory=_zeros3)   # (N, 3) in effect at each step
+    acc_rejected: np.ndarray = dc_field(default_factory=_no_flags)    # tilt held on the gyro
+    mag_rejected: np.ndarray = dc_field(default_factory=_no_flags)    # heading held on the gyro
+    mag_disturbed: np.ndarray = dc_field(default_factory=_no_flags)   # field departs from the reference
+    at_rest: np.ndarray = dc_field(default_factory=_no_flags)
+    estimator: str = "ahrs"
 
 
 @dataclass
@@ -87,6 +114,11 @@ class HeadingState:
     mag_heading_rad: float
     heading_true_rad: float
     valid: bool
+    gyro_bias_rad_s: tuple = (0.0, 0.0, 0.0)
+    acc_rejected: bool = False
+    mag_rejected: bool = False
+    mag_disturbed: bool = False
+    at_rest: bool = False
 
 
 def _clean_time(t: np.ndarray) -> np.ndarray:
@@ -145,21 +177,35 @@ def _outputs(grav, field_b, mag_held, mag_exists, inited, decl):
     roll, pitch = roll_pitch_from_specific_force(grav)
     yaw = tilt_compensated_heading_rad(field_b, roll, pitch)
     mag_heading = tilt_compensated_heading_rad(mag_held, roll, pitch)
-    true = np.mod(yaw + np.radians(decl), TWO_PI)
+    true = wrap_heading_rad(yaw + np.radians(decl))
     return tuple(np.where(valid, a, 0.0) for a in (roll, pitch, yaw, mag_heading, true)) + (valid,)
 
 
 def run_heading_chain(imu: np.ndarray, mag_cal: np.ndarray, declination_deg=0.0,
-                      settings: HeadingChainSettings | None = None) -> HeadingChainResult:
+                      settings: HeadingChainSettings | None = None, *,
+                      expected_field: ExpectedField | None = None) -> HeadingChainResult:
     """Batch heading/attitude chain on the IMU time base (seed 000 sec. 2).
 
     imu: (N, 7) [t_s, gx, gy, gz rad/s, ax, ay, az m/s^2];  mag_cal: (M, 4) [t_s, mx, my, mz mG]
-    (calibrated);  declination_deg: scalar or (N,).  Non-finite rows are skipped (see
-    estimators.attitude), outputs are always finite.
+    (calibrated);  declination_deg: scalar or (N,);  expected_field: the field strength and
+    inclination the magnetometer should see (WMM), for the AHRS's magnetic rejection (None: learned
+    from the first field).  Non-finite rows are skipped, outputs are always finite.
     """
     s = settings or HeadingChainSettings()
     imu = np.asarray(imu, dtype=float).reshape(-1, 7)
     mag_cal = np.asarray(mag_cal, dtype=float).reshape(-1, 4)
+    if s.estimator == "seed000":
+        return _run_seed000(imu, mag_cal, declination_deg, s)
+    r = run_ahrs(imu, mag_cal, s.ahrs, expected_field=expected_field)
+    decl = np.broadcast_to(np.nan_to_num(np.asarray(declination_deg, dtype=float)), r.t_s.shape)
+    true = np.where(r.valid, wrap_heading_rad(r.yaw_rad + np.radians(decl)), 0.0)
+    return HeadingChainResult(r.t_s, r.roll_rad, r.pitch_rad, r.yaw_rad, r.mag_heading_rad, true, r.field_body_mG,
+                              r.valid, r.gyro_bias_rad_s, r.acc_rejected, r.mag_rejected, r.mag_disturbed, r.at_rest,
+                              "ahrs")
+
+
+def _run_seed000(imu: np.ndarray, mag_cal: np.ndarray, declination_deg, s: HeadingChainSettings) -> HeadingChainResult:
+    """Seed 000's chain: gravity and field vector complementary filters (estimators/attitude.py)."""
     t = _clean_time(imu[:, 0])
     gyro = imu[:, 1:4]
     gyro = np.where(np.all(np.isfinite(gyro), axis=1)[:, None], gyro, 0.0)
@@ -168,7 +214,10 @@ def run_heading_chain(imu: np.ndarray, mag_cal: np.ndarray, declination_deg=0.0,
     mag_held, _, mag_exists = _held(mag_cal[:, 0], mag_cal[:, 1:4], t, np.inf)
     decl = np.broadcast_to(np.nan_to_num(np.asarray(declination_deg, dtype=float)), t.shape)
     roll, pitch, yaw, mh, true, valid = _outputs(grav, field_b, mag_held, mag_exists, g_init & f_init, decl)
-    return HeadingChainResult(t, roll, pitch, yaw, mh, true, field_b, valid)
+    n = len(t)
+    no = np.zeros(n, bool)
+    return HeadingChainResult(t, roll, pitch, yaw, mh, true, field_b, valid, np.zeros((n, 3)), no, no.copy(),
+                              no.copy(), no.copy(), "seed000")
 
 
 class HeadingChain:
@@ -176,17 +225,24 @@ class HeadingChain:
 
     Feed samples in time order: ``update_mag`` for each calibrated magnetometer sample (before an
     IMU sample with the same time), ``update_imu`` for each IMU sample, which returns the state.
+    ``declination_deg`` may be changed at any time (it only shifts the true heading).
     """
 
-    def __init__(self, declination_deg: float = 0.0, settings: HeadingChainSettings | None = None):
+    def __init__(self, declination_deg: float = 0.0, settings: HeadingChainSettings | None = None, *,
+                 expected_field: ExpectedField | None = None):
         self.settings = settings or HeadingChainSettings()
         self.declination_deg = float(declination_deg)
+        ahrs = self.settings.estimator == "ahrs"
+        self.ahrs = Ahrs(self.settings.ahrs, expected_field=expected_field) if ahrs else None
         self.field_filter = FieldVectorFilter(self.settings.field)
         self.gravity_filter = GravityVectorFilter(self.settings.gravity)
         self._mag = np.zeros(3)
         self._mag_seen = False
 
     def update_mag(self, t_s: float, mag_cal_mG) -> None:
+        if self.ahrs is not None:
+            self.ahrs.update_mag(t_s, mag_cal_mG)
+            return
         m = np.asarray(mag_cal_mG, dtype=float)
         if m.shape == (3,) and np.all(np.isfinite(m)) and np.isfinite(t_s) and t_s >= self.field_filter._meas_t:
             self.field_filter.set_measurement(t_s, m)
@@ -194,17 +250,25 @@ class HeadingChain:
             self._mag_seen = True
 
     def update_imu(self, t_s: float, gyro_rad_s, accel_mps2) -> HeadingState:
+        decl = self.declination_deg if math.isfinite(self.declination_deg) else 0.0
+        if self.ahrs is not None:
+            a = self.ahrs.update_imu(t_s, gyro_rad_s, accel_mps2)
+            true = wrap_heading_rad_float(a.yaw_rad + math.radians(decl)) if a.valid else 0.0
+            return HeadingState(a.t_s, a.roll_rad, a.pitch_rad, a.yaw_rad, a.mag_heading_rad, true, a.valid,
+                                a.gyro_bias_rad_s, a.acc_rejected, a.mag_rejected, a.mag_disturbed, a.at_rest)
+        return self._update_seed000(t_s, gyro_rad_s, accel_mps2, decl)
+
+    def _update_seed000(self, t_s: float, gyro_rad_s, accel_mps2, decl: float) -> HeadingState:
         a = np.asarray(accel_mps2, dtype=float)
         if np.isfinite(t_s):
             self.gravity_filter.set_measurement(t_s, a)
         gx, gy, gz = self.gravity_filter.update(t_s, gyro_rad_s)
         fb = self.field_filter.update(t_s, gyro_rad_s)
-        decl = self.declination_deg if math.isfinite(self.declination_deg) else 0.0
         roll = math.atan2(-gy, -gz)                           # = roll_pitch_from_specific_force
         pitch = math.atan2(gx, math.hypot(gy, gz))
         yaw = _heading_scalar(fb, roll, pitch)
         mh = _heading_scalar(self._mag, roll, pitch)
-        true = (yaw + math.radians(decl)) % TWO_PI
+        true = wrap_heading_rad_float(yaw + math.radians(decl))
         valid = self.gravity_filter.initialised and self.field_filter.initialised and self._mag_seen
         if not valid:
             roll = pitch = yaw = mh = true = 0.0
@@ -217,4 +281,4 @@ def _heading_scalar(m, roll: float, pitch: float) -> float:
     sr, cr, sp, cp = math.sin(roll), math.cos(roll), math.sin(pitch), math.cos(pitch)
     hx = mx * cp + my * sp * sr + mz * sp * cr
     hy = my * cr - mz * sr
-    return math.atan2(-hy, hx) % TWO_PI
+    return wrap_heading_rad_float(math.atan2(-hy, hx))

@@ -66,7 +66,7 @@ def check_orientation(mag_cal_mG: np.ndarray, roll_rad, pitch_rad, yaw_rad,
             orientation in use (ArduPilot's corrected field is that; a PX4 one too).
         roll/pitch/yaw_rad (N,): attitude at the samples.
         candidates: (id, R) pairs, R = the rotation enum's matrix (sensor -> body, v_body = R v_sensor),
-            e.g. ArduPilot's ROTATION_* from groundstation.autopilot_params.rotation_enum_matrix.
+            e.g. ArduPilot's ROTATION_* from groundstation.io.params.rotation_enum_matrix.
         current_id: the id in use (COMPASS_ORIENTn); must be among the candidates.
         field_ned_mG: WMM field, needed for reference "expected".
     """

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,6 +28,21 @@ class CliError(Exception):
     """A user-facing failure: printed as one line, exit code 1."""
 
 
+MAX_CALIBRATION_BYTES = 10 << 20
+# control characters (C0, DEL, C1), bidi/zero-width controls, lone surrogates (undecodable file names)
+_UNPRINTABLE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e\u2066-\u2069\ud800-\udfff]")
+
+
+def printable(text: object, *, lines: bool = False) -> str:
+    """``text`` safe for a terminal: control characters from files (escape sequences, BEL,
+    bidi overrides) shown as \\xNN / \\uNNNN instead of acted on; newlines kept only when ``lines``."""
+    def escape(found: re.Match) -> str:
+        c = found.group()
+        return f"\\x{ord(c):02x}" if ord(c) < 0x100 else f"\\u{ord(c):04x}"
+    text = _UNPRINTABLE.sub(escape, str(text))
+    return text if lines else text.replace("\n", "\\n").replace("\t", " ")
+
+
 @contextmanager
 def progress_bar(label: str) -> Iterator[Callable[[float], None] | None]:
     """A tqdm bar on a terminal (fraction 0..1 in), nothing when output is piped."""
@@ -42,10 +58,10 @@ def progress_bar(label: str) -> Iterator[Callable[[float], None] | None]:
 
 
 def load_log(path: str | Path) -> FlightLog:
-    with progress_bar(f"reading {Path(path).name}") as progress:
+    with progress_bar(f"reading {printable(Path(path).name)}") as progress:
         log = read_log(path, progress)
     for warning, count in log.warnings.items():
-        print(f"warning: {Path(path).name}: {warning} ({count})", file=sys.stderr)
+        print(f"warning: {printable(Path(path).name)}: {printable(warning)} ({count})", file=sys.stderr)
     return log
 
 
@@ -57,13 +73,14 @@ def _write_json(path: str, obj: object) -> None:
 
 def cmd_info(args: argparse.Namespace) -> int:
     from groundstation.io.logs import summarize_rates
+    from groundstation.jobs.log_summary import compass_lines
 
     log = load_log(args.file)
     tables = {"magnetometer": log.mag, "IMU": log.imu, "attitude": log.attitude, "GPS": log.gps,
               "battery current": log.battery}
-    print(f"{args.file}")
+    print(printable(args.file))
     print(f"  duration        {log.duration_s:.1f} s")
-    print(f"  autopilot       {log.autopilot or 'unknown'}")
+    print(f"  autopilot       {printable(log.autopilot or 'unknown')}")
     for name, table in tables.items():
         if len(table) > 1:
             span = table[-1, 0] - table[0, 0]
@@ -79,42 +96,56 @@ def cmd_info(args: argparse.Namespace) -> int:
         else:
             state = "already calibrated by the autopilot"
         print(f"  mag field       {state}")
+    print(printable("\n".join(compass_lines(log)), lines=True))
     rtk = bool(len(log.gps) and (log.gps[:, 7] >= 5).any())
     print(f"  RTK             {'yes' if rtk else 'no'}")
     print(f"  mission         {len(log.mission)} waypoints" if log.mission else "  mission         none")
     print(f"  parameters      {len(log.params)}")
     print("  messages:")
     for mtype, count, rate in summarize_rates(log)[: args.top]:
-        print(f"    {mtype:<28} {count:>8}  {rate:8.2f} Hz")
+        print(f"    {printable(mtype):<28} {count:>8}  {rate:8.2f} Hz")
     for warning, count in log.warnings.items():
-        print(f"  warning: {warning} ({count})")
+        print(f"  warning: {printable(warning)} ({count})")
     return 0
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from groundstation.jobs.calibrate import calibrate_log, error_result, format_summary
+    from groundstation.jobs.calibrate import calibrate_compasses, error_result, format_consistency, format_summary
 
     results = []
     for file in args.files:
         try:
-            result = calibrate_log(load_log(file))
+            found = calibrate_compasses(load_log(file))    # one result per compass
         except IngestError as err:
-            result = error_result(file, str(err))
-        results.append(result)
-        print(format_summary(result))
+            found = [error_result(file, str(err))]
+        results += found
+        text = "\n".join([format_summary(r) for r in found] + [format_consistency(found[0].get("consistency"))])
+        print(printable(text.rstrip(), lines=True))
     if args.json:
         _write_json(args.json, {"results": results})
     return 0 if all(r["status"] == "ok" for r in results) else 1
 
 
 def _load_calibration(path: str) -> dict:
+    """The first calibration with status 'ok' in a `calibrate --json` file (or a bare result),
+    checked (``check_calibration``).  Raises CliError (one line) otherwise."""
+    from groundstation.jobs.inputs import check_calibration
+
     try:
+        if Path(path).stat().st_size > MAX_CALIBRATION_BYTES:
+            raise CliError(f"{path}: too large for a calibration JSON")
         data = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as err:
-        raise CliError(f"{path}: not a readable calibration JSON ({err})") from err
+    except (OSError, ValueError, RecursionError) as err:   # JSONDecodeError, bad UTF-8, deep nesting
+        raise CliError(f"{path}: not a readable calibration JSON ({str(err)[:120]})") from err
     candidates = data.get("results", [data]) if isinstance(data, dict) else []
+    if not isinstance(candidates, list):
+        raise CliError(f"{path}: 'results' must be a list of calibration objects")
     for result in candidates:
         if isinstance(result, dict) and result.get("status") == "ok":
+            try:
+                check_calibration(result)
+            except ValueError as err:
+                raise CliError(f"{path}: unusable calibration: {err}") from err
             return result
     raise CliError(f"{path}: holds no calibration with status 'ok'")
 
@@ -129,7 +160,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     log = load_log(args.file)
     with progress_bar("analyzing"):
         report, columns = analyze_log(log, calibration=calibration, mission=mission)
-    print(format_report(report))
+    print(printable(format_report(report), lines=True))
     if args.json:
         _write_json(args.json, report)
     if args.csv:
@@ -147,7 +178,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise CliError(f"unknown scenario '{args.scenario}' (choose from {', '.join(SCENARIOS)})")
     sim = simulate(args.scenario, seed=args.seed)
     sim.write(args.out)
-    print(f"wrote {args.out} ({len(sim.messages)} messages) and its truth JSON")
+    print(f"wrote {printable(args.out)} ({len(sim.messages)} messages) and its truth JSON")
     return 0
 
 
@@ -159,13 +190,20 @@ def cmd_serve(args: argparse.Namespace) -> int:
         replay = DEMO_RECORDING
     if replay is not None and not replay.is_file():
         raise CliError(f"{replay}: no such file")
+    if args.connect is not None:
+        from groundstation.io.link import validate_connection_string
+        args.connect = validate_connection_string(args.connect)     # the operator may listen on 0.0.0.0
     from groundstation.station.settings import StationSettings   # light: no server import yet
 
     settings = StationSettings(host=args.host, port=args.port, viser_port=args.viser_port,
-                               allow_remote=args.allow_remote)
-    from groundstation.station.app import serve
+                               allow_remote=args.allow_remote, allowed_hosts=tuple(args.allowed_host),
+                               tls_cert=args.tls_cert, tls_key=args.tls_key)
+    from groundstation.station.app import StationStartError, serve
 
-    serve(settings, connect=args.connect, replay=replay, speed=args.speed)
+    try:
+        serve(settings, connect=args.connect, replay=replay, speed=args.speed)
+    except StationStartError as err:
+        raise CliError(str(err)) from err
     return 0
 
 
@@ -182,7 +220,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--viser-port", type=int, default=8080)
-    p.add_argument("--allow-remote", action="store_true", help="allow binding a non-loopback host")
+    p.add_argument("--allow-remote", action="store_true",
+                   help="remote mode: allow a non-loopback --host; every request then needs the token printed at start")
+    p.add_argument("--allowed-host", action="append", default=[], metavar="NAME",
+                   help="a host name or address the station is reached by (Host header), repeatable")
+    p.add_argument("--tls-cert", metavar="CERT.pem", help="serve HTTPS with this certificate (with --tls-key)")
+    p.add_argument("--tls-key", metavar="KEY.pem", help="the certificate's private key")
     p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("calibrate", help="magnetometer calibration from one or more logs")
@@ -224,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     except (IngestError, CliError, OSError, ValueError) as err:
         if os.environ.get("MAGSTATION_DEBUG"):
             raise
-        print(f"magstation: error: {err}", file=sys.stderr)
+        print(f"magstation: error: {printable(err)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130

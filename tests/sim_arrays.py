@@ -1,5 +1,6 @@
-"""Shared known-truth data for the issue-11 estimator tests: a synthetic level flight with turns,
-and the ArduPilot-realistic simulator's logs read back into arrays (benchmarks/real_logs.py)."""
+"""Shared known-truth data for the real-log estimator tests: a synthetic level flight with turns,
+and the ArduPilot-realistic simulator's logs read back with groundstation's readers (the pipeline
+steps are those of benchmarks/real_logs.py)."""
 from __future__ import annotations
 
 import sys
@@ -13,7 +14,6 @@ from estimators.rotations import dcm_body_to_ned
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import real_logs  # noqa: E402  (pymavlink extraction + the pipeline the benchmark runs)
 
 H_NED = np.array([230.0, 52.0, -531.0])          # Canberra-like, mG
 
@@ -34,12 +34,16 @@ def level_flight(seed: int = 0, headings_deg=(10, 82, 154, 226, 298), n: int = 1
 
 
 @lru_cache(maxsize=4)
-def ardupilot_flight(seed: int = 1, dance: bool = False, imu_rate_hz: float = 2.0, tmp: str = "/tmp"):
-    """(sim, arrays read back from its tlog, WMM field) of a simulated ArduPilot flight."""
+def ardupilot_flight(seed: int = 1, dance: bool = False, imu_rate_hz: float = 2.0):
+    """(sim, FlightLog read back from its tlog, WMM field) of a simulated ArduPilot flight."""
+    import tempfile
+
+    from groundstation.io.logs import read_log
+    from groundstation.jobs.calibrate import expected_field
     from groundstation.sim.ardupilot import ArduSimConfig, simulate_ardupilot
     from groundstation.sim.ardupilot_flight import FlightPlan
     sim = simulate_ardupilot(ArduSimConfig(seed=seed, imu_rate_hz=imu_rate_hz, plan=FlightPlan(dance=dance, legs=6)))
-    path = Path(tmp) / f"magstation-ardusim-{seed}-{int(dance)}-{imu_rate_hz}.tlog"
-    arr = real_logs.extract_tlog(sim.write_tlog(path))
-    H = np.asarray(real_logs.expected_field(arr, sim.config.start_unix_s).field_ned_mG)
-    return sim, arr, H
+    with tempfile.TemporaryDirectory() as d:
+        log = read_log(sim.write_tlog(Path(d) / f"ardusim-{seed}-{int(dance)}-{imu_rate_hz}.tlog"))
+    H = np.asarray(expected_field(log)[0].field_ned_mG)
+    return sim, log, H

@@ -1,4 +1,4 @@
-"""`analyze` (groundstation/analysis.py) end to end: simulated tlog -> read_log -> analyze_log."""
+"""`analyze` (groundstation/jobs/analyze.py) end to end: simulated tlog -> read_log -> analyze_log."""
 from __future__ import annotations
 
 import copy

@@ -160,3 +160,42 @@ def test_motor_current_field_states_learn_the_field_per_amp():
     assert np.linalg.norm(f.motor_field - c) < 0.3
     assert np.abs(attitude_errors_deg(with_current, tr)[1][after]).max() < 1.5
     assert np.abs(attitude_errors_deg(without, tr)[1][after]).max() > 3.0
+
+
+def test_gps_outlier_fails_the_innovation_gate():
+    """A 60 m GPS position jump is rejected by the 5-sigma gate (test ratio > 1, EKF2's
+    innovation test); the neighbouring fixes pass with ratios well under 1."""
+    tr = simulate_manoeuvring_flight(duration_s=60.0, imu_rate_hz=50.0, seed=6)
+    gps = tr.gps_ned.copy()
+    k = np.searchsorted(gps[:, 0], 40.0)
+    gps[k, 1:4] += [60.0, 0.0, 0.0]
+    f = InsGpsFilter(InsGpsSettings(declination_deg=_decl(tr)))
+    res = run_ins_gps(tr.imu, gps, tr.mag, filt=f)
+    i = np.searchsorted(tr.t_s, gps[k, 0])
+    assert res.gps_test_ratio[i] > 1.0
+    assert np.nanmax(res.gps_test_ratio[(tr.t_s > 20.0) & (tr.t_s < gps[k, 0] - 0.01)]) < 0.5
+    assert np.linalg.norm(res.pos_ned_m - tr.pos_ned_m, axis=1)[tr.t_s > 20.0].max() < 3.0
+    assert f.gps_status is not None and not f.gps_status.rejected
+
+
+def test_outage_targets_on_a_closed_loop_mission():
+    """Issue 12's GPS-outage decision on one gps-outage mission (hovers, turns, speed changes,
+    gusts, motor-current field with the battery current given): gyro bias 0.5°/s per axis all
+    flight, 80 s outage; heading and roll/pitch within 2° of truth throughout it.  (Three missions
+    in benchmarks/heading.py; measured here 0.6° / 0.5°.)"""
+    from groundstation.sim.scenarios import simulate
+    sim = simulate("gps-outage", 1, duration_s=200.0)
+    r, tr = sim.result, sim.truth
+    o0, o1 = tr["gps_outage_s"]
+    mag = np.c_[r.t_s, (r.mag_raw_mG - np.array(tr["mag"]["offsets_mG"])) @ np.array(tr["mag"]["calibration_matrix"]).T]
+    gps = np.c_[r.t_s[r.gps_idx], r.gps_pos_ned_m, r.gps_vel_ned_mps][r.gps_fix_type >= 3]
+    gps = gps[(gps[:, 0] < o0) | (gps[:, 0] >= o1)]
+    res = run_ins_gps(np.c_[r.t_s, r.gyro_rad_s, r.accel_mps2], gps, mag,
+                      InsGpsSettings(declination_deg=tr["earth_field"]["declination_deg"]),
+                      current=np.c_[r.t_s, r.motor_current_A])
+    inside = (r.t_s >= o0) & (r.t_s < o1)
+    assert np.all(res.mode[inside][50:] == MODE_FIELD_FEEDBACK)
+    hd = np.abs(np.degrees(np.angle(np.exp(1j * (res.yaw_rad - r.yaw_rad)))))[inside]
+    dr = np.abs(np.degrees(np.angle(np.exp(1j * (res.roll_rad - r.roll_rad)))))[inside]
+    dp = np.abs(np.degrees(res.pitch_rad - r.pitch_rad))[inside]
+    assert hd.max() < 2.0 and dr.max() < 2.0 and dp.max() < 2.0

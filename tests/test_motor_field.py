@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from estimators.motor_field import fit_motor_field, motor_compensation_params
-from groundstation.autopilot_params import rotation_enum_matrix
+from groundstation.io.params import rotation_enum_matrix
 from sim_arrays import H_NED, ardupilot_flight, level_flight, real_logs
 
 pytestmark = pytest.mark.filterwarnings("error")
@@ -54,9 +54,9 @@ def test_no_signal_and_constant_current():
 
 
 def test_simulated_ardupilot_flight_within_10_percent():
-    sim, arr, H = ardupilot_flight(seed=1)
+    sim, log, H = ardupilot_flight(seed=1)
     for k in range(3):
-        m = real_logs.motor_fit_compass(arr, k, H)
+        _, m = real_logs.inflight_fits(log, k)
         f = np.asarray(sim.truth["compasses"][k]["motor_mG_per_A"])
         assert m.status == "ok", m.message
         assert np.linalg.norm(m.motor_mG_per_unit - f) / np.linalg.norm(f) < 0.10, (k, m.motor_mG_per_unit, f)

@@ -6,7 +6,7 @@ import pytest
 
 from estimators.orientation_check import OrientationSettings, check_orientation
 from estimators.rotations import dcm_body_to_ned, euler_from_dcm
-from groundstation.autopilot_params import rotation_enum_matrix
+from groundstation.io.params import rotation_enum_matrix
 from groundstation.sim.truth import random_rotation
 from sim_arrays import H_NED
 

@@ -72,6 +72,8 @@ def test_errors_are_4xx_with_detail(client, mission_recording):
 
 def test_replay_controls_line_and_downloads(client, mission_recording):
     assert client.get("/api/recordings").json() == [mission_recording]
+    info = client.get("/api/recordings/info").json()
+    assert [i["name"] for i in info] == [mission_recording] and info[0]["duration_s"] == pytest.approx(40, abs=1)
     r = client.post("/api/replay/start", json={"recording": mission_recording, "speed": 10})
     assert r.status_code == 200, r.text
     assert r.json()["duration_s"] > 30
@@ -138,12 +140,23 @@ def test_websocket_pushes_at_least_10hz_and_survives_disconnects(station_no_vise
 
 
 def test_live_source_via_rest(client, recordings_dir):
+    """A live link records from its first packet: listening alone leaves no (0-byte) file."""
+    from groundstation.sim.fake_vehicle import FakeVehicle
     port = free_udp_port()
     r = client.post("/api/source", json={"connect": f"udpin:127.0.0.1:{port}"})
     assert r.status_code == 200 and r.json()["kind"] == "live"
-    rec = r.json()["recording"]
-    assert rec.endswith(".tlog") and (recordings_dir / rec).exists()
+    assert r.json()["recording"] is None and list(recordings_dir.glob("session-*")) == []
+    assert client.get("/api/session.tlog").status_code == 404
+    sim = simulate("mission-clean", 0, duration_s=3.0)
+    with FakeVehicle(sim.messages, port, speed=4.0) as fv:
+        assert fv.finished.wait(10)
+    deadline = time.monotonic() + 5
+    while client.get("/api/state").json()["source"]["recording"] is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    rec = client.get("/api/state").json()["source"]["recording"]
+    assert rec.endswith(".tlog") and (recordings_dir / rec).stat().st_size > 0
     assert rec in client.get("/api/recordings").json()
+    assert client.get("/api/session/file").status_code == 200
 
 
 def test_scene_decimates_50k_points_and_orients_vehicle(recordings_dir):
@@ -176,7 +189,7 @@ def test_scene_decimates_50k_points_and_orients_vehicle(recordings_dir):
         offsets = np.array([100.0, -50.0, 20.0])
         raw = (u * 500.0) @ np.linalg.inv(C).T + offsets           # C (raw - b) = 500 u
         fit = {"offsets_mG": offsets.tolist(), "matrix": C.tolist(), "field_mG": 500.0}
-        scene._update_cloud(raw, fit)
+        scene._update_cloud(raw, fit, calibrating=True)
         assert 0 < scene.cloud_points_shown <= CLOUD_DISPLAY_POINTS
         corrected = np.asarray(scene.corrected.points, dtype=float) @ S_FLIP
         np.testing.assert_allclose(np.linalg.norm(corrected, axis=1), 1.0, atol=2e-3)   # float16

@@ -2,6 +2,7 @@
 (drops, garbage, recording), parameter writes confirmed by echo."""
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -50,7 +51,7 @@ def test_wizard_steps_and_result_match_truth(tmp_path):
     assert steps_seen == ["x", "y", "z", "tumble", "done"]
     snap = session.snapshot()["wizard"]
     assert snap["state"] == "result"
-    assert all(snap["progress_deg"][a] >= 360 for a in "xyz")
+    assert all(snap["progress_deg"][a] >= 345 for a in "xyz")    # a full turn, less the hand tolerance
     res = snap["result"]
     assert res["status"] == "ok", res
     np.testing.assert_allclose(res["offsets_mG"], DANCE_TRUTH["offsets_mG"], atol=5.0)
@@ -80,8 +81,13 @@ def test_accept_without_result_is_refused(tmp_path):
 
 def test_connection_strings_validated():
     assert validate_connection_string("udpin:127.0.0.1:14550")
-    assert validate_connection_string("/dev/ttyUSB0,57600")
-    for bad in ("", "http://evil", "udpin:host", "file:/etc/passwd", "udpin:1.2.3.4:99999"):
+    master, slave = os.openpty()                       # a real serial-like device node
+    try:
+        assert validate_connection_string(f"{os.ttyname(slave)},57600")
+    finally:
+        os.close(master)
+        os.close(slave)
+    for bad in ("", "http://evil", "udpin:host", "file:/etc/passwd", "udpin:1.2.3.4:99999", "/dev/ttyNOPE0,57600"):
         with pytest.raises(IngestError):
             validate_connection_string(bad)
 
@@ -147,14 +153,21 @@ def test_live_link_drop_garbage_and_recording(tmp_path):
         assert any("link lost" in t for t in texts)
         assert any("link restored" in t for t in texts)
         assert fv.finished.wait(15)
-        time.sleep(0.5)
-        rec = session.snapshot()["source"]["recording"]
+        delivered = sum(fv.delivered.values())
+        assert wait_for(lambda: session.snapshot()["rx_count"] >= delivered, timeout=5)   # all read
+        rec = tmp_path / session.snapshot()["source"]["recording"]
+
+        def recorded() -> tuple[int, int]:
+            counts = read_log(rec).message_counts
+            return counts["SCALED_IMU"], counts["ATTITUDE"]
+
+        # the last packets reach the file within a flush period or two (loaded machines: more)
+        wanted = (fv.delivered["SCALED_IMU"], fv.delivered["ATTITUDE"])
+        wait_for(lambda: recorded() == wanted, timeout=10)
     finally:
         fv.stop()
         session.close()
-    log = read_log(tmp_path / rec)
-    assert log.message_counts["SCALED_IMU"] == fv.delivered["SCALED_IMU"]
-    assert log.message_counts["ATTITUDE"] == fv.delivered["ATTITUDE"]
+    assert recorded() == wanted
 
 
 def test_param_write_confirmed_and_failure_listed(tmp_path):

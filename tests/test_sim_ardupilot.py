@@ -10,7 +10,7 @@ import pytest
 from estimators.compass_corrections import corrections_from_param_changes, unapply_ardupilot_corrections
 from groundstation.sim.ardupilot import ArduSimConfig, simulate_ardupilot, truth_path
 from groundstation.sim.ardupilot_flight import FlightPlan
-from sim_arrays import real_logs
+from groundstation.io.logs import read_log
 
 
 @pytest.fixture(scope="module")
@@ -33,14 +33,14 @@ def test_tlog_streams_corrected_fields_at_telemetry_rate(sim, tmp_path):
         assert 1.3 < counts[name] / dur < 1.55                 # 1.5 Hz less 2 % dropped packets
     assert counts["MAG_CAL_PROGRESS"] >= 3 * 30 and counts["MAG_CAL_REPORT"] == 3
     assert counts["SENSOR_OFFSETS"] > 0 and counts["SYS_STATUS"] > 0 and counts["VFR_HUD"] > 0
-    arr = real_logs.extract_tlog(path)
-    t2, m2, _ = arr.mag[2]
-    assert t2.max() < 151.0                                    # compass 2 dropped out: zeros are not a field
+    log = read_log(path)
+    comp = {c.compass: c for c in log.compasses}
+    assert comp[2].field[:, 0].max() < 151.0                   # compass 2 dropped out: zeros are not a field
     # Rebuilding raw with the corrections in force gives the simulated raw (rounding to 1 mG, arrival jitter).
     for k in range(3):
-        t, corrected, _ = arr.mag[k]
-        corr = corrections_from_param_changes(t, arr.params, k)
-        cur = np.interp(t, arr.current[:, 0], arr.current[:, 1])
+        t, corrected = comp[k].field[:, 0], comp[k].field[:, 1:4]
+        corr = corrections_from_param_changes(t, log.param_history, k)
+        cur = np.interp(t, log.battery[:, 0], log.battery[:, 1])
         raw = unapply_ardupilot_corrections(corrected, corr, current_A=cur).raw_mG
         idx = np.searchsorted(sim.flight.t_s, t - 0.16) + 1       # the grid sample sent just before arrival
         ok = np.isfinite(raw).all(1)
@@ -63,14 +63,17 @@ def test_offsets_change_mid_log_with_the_onboard_calibration(sim):
 def test_dataflash_layouts_read_back_with_pymavlink(sim, tmp_path, layout):
     path = sim.write_bin(tmp_path / f"b_{layout}.bin", layout)
     assert json.loads(truth_path(path).read_text())["format"] == f"bin/{layout}"
-    arr = real_logs.extract_bin(path)
-    assert sorted(arr.mag) == [0, 1, 2]
-    t0, m0, mo = arr.mag[0]
+    log = read_log(path)
+    comp = {c.compass: c for c in log.compasses}
+    assert sorted(comp) == [0, 1, 2]
+    t0, m0 = comp[0].field[:, 0], comp[0].field[:, 1:4]
     assert t0[-1] - t0[0] == pytest.approx(sim.flight.t_s[-1], abs=0.2)       # TimeMS or TimeUS clock both work
+    assert log.duration_s == pytest.approx(sim.flight.t_s[-1], abs=0.2)
     np.testing.assert_allclose(m0, np.rint(sim.compasses[0].corrected_mG), atol=1.0)
-    assert len(arr.mag[2][0]) < len(t0)                                          # the drop-out
-    assert arr.current[:, 1].max() == pytest.approx(sim.flight.current_A.max(), abs=0.02)
-    names = {n for _, n, _ in arr.params}
+    np.testing.assert_allclose(comp[0].motor_offset_mG, np.rint(sim.compasses[0].motor_offset_mG), atol=1.0)
+    assert len(comp[2].field) < len(t0)                                          # the drop-out
+    assert log.battery[:, 1].max() == pytest.approx(sim.flight.current_A.max(), abs=0.02)
+    names = {n for _, n, _ in log.param_history}
     assert {"COMPASS_OFS3_X", "COMPASS_DIA2_Y", "COMPASS_MOTCT", "AHRS_EKF_TYPE"} <= names
 
 

@@ -1,70 +1,216 @@
 // Station overview page.
 "use strict";
 const $ = (id) => document.getElementById(id);
-let last = null, seeking = false;
+let last = null, seeking = false, selected = null, timelineKey = null, lastReplayed = null;
+
+// A heading in [0, 360) with one decimal: 359.96 shows as 0.0, never 360.0.
+function fmtHeading(v) {
+  if (v === null || v === undefined) return "—";
+  const r = Math.round((((v % 360) + 360) % 360) * 10) / 10;
+  return (r >= 360 ? 0 : r).toFixed(1) + "°";
+}
+
+function fmtDate(unix) {
+  return unix ? new Date(unix * 1000).toISOString().slice(0, 10) : "—";
+}
+
+// Heading axis: 0..360 when the headings in view go round, else their own range (at least 20 deg).
+function headingRange(series) {
+  const v = series.flatMap((s) => s.y).filter((x) => x !== null && x !== undefined);
+  if (!v.length) return { ymin: 0, ymax: 360 };
+  const lo = Math.min(...v), hi = Math.max(...v);
+  if (hi - lo > 180) return { ymin: 0, ymax: 360 };
+  const pad = Math.max(5, (20 - (hi - lo)) / 2);
+  return { ymin: Math.max(0, lo - pad), ymax: Math.min(360, hi + pad) };
+}
+
+function fmtSize(bytes) {
+  return bytes >= 1e6 ? (bytes / 1e6).toFixed(1) + " MB" : Math.max(1, Math.round(bytes / 1e3)) + " kB";
+}
+
+const STATE_TEXT = { on: "on", off: "off", paused: "paused", untrusted: "untrusted", waiting: "waiting" };
+const CORRECTION_TEXT = { station: "station-corrected", autopilot: "autopilot-corrected", raw: "raw (uncorrected)",
+  unknown: "unknown", none: "no magnetometer" };
 
 function render(s) {
   last = s;
-  $("status").textContent = linkText(s);
+  $("status").textContent = linkText(s) + (s.source.kind === "live" && s.reorder_delay_s >= 0.3 ?
+    " — analysis " + fmt(s.reorder_delay_s, 1) + " s behind (late packets put back in time order)" : "");
   const b = $("alarm-banner");
   if (s.alarm.active) {
     b.className = "banner alarm";
-    b.textContent = "MAGNETIC INTERFERENCE ALARM" + (s.alarm.evidence.length ? ": " + s.alarm.evidence.join(", ") : "") +
+    b.textContent = "MAGNETIC INTERFERENCE ALARM" + (s.alarm.evidence_text ? ": " + s.alarm.evidence_text : "") +
       (s.alarm.since_s !== null ? " (since " + fmt(s.alarm.since_s, 1) + " s)" : "");
-  } else { b.className = "banner ok"; b.textContent = "No interference alarm"; }
-  const v = s.vehicle;
-  $("v-rp").textContent = fmt(v.roll_deg, 1, "°") + " / " + fmt(v.pitch_deg, 1, "°");
-  $("v-hdg").textContent = fmt(v.heading_att_deg, 1, "°") + " / " + fmt(v.heading_mag_deg, 1, "°");
-  $("v-aphdg").textContent = v.ap_yaw_deg === null ? "—" : fmt(((v.ap_yaw_deg % 360) + 360) % 360, 1, "°");
-  $("v-vel").textContent = fmt(v.v_forward_mps, 2, " m/s") + " / " + fmt(v.v_lateral_mps, 2, " m/s");
-  $("v-xt").textContent = fmt(v.cross_track_m, 2, " m");
-  $("v-field").textContent = fmt(v.field_mG, 0, " mG");
-  $("v-cal").textContent = s.calibration_in_use ? "in use" : "none: headings from the uncorrected field";
-  $("v-pos").textContent = v.lat_deg === null ? "—" : fmt(v.lat_deg, 6) + ", " + fmt(v.lon_deg, 6) + " / fix " + v.fix_type;
-  const r = s.replay;
-  $("replay-controls").hidden = !r;
-  if (r) {
-    $("pause").textContent = r.paused ? "Resume" : "Pause";
-    $("seek").max = r.duration_s;
-    if (!seeking) $("seek").value = r.t_s;
-    $("replay-time").textContent = fmt(r.t_s, 1) + " / " + fmt(r.duration_s, 1) + " s ×" + r.speed + (r.finished ? " (finished)" : "");
-  }
+  } else { b.className = "banner ok"; b.textContent = s.analysing ? "Analysing the log…" : "No interference alarm"; }
+  renderVehicle(s);
+  renderTests(s.tests);
+  renderReplay(s);
+  $("pending").hidden = !s.source.pending;
+  $("pending").textContent = s.source.pending ? "connecting to " + s.source.pending + ": " + s.source.name +
+    " goes on until the first packet arrives (Stop cancels)" : "";
   $("line-text").textContent = s.line ? "A " + s.line.a.map((x) => x.toFixed(6)).join(", ") + " → B " +
-    s.line.b.map((x) => x.toFixed(6)).join(", ") + " (" + s.line.source + ")" : "none";
+    s.line.b.map((x) => x.toFixed(6)).join(", ") + " (" + s.line.source + ")" : "none: no path-deviation test";
+  $("line-clear").disabled = !s.line;
   $("alarm-count").textContent = s.alarm_count;
+  const d = s.downloads;
+  $("dl-log").textContent = d.log ? "session log (" + d.log + ")" : "session log (none yet)";
+  for (const id of ["dl-log", "dl-json", "dl-csv"]) $(id).classList.toggle("disabled", !d.log);
   $("events").innerHTML = s.events.slice().reverse().map((e) =>
     `<div class="${e.level}">${fmt(e.t_s, 1)} s  ${escapeHtml(e.text)}</div>`).join("");
 }
+
+function renderVehicle(s) {
+  const v = s.vehicle, t = s.tests;
+  $("v-rp").textContent = fmt(v.roll_deg, 1, "°") + " / " + fmt(v.pitch_deg, 1, "°");
+  $("v-hdg").textContent = fmtHeading(v.heading_att_deg) + " / " + fmtHeading(v.heading_mag_deg);
+  $("v-aphdg").textContent = fmtHeading(v.ap_yaw_deg);
+  $("v-course").textContent = (v.course_deg === null ? "— (not moving)" : fmtHeading(v.course_deg)) + " / " + fmt(v.speed_mps, 1, " m/s");
+  $("v-vel").textContent = fmt(v.v_forward_mps, 2, " m/s") + " / " + fmt(v.v_lateral_mps, 2, " m/s");
+  $("v-xt").textContent = fmt(v.cross_track_m, 2, " m");
+  $("v-field").textContent = fmt(v.field_mG, 0, " mG") + " / " + fmt(v.inclination_deg, 1, "°");
+  $("v-cal").textContent = CORRECTION_TEXT[t.field_correction.kind] || t.field_correction.kind;
+  $("v-cal").title = t.field_correction.note;
+  $("v-pos").textContent = v.lat_deg === null ? "—" : fmt(v.lat_deg, 6) + ", " + fmt(v.lon_deg, 6) + " / fix " + v.fix_type;
+  const untrusted = t.heading.state === "off" && t.field_correction.kind !== "none" && s.source.kind !== "none";
+  $("heading-caveat").hidden = !untrusted;
+  $("heading-caveat").textContent = untrusted ? "⚠ Heading test off: " + t.heading.why + "." : "";
+  document.querySelector("#vehicle tr.hdg").classList.toggle("untrusted", untrusted);
+}
+
+function renderTests(tests) {
+  for (const row of document.querySelectorAll("#tests tr")) {
+    const st = tests[row.dataset.test];
+    row.querySelector(".state").textContent = STATE_TEXT[st.state] || st.state;
+    row.querySelector(".state").className = "state " + st.state;
+    row.querySelector(".why").textContent = st.why;
+  }
+}
+
+function renderReplay(s) {
+  const r = s.replay;
+  $("replay-controls").hidden = !r;
+  if (!r) { timelineKey = null; return; }
+  if (s.source.name !== selected && s.source.name !== lastReplayed) {     // the list shows what plays
+    lastReplayed = selected = s.source.name;
+    for (const row of $("recordings").querySelectorAll("tr[data-name]")) row.classList.toggle("selected", row.dataset.name === selected);
+  }
+  $("pause").textContent = r.paused ? "Resume" : "Pause";
+  $("seek").max = r.duration_s;
+  if (!seeking) $("seek").value = r.t_s;
+  $("replay-time").textContent = fmt(r.t_s, 1) + " / " + fmt(r.duration_s, 1) + " s ×" + r.speed + (r.finished ? " (finished)" : "");
+  const key = s.source.name + "|" + s.analysing + "|" + r.duration_s + "|" + s.alarm_count + "|" + (s.line ? s.line.a + s.line.b : "");
+  if (key !== timelineKey && !s.analysing) { timelineKey = key; loadTimeline(); }
+}
+
+async function loadTimeline() {
+  try {
+    const tl = await api("GET", "/api/replay/timeline");
+    const box = $("timeline");
+    box.innerHTML = tl.markers.map((m) => {
+      const left = 100 * m.t_s / tl.duration_s;
+      const width = m.end_s === null ? 0 : 100 * (m.end_s - m.t_s) / tl.duration_s;
+      return `<div class="marker ${m.kind}" data-t="${m.t_s}" style="left:${left}%;${width > 0.4 ? "width:" + width + "%" : ""}"
+        title="${fmt(m.t_s, 1)} s: ${escapeHtml(m.label)}"></div>`;
+    }).join("");
+    box.dataset.ready = tl.ready ? "1" : "0";
+  } catch (e) { timelineKey = null; }
+}
+
+$("timeline").onclick = guarded("source-error", async (ev) => {
+  const m = ev.target.closest(".marker");
+  if (m) await api("POST", "/api/replay/seek", { t_s: Math.max(0, parseFloat(m.dataset.t) - 2) });
+});
 
 async function refreshAlarms() {
   try {
     const list = await api("GET", "/api/alarms");
     $("alarms").innerHTML = "<tr><th>start</th><th>end</th><th>evidence</th></tr>" + list.map((a) =>
-      `<tr><td>${fmt(a.start_s, 1)} s</td><td>${a.end_s === null ? "active" : fmt(a.end_s, 1) + " s"}</td><td>${escapeHtml(a.evidence.join(", "))}</td></tr>`).join("");
+      `<tr data-t="${a.start_s}"><td>${fmt(a.start_s, 1)} s</td><td>${a.end_s === null ? "active" : fmt(a.end_s, 1) + " s"}</td>` +
+      `<td>${escapeHtml(a.evidence_text)}</td></tr>`).join("");
   } catch (e) { /* next time */ }
 }
 
-async function loadRecordings() {
-  const names = await api("GET", "/api/recordings");
-  $("recording").innerHTML = names.map((n) => `<option>${escapeHtml(n)}</option>`).join("");
+async function refreshPlots() {
+  if (document.hidden || !last || last.source.kind === "none" && !last.vehicle.roll_deg) return;
+  let p;
+  try { p = await api("GET", "/api/plots?window_s=60"); } catch (e) { return; }
+  const t = p.t_s, t1 = p.t_end_s, t0 = Math.max(t1 - p.window_s, t.length ? t[0] : 0), S = p.series;
+  const common = { t, t0, t1, alarms: p.alarms };
+  const headings = [
+    { label: "attitude", color: "#1f5fd0", y: S.heading_deg, wrap: true, width: 2 },
+    { label: "magnetic", color: "#d03030", y: S.mag_heading_deg, wrap: true },
+    { label: "autopilot", color: "#555", y: S.ap_heading_deg, wrap: true },
+    { label: "GPS course", color: "#1a9a3a", y: S.course_deg, wrap: true, dots: true },
+  ];
+  drawPlot($("plot-heading"), headings, Object.assign(headingRange(headings), common));
+  drawPlot($("plot-field"), [{ label: "measured", color: "#8a3ab9", y: S.field_mG }],
+    Object.assign({ refs: [{ label: "WMM", color: "#1a9a3a", value: p.wmm.field_mG }] }, common));
+  drawPlot($("plot-incl"), [{ label: "measured", color: "#8a3ab9", y: S.inclination_deg }],
+    Object.assign({ refs: [{ label: "WMM", color: "#1a9a3a", value: p.wmm.inclination_deg }] }, common));
+  drawPlot($("plot-vel"), [{ label: "forward", color: "#1a9a3a", y: S.v_forward_mps },
+    { label: "lateral", color: "#8a3ab9", y: S.v_lateral_mps }], common);
+  drawPlot($("plot-xt"), [{ label: "cross-track", color: "#222", y: S.cross_track_m }], common);
 }
+
+async function loadRecordings() {
+  const list = await api("GET", "/api/recordings/info");
+  if (!list.some((r) => r.name === selected)) selected = list.length ? list[0].name : null;
+  const tb = $("recordings").querySelector("tbody");
+  const html = list.map((r) => `<tr data-name="${escapeHtml(r.name)}" class="${r.name === selected ? "selected" : ""}${r.error ? " bad" : ""}"
+    title="${escapeHtml(r.error || (r.autopilot || "") + " " + r.name)}"><td>${escapeHtml(r.name)}</td>
+    <td>${r.recording ? "recording…" : (r.duration_s === null ? "—" : fmt(r.duration_s / 60, 1) + " min")}</td>
+    <td>${fmtDate(r.start_unix_s)}</td><td>${fmtSize(r.size_bytes)}</td>
+    <td>${escapeHtml(r.error ? "unreadable" : (r.vehicle || "—"))}</td><td>${r.compasses === null ? "—" : r.compasses}</td></tr>`).join("");
+  if (tb.innerHTML !== html) tb.innerHTML = html;      // unchanged: leave the rows (clicks, hover) alone
+  $("replay").disabled = !selected;
+}
+
+$("recordings").onclick = (ev) => {
+  const tr = ev.target.closest("tr[data-name]");
+  if (!tr) return;
+  selected = tr.dataset.name;
+  for (const row of $("recordings").querySelectorAll("tr[data-name]")) row.classList.toggle("selected", row === tr);
+  $("replay").disabled = false;
+};
 
 function guarded(errId, fn) {
-  return async () => { $(errId).textContent = ""; try { await fn(); } catch (e) { $(errId).textContent = e.message; } };
+  return async (...args) => { $(errId).textContent = ""; try { await fn(...args); } catch (e) { $(errId).textContent = e.message; } };
 }
 
-$("replay").onclick = guarded("source-error", () => api("POST", "/api/replay/start", { recording: $("recording").value, speed: parseFloat($("speed").value) }));
+$("upload").onchange = guarded("source-error", async () => {
+  const file = $("upload").files[0];
+  if (!file) return;
+  $("upload-status").textContent = "uploading " + file.name + "…";
+  try {
+    const res = await fetch("/api/recordings/upload?filename=" + encodeURIComponent(file.name),
+      { method: "POST", headers: { "Content-Type": "application/octet-stream" }, body: file });
+    const data = await res.json().catch(() => ({}));
+    if (!res.ok) throw new Error(data.detail || res.statusText);
+    selected = data.name;
+    $("upload-status").textContent = "stored as " + data.name;
+    await loadRecordings();
+  } catch (e) { $("upload-status").textContent = ""; throw e; } finally { $("upload").value = ""; }
+});
+$("replay").onclick = guarded("source-error", () => api("POST", "/api/replay/start", { recording: selected, speed: parseFloat($("speed").value) }));
 $("connect-btn").onclick = guarded("source-error", () => api("POST", "/api/source", { connect: $("connect").value }));
 $("stop").onclick = guarded("source-error", () => api("POST", "/api/source/stop"));
 $("pause").onclick = guarded("source-error", () => api("POST", "/api/replay/pause", { paused: !(last && last.replay && last.replay.paused) }));
 $("speed").onchange = guarded("source-error", () => last && last.replay ? api("POST", "/api/replay/speed", { speed: parseFloat($("speed").value) }) : null);
 $("seek").oninput = () => { seeking = true; };
-$("seek").onchange = guarded("source-error", async () => { seeking = false; await api("POST", "/api/replay/seek", { t_s: parseFloat($("seek").value) }); });
+$("seek").onchange = guarded("source-error", async () => { try { await api("POST", "/api/replay/seek", { t_s: parseFloat($("seek").value) }); } finally { seeking = false; } });
+$("alarms").onclick = guarded("source-error", async (ev) => {
+  const tr = ev.target.closest("tr[data-t]");
+  if (tr && last && last.replay) await api("POST", "/api/replay/seek", { t_s: Math.max(0, parseFloat(tr.dataset.t) - 2) });
+});
 $("line-set").onclick = guarded("line-error", () => api("PUT", "/api/line", {
   a: [parseFloat($("a-lat").value), parseFloat($("a-lon").value)], b: [parseFloat($("b-lat").value), parseFloat($("b-lon").value)] }));
 $("line-mission").onclick = guarded("line-error", () => api("POST", "/api/line/from-mission"));
+$("line-clear").onclick = guarded("line-error", () => api("DELETE", "/api/line"));
+for (const id of ["dl-log", "dl-json", "dl-csv"]) $(id).onclick = (ev) => { if ($(id).classList.contains("disabled")) ev.preventDefault(); };
 
 connectState(render, (up) => { if (!up) $("status").textContent = "station connection lost, retrying…"; });
-setupViewer("viewer", "initialCameraPosition=3,1.5,9&initialCameraLookAt=8.5,1.5,0");
-loadRecordings();
+setupViewer("viewer");
+loadRecordings().catch((e) => { $("source-error").textContent = e.message; });
 setInterval(refreshAlarms, 1000);
+setInterval(refreshPlots, 500);
+setInterval(() => loadRecordings().catch(() => {}), 5000);

@@ -1,78 +1,257 @@
-// Guided three-axis calibration (seed 004 handheld procedure): X, Y, Z full turns, then tumble.
+// Compass calibration page: guided dance (every compass), the vehicle's own calibrator, large-vehicle
+// fixed-yaw, then write, reboot, heading check.  Everything shown comes from the state pushed on /ws.
 "use strict";
 const $ = (id) => document.getElementById(id);
 const ORDER = ["x", "y", "z", "tumble", "done"];
+let last = null, sectionCentres = null, rebootAsked = false;
 
 function vec(v, d = 1) { return v ? "[" + v.map((x) => fmt(x, d)).join(", ") + "]" : "—"; }
-function mat(m) { return m ? m.map((r) => vec(r, 4)).join("<br>") : "—"; }
+function show(id, on) { $(id).hidden = !on; }
+// Re-render only when the content changed: the page gets a state many times a second, and replacing
+// the table under the pointer would swallow clicks on its checkboxes.
+const lastHtml = {};
+function setHtml(id, html) { if (lastHtml[id] !== html) { lastHtml[id] = html; $(id).innerHTML = html; } }
+function pct(f) { return Math.floor(100 * (f || 0)) + " %"; }     // floored: never shows a target reached early
+function cap(s) { return s ? s[0].toUpperCase() + s.slice(1) : s; }
 
-function render(s) {
-  $("status").textContent = linkText(s);
-  const w = s.wizard;
+function renderControl(w) {
+  document.querySelectorAll("#modes input").forEach((r) => { r.disabled = w.state === "running"; if (w.state !== "idle") r.checked = r.value === w.mode; });
   $("instruction").textContent = w.instruction;
+  const b = w.banner;
+  show("banner", !!b);
+  if (b) { $("banner").className = "cal-banner " + b.level; $("banner").textContent = b.text; }
+  show("hint", !!w.hint);
+  $("hint").textContent = w.hint || "";
+  setHtml("warnings", w.warnings.map((t) => `<div>⚠ ${escapeHtml(t)}</div>`).join(""));
   $("start").disabled = w.state === "running";
-  $("finish").disabled = w.state !== "running";
+  $("finish").disabled = w.state !== "running" || w.mode === "fixed_yaw";
+  $("live-fit").textContent = w.state === "idle" || w.mode === "fixed_yaw" ? "" : w.samples + " samples" +
+    (w.live_field_mG ? " · live field " + fmt(w.live_field_mG, 0) + " mG" : "") +
+    (w.expected_field_mG ? " · WMM " + fmt(w.expected_field_mG, 0) + " mG" : "");
+  renderWrite(w.param_write);
+}
+
+function renderWrite(pw) {
+  if (!pw) { setHtml("param-write", ""); return; }
+  const cls = pw.state === "failed" ? "error" : (pw.state === "written" ? "good" : "muted");
+  let html = `<div class="write ${cls}">${pw.state === "written" ? "✔ " : (pw.state === "failed" ? "✖ " : "")}${escapeHtml(pw.message)}` +
+    (pw.state === "writing" && pw.total ? ` (${pw.confirmed.length}/${pw.total} confirmed)` : "") + "</div>";
+  const fails = pw.failures || [];
+  if (fails.length) {
+    html += "<ul class='failures'>" + fails.slice(0, 3).map((f) => `<li>${escapeHtml(f.text)}</li>`).join("") +
+      (fails.length > 3 ? `<li>… and ${fails.length - 3} more</li>` : "") + "</ul>";
+  }
+  setHtml("param-write", html);
+}
+
+function renderSteps(w) {
+  show("steps-card", w.mode !== "fixed_yaw" && (w.state === "running" || w.state === "idle"));
   const cur = ORDER.indexOf(w.step);
+  const target = w.turn_target_deg - w.settings.turn_tolerance_deg;
   document.querySelectorAll("#steps li").forEach((li) => {
     const step = li.dataset.step, i = ORDER.indexOf(step);
-    li.className = w.state === "idle" ? "" : (i < cur ? "done" : (i === cur ? "current" : ""));
+    li.className = w.state === "idle" ? "" : (i < cur ? "done" : (i === cur ? (w.paused ? "current paused" : "current") : ""));
     const bar = li.querySelector(".bar"), deg = li.querySelector(".deg");
     if (!bar) return;
     let frac, text;
     if (step === "tumble") {
       frac = w.coverage / w.coverage_target;
-      text = "sphere coverage " + fmt(100 * w.coverage, 0) + " % (target " + fmt(100 * w.coverage_target, 0) + " %)";
+      text = "directions " + pct(w.coverage) + " of " + pct(w.coverage_target);
     } else {
       const d = w.progress_deg[step];
-      frac = d / w.turn_target_deg;
-      text = fmt(Math.min(d, 9999), 0) + "° of " + fmt(w.turn_target_deg, 0) + "°";
+      frac = d / target;
+      text = frac >= 1 ? "✓ full turn (" + fmt(d, 0) + "°, within " + fmt(w.settings.turn_tolerance_deg, 0) + "° of 360°)" :
+        fmt(d, 0) + "° of " + fmt(w.turn_target_deg, 0) + "°";
     }
     bar.className = "bar" + (frac >= 1 ? " done" : "");
     bar.firstElementChild.style.width = Math.min(100, 100 * frac) + "%";
     deg.textContent = text;
   });
-  $("live-fit").textContent = w.state === "idle" ? "" : w.samples + " samples" +
-    (w.rls_offsets_mG ? " · live fit offsets " + vec(w.rls_offsets_mG, 0) + " mG, field " + fmt(w.rls_field_mG, 0) + " mG" : "") +
-    (w.expected_field_mG ? " · WMM " + fmt(w.expected_field_mG, 0) + " mG" : "");
-  $("warnings").innerHTML = w.warnings.map((t) => `<div>⚠ ${escapeHtml(t)}</div>`).join("");
-  const r = w.result;
-  $("result-card").hidden = !r;
-  if (r) {
-    $("result-status").textContent = r.status;
-    $("result-status").className = r.status === "ok" ? "good" : "error";
-    $("result-message").textContent = r.message || "";
-    const rows = [
-      ["Samples", r.samples],
-      ["Offsets (mG)", vec(r.offsets_mG)],
-      ["Matrix C", mat(r.matrix)],
-      ["Residual RMS", fmt(r.residual_rms_mG, 2, " mG")],
-      ["Coverage", fmt(100 * (r.coverage || 0), 0, " %")],
-      ["Fitted field / WMM", fmt(r.field_strength_mG, 0, " mG") + " / " + fmt(r.expected_field_mG, 0, " mG")],
-      ["Misalignment (deg)", vec(r.misalignment_deg, 2)],
-      ["Heading error (est.)", fmt(r.heading_error_deg, 2, "°")],
-    ];
-    $("result-table").innerHTML = rows.map(([k, v]) => `<tr><td>${k}</td><td>${v}</td></tr>`).join("");
-    $("accept").disabled = r.status !== "ok" || w.state === "accepted";
-    $("export").disabled = r.status !== "ok";
+  const p = w.next_pose;
+  show("next-pose", !!p);
+  if (p) $("next-pose").textContent = "That pose fills " + p.fills + " of the " + p.missing +
+    " directions still missing (grey on the sphere).";
+}
+
+function compassRow(c, w) {
+  const r = c.result;
+  const inc = `<input type="checkbox" data-compass="${c.index}" ${c.included ? "checked" : ""} title="include in the result">`;
+  if (!r) {
+    return `<tr><td>${inc}</td><td>${c.index + 1}</td><td>${c.samples}</td><td>${c.coverage === null ? "—" : pct(c.coverage)}</td>` +
+      `<td colspan="3" class="muted">${c.live_field_mG ? "live field " + fmt(c.live_field_mG, 0) + " mG" : "collecting…"}</td></tr>`;
   }
+  const pass = r.pass ? `<span class="good">pass</span>` : `<span class="error">fail</span>`;
+  const o = r.orientation;
+  const orient = !o ? "—" : (o.status === "rotation_found" ? `<b>${o.detected_name}</b> (was ${o.current})` :
+    (o.status === "confirmed" ? o.detected_name + " ✓" : o.status));
+  let row = `<tr class="${c.included ? "" : "left-out"}"><td>${inc}</td><td>${c.index + 1}</td><td>${pass}</td>` +
+    `<td title="RMS residual about the fitted sphere, and the threshold">${fmt(r.fitness_mG, 1)} ≤ ${fmt(r.fitness_threshold_mG, 0)}</td>` +
+    `<td title="predicted worst-case heading error">±${fmt(r.heading_error_deg, 1)}°</td><td>${orient}</td>` +
+    `<td>${fmt(r.field_strength_mG, 0)} mG</td></tr>`;
+  const notes = (r.reasons || []).map((t) => `<div class="error">${escapeHtml(t)}</div>`)
+    .concat((r.cautions || []).map((t) => `<div class="warn">${escapeHtml(t)}</div>`));
+  if (notes.length) row += `<tr class="notes"><td></td><td colspan="6">${notes.join("")}</td></tr>`;
+  return row;
+}
+
+function renderCompasses(w) {
+  show("compass-card", w.compasses.length > 0 && w.mode !== "fixed_yaw");
+  if (!w.compasses.length) return;
+  const done = w.compasses.some((c) => c.result);
+  const head = done ? "<tr><th>Use</th><th>#</th><th>Result</th><th>Fitness mG</th><th>Heading</th><th>Orientation</th><th>Field</th></tr>" :
+    "<tr><th>Use</th><th>#</th><th>Samples</th><th>Coverage</th><th colspan='3'></th></tr>";
+  setHtml("compass-table", head + w.compasses.map((c) => compassRow(c, w)).join(""));
+  $("fitness").value = w.fitness_level;
+  const k = w.consistency;
+  setHtml("consistency", k ? `<div class="${k.status === "ok" ? "good" : "error"}">${escapeHtml(k.text)}</div>` : "");
+}
+
+function renderCoverage(w) {
+  show("coverage-card", w.mode !== "fixed_yaw" || w.state === "idle");
+  const ob = w.onboard;
+  let sections = null;
+  if (ob && ob.compasses.length && sectionCentres) sections = ob.compasses[0].sections || [];
+  $("coverage-text").textContent = w.state === "idle" ? "" : pct(w.coverage) + " of the sphere" +
+    (sections ? " · vehicle's calibrator: " + sections.length + " of 80 sections (blue)" : "");
+  drawSphere($("sphere"), w.coverage_cells, w.current_direction, sections, sectionCentres);
+}
+
+function renderOnboard(w) {
+  const ob = w.onboard;
+  show("onboard-card", !!ob);
+  if (!ob) return;
+  const rows = ["<tr><th>Compass</th><th>Vehicle</th><th>Offsets vehicle / ours (mG)</th><th>Fitness vehicle / ours</th></tr>"];
+  ob.compasses.forEach((c) => {
+    const r = c.report, cmp = c.compare;
+    const st = r ? (r.success ? "<span class='good'>success</span>" : "<span class='error'>" + escapeHtml(c.status_text) + "</span>") :
+      escapeHtml(c.status_text) + " " + (c.completion_pct || 0) + " %";
+    rows.push(`<tr><td>${c.index + 1}</td><td>${st}</td><td>${r ? vec(r.ofs_mG, 0) : "—"}${cmp ? "<br>" + vec(cmp.our_ofs_mG, 0) : ""}</td>` +
+      `<td>${r ? fmt(r.fitness_mG, 1) : "—"} / ${cmp ? fmt(cmp.our_fitness_mG, 1) : "—"} mG</td></tr>`);
+  });
+  setHtml("onboard-table", rows.join("") + `<tr><td colspan="4" class="muted small">${escapeHtml(ob.message)}</td></tr>`);
+  $("ob-accept").disabled = ob.state !== "reported";
+  $("ob-cancel").disabled = !["starting", "running", "reported"].includes(ob.state);
+}
+
+function renderResult(w, vehicleAutopilot) {
+  const r = w.result;
+  show("result-card", !!r);
+  if (!r) return;
+  $("result-status").textContent = r.status;
+  $("result-status").className = r.status === "ok" ? "good" : "error";
+  $("result-message").textContent = r.status === "ok" ? (r.consistency_warning || "") : (r.message || "");
+  const px4 = (vehicleAutopilot || w.result.autopilot || "ardupilot") === "px4";
+  const rows = [`<tr><th>#</th><th>Offsets b (mG)</th><th>${px4 ? "CAL_MAGn_x/y/zOFF (G)" : "COMPASS_OFSn_X/Y/Z"}</th>` +
+    `<th>${px4 ? "CAL_MAGn_ROT" : "ORIENTn"}</th><th>Coverage</th></tr>`];
+  w.compasses.filter((c) => c.included && c.result && c.result.status === "ok").forEach((c) => {
+    const res = c.result, ap = px4 ? res.px4_params : res.ardupilot_params, k = c.index;
+    const n = k ? String(k + 1) : "";
+    const ofs = px4 ? ["X", "Y", "Z"].map((a) => ap[`CAL_MAG${k}_${a}OFF`]) : ["X", "Y", "Z"].map((a) => ap[`COMPASS_OFS${n}_${a}`]);
+    const rot = px4 ? ap[`CAL_MAG${k}_ROT`] : ap[`COMPASS_ORIENT${n}`];
+    const o = res.orientation;
+    rows.push(`<tr><td>${k + 1}</td><td>${vec(res.offsets_mG, 1)}</td><td>${vec(ofs, px4 ? 4 : 1)}</td>` +
+      `<td>${rot === undefined ? "unchanged" : fmt(rot, 0) + (o && o.detected_name ? " " + o.detected_name : "")}</td>` +
+      `<td title="directions of the final fit (it needs 25 %)">${pct(res.coverage)}</td></tr>`);
+  });
+  setHtml("result-table", rows.join(""));
   const pw = w.param_write;
-  $("param-write").innerHTML = !pw ? "" : `<div class="${pw.state === "failed" ? "error" : (pw.state === "written" ? "good" : "muted")}">` +
-    escapeHtml(pw.message) + (pw.state === "writing" ? ` (${pw.confirmed.length}/${pw.total} confirmed)` : "") + "</div>" +
-    (pw.failed.length ? `<div class="error">Did not stick: ${escapeHtml(pw.failed.join(", "))}</div>` : "");
+  $("accept").disabled = r.status !== "ok" || (pw && ["writing", "written"].includes(pw.state));
+  $("accept").textContent = pw && pw.state === "failed" ? "Retry the write" : "Accept and write";
+  $("export").disabled = r.status !== "ok";
+}
+
+function renderAfter(w) {
+  const pw = w.param_write, rb = w.reboot, hc = w.heading_check;
+  const fixedDone = w.fixed_yaw && w.fixed_yaw.state === "done";
+  const on = (!!(pw && pw.state === "written") || !!rb || !!hc || fixedDone) && (w.mode !== "fixed_yaw" || fixedDone);
+  show("after-card", on);
+  if (!on) return;
+  const waiting = rb && ["sent", "waiting"].includes(rb.state);
+  $("reboot").disabled = waiting;
+  show("reboot-confirm", rebootAsked && !waiting);
+  $("reboot-text").textContent = rb ? rb.message : "";
+  const measuring = hc && hc.state === "measuring";
+  $("hc-measure").disabled = measuring || waiting;
+  $("hc-walk").disabled = measuring || waiting;
+  $("hc-walk-stop").disabled = !(measuring && hc.kind === "walk");
+  let html = "";
+  if (hc && hc.result) {
+    const r = hc.result;
+    html = `<div class="${r.ok ? (Math.abs(r.error_deg) <= 3 ? "good" : "warn") : "error"}">${escapeHtml(r.message || "")}</div>` +
+      (r.ok ? `<div class="muted small">compass ${fmt(r.heading_deg, 1)}° ± ${fmt(r.spread_deg, 1)}° over ${r.samples} samples` +
+        (r.distance_m ? `, walk ${fmt(r.distance_m, 1)} m (max ${fmt(r.off_line_m, 1)} m off the line)` : "") + "</div>" : "");
+  } else if (measuring) html = `<div class="muted">measuring… ${hc.samples} samples${hc.kind === "walk" ? ", " + fmt(hc.distance_m, 1) + " m" : ""}</div>`;
+  setHtml("hc-result", html);
+}
+
+function renderFixed(w) {
+  show("fixed-card", w.mode === "fixed_yaw" && w.state !== "idle");
+  if (w.mode !== "fixed_yaw") return;
+  const fy = w.fixed_yaw, hc = w.heading_check;
+  const walking = hc && hc.state === "measuring";
+  $("fy-walk").disabled = walking; $("fy-walk-stop").disabled = !walking;
+  $("fy-gps").disabled = !(hc && hc.result && hc.result.reference_deg !== undefined);
+  $("fy-walk-text").textContent = hc ? (walking ? "walking… " + fmt(hc.distance_m, 1) + " m" :
+    (hc.result && hc.result.reference_deg !== undefined ? "GPS course " + fmt(hc.result.reference_deg, 1) + "° over " + fmt(hc.result.distance_m, 1) + " m" :
+      (hc.result ? hc.result.message : ""))) : "";
+  if (!fy) { setHtml("fy-table", ""); return; }
+  const rows = ["<tr><th>Compass</th><th>Vehicle's new COMPASS_OFS</th><th>Ours (same formula)</th></tr>"];
+  Object.keys(fy.ours_ofs_mG).forEach((k) => rows.push(`<tr><td>${+k + 1}</td><td>${vec(fy.vehicle_ofs_mG[k], 1)}</td><td>${vec(fy.ours_ofs_mG[k], 1)}</td></tr>`));
+  const c = fy.check;
+  if (c) {
+    rows.push(`<tr><td colspan="3" class="${c.ok ? "good" : "warn"}">Check against the WMM: heading ${fmt(c.heading_deg, 1)}° ` +
+      `(${c.heading_error_deg > 0 ? "+" : ""}${fmt(c.heading_error_deg, 1)}° from ${fmt(fy.yaw_deg, 1)}°), field ${fmt(c.strength_mG, 0)} mG vs ` +
+      `${fmt(c.wmm_strength_mG, 0)} mG, inclination ${fmt(c.inclination_error_deg, 1)}° off</td></tr>`);
+    (c.cautions || []).forEach((t) => rows.push(`<tr><td colspan="3" class="warn">${escapeHtml(t)}</td></tr>`));
+  }
+  setHtml("fy-table", rows.join(""));
+}
+
+function render(s) {
+  last = s;
+  $("status").textContent = linkText(s) + (s.wizard.in_use ? " — calibration in use: " + (s.wizard.in_use === "vehicle" ? "the vehicle's" : "this station's") : "");
+  const w = s.wizard;
+  renderControl(w); renderSteps(w); renderCompasses(w); renderCoverage(w); renderOnboard(w);
+  renderResult(w, s.source.autopilot); renderAfter(w); renderFixed(w);
+  show("deviation-card", !!w.deviation);
+  if (w.deviation) {
+    $("deviation-text").textContent = "max ±" + fmt(w.deviation.max_before_deg, 1) + "° before, ±" + fmt(w.deviation.max_after_deg, 1) + "° after";
+    drawDeviation($("deviation"), w.deviation);
+  }
 }
 
 function guarded(fn) {
   return async () => { $("cal-error").textContent = ""; try { await fn(); } catch (e) { $("cal-error").textContent = e.message; } };
 }
-$("start").onclick = guarded(() => api("POST", "/api/calibration/start"));
+const mode = () => document.querySelector("#modes input:checked").value;
+const num = (id) => { const v = parseFloat($(id).value); if (Number.isNaN(v)) throw new Error("enter a number of degrees"); return v; };
+$("start").onclick = guarded(() => api("POST", "/api/calibration/start", { mode: mode() }));
 $("finish").onclick = guarded(() => api("POST", "/api/calibration/finish"));
 $("reset").onclick = guarded(() => api("POST", "/api/calibration/reset"));
-$("redo").onclick = guarded(async () => { await api("POST", "/api/calibration/reset"); await api("POST", "/api/calibration/start"); });
-$("accept").onclick = guarded(() => api("POST", "/api/calibration/accept"));
+$("redo").onclick = guarded(async () => { await api("POST", "/api/calibration/reset"); await api("POST", "/api/calibration/start", { mode: mode() }); });
+$("accept").onclick = guarded(() => api("POST", "/api/calibration/accept", { which: "ours" }));
+$("ob-accept").onclick = guarded(() => api("POST", "/api/calibration/accept", { which: "vehicle" }));
+$("ob-cancel").onclick = guarded(() => api("POST", "/api/calibration/onboard/cancel"));
+$("fitness").onchange = guarded(() => api("PUT", "/api/calibration/fitness", { level: $("fitness").value }));
+$("compass-table").addEventListener("change", (e) => {
+  const k = e.target.dataset.compass;
+  if (k !== undefined) guarded(() => api("PUT", "/api/calibration/compasses/" + k, { included: e.target.checked }))();
+});
+$("reboot").onclick = () => { rebootAsked = true; if (last) render(last); };
+$("reboot-no").onclick = () => { rebootAsked = false; if (last) render(last); };
+$("reboot-yes").onclick = guarded(async () => { rebootAsked = false; await api("POST", "/api/calibration/reboot", { confirm: true }); });
+$("hc-measure").onclick = guarded(() => api("POST", "/api/calibration/heading-check", { kind: "bearing", bearing_deg: num("hc-bearing") }));
+$("hc-walk").onclick = guarded(() => api("POST", "/api/calibration/heading-check", { kind: "walk" }));
+$("hc-walk-stop").onclick = guarded(() => api("POST", "/api/calibration/heading-check/stop"));
+$("fy-send").onclick = guarded(() => api("POST", "/api/calibration/fixed-yaw", { yaw_deg: num("fy-yaw"), source: "entered" }));
+$("fy-walk").onclick = guarded(() => api("POST", "/api/calibration/heading-check", { kind: "walk" }));
+$("fy-walk-stop").onclick = guarded(() => api("POST", "/api/calibration/heading-check/stop"));
+$("fy-gps").onclick = guarded(() => api("POST", "/api/calibration/fixed-yaw", { source: "gps" }));
 $("export").onclick = () => {
   const ap = $("export-ap").value;
   location.href = "/api/calibration/params" + (ap ? "?autopilot=" + ap : "");
 };
 
+api("GET", "/api/calibration/sections").then((c) => { sectionCentres = c; }).catch((e) => console.error(e));
 connectState(render, (up) => { if (!up) $("status").textContent = "station connection lost, retrying…"; });
 setupViewer("viewer", "initialCameraPosition=-4.8,1.7,4.2&initialCameraLookAt=0,1.7,1.2");

@@ -1,10 +1,30 @@
 // Shared by the pages: REST helper and the state WebSocket (reconnects by itself).
 "use strict";
 
+// Writes carry the station's page token (X-MagStation-Token): the station refuses state changes
+// from other origins and from pages that cannot read /api/page-token (see README, API and security).
+let pageToken = null;
+function writeToken(refresh) {
+  if (refresh || !pageToken) {
+    pageToken = fetch("/api/page-token", { credentials: "same-origin" })
+      .then((r) => (r.ok ? r.json() : Promise.reject(new Error("page token: " + r.status))))
+      .then((d) => d.token)
+      .catch((e) => { pageToken = null; throw e; });
+  }
+  return pageToken;
+}
+writeToken(false).catch(() => {});   // fetched ahead, so a click goes out at once
+
 async function api(method, path, body) {
-  const opts = { method, headers: {} };
+  const opts = { method, headers: {}, credentials: "same-origin" };
   if (body !== undefined) { opts.headers["Content-Type"] = "application/json"; opts.body = JSON.stringify(body); }
-  const res = await fetch(path, opts);
+  const writes = method !== "GET" && method !== "HEAD";
+  if (writes) opts.headers["X-MagStation-Token"] = await writeToken(false);
+  let res = await fetch(path, opts);
+  if (writes && res.status === 403) {   // the station restarted: a new page token
+    opts.headers["X-MagStation-Token"] = await writeToken(true);
+    res = await fetch(path, opts);
+  }
   const text = await res.text();
   let data = null;
   try { data = text ? JSON.parse(text) : null; } catch (e) { data = text; }

@@ -6,6 +6,7 @@
 * ``mavlink`` — the MAVLink 2 encoder and the .tlog writer.
 * ``mission`` — .waypoints / .plan / a log's mission.  ``replay`` — the replay clock.
 * ``params`` — autopilot parameter conventions (ArduPilot COMPASS_*, PX4 CAL_MAG*).
+* ``magcal`` — ArduPilot's MAG_CAL_PROGRESS completion mask (its 80-section geodesic grid).
 * ``errors`` — ``IngestError``, the one error type (a one-line message for the user).
 
 Imports: ``groundstation.samples`` and estimators only; never jobs, sim or station.

@@ -8,11 +8,11 @@ import math
 from collections import Counter
 from typing import Callable
 
-from ..samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, MagSample, MissionSample,
-                       ParamSample, Sample, StatusSample)
+from ..samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, MagCalSample, MagSample, MissionSample,
+                       OffsetsSample, ParamSample, Sample, StatusSample, ThrottleSample)
 
 __all__ = ["MavlinkDecoder", "G_MPS2", "MG_PER_GAUSS", "MG_PER_UT", "MAV_CMD_NAV_WAYPOINT",
-           "MAV_CMD_SET_MESSAGE_INTERVAL"]
+           "MAV_CMD_SET_MESSAGE_INTERVAL", "MAG_CAL_COMMANDS", "SOURCE_NAMES", "compass_of_source", "source_name"]
 
 G_MPS2 = 9.80665
 MG_PER_GAUSS = 1000.0
@@ -23,6 +23,26 @@ MAV_AUTOPILOT_PX4 = 12
 MAV_TYPE_GCS = 6
 MAV_CMD_NAV_WAYPOINT = 16
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
+# MAV_CMD_DO_START_MAG_CAL / DO_ACCEPT_MAG_CAL / DO_CANCEL_MAG_CAL (ardupilotmega.xml)
+MAG_CAL_COMMANDS = {42424: "start", 42425: "accept", 42426: "cancel"}
+
+# MagSample/ImuSample ``instance`` is the source: RAW_IMU 0, SCALED_IMU 10, SCALED_IMU2 11,
+# SCALED_IMU3 12, HIGHRES_IMU 20 + id.  ArduPilot streams compass n in RAW_IMU (or SCALED_IMU),
+# SCALED_IMU2, SCALED_IMU3 for n = 0, 1, 2.
+SOURCE_NAMES = {0: "RAW_IMU", 10: "SCALED_IMU", 11: "SCALED_IMU2", 12: "SCALED_IMU3"}
+
+
+def compass_of_source(instance: int) -> int:
+    """0-based compass (or IMU) number of a MavlinkDecoder source instance."""
+    instance = int(instance)
+    if instance >= 20:
+        return instance - 20
+    return instance - 10 if instance >= 10 else instance
+
+
+def source_name(instance: int) -> str:
+    instance = int(instance)
+    return SOURCE_NAMES.get(instance, f"HIGHRES_IMU[{instance - 20}]" if instance >= 20 else f"source {instance}")
 
 
 
@@ -95,11 +115,11 @@ class MavlinkDecoder:
             "MISSION_ITEM": self._mission_item,
             "PARAM_VALUE": self._param_value,
             "STATUSTEXT": self._status("statustext", lambda m: m.text),
-            "MAG_CAL_PROGRESS": self._status(
-                "mag_cal_progress", lambda m: f"compass {m.compass_id}: {m.completion_pct}%"),
-            "MAG_CAL_REPORT": self._status(
-                "mag_cal_report", lambda m: f"compass {m.compass_id}: status {m.cal_status}, "
-                                            f"fitness {m.fitness:.1f}"),
+            "MAG_CAL_PROGRESS": self._mag_cal_progress,
+            "MAG_CAL_REPORT": self._mag_cal_report,
+            "COMMAND_LONG": self._command_long,
+            "SENSOR_OFFSETS": self._sensor_offsets,
+            "VFR_HUD": self._vfr_hud,
             "SYSTEM_TIME": self._system_time,
             "SYS_STATUS": self._sys_status,
         }
@@ -113,7 +133,7 @@ class MavlinkDecoder:
         handler = self._handlers.get(msg.get_type())
         if handler is None:
             return []
-        if msg.get_type() != "HEARTBEAT" and self._from_gcs(msg):
+        if msg.get_type() not in ("HEARTBEAT", "COMMAND_LONG") and self._from_gcs(msg):
             return []
         try:
             return handler(msg, arrival_s)
@@ -215,6 +235,40 @@ class MavlinkDecoder:
     @staticmethod
     def _status(kind: str, text: Callable) -> Callable:
         return lambda msg, t: [StatusSample(t, kind, str(text(msg)))]
+
+    def _mag_cal_progress(self, msg, t: float) -> list[Sample]:
+        pct = float(msg.completion_pct)
+        return [StatusSample(t, "mag_cal_progress", f"compass {msg.compass_id}: {msg.completion_pct}%"),
+                MagCalSample(t, "progress", int(msg.compass_id), int(msg.cal_mask), pct, int(msg.cal_status))]
+
+    def _mag_cal_report(self, msg, t: float) -> list[Sample]:
+        """MAG_CAL_REPORT: offsets in ArduPilot's COMPASS_OFS convention (mG), the fit's RMS
+        residual (fitness, mG); orientation and scale factor are MAVLink 2 extensions."""
+        g = lambda name: float(getattr(msg, name, math.nan))  # noqa: E731
+        report = MagCalSample(
+            t, "report", int(msg.compass_id), int(msg.cal_mask), 100.0, int(msg.cal_status), int(msg.autosaved),
+            float(msg.fitness), (g("ofs_x"), g("ofs_y"), g("ofs_z")), (g("diag_x"), g("diag_y"), g("diag_z")),
+            (g("offdiag_x"), g("offdiag_y"), g("offdiag_z")), g("scale_factor"),
+            (g("old_orientation"), g("new_orientation"), g("orientation_confidence")))
+        return [StatusSample(t, "mag_cal_report", f"compass {msg.compass_id}: status {msg.cal_status}, "
+                                                  f"fitness {msg.fitness:.1f}"), report]
+
+    def _command_long(self, msg, t: float) -> list[Sample]:
+        """The GCS's onboard-calibration commands (sent to the vehicle, so not filtered as GCS
+        traffic); param1 of DO_START_MAG_CAL is the compass mask (0 = all)."""
+        kind = MAG_CAL_COMMANDS.get(int(msg.command))
+        if kind is None or (self.vehicle_sysid is not None and msg.target_system not in (0, self.vehicle_sysid)):
+            return []
+        mask = int(msg.param1) if math.isfinite(msg.param1) else 0
+        return [MagCalSample(t, kind, -1, mask)]
+
+    def _sensor_offsets(self, msg, t: float) -> list[Sample]:
+        """SENSOR_OFFSETS mag_ofs_*: compass 0's COMPASS_OFS in force (int16 mG)."""
+        return [OffsetsSample(t, 0, (float(msg.mag_ofs_x), float(msg.mag_ofs_y), float(msg.mag_ofs_z)), 1.0)]
+
+    def _vfr_hud(self, msg, t: float) -> list[Sample]:
+        """VFR_HUD throttle: percent of full throttle (ArduPilot: the motors' throttle output)."""
+        return [ThrottleSample(t, float(msg.throttle) * 0.01)] if 0 <= msg.throttle <= 100 else []
 
     def _sys_status(self, msg, t: float) -> list[Sample]:
         """current_battery is in cA (10 mA); -1 means the autopilot does not measure it."""

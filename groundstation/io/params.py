@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from estimators.calibration import polar_decomposition
+from estimators.compass_corrections import ardupilot_param_names
 from estimators.rotations import dcm_body_to_ned
 
 MG_PER_GAUSS = 1000.0
@@ -76,16 +77,26 @@ def ardupilot_never_calibrated(params: dict[str, float]) -> bool:
 
 
 def ardupilot_matrix(params: dict[str, float], instance: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
-    """(OFS mG, M, SCALE) of compass ``instance`` (0 = COMPASS_OFS_*, 1 = COMPASS_OFS2_* ...)."""
-    n = "" if instance == 0 else str(instance + 1)
-    ofs = np.array([float(params.get(f"COMPASS_OFS{n}_{a}", 0.0)) for a in "XYZ"])
-    dia = np.array([float(params.get(f"COMPASS_DIA{n}_{a}", 0.0)) for a in "XYZ"])
-    odi = np.array([float(params.get(f"COMPASS_ODI{n}_{a}", 0.0)) for a in "XYZ"])
+    """(OFS mG, M, SCALE) of compass ``instance`` (0 = COMPASS_OFS_*, 1 = COMPASS_OFS2_* ...; the
+    names of estimators.compass_corrections.ardupilot_param_names, the one definition)."""
+    names = ardupilot_param_names(instance)
+    ofs = np.array([float(params.get(k, 0.0)) for k in names["offsets"]])
+    dia = np.array([float(params.get(k, 0.0)) for k in names["diag"]])
+    odi = np.array([float(params.get(k, 0.0)) for k in names["offdiag"]])
     if np.all(dia == 0):
         dia = np.ones(3)
     M = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
-    scale = float(params.get(f"COMPASS_SCALE{n}", 0.0))
+    scale = float(params.get(names["scale"][0], 0.0))
     return ofs, M, (scale if scale > 0 else 1.0)
+
+
+def ardupilot_orientation(params: dict[str, float], instance: int = 0) -> int:
+    """COMPASS_ORIENT / COMPASS_ORIENT2 / ... of compass ``instance`` (ROTATION_* enum, default 0)."""
+    return int(params.get("COMPASS_ORIENT" + ("" if instance == 0 else str(instance + 1)), 0))
+
+
+def ardupilot_has_offsets(params: dict[str, float], instance: int = 0) -> bool:
+    return all(k in params for k in ardupilot_param_names(instance)["offsets"])
 
 
 def apply_ardupilot(raw_mG: np.ndarray, params: dict[str, float], instance: int = 0) -> np.ndarray:
@@ -105,31 +116,30 @@ def ardupilot_params_from_calibration(offsets_mG: np.ndarray, matrix: np.ndarray
     """COMPASS_OFS/DIA/ODI/SCALE for m_cal = S (raw − b); the rotation part of a non-symmetric
     C is dropped here (report it as misalignment)."""
     _, S = polar_decomposition(matrix)
-    n = "" if instance == 0 else str(instance + 1)
+    names = ardupilot_param_names(instance)
     b = np.asarray(offsets_mG, float)
     out: dict[str, float] = {}
-    for i, a in enumerate("XYZ"):
-        out[f"COMPASS_OFS{n}_{a}"] = float(-b[i])
-    for i, a in enumerate("XYZ"):
-        out[f"COMPASS_DIA{n}_{a}"] = float(S[i, i])
-    out[f"COMPASS_ODI{n}_X"] = float(S[0, 1])
-    out[f"COMPASS_ODI{n}_Y"] = float(S[0, 2])
-    out[f"COMPASS_ODI{n}_Z"] = float(S[1, 2])
-    out[f"COMPASS_SCALE{n}"] = 1.0
+    for i, k in enumerate(names["offsets"]):
+        out[k] = float(-b[i])
+    for i, k in enumerate(names["diag"]):
+        out[k] = float(S[i, i])
+    for k, (i, j) in zip(names["offdiag"], ((0, 1), (0, 2), (1, 2))):
+        out[k] = float(S[i, j])
+    out[names["scale"][0]] = 1.0
     return out
 
 
 # ------------------------------------------------------------------------------------------ PX4
 
-def px4_slot(params: dict[str, float], device_id: int | None = None) -> int:
+def px4_slot(params: dict[str, float], device_id: int | None = None, default: int = 0) -> int:
     """Calibration slot n of CAL_MAGn_*: the one whose CAL_MAGn_ID matches ``device_id`` or
-    CAL_MAG_PRIME, else 0."""
+    CAL_MAG_PRIME, else ``default``."""
     want = device_id if device_id is not None else params.get("CAL_MAG_PRIME")
     if want:
         for n in range(4):
             if int(params.get(f"CAL_MAG{n}_ID", -1)) == int(want):
                 return n
-    return 0
+    return default
 
 
 def px4_rotation(params: dict[str, float], slot: int = 0) -> np.ndarray:
@@ -215,15 +225,20 @@ def unapply_onboard_calibration(mag_mG: np.ndarray, params: dict[str, float], au
     return np.asarray(mag_mG, float), "no onboard calibration parameters found; samples used as raw"
 
 
-def export_params(offsets_mG: np.ndarray, matrix: np.ndarray, params: dict[str, float] | None = None
-                  ) -> tuple[dict[str, float], dict[str, float]]:
-    """(ArduPilot params, PX4 params) for a calibration in the body-aligned raw frame; the PX4 slot
-    and sensor rotation follow the log's parameters when given."""
+def export_params(offsets_mG: np.ndarray, matrix: np.ndarray, params: dict[str, float] | None = None, *,
+                  compass: int = 0, device_id: int | None = None) -> tuple[dict[str, float], dict[str, float]]:
+    """(ArduPilot params, PX4 params) for a calibration in the body-aligned raw frame of compass
+    ``compass`` (COMPASS_OFS{n}_*); the PX4 slot (CAL_MAG{slot}_*: the one whose CAL_MAGn_ID is the
+    device id, else the compass number) and sensor rotation follow the log's parameters."""
     params = params or {}
-    ap = ardupilot_params_from_calibration(offsets_mG, matrix)
-    slot = px4_slot(params) if any(k.startswith("CAL_MAG") for k in params) else 0
+    ap = ardupilot_params_from_calibration(offsets_mG, matrix, compass)
+    has_px4 = any(k.startswith("CAL_MAG") for k in params)
+    if device_id is not None or compass:
+        slot = px4_slot(params, device_id, compass) if has_px4 else compass
+    else:
+        slot = px4_slot(params) if has_px4 else 0
     try:
-        R = px4_rotation(params, slot) if any(k.startswith("CAL_MAG") for k in params) else np.eye(3)
+        R = px4_rotation(params, slot) if has_px4 else np.eye(3)
     except ValueError:
         R = np.eye(3)
     return ap, px4_params_from_calibration(offsets_mG, matrix, slot, R)
@@ -234,3 +249,17 @@ def format_param_file(values: dict[str, float], style: str = "comma") -> str:
     (style "space", Mission Planner)."""
     sep = "," if style == "comma" else " "
     return "".join(f"{k}{sep}{v:.7g}\n" for k, v in sorted(values.items()))
+
+
+def params_at(history: list[tuple[float, str, float]], t_s: float, base: dict[str, float] | None = None
+              ) -> dict[str, float]:
+    """The parameters in force at t_s: ``base`` (e.g. FlightLog.params) overlaid with every
+    history value set at or before t_s; a name first seen later keeps its first value (the best
+    knowledge of what was in force before it was reported)."""
+    out = dict(base or {})
+    seen: set[str] = set()
+    for t, name, value in sorted(history, key=lambda h: h[0]):
+        if t <= t_s or name not in seen:
+            out[name] = value
+            seen.add(name)
+    return out

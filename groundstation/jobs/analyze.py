@@ -2,10 +2,13 @@
 
 ``analyze_log(log, calibration=None, mission=None) -> (report, columns)``
   report:  the analyze JSON object (file, duration_s, calibration, declination_deg, inclination_deg,
-           field_strength_mG, rtk, mission, path_test, max_cross_track_m, alarms, first_alarm_s,
-           interference_detected, navigation, detection ...)
+           field_strength_mG, rtk, mission, path_test, max_cross_track_m, compasses (each compass's
+           field strength / inclination against the WMM), compass_consistency, alarms,
+           first_alarm_s, interference_detected, navigation, detection ...)
   columns: the per-step CSV as {name: array} on the IMU time base (``groundstation.jobs.report``).
-The per-sample twin for the live station is ``groundstation.jobs.live.LiveAnalyzer``.
+``analyze_flight(log, calibration=None, mission=None) -> FlightAnalysis`` is its detection part
+alone (no INS/GPS over outages): the flight record (``groundstation.jobs.record``) the station's
+replay reads; the per-sample twin for a live link is ``groundstation.jobs.live.LiveAnalyzer``.
 
 The math lives in estimators (heading chain: seed 000; detection: seed 002); this module turns a
 FlightLog into arrays on one time base (``groundstation.jobs.inputs``), looks up the WMM and
@@ -13,45 +16,82 @@ builds the report.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from estimators.detection import DetectionSettings, alarm_intervals, detect
+from estimators.detection import DetectionResult, DetectionSettings, alarm_intervals, detect
 from estimators.heading import split_velocity
 
-from groundstation.jobs.inputs import GPS_TIMEOUT_S, detection_inputs, hold_last, rounded
+from groundstation.jobs.compass_report import compass_summaries
+from groundstation.jobs.inputs import detection_inputs, heading_deg, rounded
 from groundstation.jobs.navigation import navigation
+from groundstation.jobs.record import COL, AlarmTracker, record_rows
 from groundstation.samples import FlightLog
 
-__all__ = ["analyze_log"]
+__all__ = ["analyze_log", "analyze_flight", "FlightAnalysis", "detector_score"]
+
+
+def detector_score(z_heading, z_path, z_field) -> np.ndarray:
+    """The largest test score of each step (NaN where no test has one)."""
+    return np.fmax(np.fmax(np.asarray(z_heading, float), np.asarray(z_path, float)), np.asarray(z_field, float))
+
+
+@dataclass
+class FlightAnalysis:
+    """The detection part of analyze on a whole log: inputs (``detection_inputs``), the
+    detector's result and the flight record rows (``groundstation.jobs.record``)."""
+    x: dict
+    det: DetectionResult
+    rows: np.ndarray
+    settings: DetectionSettings
+
+    def combined_alarms(self) -> list[dict]:
+        tracker = AlarmTracker()
+        r = self.rows
+        tracker.update(r[:, COL["t_s"]], r[:, COL["alarm"]] > 0.5,
+                       r[:, [COL["ev_heading"], COL["ev_path"], COL["ev_field"]]] > 0.5, r[:, COL["score"]])
+        return tracker.alarms
+
+
+def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: list | None = None,
+                   settings: DetectionSettings | None = None) -> FlightAnalysis:
+    """Detector inputs, detection and the flight record of a whole log (see module docstring)."""
+    settings = settings or DetectionSettings()
+    x = detection_inputs(log, calibration, mission, settings)
+    ef = x["ef"]
+    det = detect(x["t"], x["e"], x["d"], x["trusted"], x["strength"], x["incl"], x["heading"], x["yaw_rate"],
+                 ef.field_strength_mG if ef else np.nan, ef.inclination_deg if ef else np.nan, settings)
+    rows = record_rows(x["t"], x["chain"], x, ef.declination_deg if ef else 0.0, det.combined, det.trigger,
+                       detector_score(det.z_heading, det.z_path, det.z_field))
+    return FlightAnalysis(x, det, rows, settings)
 
 
 def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list | None = None,
                 settings: DetectionSettings | None = None) -> tuple[dict, dict[str, np.ndarray]]:
     """Heading chain + interference detection on a whole log; see module docstring."""
     settings = settings or DetectionSettings()
-    x = detection_inputs(log, calibration, mission, settings)
-    t, e, d, trusted, ef, pos, chain, valid, g = (x[k] for k in ("t", "e", "d", "trusted", "ef", "pos", "chain", "valid", "g"))
+    fa = analyze_flight(log, calibration, mission, settings)
+    x, det = fa.x, fa.det
+    t, d, ef, pos, chain, valid, g = (x[k] for k in ("t", "d", "ef", "pos", "chain", "valid", "g"))
     d_gps, legs, rtk, path_test, cal = (x[k] for k in ("d_gps", "legs", "rtk", "path_test", "cal"))
     strength = x["strength"]
-    n = len(t)
-    det = detect(t, e, d, trusted, strength, x["incl"], x["heading"], x["yaw_rate"],
-                 ef.field_strength_mG if ef else np.nan, ef.inclination_deg if ef else np.nan, settings)
-
-    # velocity split with the true heading (seed 000 sec. 3.3)
-    vel = hold_last(g[:, 0], g[:, 4:6], t, GPS_TIMEOUT_S) if len(g) else np.full((n, 2), np.nan)
+    gps = x["gps_held"]
     hdg_true = np.where(valid, chain.heading_true_rad, np.nan)
-    v_fwd, v_lat = split_velocity(vel[:, 0], vel[:, 1], hdg_true)
-    deg = lambda x: np.where(valid, np.degrees(x), np.nan)  # noqa: E731
+    v_fwd, v_lat = split_velocity(gps[:, 5], gps[:, 6], hdg_true)
+    deg = lambda a: np.where(valid, np.degrees(a), np.nan)  # noqa: E731
+    hdg = lambda a: np.where(valid, heading_deg(a), np.nan)  # noqa: E731
     columns = {
         "t_s": t,
         "roll_deg": deg(chain.roll_rad), "pitch_deg": deg(chain.pitch_rad),
-        "yaw_deg": deg(chain.yaw_rad), "mag_heading_deg": deg(chain.mag_heading_rad),
-        "heading_true_deg": deg(chain.heading_true_rad),
+        "yaw_deg": hdg(chain.yaw_rad), "mag_heading_deg": hdg(chain.mag_heading_rad),
+        "heading_true_deg": hdg(chain.heading_true_rad),
         "v_forward_mps": v_fwd, "v_lateral_mps": v_lat,
         "cross_track_m": d, "alarm": det.combined.astype(int),
     }
 
-    alarms = alarm_list(t, det, d, settings)
+    alarms = alarm_list(t, det, d, settings) + fa.combined_alarms()
+    alarms.sort(key=lambda a: (a["start_s"], a["kind"]))
     combined = [a for a in alarms if a["kind"] == "combined"]
     legs_report = None
     if legs:
@@ -60,6 +100,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         if len(legs) > 1:
             legs_report["legs"] = len(legs)
     meas_strength = float(np.nanmedian(strength)) if np.isfinite(strength).any() else None
+    compasses, consistency = compass_summaries(log, cal, (calibration or {}).get("compass"), ef, settings)
     report = {
         "file": log.source,
         "duration_s": rounded(log.duration_s, 2),
@@ -77,6 +118,8 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "field_test": x["field_test"],
         "imu_rate_hz": rounded(x["imu_rate_hz"], 1),
         "max_cross_track_m": rounded(np.nanmax(d_gps)) if len(d_gps) and np.isfinite(d_gps).any() else None,
+        "compasses": compasses,
+        "compass_consistency": consistency,
         "alarms": alarms,
         "first_alarm_s": combined[0]["start_s"] if combined else None,
         "interference_detected": bool(combined),
@@ -93,26 +136,17 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
 
 
 ALARM_UNITS = {"heading_difference": "deg", "path_deviation": "m",
-               "field_anomaly": "score (strength or inclination deviation / threshold)",
-               "combined": "score (1 = test threshold)"}
-TESTS = ("heading_difference", "path_deviation", "field_anomaly")
+               "field_anomaly": "score (strength or inclination deviation / threshold)"}
 
 
 def alarm_list(t: np.ndarray, det, cross_track_m: np.ndarray, settings: DetectionSettings) -> list[dict]:
-    """Every alarm interval of each test and of the combined decision, in time order."""
+    """Every alarm interval of each test alone (the combined decision's: ``FlightAnalysis``)."""
     dev_h = det.z_heading * settings.sigma_k * det.heading_sigma_deg
     alarms = []
     for kind, flag, value in (("heading_difference", det.heading_alarm, dev_h),
                               ("path_deviation", det.path_alarm, cross_track_m),
-                              ("field_anomaly", det.field_alarm, np.fmax(det.z_strength, det.z_inclination)),
-                              ("combined", det.combined, np.fmax(np.fmax(det.z_heading, det.z_path), det.z_field))):
-        for start, end, peak, i0, i1 in alarm_intervals(t, flag, value):
-            a = {"kind": kind, "start_s": rounded(start, 2), "end_s": rounded(end, 2), "peak": rounded(peak),
-                 "unit": ALARM_UNITS[kind]}
-            if kind == "combined":
-                trig = det.trigger[i0:i1 + 1].any(axis=0)
-                a["evidence"] = [k for k, on in zip(TESTS, trig) if on]
-                a["evidence_at_start"] = det.evidence_at(i0)
-            alarms.append(a)
-    alarms.sort(key=lambda a: (a["start_s"], a["kind"]))
+                              ("field_anomaly", det.field_alarm, np.fmax(det.z_strength, det.z_inclination))):
+        for start, end, peak, _, _ in alarm_intervals(t, flag, value):
+            alarms.append({"kind": kind, "start_s": rounded(start, 2), "end_s": rounded(end, 2),
+                           "peak": rounded(peak), "unit": ALARM_UNITS[kind]})
     return alarms

@@ -1,13 +1,25 @@
-"""A FlightLog turned into estimator inputs on one time base (shared by analyze, navigation and live).
+"""Detector inputs on the IMU time base, one definition for the batch form and the live form.
 
-``detection_inputs(log, calibration, mission, settings)`` runs the heading chain on the IMU time
-base and lines up everything the interference detector needs (heading difference, field
-strength and inclination, cross-track against the mission); the small helpers below are the one
-definition of each step (held values, calibration arrays, mission legs, steep-attitude gate).
+``detection_inputs(log, calibration, mission, settings)`` is the batch form (a whole FlightLog);
+``groundstation.jobs.live.LiveAnalyzer`` is the per-sample form.  Both build their inputs from
+the same pieces, so a log gives the same alarms replayed, streamed live or analysed:
+
+* ``field_policy``: what the magnetometer samples are (autopilot-corrected, station-corrected,
+  raw) and how they become the calibrated field (un-apply the autopilot's own calibration, then
+  apply ours), and whether the field test may run;
+* ``gps_rows``: per GPS sample the cross-track to the nearest mission leg (signed, + right of
+  A->B), RTK trust, position and velocity;
+* ``hold_last``: the latest value at or before each IMU step within a timeout (live: ``Held``
+  calls it on its latest value);
+* ``imu_rate_hz``: the IMU rate from the median of the last RATE_WINDOW intervals (the heading
+  test needs ``min_imu_rate_hz``);
+* ``step_inputs``: heading difference, field strength/inclination, steep-attitude gate and
+  turn rate on the IMU steps, carrying its gate state (``StepState``) from call to call.
 """
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -17,64 +29,152 @@ from estimators.heading import run_heading_chain
 from estimators.rotations import wrap_angle_rad
 
 from groundstation.io.params import ardupilot_never_calibrated, unapply_onboard_calibration
-from groundstation.samples import FlightLog, finite_or_none
+from groundstation.jobs.compass_raw import compass_field
+from groundstation.samples import CompassTable, FlightLog, finite_or_none
 
-__all__ = ["detection_inputs", "calibration_arrays", "mission_legs", "cross_track_legs", "hold_last",
-           "field_reference", "uncalibrated", "too_steep", "rotation_rate", "rounded", "GPS_TIMEOUT_S"]
+__all__ = ["detection_inputs", "calibration_arrays", "check_calibration", "primary_raw", "mission_legs",
+           "cross_track_legs", "hold_last", "Held", "field_reference", "field_policy", "FieldPolicy", "gps_rows",
+           "GPS_COLUMNS", "imu_rate_hz", "step_inputs", "StepState", "too_steep", "rotation_rate", "rounded",
+           "heading_deg", "GPS_TIMEOUT_S", "ATTITUDE_TIMEOUT_S", "RATE_WINDOW"]
 
-GPS_TIMEOUT_S = 1.0
+GPS_TIMEOUT_S = 1.0          # a GPS or magnetometer value older than this is not used
+ATTITUDE_TIMEOUT_S = 0.5     # the autopilot's roll/pitch, for the field inclination and the steep gate
+RATE_WINDOW = 25             # IMU intervals in the rolling rate estimate
+GPS_COLUMNS = ("cross_track_m", "cross_track_signed_m", "trusted", "lat_deg", "lon_deg", "vn_mps", "ve_mps",
+               "fix_type")
 
 
-def calibration_arrays(calibration: dict | None) -> tuple[np.ndarray, np.ndarray] | None:
-    if not calibration:
-        return None
+def heading_deg(heading_rad) -> np.ndarray:
+    """Heading in degrees in [0, 360) (``np.mod(-tiny, 360)`` is 360.0: folded to 0)."""
+    d = np.mod(np.degrees(np.asarray(heading_rad, dtype=float)), 360.0)
+    return np.where(d >= 360.0, 0.0, d)
+
+
+MAX_OFFSET_MG = 1e5          # 100 G: far beyond any magnetometer's range
+MAX_MATRIX_CONDITION = 1e3   # a fitted soft-iron matrix is near a rotation times ~1 (ratio <= 2.5)
+MATRIX_SCALE_RANGE = (1e-2, 1e2)
+
+
+def check_calibration(calibration: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(offsets_mG (3,), matrix (3, 3)) of a calibration object (``m_cal = matrix (m_raw - offsets)``).
+
+    Raises:
+        ValueError: saying what is wrong: offsets or matrix missing, not three / 3x3 numbers, not
+            finite, offsets beyond MAX_OFFSET_MG, matrix singular or of absurd scale.
+    """
     off, mat = calibration.get("offsets_mG"), calibration.get("matrix")
-    if off is None or mat is None:
-        return None
-    off, mat = np.asarray(off, dtype=float).reshape(3), np.asarray(mat, dtype=float).reshape(3, 3)
+    if off is None:
+        raise ValueError("the calibration has no offsets_mG")
+    if mat is None:
+        raise ValueError("the calibration has no matrix")
+    try:
+        off = np.asarray(off, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError("offsets_mG must be three numbers") from None
+    try:
+        mat = np.asarray(mat, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError("matrix must be 3x3 numbers") from None
+    if off.shape != (3,):
+        raise ValueError("offsets_mG must be three numbers")
+    if mat.shape != (3, 3):
+        raise ValueError("matrix must be 3x3 numbers")
     if not (np.all(np.isfinite(off)) and np.all(np.isfinite(mat))):
-        return None
+        raise ValueError("offsets_mG and matrix must be finite numbers")
+    if np.max(np.abs(off)) > MAX_OFFSET_MG:
+        raise ValueError(f"offsets_mG beyond +-{MAX_OFFSET_MG:g} mG are not a magnetometer's")
+    sv = np.linalg.svd(mat, compute_uv=False)
+    if sv[-1] <= sv[0] / MAX_MATRIX_CONDITION or sv[0] == 0:
+        raise ValueError(f"matrix is singular (singular values {', '.join(f'{v:.3g}' for v in sv)}): "
+                         "it would map every field onto a plane or a point")
+    if not MATRIX_SCALE_RANGE[0] <= sv[-1] <= sv[0] <= MATRIX_SCALE_RANGE[1]:
+        raise ValueError(f"matrix scale {sv[-1]:.3g}..{sv[0]:.3g} is outside "
+                         f"{MATRIX_SCALE_RANGE[0]:g}..{MATRIX_SCALE_RANGE[1]:g}")
     return off, mat
 
 
-def mission_legs(points: list | None) -> list[tuple[tuple[float, float], tuple[float, float]]]:
-    """Consecutive waypoint pairs [(A, B), ...] as (lat, lon) tuples; empty if fewer than two."""
-    pts = [(float(p[0]), float(p[1])) for p in (points or []) if len(p) >= 2
-           and np.isfinite(p[0]) and np.isfinite(p[1])]
-    return [(pts[k], pts[k + 1]) for k in range(len(pts) - 1) if pts[k] != pts[k + 1]]
+def primary_raw(log: FlightLog) -> np.ndarray:
+    """The primary compass's raw field (N,3), the autopilot's corrections un-applied with the values
+    in force at each sample (jobs.compass_raw), on the rows of ``log.mag``."""
+    mag = np.asarray(log.mag, dtype=float).reshape(-1, 4)
+    same = [c for c in log.compasses if c.compass == log.primary_compass and c.field is log.mag]
+    table = CompassTable(log.primary_compass, mag, "mag", None, log.mag_calibration_applied,
+                         same[0].motor_offset_mG if same else None)
+    return compass_field(log, table).raw_mG
 
 
-def cross_track_legs(lat, lon, legs, origin) -> np.ndarray:
-    """Horizontal seed 002 eq. (6) distance to the nearest leg (chosen by distance to the segment)."""
-    n, e = ned_from_lla(lat, lon, origin[0], origin[1])
-    x = np.stack([n, e, np.zeros_like(n)], axis=1)
-    best_seg = np.full(len(x), np.inf)
-    best_d = np.full(len(x), np.nan)
-    for (a, b) in legs:
-        an, ae = ned_from_lla(a[0], a[1], origin[0], origin[1])
-        bn, be = ned_from_lla(b[0], b[1], origin[0], origin[1])
-        A, B = np.array([an, ae, 0.0]), np.array([bn, be, 0.0])
-        ab = B - A
-        u = np.clip(((x - A) @ ab) / max(ab @ ab, 1e-12), 0.0, 1.0)
-        seg = np.linalg.norm(x - (A + u[:, None] * ab), axis=1)
-        d = cross_track_m(x, A, B)
-        better = seg < best_seg
-        best_seg = np.where(better, seg, best_seg)
-        best_d = np.where(better, d, best_d)
-    return best_d
+def calibration_arrays(calibration: dict | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """``check_calibration``'s arrays, or None when there is no usable calibration."""
+    if not calibration:
+        return None
+    try:
+        return check_calibration(calibration)
+    except ValueError:
+        return None
 
 
-def hold_last(t_src: np.ndarray, v_src: np.ndarray, t: np.ndarray, timeout_s: float) -> np.ndarray:
-    """Latest source value at or before each t (NaN when none within timeout)."""
-    v_src = np.asarray(v_src, dtype=float)
-    out_shape = (len(t),) + v_src.shape[1:]
-    if len(t_src) == 0:
-        return np.full(out_shape, np.nan)
-    idx = np.searchsorted(t_src, t, side="right") - 1
-    ok = (idx >= 0) & (t - t_src[np.maximum(idx, 0)] <= timeout_s)
-    out = v_src[np.maximum(idx, 0)].astype(float)
-    out[~ok] = np.nan
-    return out
+# ----------------------------------------------------------------------------- the field
+@dataclass(frozen=True)
+class FieldPolicy:
+    """What the magnetometer samples of a source are and what the station does with them.
+
+    correction:  "station" (our calibration, applied to the un-applied raw field),
+                 "autopilot" (the autopilot's own calibration, as it sent the field),
+                 "raw" (the sensor output: never calibrated, or raw samples), "none" (no field).
+    field_test:  "on" or "off: <why>".
+    note:        one line for people.
+    """
+    correction: str
+    field_test: str
+    note: str
+    cal: tuple[np.ndarray, np.ndarray] | None = None
+    params: dict = field(default_factory=dict)
+    autopilot: str | None = None
+    applied: bool | None = None
+    affine: tuple[np.ndarray, np.ndarray] | None = None    # (A, b): field = A m + b, None: as sent
+
+    @property
+    def field_on(self) -> bool:
+        return self.field_test == "on"
+
+    def apply(self, mag_mG: np.ndarray) -> np.ndarray:
+        """Samples (n, 3) as the source sent them -> the field the estimators use (n, 3)."""
+        m = np.asarray(mag_mG, dtype=float).reshape(-1, 3)
+        if self.affine is None:
+            return m.copy()
+        return m @ self.affine[0].T + self.affine[1]
+
+
+def _station_affine(cal, params, autopilot, applied) -> tuple[np.ndarray, np.ndarray]:
+    """Un-applying the autopilot's calibration and applying ours is affine: (A, b) of the whole."""
+    basis = np.vstack([np.zeros(3), np.eye(3)])
+    raw, _ = unapply_onboard_calibration(basis, params, autopilot, applied)
+    out = (raw - cal[0]) @ cal[1].T
+    return (out[1:] - out[0]).T.copy(), out[0].copy()
+
+
+def field_policy(calibration: dict | None, params: dict[str, float], autopilot: str | None,
+                 applied: bool | None, has_mag: bool = True) -> FieldPolicy:
+    """The one rule for the field of a source (batch: the log's; live: what has arrived so far).
+
+    ``applied`` is FlightLog.mag_calibration_applied (live: True for ArduPilot, which sends the
+    corrected field, as ``groundstation.io.logs.tlog`` records it)."""
+    cal = calibration_arrays(calibration)
+    common = dict(params=dict(params), autopilot=autopilot, applied=applied)
+    if not has_mag:
+        return FieldPolicy("none", "off: no magnetometer data in the log", "no magnetometer samples", **common)
+    if cal is not None:
+        return FieldPolicy("station", "on", "station-corrected: this station's calibration, applied to the "
+                           "raw field (the autopilot's own calibration un-applied first)", cal=cal,
+                           affine=_station_affine(cal, params, autopilot, applied), **common)
+    if applied is False or ardupilot_never_calibrated(params):
+        return FieldPolicy("raw", "off: magnetometer not calibrated (give a calibration; the source has no "
+                           "onboard offsets)", "raw: the sensor's output, no calibration on board or here", **common)
+    if applied or autopilot in ("ardupilot", "px4"):
+        who = {"ardupilot": "ArduPilot", "px4": "PX4"}.get(autopilot or "", "the autopilot")
+        return FieldPolicy("autopilot", "on", f"autopilot-corrected: {who} applies its own compass calibration",
+                           **common)
+    return FieldPolicy("unknown", "on", "unknown: no autopilot or calibration information yet", **common)
 
 
 def field_reference(log: FlightLog):
@@ -90,10 +190,118 @@ def field_reference(log: FlightLog):
         return None, None
 
 
-def uncalibrated(log: FlightLog) -> bool:
-    """The log's field is the raw sensor output: raw samples (PX4 sensor_mag), or ArduPilot with
-    COMPASS_OFS_* all zero (never calibrated; a calibrated compass has non-zero offsets)."""
-    return getattr(log, "mag_calibration_applied", None) is False or ardupilot_never_calibrated(log.params)
+# ----------------------------------------------------------------------------- the path
+def mission_legs(points: list | None) -> list[tuple[tuple[float, float], tuple[float, float]]]:
+    """Consecutive waypoint pairs [(A, B), ...] as (lat, lon) tuples; empty if fewer than two."""
+    pts = [(float(p[0]), float(p[1])) for p in (points or []) if len(p) >= 2
+           and np.isfinite(p[0]) and np.isfinite(p[1])]
+    return [(pts[k], pts[k + 1]) for k in range(len(pts) - 1) if pts[k] != pts[k + 1]]
+
+
+def cross_track_legs(lat, lon, legs, origin, signed: bool = False) -> np.ndarray:
+    """Horizontal seed 002 eq. (6) distance to the nearest leg (chosen by distance to the
+    segment); ``signed``: + right of that leg's A->B."""
+    n, e = ned_from_lla(np.atleast_1d(lat), np.atleast_1d(lon), origin[0], origin[1])
+    x = np.stack([n, e, np.zeros_like(n)], axis=1)
+    best_seg = np.full(len(x), np.inf)
+    best_d = np.full(len(x), np.nan)
+    for (a, b) in legs:
+        an, ae = ned_from_lla(a[0], a[1], origin[0], origin[1])
+        bn, be = ned_from_lla(b[0], b[1], origin[0], origin[1])
+        A, B = np.array([an, ae, 0.0]), np.array([bn, be, 0.0])
+        ab = B - A
+        u = np.clip(((x - A) @ ab) / max(ab @ ab, 1e-12), 0.0, 1.0)
+        seg = np.linalg.norm(x - (A + u[:, None] * ab), axis=1)
+        d = cross_track_m(x, A, B)
+        if signed:
+            d = np.where(ab[0] * (x[:, 1] - A[1]) - ab[1] * (x[:, 0] - A[0]) < 0, -d, d)
+        better = seg < best_seg
+        best_seg = np.where(better, seg, best_seg)
+        best_d = np.where(better, d, best_d)
+    return best_d
+
+
+def gps_rows(gps: np.ndarray, legs: list, settings: DetectionSettings) -> np.ndarray:
+    """GPS table rows [t, lat, lon, alt, vn, ve, vd, fix] -> GPS_COLUMNS per row (same for one
+    row live and a whole log)."""
+    g = np.asarray(gps, dtype=float).reshape(-1, 8)
+    out = np.full((len(g), len(GPS_COLUMNS)), np.nan)
+    if not len(g):
+        return out
+    if legs:
+        out[:, 1] = cross_track_legs(g[:, 1], g[:, 2], legs, legs[0][0], signed=True)
+        out[:, 0] = np.abs(out[:, 1])
+    out[:, 2] = (g[:, 7] >= settings.rtk_min_fix).astype(float)
+    out[:, 3:7] = g[:, [1, 2, 4, 5]]
+    out[:, 7] = g[:, 7]
+    return out
+
+
+# ----------------------------------------------------------------------------- holds and rates
+def hold_last(t_src: np.ndarray, v_src: np.ndarray, t: np.ndarray, timeout_s: float) -> np.ndarray:
+    """Latest source value at or before each t (NaN when none within timeout)."""
+    v_src = np.asarray(v_src, dtype=float)
+    out_shape = (len(t),) + v_src.shape[1:]
+    if len(t_src) == 0:
+        return np.full(out_shape, np.nan)
+    idx = np.searchsorted(t_src, t, side="right") - 1
+    ok = (idx >= 0) & (t - t_src[np.maximum(idx, 0)] <= timeout_s)
+    out = v_src[np.maximum(idx, 0)].astype(float)
+    out[~ok] = np.nan
+    return out
+
+
+class Held:
+    """The live form of ``hold_last``: the latest value of one stream, read at a later time (a
+    value older than the one held is ignored: it is never the latest at a later step)."""
+
+    def __init__(self, width: int, timeout_s: float) -> None:
+        self.timeout_s = timeout_s
+        self._t: float | None = None
+        self._v = self._nan = np.full((1, width), np.nan)
+
+    def update(self, t_s: float, value) -> None:
+        if self._t is not None and float(t_s) < self._t:
+            return
+        self._t = float(t_s)
+        self._v = np.asarray(value, dtype=float).reshape(1, -1)
+
+    def at(self, t_s: float) -> np.ndarray:
+        """(1, width): the value if received at or before t_s within the timeout, else NaN
+        (``hold_last``'s rule on one value)."""
+        if self._t is not None and self._t <= t_s and t_s - self._t <= self.timeout_s:
+            return self._v
+        return self._nan
+
+
+def imu_rate_hz(t_s: np.ndarray, start: int = 0) -> np.ndarray:
+    """IMU rate at each step: 1 / median of the last RATE_WINDOW intervals ending there (0 at
+    the first step, inf when the intervals are zero).  Returns the steps from ``start`` on (the
+    live form passes its last RATE_WINDOW + 1 times before its new steps)."""
+    t = np.asarray(t_s, dtype=float)
+    n = len(t)
+    start = min(max(int(start), 0), n)
+    med = np.zeros(n - start)
+    dt = np.diff(t)
+    small = n - start <= 8                                    # a few live steps: plain Python is faster
+    for i in range(start, n if small else min(n, RATE_WINDOW + 1)):
+        med[i - start] = _median(dt[max(0, i - RATE_WINDOW):i].tolist())
+    first = n if small else max(start, RATE_WINDOW + 1)
+    if n > first:
+        windows = np.lib.stride_tricks.sliding_window_view(dt, RATE_WINDOW)   # windows[k] = dt[k:k+W]
+        med[first - start:] = np.median(windows[first - RATE_WINDOW:n - RATE_WINDOW], axis=1)
+    idx = np.arange(start, n)
+    with np.errstate(divide="ignore"):
+        return np.where(med > 0, 1.0 / np.maximum(med, 1e-300), np.where(idx == 0, 0.0, np.inf))
+
+
+def _median(values: list[float]) -> float:
+    """np.median of a short list (the same value: the middle one, or the mean of the middle two)."""
+    if not values:
+        return 0.0
+    v = sorted(values)
+    k = len(v)
+    return v[k // 2] if k % 2 else (v[k // 2 - 1] + v[k // 2]) / 2
 
 
 def too_steep(roll_rad, pitch_rad, settings: DetectionSettings):
@@ -112,82 +320,100 @@ def rounded(x, nd=3):
     return None if v is None else round(v, nd)
 
 
+# ----------------------------------------------------------------------------- per IMU step
+@dataclass
+class StepState:
+    """What the per-step gates carry from one call to the next (the live form calls per sample)."""
+    last_steep_t: float = -np.inf
+
+
+def step_inputs(t, chain, mag_held, att_rp, gps_held, rate_hz, gyro, policy: FieldPolicy,
+                settings: DetectionSettings, state: StepState) -> dict:
+    """The detector's inputs on IMU steps (arrays of any length, one for live).
+
+    chain: object with roll_rad, pitch_rad, yaw_rad, mag_heading_rad, valid arrays (the heading
+    chain on these steps); mag_held (n, 3) calibrated field; att_rp (n, 2) the autopilot's roll and
+    pitch (NaN: use the chain's); gps_held (n, len(GPS_COLUMNS)); rate_hz (n,) IMU rate; gyro (n, 3).
+    Returns e, d, trusted, strength, incl, heading, yaw_rate (the detector's arguments) and
+    field_mG, inclination_deg, heading_on, field_on, steep, rate_hz for display.
+    """
+    t = np.asarray(t, dtype=float)
+    valid = np.asarray(chain.valid, dtype=bool)
+    roll = np.where(np.isfinite(att_rp[:, 0]), att_rp[:, 0], chain.roll_rad)
+    pitch = np.where(np.isfinite(att_rp[:, 1]), att_rp[:, 1], chain.pitch_rad)
+    field_mG = np.linalg.norm(mag_held, axis=1)
+    incl = field_inclination_deg(mag_held, roll, pitch)
+    last = np.maximum.accumulate(np.concatenate([[state.last_steep_t],
+                                                 np.where(too_steep(roll, pitch, settings), t, -np.inf)]))
+    state.last_steep_t = float(last[-1])
+    steep = t - last[1:] <= settings.turn_settle_s
+    heading_on = (np.asarray(rate_hz) >= settings.min_imu_rate_hz) & (policy.correction != "none")
+    e = np.where(valid & heading_on & ~steep, wrap_angle_rad(chain.mag_heading_rad - chain.yaw_rad), np.nan)
+    use_field = ~steep & policy.field_on
+    return dict(e=e, d=gps_held[:, 0], trusted=gps_held[:, 2] == 1.0,
+                strength=np.where(use_field, field_mG, np.nan), incl=np.where(use_field, incl, np.nan),
+                heading=np.where(valid, chain.yaw_rad, np.nan), yaw_rate=rotation_rate(gyro),
+                field_mG=field_mG, inclination_deg=incl, heading_on=heading_on, field_on=use_field, steep=steep,
+                rate_hz=np.asarray(rate_hz, dtype=float))
+
+
+def _tests(log_imu_rate: float, n: int, settings: DetectionSettings, legs, g, rtk: bool,
+           policy: FieldPolicy) -> tuple[str, str]:
+    """(heading_test, path_test) lines of the report."""
+    if policy.correction == "none":
+        heading = "off: no magnetometer data in the log"
+    elif log_imu_rate < settings.min_imu_rate_hz:
+        heading = f"off: IMU rate {log_imu_rate:.1f} Hz < {settings.min_imu_rate_hz:g} Hz" if n else "off: no IMU data"
+    else:
+        heading = "on"
+    if not legs:
+        path = "off: no mission"
+    elif not len(g):
+        path = "off: no GPS position in the log"
+    else:
+        path = "on" if rtk else "untrusted: no RTK fix (fix_type < 5), path deviation never alarms"
+    return heading, path
+
+
 def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: list | None = None,
                      settings: DetectionSettings | None = None) -> dict:
     """Everything the detector needs, on the IMU time base (heading chain, field, cross-track).
 
-    Keys: t, e (heading difference rad), d (cross-track m), trusted, strength, incl, heading,
-    yaw_rate, ef (EarthField or None), pos, chain, valid, g (GPS table), d_gps, legs, rtk,
-    path_test, cal.
+    Keys: t, e, d, trusted, strength, incl, heading, yaw_rate (the detector's arguments); ef
+    (EarthField or None), pos, chain, valid, g (GPS table), gps (GPS_COLUMNS per GPS row), gps_held
+    (the same on the IMU steps), att_held (autopilot roll, pitch, yaw on the steps), d_gps, legs,
+    rtk, policy, path_test, heading_test, field_test, imu_rate_hz (log median), rate_hz (per step),
+    mag_cal, field_mG, inclination_deg, heading_on, cal.
     """
     settings = settings or DetectionSettings()
-    cal = calibration_arrays(calibration)
     mag = np.asarray(log.mag, dtype=float).reshape(-1, 4)
     imu = np.asarray(log.imu, dtype=float).reshape(-1, 7)
-    mag_cal = mag.copy()
-    field_test = "on"
-    if cal is not None and len(mag):
-        # the calibration (issue 3) is relative to the raw sensor: un-apply the autopilot's own first
-        raw, _ = unapply_onboard_calibration(mag[:, 1:4], log.params, log.autopilot,
-                                             getattr(log, "mag_calibration_applied", None))
-        mag_cal[:, 1:4] = (raw - cal[0]) @ cal[1].T
-    elif uncalibrated(log):
-        field_test = "off: magnetometer not calibrated (give a calibration; the log has no onboard offsets)"
+    policy = field_policy(calibration, log.params, log.autopilot, getattr(log, "mag_calibration_applied", None),
+                          has_mag=bool(len(mag)))
+    if policy.cal is not None:
+        # batch: the autopilot's corrections un-applied with the values in force at each sample
+        # (parameter history), then ours; the live twin uses the values known so far (policy.apply)
+        mag_cal = np.c_[mag[:, :1], (primary_raw(log) - policy.cal[0]) @ policy.cal[1].T]
+    else:
+        mag_cal = np.c_[mag[:, :1], policy.apply(mag[:, 1:4])]
     ef, pos = field_reference(log)
-    decl = ef.declination_deg if ef else 0.0
-
-    chain = run_heading_chain(imu, mag_cal, decl)
+    chain = run_heading_chain(imu, mag_cal, ef.declination_deg if ef else 0.0)
     t = chain.t_s
     n = len(t)
-    valid = chain.valid
-    e = np.where(valid, wrap_angle_rad(chain.mag_heading_rad - chain.yaw_rad), np.nan)
-
-    # field strength / inclination of the latest magnetometer sample at each IMU step
-    m_held = hold_last(mag_cal[:, 0], mag_cal[:, 1:4], t, GPS_TIMEOUT_S) if n else np.zeros((0, 3))
     att = np.asarray(log.attitude, dtype=float).reshape(-1, 4)
-    rp = hold_last(att[:, 0], att[:, 1:3], t, 0.5) if len(att) else np.full((n, 2), np.nan)
-    roll_f = np.where(np.isfinite(rp[:, 0]), rp[:, 0], chain.roll_rad)
-    pitch_f = np.where(np.isfinite(rp[:, 1]), rp[:, 1], chain.pitch_rad)
-    strength = np.linalg.norm(m_held, axis=1)
-    incl = field_inclination_deg(m_held, roll_f, pitch_f)
-    steep = too_steep(roll_f, pitch_f, settings)
-    if n:   # ... and for turn_settle_s after it
-        last = np.maximum.accumulate(np.where(steep, t, -np.inf))
-        steep = t - last <= settings.turn_settle_s
-    e = np.where(steep, np.nan, e)
-    imu_rate = 1.0 / float(np.median(np.diff(t))) if n > 10 and np.median(np.diff(t)) > 0 else 0.0
-    heading_test = "on"
-    if imu_rate < settings.min_imu_rate_hz:
-        # the gyro cannot follow the rotation between samples: the filter heading is not a reference
-        e = np.full(n, np.nan)
-        heading_test = (f"off: IMU rate {imu_rate:.1f} Hz < {settings.min_imu_rate_hz:g} Hz"
-                        if n else "off: no IMU data")
-    if not len(mag):
-        heading_test = field_test = "off: no magnetometer data in the log"
-    strength = np.where(steep, np.nan, strength)
-    incl = np.where(steep, np.nan, incl)
-    if field_test != "on" or not n:
-        strength = np.full(n, np.nan)
-        incl = np.full(n, np.nan)
-
-    # path: cross-track from GPS, nearest mission leg
-    points = mission if mission else log.mission
-    legs = mission_legs(points)
+    att_held = hold_last(att[:, 0], att[:, 1:4], t, ATTITUDE_TIMEOUT_S)
+    legs = mission_legs(mission if mission else log.mission)
     g = np.asarray(log.gps, dtype=float).reshape(-1, 8)
+    gps = gps_rows(g, legs, settings)
+    gps_held = hold_last(g[:, 0], gps, t, GPS_TIMEOUT_S)
+    rate = imu_rate_hz(t)
+    x = step_inputs(t, chain, hold_last(mag_cal[:, 0], mag_cal[:, 1:4], t, GPS_TIMEOUT_S), att_held[:, :2],
+                    gps_held, rate, imu[:, 1:4], policy, settings, StepState())
+    med_dt = float(np.median(np.diff(t))) if n > 10 else 0.0
+    log_rate = 1.0 / med_dt if med_dt > 0 else 0.0
     rtk = bool(len(g) and np.mean(g[:, 7] >= settings.rtk_min_fix) > 0.5)
-    if legs and len(g):
-        d_gps = cross_track_legs(g[:, 1], g[:, 2], legs, legs[0][0])
-        d = hold_last(g[:, 0], d_gps, t, GPS_TIMEOUT_S)
-        trusted = hold_last(g[:, 0], (g[:, 7] >= settings.rtk_min_fix).astype(float), t, GPS_TIMEOUT_S) == 1.0
-        path_test = "on" if rtk else "untrusted: no RTK fix (fix_type < 5), path deviation never alarms"
-    else:
-        d_gps = np.zeros(0)
-        d = np.full(n, np.nan)
-        trusted = np.zeros(n, bool)
-        path_test = ("off: no mission" if not legs else "off: no GPS position in the log")
-
-    yaw_rate = rotation_rate(imu[:, 1:4]) if n else np.zeros(0)
-    heading = np.where(valid, chain.yaw_rad, np.nan)
-    return dict(t=t, e=e, d=d, trusted=trusted, strength=strength, incl=incl, heading=heading, mag_cal=mag_cal,
-                yaw_rate=yaw_rate, ef=ef, pos=pos, chain=chain, valid=valid, g=g, d_gps=d_gps, legs=legs,
-                rtk=rtk, path_test=path_test, heading_test=heading_test, field_test=field_test, imu_rate_hz=imu_rate, cal=cal)
+    heading_test, path_test = _tests(log_rate, n, settings, legs, g, rtk, policy)
+    return dict(x, t=t, ef=ef, pos=pos, chain=chain, valid=chain.valid, g=g, gps=gps, gps_held=gps_held,
+                att_held=att_held, d_gps=gps[:, 0] if legs else np.zeros(0), legs=legs, rtk=rtk, policy=policy,
+                path_test=path_test, heading_test=heading_test, field_test=policy.field_test,
+                imu_rate_hz=log_rate, mag_cal=mag_cal, cal=policy.cal)

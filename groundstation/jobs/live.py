@@ -1,60 +1,115 @@
-"""The live twin of ``analyze_log``: the same heading chain and detector, one sample at a time."""
+"""The live twin of ``analyze_flight``: the same inputs, chain, detector and record, per sample.
+
+``LiveAnalyzer.on_sample(s)`` returns a flight-record row (``groundstation.jobs.record``) for each
+IMU sample of the primary instance; its inputs are built by the functions ``detection_inputs``
+uses (``groundstation.jobs.inputs``), its holds by ``Held`` (``hold_last`` on the latest value), so
+a log streamed sample by sample gives the rows and alarms ``analyze_flight`` gives it at once.
+A live stream is not in time order: ArduPilot stamps RAW_IMU and GPS_RAW_INT on arrival and
+ATTITUDE on the vehicle's boot clock, which runs up to seconds behind arrival on a radio link,
+so an attitude sample can arrive after IMU samples it precedes.  ``ReorderBuffer`` releases the
+samples in time order once the stream has moved past them by the lateness it has seen (zero on
+a clean link), which is the order a log reader sorts them into.
+``GpsOutageWatch`` is the per-sample rule of ``groundstation.jobs.navigation.gps_outages``.
+"""
 from __future__ import annotations
 
+import heapq
+import itertools
+import math
 import time
+from collections import deque
+from types import SimpleNamespace
 
 import numpy as np
 
-from estimators.detection import DetectionSettings, InterferenceDetector, field_inclination_deg
+from estimators.detection import DetectionSettings, InterferenceDetector
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import HeadingChain
-from estimators.rotations import wrap_angle_rad
 
-from groundstation.io.params import unapply_onboard_calibration
-from groundstation.jobs.inputs import (GPS_TIMEOUT_S, calibration_arrays, cross_track_legs, mission_legs,
-                                       rotation_rate, too_steep, uncalibrated)
-from groundstation.samples import AttitudeSample, GpsSample, ImuSample, MagSample, ParamSample, StatusSample
+from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, GPS_COLUMNS, GPS_TIMEOUT_S, RATE_WINDOW, FieldPolicy,
+                                       Held, StepState, field_policy, gps_rows, imu_rate_hz, mission_legs,
+                                       step_inputs)
+from groundstation.jobs.navigation import OUTAGE_MIN_S
+from groundstation.jobs.record import EVIDENCE, RECORD_COLUMNS, record_rows
+from groundstation.samples import (AttitudeSample, GpsSample, ImuSample, MagSample, ParamSample, Sample,
+                                   StatusSample)
 
-__all__ = ["LiveAnalyzer"]
+__all__ = ["LiveAnalyzer", "GpsOutageWatch", "ReorderBuffer", "MAX_REORDER_S"]
+
+MAX_REORDER_S = 3.0         # samples later than this are processed out of order
+STALL_WAIT_S = 0.1          # with no newer sample, one waits at least this long (wall time) for it
+REORDER_MEMORY_S = 60.0     # the reorder delay forgets a lateness over this long (wall time)
 
 
 class LiveAnalyzer:
-    """Per-sample version of ``analyze_log`` (same chain, same detector) for the live server.
+    """Per-sample form of ``analyze_flight`` for a live link (see module docstring).
 
-    Feed every sample with ``on_sample``; read ``alarm_active``, ``alarm_kinds`` (evidence names),
-    ``peak`` and ``last_step``.  WMM reference and declination are fixed at the first GPS fix
-    (date: ``start_unix_s`` or now).  ``set_calibration`` / ``set_mission`` may be called any time.
+    ``accepts(s)`` says whether a sample is of the primary magnetometer/IMU instance (the
+    lowest instance number seen, as the log readers keep for ArduPilot's RAW_IMU + SCALED_IMU2
+    streams); feed those to ``on_sample``.  ``set_calibration`` / ``set_mission`` may be called
+    any time.  WMM declination is fixed at the first GPS fix (date: ``start_unix_s`` or now).
     """
 
     def __init__(self, calibration: dict | None = None, mission: list | None = None,
-                 start_unix_s: float | None = None, settings: DetectionSettings | None = None) -> None:
+                 start_unix_s: float | None = None, settings: DetectionSettings | None = None,
+                 mag_calibration_applied: bool | None = None) -> None:
         self.settings = settings or DetectionSettings()
         self.start_unix_s = start_unix_s
-        self.cal = calibration_arrays(calibration)
+        self.calibration = calibration
         self.legs = mission_legs(mission)
         self.chain = HeadingChain()
         self.detector = InterferenceDetector(self.settings)
         self.earth_field = None
-        self._mag: np.ndarray | None = None
-        self._mag_t = -np.inf
-        self._att: tuple[float, float, float] | None = None
-        self._gps: tuple[float, float, bool] | None = None   # (t, cross-track, trusted)
-        self.last_step = None
-        self.last_state = None
-        self.alarm_active = False
-        self.alarm_kinds: list[str] = []
-        self.peak: float | None = None
-        self._last_steep = -np.inf
         self.params: dict[str, float] = {}
         self.autopilot: str | None = None
-        self._imu_t: float | None = None
-        self._imu_dt: float | None = None
+        self._applied = mag_calibration_applied
+        self._policy: FieldPolicy | None = None
+        self._primary: dict[str, int] = {}
+        self._mag = Held(3, GPS_TIMEOUT_S)
+        self._att = Held(3, ATTITUDE_TIMEOUT_S)
+        self._gps = Held(len(GPS_COLUMNS), GPS_TIMEOUT_S)
+        self._imu_t: deque = deque(maxlen=RATE_WINDOW + 1)
+        self._steps = StepState()
+        self.last_row: np.ndarray | None = None
+        self.last_step = None
+        self.alarm_active = False
+        self.alarm_kinds: list[str] = []
+
+    # ------------------------------------------------------------------ configuration
+    @property
+    def policy(self) -> FieldPolicy:
+        """The field rule for what has arrived so far (``groundstation.jobs.inputs.field_policy``)."""
+        if self._policy is None:
+            applied = self._applied if self._applied is not None else (True if self.autopilot == "ardupilot" else None)
+            self._policy = field_policy(self.calibration, self.params, self.autopilot, applied)
+        return self._policy
 
     def set_calibration(self, calibration: dict | None) -> None:
-        self.cal = calibration_arrays(calibration)
+        self.calibration = calibration
+        self._policy = None
+
+    def restarted(self, calibration: dict | None) -> "LiveAnalyzer":
+        """A fresh analyzer (heading chain and detector learn again) for a new calibration of
+        the same source: what is known of the source (parameters, autopilot, primary sensors,
+        WMM at the first fix) carries over."""
+        new = LiveAnalyzer(calibration, None, self.start_unix_s, self.settings, self._applied)
+        new.legs = self.legs
+        new.params, new.autopilot, new._primary = dict(self.params), self.autopilot, dict(self._primary)
+        new.earth_field = self.earth_field
+        new.chain.declination_deg = self.chain.declination_deg
+        return new
 
     def set_mission(self, mission: list | None) -> None:
         self.legs = mission_legs(mission)
+
+    def accepts(self, s: Sample) -> bool:
+        if isinstance(s, (MagSample, ImuSample)):
+            kind = type(s).__name__
+            primary = self._primary.get(kind)
+            if primary is None or s.instance < primary:
+                self._primary[kind] = primary = s.instance
+            return s.instance == primary
+        return True
 
     def _start(self, s: GpsSample) -> None:
         """Declination from the WMM at the first fix (detection itself does not need the WMM:
@@ -67,64 +122,164 @@ class LiveAnalyzer:
         self.chain.declination_deg = ef.declination_deg
         self.earth_field = ef
 
-    def on_sample(self, s) -> None:
-        if isinstance(s, GpsSample):
+    # ------------------------------------------------------------------ samples
+    def on_sample(self, s: Sample) -> np.ndarray | None:
+        """Feed one sample (time order); returns the record row of an IMU sample, else None."""
+        rows = self.on_samples([s])
+        return rows[0] if len(rows) else None
+
+    def on_samples(self, samples: list[Sample]) -> np.ndarray:
+        """Feed samples in time order; returns the record rows of their IMU samples (k, C).
+
+        The heading chain and the detector step per sample; the inputs between them
+        (``step_inputs``) and the rows (``record_rows``) are computed for all the IMU samples of
+        the call at once, with the functions ``detection_inputs`` uses on a whole log."""
+        steps: list[tuple] = []
+        for s in samples:
+            if isinstance(s, ImuSample):
+                steps.append(self._chain_step(s))
+            else:
+                self._other(s)
+        if not steps:
+            return np.zeros((0, len(RECORD_COLUMNS)))
+        return self._detect(steps)
+
+    def _other(self, s: Sample) -> None:
+        if isinstance(s, MagSample):
+            m = self.policy.apply(np.asarray(s.mag_body_mG, dtype=float))[0]
+            if np.all(np.isfinite(m)):
+                self._mag.update(s.t_s, m)
+                self.chain.update_mag(s.t_s, m)
+        elif isinstance(s, GpsSample):
             if self.earth_field is None:
                 self._start(s)
-            if self.legs:
-                d = float(cross_track_legs(np.array([s.lat_deg]), np.array([s.lon_deg]), self.legs,
-                                            self.legs[0][0])[0])
-            else:
-                d = float("nan")
-            self._gps = (s.t_s, d, s.fix_type >= self.settings.rtk_min_fix)
+            row = np.array([[s.t_s, s.lat_deg, s.lon_deg, s.alt_m, *s.vel_ned_mps, s.fix_type]], dtype=float)
+            self._gps.update(s.t_s, gps_rows(row, self.legs, self.settings)[0])
         elif isinstance(s, AttitudeSample):
-            self._att = (s.t_s, s.roll_rad, s.pitch_rad)
+            self._att.update(s.t_s, (s.roll_rad, s.pitch_rad, s.yaw_rad))
         elif isinstance(s, ParamSample):
             self.params[s.name] = s.value
+            self._policy = None
         elif isinstance(s, StatusSample) and s.kind == "autopilot":
             self.autopilot = s.text
-        elif isinstance(s, MagSample):
-            m = np.asarray(s.mag_body_mG, dtype=float)
-            if self.cal is not None:
-                raw, _ = unapply_onboard_calibration(m[None, :], self.params, self.autopilot)
-                m = self.cal[1] @ (raw[0] - self.cal[0])
-            if np.all(np.isfinite(m)):
-                self._mag, self._mag_t = m, s.t_s
-                self.chain.update_mag(s.t_s, m)
-        elif isinstance(s, ImuSample):
-            st = self.chain.update_imu(s.t_s, np.asarray(s.gyro_rad_s), np.asarray(s.accel_mps2))
-            t = st.t_s
-            if self._imu_t is not None and t > self._imu_t:     # running mean IMU interval
-                dt = t - self._imu_t
-                self._imu_dt = dt if self._imu_dt is None else 0.95 * self._imu_dt + 0.05 * dt
-            self._imu_t = t
-            slow_imu = self._imu_dt is None or self._imu_dt > 1.0 / self.settings.min_imu_rate_hz
-            e = float(wrap_angle_rad(st.mag_heading_rad - st.yaw_rad)) if st.valid and not slow_imu else float("nan")
-            if self._mag is not None and t - self._mag_t <= GPS_TIMEOUT_S:
-                if self._att is not None and t - self._att[0] <= 0.5:
-                    r, p = self._att[1], self._att[2]
-                else:
-                    r, p = st.roll_rad, st.pitch_rad
-                strength = float(np.linalg.norm(self._mag))
-                incl = float(field_inclination_deg(self._mag, r, p))
-            else:
-                r, p = st.roll_rad, st.pitch_rad
-                strength = incl = float("nan")
-            if self.cal is None and uncalibrated(self):     # raw sensor: no field test
-                strength = incl = float("nan")
-            if too_steep(r, p, self.settings):
-                self._last_steep = t
-            if t - self._last_steep <= self.settings.turn_settle_s:
-                e = strength = incl = float("nan")
-            if self._gps is not None and t - self._gps[0] <= GPS_TIMEOUT_S:
-                d, trusted = self._gps[1], self._gps[2]
-            else:
-                d, trusted = float("nan"), False
-            yaw_rate = float(rotation_rate(np.asarray(s.gyro_rad_s, dtype=float)))
-            step = self.detector.update(t, e, d, trusted, strength, incl,
-                                        st.yaw_rad if st.valid else float("nan"), yaw_rate)
+            self._policy = None
+
+    def _chain_step(self, s: ImuSample) -> tuple:
+        """The heading chain's step and what is held at its time."""
+        gyro = np.asarray(s.gyro_rad_s, dtype=float)
+        st = self.chain.update_imu(s.t_s, gyro, np.asarray(s.accel_mps2, dtype=float))
+        t = st.t_s
+        return (t, st.roll_rad, st.pitch_rad, st.yaw_rad, st.mag_heading_rad, st.heading_true_rad, bool(st.valid),
+                gyro, self._mag.at(t)[0], self._att.at(t)[0], self._gps.at(t)[0], self.chain.declination_deg)
+
+    def _detect(self, steps: list[tuple]) -> np.ndarray:
+        cols = list(zip(*steps))
+        t = np.asarray(cols[0], dtype=float)
+        chain = SimpleNamespace(roll_rad=np.asarray(cols[1]), pitch_rad=np.asarray(cols[2]),
+                                yaw_rad=np.asarray(cols[3]), mag_heading_rad=np.asarray(cols[4]),
+                                heading_true_rad=np.asarray(cols[5]), valid=np.asarray(cols[6], dtype=bool))
+        gyro, mag, att, gps = (np.vstack(cols[k]) for k in (7, 8, 9, 10))
+        history = np.asarray(self._imu_t, dtype=float)
+        rate = imu_rate_hz(np.concatenate([history, t]), start=len(history))
+        self._imu_t.extend(t.tolist())
+        x = step_inputs(t, chain, mag, att[:, :2], gps, rate, gyro, self.policy, self.settings, self._steps)
+        k = len(t)
+        combined = np.zeros(k, bool)
+        trigger = np.zeros((k, 3), bool)
+        score = np.full(k, np.nan)
+        args = zip(t.tolist(), x["e"].tolist(), x["d"].tolist(), x["trusted"].tolist(), x["strength"].tolist(),
+                   x["incl"].tolist(), x["heading"].tolist(), x["yaw_rate"].tolist())
+        for i, a in enumerate(args):
+            step = self.detector.update(*a)
+            combined[i] = step.combined
+            trigger[i] = [name in step.evidence for name in EVIDENCE]
+            score[i] = np.fmax(np.fmax(step.z_heading, step.z_path), step.z_field)
             self.last_step = step
-            self.last_state = st       # the heading chain state (for the live display)
-            self.alarm_active = self.detector.alarm_active
-            self.alarm_kinds = list(self.detector.alarm_kinds)
-            self.peak = self.detector.peak
+        self.alarm_active = bool(combined[-1])
+        self.alarm_kinds = list(self.detector.alarm_kinds) if self.alarm_active else []
+        rows = record_rows(t, chain, dict(x, gps_held=gps, att_held=att), np.asarray(cols[11], dtype=float),
+                           combined, trigger, score)
+        self.last_row = rows[-1]
+        return rows
+
+
+class GpsOutageWatch:
+    """Per-sample rule of ``gps_outages``: the 3-D fix is lost when the IMU keeps streaming for
+    more than OUTAGE_MIN_S after the last good fix; a gap in all the data (an IMU gap longer than
+    OUTAGE_MIN_S: a telemetry dropout) is not an outage.
+
+    ``on_sample`` returns ("lost", last_fix_t) or ("back", outage_s) when that happens, else None.
+    """
+
+    def __init__(self) -> None:
+        self.last_fix_t: float | None = None
+        self.lost = False
+        self._last_imu_t: float | None = None
+        self._dropout = False          # a gap in all the data since the last fix
+
+    def on_sample(self, s: Sample) -> tuple[str, float] | None:
+        if isinstance(s, GpsSample) and s.fix_type >= 3 and np.isfinite(s.lat_deg) and np.isfinite(s.lon_deg):
+            out = ("back", s.t_s - self.last_fix_t) if self.lost else None
+            self.last_fix_t, self.lost, self._dropout = s.t_s, False, False
+            return out
+        if not isinstance(s, ImuSample):
+            return None
+        if self._last_imu_t is not None and s.t_s - self._last_imu_t > OUTAGE_MIN_S:
+            self._dropout = True
+        self._last_imu_t = s.t_s
+        if (not self.lost and not self._dropout and self.last_fix_t is not None
+                and s.t_s - self.last_fix_t > OUTAGE_MIN_S):
+            self.lost = True
+            return ("lost", self.last_fix_t)
+        return None
+
+
+class ReorderBuffer:
+    """Samples of a live stream released in time order (ties: IMU last, else arrival order).
+
+    A sample is released once a sample more than ``delay_s`` newer has arrived (so samples of
+    one time all arrive first), or it has waited longer than ``delay_s`` (at least STALL_WAIT_S)
+    of wall time (the stream stopped).  ``delay_s`` follows the lateness seen (how far
+    a sample's time is behind the newest time already received, x1.25), decays with a
+    REORDER_MEMORY_S time constant and is capped at MAX_REORDER_S; on a link whose samples arrive
+    in order it stays 0 and nothing waits.
+    """
+
+    def __init__(self) -> None:
+        self.delay_s = 0.0
+        self._heap: list = []
+        self._seq = itertools.count()
+        self._newest = -math.inf
+        self._decay_at: float | None = None
+
+    def push(self, samples, wall_s: float | None = None) -> list:
+        """Add samples; return those now due, in time order."""
+        wall = time.monotonic() if wall_s is None else wall_s
+        self._decay(wall)
+        for s in samples:
+            late = self._newest - s.t_s
+            if late > 0:
+                self.delay_s = min(MAX_REORDER_S, max(self.delay_s, 1.25 * late))
+            self._newest = max(self._newest, s.t_s)
+            # at equal times the IMU step comes last: it reads the others at or before its time
+            heapq.heappush(self._heap, (s.t_s, isinstance(s, ImuSample), next(self._seq), wall, s))
+        return self.due(wall)
+
+    def due(self, wall_s: float | None = None) -> list:
+        wall = time.monotonic() if wall_s is None else wall_s
+        out = []
+        heap, limit = self._heap, self._newest - self.delay_s
+        stall = max(self.delay_s, STALL_WAIT_S)
+        while heap and (heap[0][0] < limit or wall - heap[0][3] > stall):
+            out.append(heapq.heappop(heap)[4])
+        return out
+
+    def flush(self) -> list:
+        out = [item[4] for item in sorted(self._heap, key=lambda item: item[:3])]
+        self._heap = []
+        return out
+
+    def _decay(self, wall: float) -> None:
+        if self._decay_at is not None and wall > self._decay_at:
+            self.delay_s *= math.exp(-(wall - self._decay_at) / REORDER_MEMORY_S)
+        self._decay_at = wall

@@ -56,6 +56,7 @@ def navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float, imu_
         return {"ins_gps": "off: " + ("no IMU data" if not len(imu) else "no 3-D GPS fix in the log"),
                 "gps_outages": []}
     g = g[good]
+    g = g[np.r_[True, np.diff(g[:, 0]) > 0]]     # a repeated fix time: no velocity from positions
     t_last = float(imu[-1, 0])
     found = gps_outages(g[:, 0], imu[:, 0])
     outages = [{"start_s": rounded(start, 2), "end_s": rounded(end, 2),

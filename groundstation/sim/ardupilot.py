@@ -33,7 +33,7 @@ from estimators.calibration import fit_ellipsoid_robust
 from estimators.compass_corrections import CorrectionsInForce, apply_ardupilot_corrections, motor_offset_mG
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.detection import lla_from_ned
-from groundstation.autopilot_params import rotation_enum_matrix
+from groundstation.io.params import rotation_enum_matrix
 from groundstation.sim.ardupilot_flight import FlightPlan, FlightTruth, autopilot_attitude, fly
 from groundstation.sim.ardupilot_telemetry import pack_telemetry, write_dataflash
 
@@ -119,13 +119,17 @@ class ArduSim:
     truth: dict
 
     def write_tlog(self, path: str | Path) -> Path:
-        from groundstation.mavlink import TlogWriter
+        from groundstation.io.mavlink import TlogWriter, new_encoder
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.unlink(missing_ok=True)
+        gcs = new_encoder(255, 190)            # commands come from the ground station
         with TlogWriter(path) as w:
             for unix_s, msg in pack_telemetry(self):
-                w.write_message(msg, unix_s)
+                if msg.get_type() == "COMMAND_LONG":
+                    w.write_packet(bytes(msg.pack(gcs)), unix_s)
+                else:
+                    w.write_message(msg, unix_s)
         truth_path(path).write_text(json.dumps(dict(self.truth, file=path.name, format="tlog"), indent=1))
         return path
 

@@ -12,8 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from estimators.rotations import dcm_body_to_ned
-from groundstation.mavlink import mavlink2 as _M
+from groundstation.io.mavlink import mavlink2 as _M
 from groundstation.sim.ardupilot_flight import G_MPS2
 from groundstation.sim.dataflash_writer import DataFlashWriter
 
@@ -80,7 +79,8 @@ def _mag_cal_msgs(sim) -> list:
     if "dance" not in sim.flight.events:
         return []
     d0, d1 = sim.flight.events["dance"]
-    out = []
+    # the ground station starts it: MAV_CMD_DO_START_MAG_CAL (mask 0 = all, autosave), sent by the GCS
+    out = [(max(d0 - 0.5, 0.0), _M.MAVLink_command_long_message(1, 1, 42424, 0, 0, 0, 1, 0, 0, 0, 0))]
     for ts in np.arange(d0, d1, 1.0):
         pct = int(min(99, 100 * (ts - d0) / (d1 - d0)))
         for rec in sim.compasses:

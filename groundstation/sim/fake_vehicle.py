@@ -1,12 +1,22 @@
-"""A fake autopilot on loopback UDP: streams a simulation as real MAVLink and keeps parameters.
+"""A fake autopilot on loopback UDP: streams a simulation as real MAVLink and acts on commands.
 
 Sends the simulation's messages (``[(unix_s, pymavlink message)]``) to the station's
 ``udpin:`` port at real time x speed, a HEARTBEAT each second saying which autopilot it is
-(ArduPilot or PX4), and answers PARAM_SET / PARAM_REQUEST_READ / PARAM_REQUEST_LIST with
-PARAM_VALUE from its own table, as an autopilot does.  Used by tests and benchmarks/live.py.
+(ArduPilot or PX4), and answers as an autopilot does:
 
-The link can be dropped and restored (``set_link``) to exercise the station's reconnect
-handling; ``reject_params`` names parameters that never stick (to test the failure path).
+* PARAM_SET / PARAM_REQUEST_READ / PARAM_REQUEST_LIST with PARAM_VALUE from its own table;
+  ``param_mode`` "ignore" drops every PARAM_SET (no echo), "corrupt" stores and echoes a wrong
+  value; ``reject_params`` names parameters that never stick (the old value is echoed).
+* Compass fields are corrected with its own calibration parameters at send time
+  (``fake_autopilot.corrected_field``): the mag of RAW_IMU/SCALED_IMU (compass 0), SCALED_IMU2
+  (1) and SCALED_IMU3 (2) is what the autopilot would report, so a parameter write shows.
+* MAV_CMD_DO_START_MAG_CAL / DO_ACCEPT_MAG_CAL / DO_CANCEL_MAG_CAL: the onboard calibrator
+  (ArduPilot only) with MAG_CAL_PROGRESS and MAG_CAL_REPORT; MAV_CMD_FIXED_MAG_CAL_YAW (ArduPilot);
+  MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN (param1 = 1): COMMAND_ACK, silence for ``reboot_silence_s``,
+  then the boot clock restarts and ``after_reboot`` (if given) is streamed.  Every command gets a
+  COMMAND_ACK (UNSUPPORTED for the rest).
+
+The link can be dropped and restored (``set_link``) to exercise the station's reconnect handling.
 """
 from __future__ import annotations
 
@@ -16,32 +26,54 @@ import threading
 import time
 from typing import Iterable
 
+import numpy as np
+
+from estimators.geomag import decimal_year_from_unix, earth_field
 from groundstation.io.mavlink import mavlink2, new_encoder
+from groundstation.sim.fake_autopilot import (OnboardCalibrator, corrected_field, default_params,
+                                              fixed_yaw_params, rotated_raw)
+from groundstation.sim.vehicle_streams import COMPASS_MESSAGES
 
 AUTOPILOT_IDS = {"ardupilot": mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, "px4": mavlink2.MAV_AUTOPILOT_PX4}
+_M = mavlink2
+ACCEPTED, FAILED, UNSUPPORTED = _M.MAV_RESULT_ACCEPTED, _M.MAV_RESULT_FAILED, _M.MAV_RESULT_UNSUPPORTED
 
 
 class FakeVehicle:
     def __init__(self, messages: Iterable, port: int, speed: float = 1.0, autopilot: str = "ardupilot",
                  host: str = "127.0.0.1", params: dict[str, float] | None = None,
-                 reject_params: Iterable[str] = (), loop: bool = False, system_id: int = 1) -> None:
-        self.messages = [(float(t), compress_time(m, speed)) for t, m in messages if m.get_type() != "HEARTBEAT"]
+                 reject_params: Iterable[str] = (), loop: bool = False, system_id: int = 1,
+                 param_mode: str = "normal", after_reboot: Iterable | None = None,
+                 reboot_silence_s: float = 4.0) -> None:
+        self.messages = self._prepare(messages, speed)
         self.target = (host, int(port))
         self.speed = float(speed)
         self.autopilot = autopilot
-        if params is None:   # start from the parameters the simulation announces
-            params = {_param_name(m.param_id): float(m.param_value) for _, m in self.messages
-                      if m.get_type() == "PARAM_VALUE"}
+        self.n_compasses = 1 + max((COMPASS_MESSAGES.get(m.get_type(), 0) for _, m in self.messages), default=0)
+        if params is None:   # the parameters the simulation announces, else a fresh table
+            params = {_param_name(m.param_id): float(m.param_value) for _, m in messages
+                      if m.get_type() == "PARAM_VALUE"} or default_params(autopilot, self.n_compasses)
         self.params: dict[str, float] = dict(params)
         self.reject_params = set(reject_params)
+        self.param_mode = param_mode
+        self.after_reboot = None if after_reboot is None else self._prepare(after_reboot, speed)
+        self.reboot_silence_s = float(reboot_silence_s)
         self.loop = loop
         self.link_up = True
+        self.rebooting = False
+        self.reboots = 0
         self.sent = 0                 # messages of the simulation due so far (sent or dropped)
         self.delivered: dict[str, int] = {}   # message type -> packets put on the wire
         self.send_times: list[float] = []   # time.monotonic() of each simulation message sent
         self.record_send_times = False
         self.param_sets: list[tuple[str, float]] = []
+        self.commands: list[tuple[int, tuple]] = []       # (command, params) received
+        self.calibrator = OnboardCalibrator()
+        self.last_corrected: dict[int, np.ndarray] = {}   # compass -> last reported field (mG)
+        self.last_attitude = (0.0, 0.0, 0.0)
+        self.last_position: tuple[float, float, float] | None = None
         self.finished = threading.Event()
+        self._reboot_request = threading.Event()
         self._enc = new_encoder(system_id, 1)
         self._parser = mavlink2.MAVLink(None)
         self._parser.robust_parsing = True
@@ -49,12 +81,18 @@ class FakeVehicle:
         self._sock.bind((host, 0))
         self._sock.settimeout(0.1)
         self._send_lock = threading.Lock()
+        self._state_lock = threading.RLock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
 
+    @staticmethod
+    def _prepare(messages: Iterable, speed: float) -> list:
+        return [(float(t), compress_time(m, speed)) for t, m in messages
+                if m.get_type() not in ("HEARTBEAT", "PARAM_VALUE")]
+
     # --------------------------------------------------------------------------------- control
     def start(self) -> "FakeVehicle":
-        for target in (self._stream, self._heartbeats, self._receive):
+        for target in (self._stream, self._heartbeats, self._receive, self._calibration_reports):
             t = threading.Thread(target=target, daemon=True, name=f"fake-vehicle-{target.__name__}")
             t.start()
             self._threads.append(t)
@@ -84,7 +122,7 @@ class FakeVehicle:
     def _send(self, msg) -> None:
         with self._send_lock:
             buf = bytes(msg.pack(self._enc))
-            if not self.link_up:
+            if not self.link_up or self.rebooting:
                 return
             try:
                 self._sock.sendto(buf, self.target)
@@ -93,46 +131,101 @@ class FakeVehicle:
             kind = msg.get_type()
             self.delivered[kind] = self.delivered.get(kind, 0) + 1
 
+    def _vehicle_view(self, msg):
+        """The message as the autopilot sends it: compass fields corrected by its parameters;
+        the onboard calibrator sees the rotated raw field; attitude/position remembered."""
+        kind = msg.get_type()
+        k = COMPASS_MESSAGES.get(kind)
+        if k is None:
+            if kind == "ATTITUDE":
+                self.last_attitude = (msg.roll, msg.pitch, msg.yaw)
+            elif kind == "GPS_RAW_INT" and msg.fix_type >= 3:
+                self.last_position = (msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+            return msg
+        raw = np.asarray(getattr(msg, "raw_mag_mG", (msg.xmag, msg.ymag, msg.zmag)), float)
+        with self._state_lock:
+            if self.calibrator.active and self.autopilot == "ardupilot":
+                self.calibrator.new_sample(k, rotated_raw(self.params, self.autopilot, k, raw))
+            corrected = corrected_field(self.params, self.autopilot, k, raw)
+        self.last_corrected[k] = corrected
+        out = copy.copy(msg)
+        out.xmag, out.ymag, out.zmag = (int(max(-32767, min(32767, round(v)))) for v in corrected)
+        return out
+
     def _stream(self) -> None:
+        """Play the simulation; after its end keep answering (heartbeats, commands) and honour a
+        reboot: silence, then ``after_reboot`` (or the rest of the simulation)."""
+        queue, start = self.messages, 0
         while not self._stop.is_set():
-            if not self.messages:
-                break
-            t0 = self.messages[0][0]
-            wall0 = time.monotonic()
-            for unix, msg in self.messages:
-                due = wall0 + (unix - t0) / self.speed
+            stopped_at = self._play(queue, start) if start < len(queue) else None
+            if self._stop.is_set():
+                return
+            if stopped_at is None:
+                if self.loop and queue:
+                    start = 0
+                    continue
+                self.finished.set()
+                while not self._reboot_request.is_set():
+                    if self._stop.wait(0.05):
+                        return
+                stopped_at = len(queue)
+            self._stop.wait(self.reboot_silence_s)
+            with self._state_lock:
+                self.calibrator.cancel()
+                self.rebooting = False
+                self._reboot_request.clear()
+            if self.after_reboot is not None:
+                queue, start, self.after_reboot = self.after_reboot, 0, None
+            else:
+                start = stopped_at
+
+    def _play(self, queue: list, start: int) -> int | None:
+        """Send queue[start:] on time; the index where a reboot stopped it, else None."""
+        t0, wall0 = queue[start][0], time.monotonic()
+        for i in range(start, len(queue)):
+            unix, msg = queue[i]
+            due = wall0 + (unix - t0) / self.speed
+            while True:
+                if self._reboot_request.is_set():
+                    return i
                 delay = due - time.monotonic()
-                if delay > 0 and self._stop.wait(delay):
-                    return
-                self._send(msg)
-                self.sent += 1
-                if self.record_send_times:
-                    self.send_times.append(time.monotonic())
-            if not self.loop:
-                break
-        self.finished.set()
+                if delay <= 0:
+                    break
+                if self._stop.wait(min(delay, 0.05)):
+                    return None
+            self._send(self._vehicle_view(msg))
+            self.sent += 1
+            if self.record_send_times:
+                self.send_times.append(time.monotonic())
+        return None
 
     def _heartbeats(self) -> None:
         while not self._stop.is_set():
-            self._send(mavlink2.MAVLink_heartbeat_message(
-                mavlink2.MAV_TYPE_QUADROTOR, AUTOPILOT_IDS.get(self.autopilot, 0), 0, 0,
-                mavlink2.MAV_STATE_ACTIVE, 3))
+            self._send(_M.MAVLink_heartbeat_message(
+                _M.MAV_TYPE_QUADROTOR, AUTOPILOT_IDS.get(self.autopilot, 0), 0, 0, _M.MAV_STATE_ACTIVE, 3))
             self._stop.wait(1.0)
 
-    # --------------------------------------------------------------------------------- parameters
-    def _param_value(self, name: str) -> None:
-        names = sorted(self.params)
-        value = self.params[name]
-        self._send(mavlink2.MAVLink_param_value_message(
-            name.encode(), float(value), mavlink2.MAV_PARAM_TYPE_REAL32, len(names), names.index(name)))
+    def _calibration_reports(self) -> None:
+        """MAG_CAL_PROGRESS (~5 Hz) while the onboard calibrator runs, MAG_CAL_REPORT (~1 Hz) after."""
+        tick = 0
+        while not self._stop.wait(0.2):
+            tick += 1
+            with self._state_lock:
+                progress = self.calibrator.progress_fields()
+                reports = self.calibrator.report_fields(self.params) if tick % 5 == 0 else []
+            for fields in progress:
+                self._send(_M.MAVLink_mag_cal_progress_message(*fields))
+            for fields in reports:
+                self._send(_M.MAVLink_mag_cal_report_message(*fields))
 
+    # --------------------------------------------------------------------------------- receiving
     def _receive(self) -> None:
         while not self._stop.is_set():
             try:
                 data = self._sock.recv(4096)
             except (socket.timeout, OSError):
                 continue
-            if not self.link_up:
+            if not self.link_up or self.rebooting:
                 continue
             try:
                 msgs = self._parser.parse_buffer(data) or []
@@ -144,12 +237,7 @@ class FakeVehicle:
     def _handle(self, msg) -> None:
         kind = msg.get_type()
         if kind == "PARAM_SET":
-            name = _param_name(msg.param_id)
-            self.param_sets.append((name, msg.param_value))
-            if name not in self.reject_params:
-                self.params[name] = float(msg.param_value)
-            if name in self.params:
-                self._param_value(name)
+            self._param_set(_param_name(msg.param_id), float(msg.param_value))
         elif kind == "PARAM_REQUEST_READ":
             name = _param_name(msg.param_id)
             if msg.param_index >= 0 and not name:
@@ -160,6 +248,87 @@ class FakeVehicle:
         elif kind == "PARAM_REQUEST_LIST":
             for name in sorted(self.params):
                 self._param_value(name)
+        elif kind == "COMMAND_LONG":
+            args = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
+            self.commands.append((msg.command, args))
+            result = self._command(msg.command, args)
+            self._send(_M.MAVLink_command_ack_message(msg.command, result, 0, 0, msg.get_srcSystem(),
+                                                      msg.get_srcComponent()))
+
+    # --------------------------------------------------------------------------------- parameters
+    def _param_value(self, name: str) -> None:
+        names = sorted(self.params)
+        value = self.params[name]
+        self._send(_M.MAVLink_param_value_message(
+            name.encode(), float(value), _M.MAV_PARAM_TYPE_REAL32, len(names), names.index(name)))
+
+    def _param_set(self, name: str, value: float) -> None:
+        self.param_sets.append((name, value))
+        if self.param_mode == "ignore":
+            return
+        if self.param_mode == "corrupt":
+            value = value * 1.5 + 1.0
+        with self._state_lock:
+            if name not in self.reject_params:
+                self.params[name] = value
+        if name in self.params:
+            self._param_value(name)
+
+    def _save(self, values: dict[str, float]) -> None:
+        """Parameters the autopilot sets itself (calibration accepted): stored and announced."""
+        with self._state_lock:
+            self.params.update(values)
+        for name in values:
+            self._param_value(name)
+
+    # --------------------------------------------------------------------------------- commands
+    def _command(self, command: int, p: tuple) -> int:
+        ardupilot = self.autopilot == "ardupilot"
+        if command == _M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN and int(p[0]) == 1:
+            threading.Timer(0.3, self._reboot).start()       # the ACK goes out first
+            return ACCEPTED
+        if command == _M.MAV_CMD_DO_START_MAG_CAL and ardupilot:
+            with self._state_lock:
+                self.calibrator.start(int(p[0]), self.n_compasses, self.params)
+            return ACCEPTED
+        if command == _M.MAV_CMD_DO_ACCEPT_MAG_CAL and ardupilot:
+            with self._state_lock:
+                values = self.calibrator.accept(int(p[0]))
+            if values is None:
+                return FAILED
+            self._save(values)
+            return ACCEPTED
+        if command == _M.MAV_CMD_DO_CANCEL_MAG_CAL and ardupilot:
+            with self._state_lock:
+                self.calibrator.cancel()
+            return ACCEPTED
+        if command == _M.MAV_CMD_FIXED_MAG_CAL_YAW and ardupilot:
+            return self._fixed_yaw(float(p[0]), int(p[1]), float(p[2]), float(p[3]))
+        return UNSUPPORTED
+
+    def _reboot(self) -> None:
+        self.rebooting = True
+        self.reboots += 1
+        self._reboot_request.set()
+
+    def _fixed_yaw(self, yaw_deg: float, mask: int, lat: float, lon: float) -> int:
+        if lat == 0 and lon == 0:
+            if self.last_position is None:
+                return FAILED              # "Mag: no position available"
+            lat, lon, alt = self.last_position
+        else:
+            alt = 0.0
+        field = earth_field(lat, lon, alt, decimal_year_from_unix(time.time())).field_ned_mG
+        roll, pitch, _ = self.last_attitude
+        values: dict[str, float] = {}
+        with self._state_lock:
+            for k, corrected in sorted(self.last_corrected.items()):
+                if mask == 0 or (mask >> k) & 1:
+                    values |= fixed_yaw_params(self.params, k, corrected, roll, pitch, yaw_deg, field)
+        if not values:
+            return FAILED
+        self._save(values)
+        return ACCEPTED
 
 
 _RATE_FIELDS = ("xgyro", "ygyro", "zgyro", "rollspeed", "pitchspeed", "yawspeed", "vel", "vx", "vy", "vz")

@@ -1,9 +1,12 @@
 """Dependencies of the routers: the hub, the pusher, and the mapping of hub errors to HTTP."""
 from __future__ import annotations
 
+import json
 from typing import Annotated
 
 from fastapi import Depends, FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from groundstation.station.hub.session import ConflictError, NotFoundError, Session, SessionError
@@ -33,3 +36,17 @@ def install_error_handlers(app: FastAPI) -> None:
         return JSONResponse({"detail": str(exc)}, status_code=status)
 
     app.add_exception_handler(SessionError, handler)
+    app.add_exception_handler(RequestValidationError, validation_handler)
+
+
+MAX_ECHOED_INPUT = 120   # characters of a rejected value shown back in a 422
+
+
+async def validation_handler(request: Request, exc: RequestValidationError) -> JSONResponse:
+    """422 with FastAPI's usual detail list, but a long input is not echoed back whole."""
+    errors = jsonable_encoder(exc.errors(), custom_encoder={Exception: str, bytes: repr})
+    for error in errors:
+        shown = json.dumps(error.get("input"))
+        if len(shown) > MAX_ECHOED_INPUT:
+            error["input"] = f"{shown[:MAX_ECHOED_INPUT]}... ({len(shown)} characters)"
+    return JSONResponse({"detail": errors}, status_code=422)

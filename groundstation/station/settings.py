@@ -1,34 +1,60 @@
 """The station's settings: one frozen object, checked once at start."""
 from __future__ import annotations
 
+import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from groundstation.paths import RECORDINGS_DIR
 
-__all__ = ["StationSettings", "LOOPBACK_HOSTS"]
+__all__ = ["StationSettings", "LOOPBACK_HOSTS", "WILDCARD_HOSTS", "DEFAULT_BODY_LIMITS"]
 
 LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
+WILDCARD_HOSTS = ("0.0.0.0", "::", "")
+MIB = 1 << 20
+# (path prefix, largest request body in bytes); the longest matching prefix wins.  JSON requests
+# are small; the log upload route is bounded by ``max_upload_mb`` (UPLOAD_PATH).
+UPLOAD_PATH = "/api/recordings/upload"
+MULTIPART_OVERHEAD = 64 * 1024        # form boundaries and part headers around the uploaded file
+DEFAULT_BODY_LIMITS: tuple[tuple[str, int], ...] = (("/", 1 * MIB),)
 
 
 @dataclass(frozen=True)
 class StationSettings:
-    """How the station listens and where it keeps recordings.
+    """How the station listens, who may drive it, and where it keeps recordings.
 
     host / port:       the web page and API (loopback unless ``allow_remote``).
-    viser_port:        the 3-D view (None: no 3-D view, e.g. in tests); binds the same host.
-    allow_remote:      allow a non-loopback ``host``.
+    viser_port:        the 3-D view (None: no 3-D view, e.g. in tests).  It binds ``host``, except
+                       with TLS, where it binds loopback (viser speaks no TLS; see README).
+    allow_remote:      remote mode: a non-loopback ``host`` may be bound, every request needs
+                       ``access_token`` (Bearer header or the cookie set by ``/?token=...``), and
+                       requests may open live-link listeners on any interface.
+    allowed_hosts:     extra Host-header names the station answers to (DNS names or addresses it
+                       is reached by); loopback names, a specific ``host`` and, when binding all
+                       interfaces, this machine's name are always allowed.
+    access_token:      remote mode's secret; generated at start (secrets.token_urlsafe) unless given.
+    tls_cert/tls_key:  PEM files: serve HTTPS/WSS through uvicorn (both or neither).
+    body_limits:       (path prefix, bytes) pairs bounding request bodies; longest prefix wins.
     recordings_dir:    live sessions are recorded here; replays and downloads come only from here.
     record_live:       record every live link to ``recordings_dir/session-*.tlog``.
+    max_upload_mb:     the largest log the browser may upload to ``recordings_dir`` [MB, 10^6 bytes].
 
-    Raises ValueError when a non-loopback host is asked for without ``allow_remote``.
+    Raises ValueError when a non-loopback host is asked for without ``allow_remote``, a port is
+    out of range, only one of the TLS files is given or one is not a file, or a body limit is not
+    a positive size.
     """
     host: str = "127.0.0.1"
     port: int = 8000
     viser_port: int | None = 8080
     allow_remote: bool = False
+    allowed_hosts: tuple[str, ...] = ()
+    access_token: str | None = None
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
+    body_limits: tuple[tuple[str, int], ...] = DEFAULT_BODY_LIMITS
     recordings_dir: Path = field(default=RECORDINGS_DIR)
     record_live: bool = True
+    max_upload_mb: float = 512.0
 
     def __post_init__(self) -> None:
         if self.host not in LOOPBACK_HOSTS and not self.allow_remote:
@@ -38,4 +64,39 @@ class StationSettings:
             value = getattr(self, name)
             if value is not None and not 0 <= int(value) < 65536:
                 raise ValueError(f"{name} must be 0..65535, got {value}")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("TLS needs both --tls-cert and --tls-key")
+        for name in ("tls_cert", "tls_key"):
+            value = getattr(self, name)
+            if value is not None:
+                if not Path(value).is_file():
+                    raise ValueError(f"{name.replace('_', '-')} {value} is not a file")
+                object.__setattr__(self, name, Path(value).resolve())
+        if not self.body_limits or any(not p.startswith("/") or int(n) <= 0 for p, n in self.body_limits):
+            raise ValueError("body_limits are (path prefix starting with '/', positive size) pairs")
+        if self.allow_remote and not self.access_token:
+            object.__setattr__(self, "access_token", secrets.token_urlsafe(32))
+        if self.access_token is not None and len(self.access_token) < 16:
+            raise ValueError("the access token must have at least 16 characters")
+        object.__setattr__(self, "allowed_hosts", tuple(h.strip().lower() for h in self.allowed_hosts if h.strip()))
         object.__setattr__(self, "recordings_dir", Path(self.recordings_dir).resolve())
+
+    @property
+    def tls(self) -> bool:
+        return self.tls_cert is not None
+
+    @property
+    def scheme(self) -> str:
+        return "https" if self.tls else "http"
+
+    @property
+    def viser_host(self) -> str:
+        """Where the 3-D view binds: ``host``, but loopback when TLS is on (viser has no TLS)."""
+        return "127.0.0.1" if self.tls else self.host
+
+    def body_limit_for(self, path: str) -> int:
+        """The largest request body accepted on ``path`` (longest matching prefix)."""
+        limits = dict(self.body_limits)
+        limits.setdefault(UPLOAD_PATH, int(self.max_upload_mb * 1e6) + MULTIPART_OVERHEAD)
+        best = max((p for p in limits if path.startswith(p)), key=len, default=None)
+        return limits[best] if best is not None else min(limits.values())

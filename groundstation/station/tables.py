@@ -27,3 +27,9 @@ class GrowingTable:
 
     def clear(self) -> None:
         self.n = 0
+
+    def drop_oldest(self, k: int) -> None:
+        """Forget the first k rows (a bounded live history)."""
+        k = min(max(int(k), 0), self.n)
+        self.buf[: self.n - k] = self.buf[k: self.n]
+        self.n -= k

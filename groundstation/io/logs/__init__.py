@@ -1,7 +1,10 @@
 """Log readers: every supported file becomes a FlightLog in internal units (groundstation/samples.py).
 
 ``read_log(path)`` picks the reader by suffix: MAVLink telemetry (.tlog), ArduPilot DataFlash
-(.bin), PX4 ULog (.ulg), CSV (.csv).  Bad input never raises out of ``read_log`` except as an
+(.bin, TimeMS or TimeUS, MAG/MAG2/MAG3 or MAG with an instance column), PX4 ULog (.ulg, every
+sensor_mag instance), CSV (.csv).  Every compass and IMU is kept (``FlightLog.compasses`` /
+``imus``, the primary also as ``mag`` / ``imu``), with the parameter history, the onboard
+calibration events, current and throttle.  Bad input never raises out of ``read_log`` except as an
 ``IngestError`` with a one-line message (nothing usable at all); damage inside a log (bad CRC,
 garbage bytes, NaN fields, time going backwards, truncation) is skipped and counted in
 ``FlightLog.warnings``.
@@ -9,7 +12,10 @@ garbage bytes, NaN fields, time going backwards, truncation) is skipped and coun
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 from typing import Callable, Iterable, Iterator
 
 from ..errors import IngestError
@@ -50,9 +56,48 @@ def read_log(path: str | os.PathLike, progress: Callable[[float], None] | None =
         raise IngestError(f"{path.name}: could not be read ({type(err).__name__}: {err})") from err
     if progress is not None:
         progress(1.0)
+    _rebase_corrupt_origin(log)
     if not (log.params or any(len(t) for t in (log.mag, log.imu, log.attitude, log.gps))):
         raise IngestError(f"{path.name}: no readable messages (is it really a {path.suffix} file?)")
     return log
+
+
+TABLES = ("mag", "imu", "attitude", "gps", "battery")
+EARLY_TOLERANCE_S = 60.0      # samples this much before the first timestamp: its stamp was corrupt
+LATE_TOLERANCE_S = 86400.0    # no table starting within a day of it: same
+
+
+def _rebase_corrupt_origin(log: FlightLog) -> None:
+    """t_s counts from the log's first timestamp; when that one was corrupt (its row dropped as a
+    time outlier), every table starts far from 0 (9e12 s): shift them back to start at 0 and say so.
+    Every time-bearing part moves: the tables, each compass and IMU (shared arrays once), the
+    parameter history, the onboard-calibration and status events."""
+    starts = [float(getattr(log, n)[0, 0]) for n in TABLES if len(getattr(log, n))]
+    if not starts or -EARLY_TOLERANCE_S <= min(starts) <= LATE_TOLERANCE_S:
+        return
+    shift = min(starts)
+    moved: dict[int, np.ndarray] = {}
+
+    def shifted(table: np.ndarray) -> np.ndarray:
+        if id(table) not in moved:
+            new = table.copy() if not table.flags.writeable else table
+            if len(new):
+                new[:, 0] -= shift
+            moved[id(table)] = new
+        return moved[id(table)]
+
+    for name in TABLES + ("throttle",):
+        setattr(log, name, shifted(getattr(log, name)))
+    log.compasses = [replace(c, field=shifted(c.field)) for c in log.compasses]
+    log.imus = {k: shifted(v) for k, v in log.imus.items()}
+    log.param_history = [(t - shift, name, value) for t, name, value in log.param_history]
+    for event in log.mag_cal:
+        event.t_s -= shift
+    for status in log.status:
+        status.t_s -= shift
+    if log.start_unix_s is not None:
+        log.start_unix_s += shift
+    log.warnings[f"the first timestamp was corrupt: times re-based by {-shift:.6g} s"] += 1
 
 
 def summarize_rates(log: FlightLog) -> list[tuple[str, int, float]]:

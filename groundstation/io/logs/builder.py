@@ -2,46 +2,68 @@
 from __future__ import annotations
 
 import heapq
+from array import array
 from collections import Counter
 from typing import Iterator
 
 import numpy as np
 
-from ...samples import (AttitudeSample, BatterySample, FlightLog, GpsSample, ImuSample, MagSample,
-                        MissionSample, ParamSample, Sample, StatusSample)
+from ...samples import (AttitudeSample, BatterySample, FlightLog, GpsSample, ImuSample, MagCalSample, MagSample,
+                        MissionSample, OffsetsSample, ParamSample, Sample, StatusSample, ThrottleSample)
+from .instances import compact_history, split_compasses, split_imus
 
-__all__ = ["LogBuilder", "clean_table", "iter_samples"]
+__all__ = ["LogBuilder", "clean_table", "drop_time_outliers", "iter_samples"]
 
 
-def _primary_instance(rows: np.ndarray) -> np.ndarray:
-    """Rows of the most frequent sensor instance (last column), instance column removed."""
-    if not len(rows):
-        return rows[:, :-1]
-    ids, counts = np.unique(rows[:, -1], return_counts=True)
-    return rows[rows[:, -1] == ids[np.argmax(counts)], :-1]
+NAN3 = (float("nan"),) * 3
+
+
+# columns while collecting: mag t, field, logged motor offset (NaN when not logged), source; imu t,
+# gyro, accel, source
+WIDTHS = {"mag": 8, "imu": 8, "attitude": 4, "gps": 8, "battery": 2, "throttle": 2}
 
 
 class LogBuilder:
-    """Collects samples into a FlightLog; keeps the primary instance of mag and IMU."""
+    """Collects samples into a FlightLog: every compass and IMU instance (the most sampled one also
+    as ``mag`` / ``imu``), the parameter history and the onboard-calibration events.  Rows are
+    kept as flat float64 arrays (8 bytes a value, no Python object per sample).
+
+    ``source_names`` names the compass sources in ``CompassTable.source`` (readers whose instance
+    numbers are compass numbers, DataFlash, set it; MAVLink sources are named by the decoder)."""
 
     def __init__(self, source: str) -> None:
         self.log = FlightLog(source=source)
-        self.rows: dict[str, list] = {"mag": [], "imu": [], "attitude": [], "gps": [], "battery": []}
+        self.rows: dict[str, array] = {name: array("d") for name in WIDTHS}
         self.mission: dict[int, tuple[float, float, float]] = {}
+        self.history: list[tuple[float, str, float, float]] = []     # t, name, value, quantum
+        self.source_names: dict[int, str] = {}
+
+    def add_history(self, t_s: float, name: str, value: float, quantum: float = 0.0) -> None:
+        """A parameter value seen at t_s (PARM, PARAM_VALUE, logged offsets) for the history only."""
+        self.history.append((t_s, name, value, quantum))
 
     def add(self, s: Sample) -> None:
         if isinstance(s, MagSample):
-            self.rows["mag"].append((s.t_s, *s.mag_body_mG, s.instance))
+            mot = s.motor_offset_mG if s.motor_offset_mG is not None else NAN3
+            self.rows["mag"].extend((s.t_s, *s.mag_body_mG, *mot, s.instance))
         elif isinstance(s, ImuSample):
-            self.rows["imu"].append((s.t_s, *s.gyro_rad_s, *s.accel_mps2, s.instance))
+            self.rows["imu"].extend((s.t_s, *s.gyro_rad_s, *s.accel_mps2, s.instance))
         elif isinstance(s, AttitudeSample):
-            self.rows["attitude"].append((s.t_s, s.roll_rad, s.pitch_rad, s.yaw_rad))
+            self.rows["attitude"].extend((s.t_s, s.roll_rad, s.pitch_rad, s.yaw_rad))
         elif isinstance(s, GpsSample):
-            self.rows["gps"].append((s.t_s, s.lat_deg, s.lon_deg, s.alt_m, *s.vel_ned_mps, s.fix_type))
+            self.rows["gps"].extend((s.t_s, s.lat_deg, s.lon_deg, s.alt_m, *s.vel_ned_mps, s.fix_type))
         elif isinstance(s, BatterySample):
-            self.rows["battery"].append((s.t_s, s.current_A))
+            self.rows["battery"].extend((s.t_s, s.current_A))
+        elif isinstance(s, ThrottleSample):
+            self.rows["throttle"].extend((s.t_s, s.throttle))
         elif isinstance(s, ParamSample):
             self.log.params[s.name] = s.value
+            self.history.append((s.t_s, s.name, s.value, 0.0))
+        elif isinstance(s, OffsetsSample):
+            n = "" if s.compass == 0 else str(s.compass + 1)
+            self.history += [(s.t_s, f"COMPASS_OFS{n}_{a}", v, s.quantum_mG) for a, v in zip("XYZ", s.offsets_mG)]
+        elif isinstance(s, MagCalSample):
+            self.log.mag_cal.append(s)
         elif isinstance(s, MissionSample):
             self.mission[s.seq] = (s.lat_deg, s.lon_deg, s.alt_m)
         elif isinstance(s, StatusSample):
@@ -51,13 +73,21 @@ class LogBuilder:
 
     def finish(self) -> FlightLog:
         log = self.log
-        tables = {"mag": _primary_instance(np.asarray(self.rows["mag"], dtype=float).reshape(-1, 5)),
-                  "imu": _primary_instance(np.asarray(self.rows["imu"], dtype=float).reshape(-1, 8)),
-                  "attitude": self.rows["attitude"], "gps": self.rows["gps"], "battery": self.rows["battery"]}
-        widths = {"mag": 4, "imu": 7, "attitude": 4, "gps": 8, "battery": 2}
-        for name, rows in tables.items():
-            arr = np.asarray(rows, dtype=float).reshape(-1, widths[name])
+        mag = np.frombuffer(self.rows.pop("mag"), dtype=float).reshape(-1, WIDTHS["mag"])
+        log.compasses, log.primary_compass = split_compasses(mag, self.source_names, log.params,
+                                                             log.mag_calibration_applied, log.warnings, clean_table)
+        del mag
+        primary = [c for c in log.compasses if c.compass == log.primary_compass]
+        log.mag = primary[0].field if primary else np.empty((0, 4))
+        imu = np.frombuffer(self.rows.pop("imu"), dtype=float).reshape(-1, WIDTHS["imu"])
+        log.imus, log.imu = split_imus(imu, log.warnings, clean_table)
+        del imu
+        for name in ("attitude", "gps", "battery", "throttle"):   # one table at a time: its rows are freed after
+            arr = np.frombuffer(self.rows.pop(name), dtype=float).reshape(-1, WIDTHS[name])
             setattr(log, name, clean_table(arr, name, log.warnings))
+            del arr
+        log.param_history = compact_history(self.history)
+        log.mag_cal.sort(key=lambda e: e.t_s)
         # ArduPilot numbers mission item 0 as home; a mission is the waypoints after it.
         seqs = sorted(self.mission)
         if log.autopilot == "ardupilot" and seqs and seqs[0] == 0 and len(seqs) > 1:
@@ -66,13 +96,47 @@ class LogBuilder:
         return log
 
 
+ABSURD_VALUE = 1e15          # no time [s] or reading in any internal unit comes near (their squares overflow)
+OUTLIER_GAP_S = 300.0     # samples separated from the rest of a table by a gap this long ...
+OUTLIER_MAX_ROWS = 2      # ... in a group of at most this many rows (or 0.1 % of the table) have
+OUTLIER_MAX_FRACTION = 1e-3  # corrupt times (a flipped bit: 9e12 s), not a second session
+
+
+def drop_time_outliers(arr: np.ndarray, name: str, warnings: Counter) -> np.ndarray:
+    """Drop the rows of small groups of samples far away in time from the rest of the table (a
+    corrupt timestamp: a flipped bit turns 10 s into 9e12 s) and count them; real pauses, with
+    many samples on both sides, are kept.  The largest group is always kept."""
+    if len(arr) < 3:
+        return arr
+    order = np.argsort(arr[:, 0], kind="stable")
+    t = arr[order, 0]
+    breaks = np.flatnonzero(np.diff(t) > OUTLIER_GAP_S)
+    if not len(breaks):
+        return arr
+    sizes = np.diff(np.r_[0, breaks + 1, len(t)])
+    small = sizes <= max(OUTLIER_MAX_ROWS, OUTLIER_MAX_FRACTION * len(t))
+    small[np.argmax(sizes)] = False
+    if not small.any():
+        return arr
+    bad = np.empty(len(t), dtype=bool)
+    bad[order] = np.repeat(small, sizes)
+    warnings[f"{name}: samples with outlier times dropped (corrupt timestamps)"] += int(bad.sum())
+    return arr[~bad]
+
+
 def clean_table(arr: np.ndarray, name: str, warnings: Counter) -> np.ndarray:
-    """Drop rows with non-finite time or values (GPS velocity may be NaN), sort by time."""
+    """Drop rows with non-finite time or values (GPS velocity may be NaN) or outlier times
+    (``drop_time_outliers``), sort by time."""
     check = arr[:, :4] if name == "gps" else arr
     good = np.all(np.isfinite(check), axis=1)
     if not good.all():
         warnings[f"{name}: rows with NaN/inf dropped"] += int((~good).sum())
-        arr = arr[good]
+        arr, check = arr[good], check[good]
+    sane = np.all((check > -ABSURD_VALUE) & (check < ABSURD_VALUE), axis=1)   # no float temporary
+    if not sane.all():
+        warnings[f"{name}: rows with absurd values (beyond {ABSURD_VALUE:g}) dropped"] += int((~sane).sum())
+        arr = arr[sane]
+    arr = drop_time_outliers(arr, name, warnings)
     if len(arr) > 1:
         backwards = int(np.count_nonzero(np.diff(arr[:, 0]) < 0))
         if backwards:

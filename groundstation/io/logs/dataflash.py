@@ -1,35 +1,116 @@
 """ArduPilot DataFlash logs (.bin) through pymavlink's DFReader."""
 from __future__ import annotations
 
-import math
+import os
+import re
+import sys
+import threading
+from collections import Counter
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
-from ..decode import MAV_CMD_NAV_WAYPOINT
+from .quiet import counting, quiet, record
 from ..errors import IngestError
 from .builder import LogBuilder
-from ...samples import AttitudeSample, BatterySample, FlightLog, GpsSample, ImuSample, MagSample, MissionSample, ParamSample
+from .dataflash_messages import WANTED, DataFlashDecoder
+from ...samples import FlightLog
 
 __all__ = ["read_dataflash"]
 
 
-def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
-    """ArduPilot DataFlash .bin: MAG/MAG2 (mG), IMU (rad/s, m/s^2), ATT (deg), GPS, PARM, CMD."""
+# pymavlink's DataFlash reader prints a line per skipped byte ("bad header ... at N"): a megabyte of
+# garbage is a million lines.  We count instead: its Python prints through ``quiet`` (quiet.py); its
+# C indexer (dfindexer) writes to fd 2 itself while holding the GIL (a pipe would deadlock), so fd 2
+# points at /dev/null while it runs (milliseconds) and the skipped bytes are counted from its index.
+BAD_HEADER = "bad DataFlash header bytes skipped"
+_READER_LINES = ((re.compile(r"^bad header"), BAD_HEADER, None),
+                 (re.compile(r"^Skipped (\d+) bad bytes"), "DataFlash bytes skipped between messages", 1),
+                 (re.compile(r"^unknown msg type"), "DataFlash: unknown message type (rest of the log not indexed)", None),
+                 (re.compile(r"^Failed to parse"), "DataFlash: unparseable messages skipped", None))
+
+
+def _classify(line: str) -> tuple[str, int]:
+    for pattern, key, group in _READER_LINES:
+        found = pattern.match(line)
+        if found:
+            return key, int(found.group(group)) if group else 1
+    return "DataFlash reader complaints", 1
+
+
+_fd2_lock = threading.Lock()
+
+
+@contextmanager
+def _fd2_to_devnull() -> Iterator[None]:
+    """fd 2 -> /dev/null for the duration (process-wide: held briefly, one reader at a time)."""
+    with _fd2_lock:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 2)
+        os.close(null)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
+def _open_reader(path: Path):
     from pymavlink import DFReader
 
+    class QuietReader(DFReader.DFReader_binary):
+        def init_arrays_fast(self, progress_callback=None):
+            with _fd2_to_devnull():
+                super().init_arrays_fast(progress_callback=progress_callback)
+            covered = sum(self.counts[t] * fmt.len for t, fmt in self.formats.items() if 0 <= t < 256)
+            if self.data_len > covered:
+                record(BAD_HEADER, self.data_len - covered)
+
+    quiet(DFReader, _classify)
     try:
-        reader = DFReader.DFReader_binary(str(path), zero_time_base=False)
+        return QuietReader(str(path), zero_time_base=False)
     except Exception as err:  # pymavlink raises bare exceptions on unreadable headers
         raise IngestError(f"{path.name}: not a readable DataFlash log ({type(err).__name__})") from err
+
+
+def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
+    """ArduPilot DataFlash .bin of any generation (TimeMS or TimeUS, MAG/MAG2/MAG3 or MAG with an
+    instance column): every compass and IMU, ATT, GPS, current (CURR/BAT/BATT), throttle
+    (CTUN/CURR/RCOU), PARM history, CMD, MSG.  See dataflash_messages.py for units and timing.
+    pymavlink's per-byte complaints about damage become counted warnings.
+
+    Args:
+        path: the .bin file; progress: called with the fraction read (0..1), or None.
+    Returns:
+        FlightLog (``compasses`` with the logged motor compensation, ``param_history`` with the
+        MAG Ofs* changes as COMPASS_OFS{n}_*); damage is counted in ``warnings``.
+    Raises:
+        IngestError: the header cannot be read at all.
+    """
+    counts: Counter = Counter()
+    with counting(counts):
+        reader = _open_reader(path)
+        try:
+            log = _read_messages(path, progress, reader)
+        finally:
+            try:
+                reader.close()
+            except (BufferError, OSError, ValueError):   # a view of its mmap still alive: GC closes it
+                pass
+    log.warnings.update(counts)
+    return log
+
+
+def _read_messages(path: Path, progress: Callable[[float], None] | None, reader) -> FlightLog:
     builder = LogBuilder(str(path))
     log = builder.log
     log.autopilot = "ardupilot"
-    t0_us: float | None = None
-    gps_week_ms: tuple[float, float, float] | None = None
-    wanted = {"MAG", "MAG2", "MAG3", "IMU", "ATT", "GPS", "PARM", "CMD", "BAT"}
+    decoder = DataFlashDecoder()
     while True:
         try:
-            m = reader.recv_match(type=wanted)
+            m = reader.recv_match(type=WANTED)
         except Exception as err:  # truncated/corrupt tail inside pymavlink's parser
             log.warnings[f"log truncated or corrupt ({type(err).__name__})"] += 1
             break
@@ -37,46 +118,28 @@ def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Flig
             break
         mtype = m.get_type()
         log.message_counts[mtype] += 1
-        if mtype == "PARM":
-            builder.add(ParamSample(0.0, m.Name, float(m.Value)))
-            continue
-        time_us = getattr(m, "TimeUS", None)
-        if time_us is None:
-            continue
-        if t0_us is None and mtype != "CMD":
-            t0_us = time_us
-        t = (time_us - t0_us) * 1e-6 if t0_us is not None else 0.0
         try:
-            if mtype.startswith("MAG"):
-                instance = getattr(m, "I", {"MAG": 0, "MAG2": 1, "MAG3": 2}[mtype])
-                builder.add(MagSample(t, (float(m.MagX), float(m.MagY), float(m.MagZ)), int(instance)))
-            elif mtype == "IMU":
-                builder.add(ImuSample(t, (m.GyrX, m.GyrY, m.GyrZ), (m.AccX, m.AccY, m.AccZ),
-                                      int(getattr(m, "I", 0))))
-            elif mtype == "ATT":
-                builder.add(AttitudeSample(t, math.radians(m.Roll), math.radians(m.Pitch),
-                                           math.radians(m.Yaw)))
-            elif mtype == "GPS":
-                if int(getattr(m, "I", 0)) != 0 or m.Status < 2:
-                    continue
-                crs = math.radians(m.GCrs)
-                builder.add(GpsSample(t, m.Lat, m.Lng, m.Alt, (m.Spd * math.cos(crs),
-                                      m.Spd * math.sin(crs), m.VZ), int(m.Status)))
-                if gps_week_ms is None and getattr(m, "GWk", 0) > 0:
-                    gps_week_ms = (m.GWk, m.GMS, t)
-            elif mtype == "CMD" and m.CId == MAV_CMD_NAV_WAYPOINT:
-                builder.add(MissionSample(t, int(m.CNum), m.Lat, m.Lng, m.Alt))
-            elif mtype == "BAT" and int(getattr(m, "Inst", getattr(m, "Instance", 0))) == 0:
-                builder.add(BatterySample(t, float(m.Curr)))          # A
-        except (AttributeError, TypeError, ValueError) as err:
+            for s in decoder.decode(m, mtype):
+                builder.add(s)
+            if decoder.history:       # logged offsets, in file order with the PARM records
+                for entry in decoder.history:
+                    builder.add_history(*entry)
+                decoder.history.clear()
+        except (AttributeError, TypeError, ValueError, OverflowError) as err:
             log.warnings[f"undecodable {mtype}: {type(err).__name__}"] += 1
         if progress is not None and sum(log.message_counts.values()) % 20000 == 0:
             progress(min(reader.offset / max(reader.data_len, 1), 1.0))
     if reader.data_len - reader.offset > 0:
         log.warnings[f"log truncated: last {reader.data_len - reader.offset} bytes unreadable"] += 1
-    log = builder.finish()
+    throttle_source, throttle = decoder.throttle_samples()
+    for s in throttle:
+        builder.add(s)
+    builder.source_names.update(decoder.source_names)
     log.mag_calibration_applied = True  # ArduPilot logs the corrected field (offsets in OfsX..)
-    if gps_week_ms is not None:
-        week, ms, t = gps_week_ms
+    log = builder.finish()
+    if throttle_source:
+        log.message_counts[f"throttle from {throttle_source}"] = len(throttle)
+    if decoder.gps_week_ms is not None:
+        week, ms, t = decoder.gps_week_ms
         log.start_unix_s = 315964800 + week * 604800 + ms * 1e-3 - 18 - t  # GPS epoch, leap s
     return log

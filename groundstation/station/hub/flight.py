@@ -1,225 +1,222 @@
-"""Flight state of the live view: the per-sample estimation stack and what the page shows of it.
+"""The flight as the page shows it: the flight record so far, the route, the alarms.
 
-``EstimationStack`` runs the heading chain and interference detector per sample
-(``groundstation.jobs.live.LiveAnalyzer``, the per-sample twin of ``magstation analyze``) and
-adds what the display needs: the autopilot's attitude, forward/lateral velocity, signed
-cross-track, field strength.  ``FlightState`` owns the stack plus the route, plot history,
-alarm list and GPS-outage watch, and turns samples into them.  Neither takes a lock: the hub
-(``Session``) calls them under its own.
+Two ways in, one state (the hub calls both under its lock):
+  * live: ``push(samples)`` puts a link's samples in time order (``ReorderBuffer``) and through
+    ``LiveAnalyzer``, one record row per IMU sample; GPS outages by ``GpsOutageWatch``;
+  * replay: ``load_review(review, t)`` takes the whole log analysed at once
+    (``groundstation.station.hub.review``) and ``show_until(t)`` moves the cursor (forward as the
+    replay plays, anywhere on a seek).
+Either way the alarms are ``AlarmTracker`` over the rows, so the page lists what analyze
+reports.  Readers (snapshots, plots, scene) go through ``rows()``, ``route()`` and
+``groundstation.station.hub.display``.
 """
 from __future__ import annotations
 
 import math
-from collections import deque
+import time
 from typing import Callable
 
 import numpy as np
 
-from estimators.calibration import apply_calibration
-from estimators.detection import cross_track_m, ned_from_lla
-from estimators.heading import split_velocity
-
-from groundstation.jobs.live import LiveAnalyzer
-from groundstation.jobs.navigation import OUTAGE_MIN_S
-from groundstation.samples import (AttitudeSample, GpsSample, ImuSample, MagSample, Sample, finite_or_none)
+from groundstation.jobs.live import GpsOutageWatch, LiveAnalyzer, ReorderBuffer
+from groundstation.jobs.record import COL, RECORD_COLUMNS, AlarmTracker, evidence_text
+from groundstation.samples import GpsSample, Sample
+from groundstation.station.hub.review import Review, line_mission
 from groundstation.station.tables import GrowingTable
 
-__all__ = ["EstimationStack", "FlightState", "local_ne_m", "ROUTE_MAX_POINTS"]
+__all__ = ["FlightState", "ROUTE_MAX_POINTS", "LIVE_ROWS_MAX"]
 
-ROUTE_MAX_POINTS = 20_000
-HISTORY_ROWS = 600
-HISTORY_STEP_S = 0.05
+ROUTE_MAX_POINTS = 200_000          # live GPS fixes kept (11 h at 5 Hz)
+ANALYSE_EVERY_S = 0.02              # live: due samples are analysed together at most this often
+LIVE_ROWS_MAX = 360_000             # live record rows kept (2 h at 50 Hz); the oldest quarter goes first
+EVIDENCE_COLS = slice(COL["ev_heading"], COL["ev_field"] + 1)   # ev_heading, ev_path, ev_field: adjacent
+
 
 EventFn = Callable[..., None]
 
 
-def local_ne_m(lat: float, lon: float, origin: tuple[float, float]) -> tuple[float, float]:
-    """North/east metres of (lat, lon) from ``origin`` (the detector's local tangent plane)."""
-    n, e = ned_from_lla(lat, lon, origin[0], origin[1])
-    return float(n), float(e)
-
-
-def _deg(rad: float | None) -> float | None:
-    return None if rad is None or not math.isfinite(rad) else math.degrees(rad)
-
-
-def signed_cross_track_m(lat: float, lon: float, line: dict) -> float:
-    """Cross-track distance from the preset line A->B, + right of it (seed 002 eq. 6, signed)."""
-    a, b = line["a"], line["b"]
-    bn, be = local_ne_m(b[0], b[1], (a[0], a[1]))
-    pn, pe = local_ne_m(lat, lon, (a[0], a[1]))
-    d = float(cross_track_m(np.array([pn, pe, 0.0]), np.zeros(3), np.array([bn, be, 0.0]))[0])
-    return math.copysign(d, bn * pe - be * pn)
-
-
-class EstimationStack:
-    """Per-sample heading chain and interference detection for the live view."""
-
-    def __init__(self) -> None:
-        self.calibration: dict | None = None   # in use: accepted wizard result or the log's own fit
-        self.line: dict | None = None
-        self.start_unix_s: float | None = None
-        self.reset()
-
-    def reset(self) -> None:
-        """Start over (new source, seek, new calibration): the detector re-learns its noise."""
-        self.roll_rad = self.pitch_rad = self.yaw_rad = math.nan
-        self.ap_rpy_rad = (math.nan, math.nan, math.nan)
-        self.heading_mag_deg = math.nan
-        self.heading_att_deg = math.nan
-        self.v_forward_mps = self.v_lateral_mps = math.nan
-        self.cross_track_m = math.nan
-        self.field_mG = math.nan
-        self.lat_deg = self.lon_deg = math.nan
-        self.fix_type = 0
-        self.alarm_active = False
-        self.alarm_kinds: list[str] = []
-        self.analyzer = LiveAnalyzer(self.calibration, self._mission(), self.start_unix_s)
-
-    def _mission(self) -> list | None:
-        return [tuple(self.line["a"]), tuple(self.line["b"])] if self.line else None
-
-    def set_line(self, line: dict | None) -> None:
-        self.line = line
-        self.analyzer.set_mission(self._mission())
-
-    def set_calibration(self, calibration: dict | None) -> None:
-        self.calibration = calibration
-        self.reset()
-
-    @property
-    def detector(self):
-        return self.analyzer.detector
-
-    @property
-    def declination_deg(self) -> float:
-        return float(self.analyzer.chain.declination_deg)
-
-    def calibrated(self, mag_mG: tuple[float, float, float]) -> np.ndarray:
-        m = np.asarray(mag_mG, dtype=float)
-        cal = self.calibration
-        if cal and cal.get("offsets_mG") is not None and cal.get("matrix") is not None:
-            return apply_calibration(m, np.asarray(cal["offsets_mG"], dtype=float), np.asarray(cal["matrix"], dtype=float))
-        return m
-
-    def on_sample(self, s: Sample) -> None:
-        self.analyzer.on_sample(s)
-        if isinstance(s, AttitudeSample):
-            self.ap_rpy_rad = (s.roll_rad, s.pitch_rad, s.yaw_rad)
-        elif isinstance(s, MagSample):
-            m = self.calibrated(s.mag_body_mG)
-            if np.all(np.isfinite(m)):
-                self.field_mG = float(np.linalg.norm(m))
-        elif isinstance(s, ImuSample):
-            st = self.analyzer.last_state
-            if st is not None and st.valid:
-                self.roll_rad, self.pitch_rad, self.yaw_rad = st.roll_rad, st.pitch_rad, st.heading_true_rad
-                self.heading_att_deg = math.degrees(st.heading_true_rad) % 360.0
-                self.heading_mag_deg = (math.degrees(st.mag_heading_rad) + self.declination_deg) % 360.0
-        elif isinstance(s, GpsSample):
-            self.lat_deg, self.lon_deg, self.fix_type = s.lat_deg, s.lon_deg, s.fix_type
-            vn, ve = s.vel_ned_mps[0], s.vel_ned_mps[1]
-            if math.isfinite(vn) and math.isfinite(ve) and math.isfinite(self.heading_att_deg):
-                fwd, lat = split_velocity(vn, ve, math.radians(self.heading_att_deg))
-                self.v_forward_mps, self.v_lateral_mps = float(fwd), float(lat)
-            if self.line is not None:
-                self.cross_track_m = signed_cross_track_m(s.lat_deg, s.lon_deg, self.line)
-
-    def vehicle_snapshot(self) -> dict:
-        f = finite_or_none
-        ap = self.ap_rpy_rad
-        return {
-            "roll_deg": f(_deg(self.roll_rad)), "pitch_deg": f(_deg(self.pitch_rad)), "yaw_deg": f(_deg(self.yaw_rad)),
-            "ap_roll_deg": f(_deg(ap[0])), "ap_pitch_deg": f(_deg(ap[1])), "ap_yaw_deg": f(_deg(ap[2])),
-            "heading_mag_deg": f(self.heading_mag_deg), "heading_att_deg": f(self.heading_att_deg),
-            "v_forward_mps": f(self.v_forward_mps), "v_lateral_mps": f(self.v_lateral_mps),
-            "cross_track_m": f(self.cross_track_m), "field_mG": f(self.field_mG),
-            "lat_deg": f(self.lat_deg), "lon_deg": f(self.lon_deg), "fix_type": int(self.fix_type),
-        }
-
-
 class FlightState:
-    """Everything the page shows about the flight so far; ``process`` feeds one sample."""
+    """Record, route and alarms of the current source (see module docstring).  No lock: the
+    hub calls it under its own."""
 
     def __init__(self, event: EventFn) -> None:
         self._event = event
-        self.stack = EstimationStack()
-        self.route = GrowingTable(4, ROUTE_MAX_POINTS)      # t_s, north_m, east_m, alarm(0/1)
-        self.history: deque = deque(maxlen=HISTORY_ROWS)     # t_s, hdg_mag, hdg_att, vf, vl, xt
+        self.calibration: dict | None = None   # in use: accepted wizard result or the log's own fit
+        self.line: dict | None = None
+        self.start_unix_s: float | None = None
+        self.review: Review | None = None
         self.reset()
 
+    # ------------------------------------------------------------------ configuration
     def reset(self) -> None:
-        """Start the flight over (new source, seek, loop); the preset line and calibration stay."""
-        self.stack.reset()
-        self.route.clear()
-        self.origin: tuple[float, float] | None = None
-        self.history.clear()
-        self._last_hist_t = -math.inf
-        self.alarms: list[dict] = []
-        self._primary: dict[str, int] = {}
+        """The flight starts over (new source, replay loop): nothing shown yet."""
+        self._rows = GrowingTable(len(RECORD_COLUMNS), LIVE_ROWS_MAX)
+        self._route = GrowingTable(5, ROUTE_MAX_POINTS)        # t_s, lat, lon, fix_type, alarm
+        self.analyzer = LiveAnalyzer(self.calibration, line_mission(self.line), self.start_unix_s)
+        self.reorder = ReorderBuffer()
+        self._due: list[Sample] = []
+        self._analysed_at = -math.inf
+        self.watch = GpsOutageWatch()
+        self.tracker = AlarmTracker()
         self.t_s = 0.0
-        self._last_fix_t: float | None = None     # last 3-D GPS fix (t_s), for outage events
-        self._gps_lost = False
+        self.n_shown = 0                   # review: rows up to the cursor
+        self.gps_shown = 0
+        self._events_done = 0
 
-    def accepts(self, s: Sample) -> bool:
-        """One sensor instance each for mag and IMU (the lowest number seen: RAW_IMU/primary)."""
-        if isinstance(s, (MagSample, ImuSample)):
-            kind = type(s).__name__
-            primary = self._primary.get(kind)
-            if primary is None or s.instance < primary:
-                self._primary[kind] = primary = s.instance
-            return s.instance == primary
-        return True
+    def new_source(self, start_unix_s: float | None) -> None:
+        """A new source: no review, no line, no calibration until the source brings them."""
+        self.start_unix_s = start_unix_s
+        self.calibration = None
+        self.line = None
+        self.review = None
+        self.reset()
 
-    def process(self, s: Sample) -> None:
-        """Estimation, alarms, GPS watch, route and plot history for one sensor sample."""
-        st = self.stack
-        st.on_sample(s)
-        det = st.detector
-        if det is not None and isinstance(s, ImuSample):
-            self._alarm_update(bool(det.alarm_active), list(det.alarm_kinds or []), finite_or_none(det.peak))
-        self._watch_gps(s)
-        if isinstance(s, GpsSample) and math.isfinite(s.lat_deg) and math.isfinite(s.lon_deg):
-            if self.origin is None:
-                self.origin = (s.lat_deg, s.lon_deg) if st.line is None else tuple(st.line["a"])
-            n, e = local_ne_m(s.lat_deg, s.lon_deg, self.origin)
-            self.route.append((s.t_s, n, e, 1.0 if st.alarm_active else 0.0))
-        if s.t_s - self._last_hist_t >= HISTORY_STEP_S:
-            self._last_hist_t = s.t_s
-            self.history.append((s.t_s, st.heading_mag_deg, st.heading_att_deg, st.v_forward_mps,
-                                 st.v_lateral_mps, st.cross_track_m))
+    def set_line(self, line: dict | None) -> None:
+        self.line = line
+        self.analyzer.set_mission(line_mission(line))
 
-    def _watch_gps(self, s: Sample) -> None:
-        """Events when the 3-D GPS fix goes away while the IMU keeps streaming, and comes back
-        (the same rule as ``analyze``'s GPS outages)."""
-        if isinstance(s, GpsSample) and s.fix_type >= 3 and math.isfinite(s.lat_deg):
-            if self._gps_lost:
-                self._event(f"GPS fix back after {s.t_s - self._last_fix_t:.1f} s")
-                self._gps_lost = False
-            self._last_fix_t = s.t_s
-        elif (isinstance(s, ImuSample) and not self._gps_lost and self._last_fix_t is not None
-              and s.t_s - self._last_fix_t > OUTAGE_MIN_S):
-            self._gps_lost = True
-            self._event(f"GPS fix lost (last 3-D fix at {self._last_fix_t:.1f} s): the position and "
-                        "path-deviation test are stale", "warning")
+    def set_calibration(self, calibration: dict | None) -> None:
+        """Live: the analyzer starts over with it (the detector learns again); a replay is
+        analysed again by the hub (``needs_review``)."""
+        self.calibration = calibration
+        self.analyzer = self.analyzer.restarted(calibration)
 
-    def _alarm_update(self, active: bool, kinds: list[str], peak: float | None) -> None:
-        st = self.stack
-        if active and not st.alarm_active:
-            self.alarms.append({"kind": "combined", "evidence": kinds, "start_s": round(self.t_s, 2),
-                                "end_s": None, "peak": peak})
-            self._event("INTERFERENCE ALARM: " + (", ".join(kinds) or "combined"), "alarm")
-        elif active and self.alarms:
-            a = self.alarms[-1]
-            a["evidence"] = sorted(set(a["evidence"]) | set(kinds))
-            if peak is not None:
-                a["peak"] = max(a["peak"] or 0.0, peak)
-        elif not active and st.alarm_active and self.alarms:
-            self.alarms[-1]["end_s"] = round(self.t_s, 2)
-            self._event("alarm cleared")
-        st.alarm_active, st.alarm_kinds = active, kinds
+    def needs_review(self) -> bool:
+        """The replay's analysis was made with another calibration or line than the current."""
+        r = self.review
+        return r is not None and (r.calibration is not self.calibration or r.line != self.line)
+
+    @property
+    def policy(self):
+        return self.review.policy if self.review is not None else self.analyzer.policy
+
+    # ------------------------------------------------------------------ live
+    def push(self, samples: list[Sample]) -> None:
+        """Live samples (any order); those due go through the analyzer, a few at a time (at a
+        high IMU rate one call per packet would cost more than the analysis itself)."""
+        self._due += self.reorder.push(samples)
+        self.flush_due()
+
+    def flush_due(self) -> None:
+        self._due += self.reorder.due()
+        now = time.monotonic()
+        if self._due and (now - self._analysed_at >= ANALYSE_EVERY_S or len(self._due) > 500):
+            self._analysed_at = now
+            due, self._due = self._due, []
+            self._live(due)
+
+    def flush_all(self) -> None:
+        """Everything waiting, now (the stream ended)."""
+        due, self._due = self._due + self.reorder.flush(), []
+        self._live(due)
+
+    def _live(self, samples: list[Sample]) -> None:
+        samples = [s for s in samples if self.analyzer.accepts(s)]
+        if not samples:
+            return
+        self.t_s = max(self.t_s, max(s.t_s for s in samples))
+        before = self.tracker.active
+        rows = self.analyzer.on_samples(samples)
+        for s in samples:
+            change = self.watch.on_sample(s)
+            if change is not None:
+                self._gps_event(*change, t_s=s.t_s)
+        if len(rows):
+            if self._rows.n + len(rows) > LIVE_ROWS_MAX:
+                self._rows.drop_oldest(LIVE_ROWS_MAX // 4)
+            for row in rows:
+                self._rows.append(row)
+            self._track(rows)
+        for s in samples:
+            if isinstance(s, GpsSample) and math.isfinite(s.lat_deg) and math.isfinite(s.lon_deg):
+                k = int(np.searchsorted(rows[:, COL["t_s"]], s.t_s, side="right")) - 1 if len(rows) else -1
+                alarm = rows[k, COL["alarm"]] > 0.5 if k >= 0 else before
+                self._route.append((s.t_s, s.lat_deg, s.lon_deg, s.fix_type, 1.0 if alarm else 0.0))
+
+    def _gps_event(self, what: str, value: float, t_s: float) -> None:
+        if what == "lost":
+            self._event(f"GPS fix lost (last 3-D fix at {value:.1f} s): the position and path-deviation test "
+                        "are stale", "warning", t_s=t_s)
+        else:
+            self._event(f"GPS fix back after {value:.1f} s", t_s=t_s)
+
+    # ------------------------------------------------------------------ replay
+    def load_review(self, review: Review, t_s: float) -> None:
+        """A replay's whole-log analysis; shown up to ``t_s``."""
+        self.review = review
+        self.show_until(t_s, seek=True)
+
+    def show_until(self, t_s: float, seek: bool = False) -> None:
+        """Move the replay cursor: forward as the replay plays (events for what it passes), or
+        anywhere on a seek (the state at that time, rebuilt at once)."""
+        r = self.review
+        if r is None:
+            self.t_s = t_s
+            return
+        t = r.rows[:, COL["t_s"]]
+        n = int(np.searchsorted(t, t_s, side="right"))
+        if seek or n < self.n_shown:
+            self.tracker = AlarmTracker()
+            self.n_shown = 0
+            self._events_done = sum(1 for e in r.events if e[0] <= t_s)
+            self._track(r.rows[:n], quiet=True)
+        else:
+            self._track(r.rows[self.n_shown:n])
+            while self._events_done < len(r.events) and r.events[self._events_done][0] <= t_s:
+                et, text, level = r.events[self._events_done]
+                self._event(text, level, t_s=et)
+                self._events_done += 1
+        self.n_shown = n
+        self.gps_shown = int(np.searchsorted(r.gps[:, 0], t_s, side="right"))
+        self.t_s = t_s
+
+    # ------------------------------------------------------------------ alarms
+    def _track(self, rows: np.ndarray, quiet: bool = False) -> None:
+        tr = self.tracker
+        before, was_on = len(tr.alarms), tr.active
+        tr.update(rows[:, COL["t_s"]], rows[:, COL["alarm"]] > 0.5, rows[:, EVIDENCE_COLS] > 0.5, rows[:, COL["score"]])
+        if quiet:
+            return
+        for a in tr.alarms[before:]:
+            self._event("INTERFERENCE ALARM: " + (evidence_text(a["evidence_at_start"]) or "combined"), "alarm",
+                        t_s=a["start_s"])
+        if was_on and len(tr.alarms) == before and not tr.active:
+            self._event("alarm cleared", t_s=tr.alarms[-1]["end_s"])
 
     def alarm_snapshot(self) -> dict:
-        st = self.stack
-        return {"active": st.alarm_active, "evidence": list(st.alarm_kinds),
-                "since_s": self.alarms[-1]["start_s"] if st.alarm_active and self.alarms else None}
+        tr = self.tracker
+        a = tr.alarms[-1] if tr.active and tr.alarms else None
+        return {"active": a is not None, "evidence": list(a["evidence"]) if a else [],
+                "evidence_text": evidence_text(a["evidence"]) if a else "",
+                "since_s": a["start_s"] if a else None}
+
+    def alarm_list(self) -> list[dict]:
+        """The alarms so far, each with its evidence in words."""
+        return [dict(a, evidence_text=evidence_text(a["evidence"])) for a in self.tracker.alarms]
+
+    # ------------------------------------------------------------------ reading
+    def rows(self) -> np.ndarray:
+        """Record rows shown so far (a view: copy before leaving the lock)."""
+        if self.review is not None:
+            return self.review.rows[:self.n_shown]
+        return self._rows.view()
+
+    def last_row(self) -> np.ndarray | None:
+        rows = self.rows()
+        return rows[-1] if len(rows) else None
+
+    def route(self) -> np.ndarray:
+        """GPS fixes shown so far: [t_s, lat_deg, lon_deg, fix_type, alarm]."""
+        if self.review is not None:
+            return self.review.gps[:self.gps_shown]
+        return self._route.view()
+
+    def origin(self) -> tuple[float, float] | None:
+        """Local tangent-plane origin of the route: the preset line's A, else the first fix."""
+        if self.line is not None:
+            return tuple(self.line["a"])
+        route = self.route()
+        return (float(route[0, 1]), float(route[0, 2])) if len(route) else None
+
+    def earth_field(self):
+        return self.review.earth_field if self.review is not None else self.analyzer.earth_field

@@ -1,19 +1,21 @@
 """The session hub: one lock and one state version over the source, the vehicle and the flight.
 
 The parts each do one job (``sources.SourceControl``: live link or replay and its worker thread;
-``vehicle.VehicleLink``: autopilot identity, parameters, confirmed writes; ``flight.FlightState``:
-estimation, alarms, route and plots; ``groundstation.station.wizard.CalibrationWizard``: the
-guided calibration).  ``Session`` owns the lock, the version and the event log, routes every
-sample to the parts, and builds immutable snapshots for readers (the WebSocket pusher, the viser
-scene, REST).  ``add_listener`` callbacks run on the worker thread after each batch, so pushers
-wake without polling; a failing listener is logged, never silently dropped.
+``recordings.RecordingsFolder``: the logs on disk; ``vehicle.VehicleLink``: autopilot identity,
+parameters, confirmed writes; ``flight.FlightState``: the flight record, route and alarms, live or
+replayed from one whole-log analysis (``review``); ``calibration.CalibrationControl``: the guided
+calibration and writing its result).  ``Session`` owns the lock, the version and the event log, routes every
+sample to the parts, and builds immutable snapshots for readers (``views.SessionViews``: the
+WebSocket pusher, the viser scene, REST).  ``add_listener`` callbacks run on the worker thread
+after each batch, so pushers wake without polling; a failing listener is logged.
 
-Everything a live link receives is recorded to ``recordings/session-*.tlog`` as it arrives.
+A new source starts from a clean state: flight, alarms, events, wizard, preset line (the new
+log's mission or none) and the vehicle's parameters all start over.  Everything a live link
+receives is recorded to ``recordings/session-*.tlog``, from its first packet.
 Thread-safe: every public method may be called from any thread.
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
 import threading
@@ -22,38 +24,42 @@ from collections import deque
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
-
-from groundstation.jsonsafe import json_default, jsonable
+from groundstation.jsonsafe import jsonable
 from groundstation.samples import FlightLog, MissionSample, ParamSample, Sample, StatusSample
+from groundstation.station.hub.calibration import CalibrationControl
 from groundstation.station.hub.flight import FlightState
+from groundstation.station.hub.recordings import RecordingsFolder
+from groundstation.station.hub.review import build_review
 from groundstation.station.hub.sources import (ConflictError, NotFoundError, SessionError, SourceControl,
                                                check_speed)
 from groundstation.station.hub.vehicle import VehicleLink
-from groundstation.station.wizard import CalibrationWizard
+from groundstation.station.hub.views import SessionViews
 
 __all__ = ["Session", "SessionError", "NotFoundError", "ConflictError"]
 
 log = logging.getLogger(__name__)
 EVENTS_KEPT = 200
-EVENTS_SHOWN = 15
+DEFAULT_MAX_UPLOAD_BYTES = 512 * 1024 * 1024
 
 
-class Session:
+class Session(SessionViews):
     """The hub.  Thread-safe; all public methods may be called from any thread."""
 
-    def __init__(self, recordings_dir: str | Path = "recordings", record_live: bool = True) -> None:
+    def __init__(self, recordings_dir: str | Path = "recordings", record_live: bool = True,
+                 max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES) -> None:
         self._lock = threading.RLock()
         self._listeners: list[Callable[[], None]] = []
         self.version = 0
         self._json_cache: tuple[int, str] | None = None
         self.events: deque = deque(maxlen=EVENTS_KEPT)
-        self.sources = SourceControl(self, self._lock, Path(recordings_dir).resolve(), record_live)
+        self.recordings = RecordingsFolder(Path(recordings_dir), max_upload_bytes)
+        self.sources = SourceControl(self, self._lock, self.recordings, record_live)
         self.vehicle = VehicleLink(self._lock)
         self.flight = FlightState(self.event)
-        self.wizard = CalibrationWizard()
+        self.calibration = CalibrationControl(self._lock, self)
         self.log_calibration: dict | None = None
         self._log_mission: list | None = None
+        self._review_generation = 0
 
     # ------------------------------------------------------------------ listeners / events
     def add_listener(self, fn: Callable[[], None]) -> None:
@@ -74,13 +80,19 @@ class Session:
             except Exception:
                 log.exception("state listener %r failed", fn)
 
-    def event(self, text: str, level: str = "info") -> None:
+    def event(self, text: str, level: str = "info", t_s: float | None = None) -> None:
+        """An entry of the event log, at log time ``t_s`` (default: the flight's time now)."""
         with self._lock:
-            self.events.append({"t_s": round(self.flight.t_s, 2), "unix_s": time.time(), "level": level, "text": text})
+            t = self.flight.t_s if t_s is None else t_s
+            self.events.append({"t_s": round(t, 2), "unix_s": time.time(), "level": level, "text": text})
 
     @property
     def params(self) -> dict[str, float]:
         return self.vehicle.params
+
+    @property
+    def wizard(self):
+        return self.calibration.wizard
 
     @property
     def replay(self):
@@ -88,37 +100,39 @@ class Session:
 
     # ------------------------------------------------------------------ samples (lock held)
     def feed(self, samples: list[Sample]) -> None:
-        """Process samples as a source worker does (tests and tools feeding a session directly)."""
+        """Process samples as a live link's worker does (tests and tools feeding a session
+        directly); everything fed is analysed, none waits for later samples."""
         with self._lock:
             self.process_batch(samples)
+            self.flight.flush_all()
             self.changed()
 
     def process_batch(self, samples: list[Sample]) -> None:
+        live = self.sources.kind != "replay"
+        flight_samples = []
         for s in samples:
-            self._process(s)
-        if self.wizard.ready():
-            self.wizard.finish(self.vehicle.autopilot, self.vehicle.params)
-            r = self.wizard.result or {}
-            self.event(f"calibration finished: {r.get('status')} {r.get('message') or ''}".strip())
+            if isinstance(s, StatusSample):
+                self._on_status(s)
+            elif isinstance(s, ParamSample):
+                self.vehicle.on_param(s)
+            elif isinstance(s, MissionSample):
+                if self._log_mission is None:
+                    self.vehicle.on_mission_item(s)      # live: the mission comes item by item
+            else:
+                self.calibration.on_sample(s)           # every compass instance
+            flight_samples.append(s)
+        if live:
+            self.flight.push(flight_samples)
+        self.calibration.after_batch()
 
-    def _process(self, s: Sample) -> None:
-        flight = self.flight
-        flight.t_s = max(flight.t_s, s.t_s)
-        if isinstance(s, StatusSample):
-            self._on_status(s)
-        elif isinstance(s, ParamSample):
-            self.vehicle.on_param(s)
-        elif isinstance(s, MissionSample):
-            if self._log_mission is None:   # live: the mission comes item by item
-                self.vehicle.on_mission_item(s)
-        elif flight.accepts(s):
-            self.wizard.on_sample(s)
-            flight.process(s)
+    def flush_live(self) -> None:
+        self.flight.flush_due()
 
     def _on_status(self, s: StatusSample) -> None:
         if s.kind == "autopilot":
+            if s.text != self.vehicle.autopilot:
+                self.event(f"vehicle autopilot: {s.text}")
             self.vehicle.autopilot = s.text
-            self.event(f"vehicle autopilot: {s.text}")
         elif s.kind == "link":
             up = s.text.startswith("link up")
             if up:
@@ -128,50 +142,102 @@ class Session:
             else:
                 self.event(s.text, "info" if up else "warning")
             self.sources.link_state = "up" if up else "lost"
+            self.calibration.on_link(up, s.t_s)
         elif s.kind == "statustext":
             self.event("vehicle: " + s.text)
 
     def restart_flight(self) -> None:
-        """Estimators start over (samples were skipped); the preset line stays."""
-        self.flight.reset()
+        """The flight starts over (a replay looped); the preset line and calibration stay."""
+        if self.flight.review is not None:
+            self.flight.show_until(0.0, seek=True)
+        else:
+            self.flight.reset()
 
     # ------------------------------------------------------------------ sources
     def connect(self, url: str) -> None:
-        """Open a live link (pymavlink connection string) and record it to recordings/."""
-        url, link, recorder, path = self.sources.open_link(url)
+        """Open a live link (pymavlink connection string), recorded to recordings/ from its
+        first packet.  With a source running, that source goes on until the link hears the
+        vehicle; a link that cannot open changes nothing."""
+        url, link, recording = self.sources.open_link(url)
+        with self._lock:
+            running = self.sources.kind != "none"
+            if running:
+                self.sources.arm_pending(url, link, recording)
+                self.event(f"connecting to {url}: {self.sources.name} goes on until the first packet arrives")
+                self.changed()
+                return
+        self.switch_to_live(url, link, recording, [])
+
+    def switch_to_live(self, url: str, link, recording, samples: list[Sample]) -> None:
         self.sources.stop()
         with self._lock:
-            self.flight.reset()
-            self.vehicle.reset(None, {})
-            self._new_source(start_unix_s=None, mission=None)
-            self.sources.start_live(url, link, recorder, path)
-            self.event(f"listening on {url}" + (f", recording to {path.name}" if path else ""))
+            self._new_source(start_unix_s=None, autopilot=None, params={}, mission=None)
+            self.sources.start_live(url, link, recording)
+            self.event(f"listening on {url}" + (", recording from the first packet" if recording else ""))
+            if samples:
+                self.process_batch(samples)
             self.changed()
 
-    def start_replay(self, path: str | Path, speed: float = 1.0, loop: bool = False) -> None:
-        """Replay a log paced at real time x speed (any format read_log understands)."""
+    def start_replay(self, path: str | Path, speed: float = 1.0, loop: bool = False,
+                     flight_log: FlightLog | None = None) -> None:
+        """Replay a log paced at real time x speed (any format read_log understands);
+        ``flight_log``: the log of ``path`` already read (tools, benchmarks)."""
         path = Path(path)
-        flight_log, replayer = self.sources.load_replay(path, speed, loop)
+        flight_log, replayer = self.sources.load_replay(path, speed, loop, flight_log)
+        self.sources.cancel_pending()
         self.sources.stop()
         with self._lock:
-            self.flight.reset()
-            self.vehicle.reset(flight_log.autopilot, flight_log.params)
-            self._new_source(flight_log.start_unix_s, list(flight_log.mission))
+            self._new_source(flight_log.start_unix_s, flight_log.autopilot, flight_log.params,
+                             list(flight_log.mission))
+            if len(flight_log.mission) >= 2:
+                self.flight.set_line({"a": [float(v) for v in flight_log.mission[0][:2]],
+                                      "b": [float(v) for v in flight_log.mission[-1][:2]], "source": "mission"})
+                self.event("preset line set from the log's mission", t_s=0.0)
             self.sources.start_replay(path, flight_log, replayer)
-            if flight_log.mission and len(flight_log.mission) >= 2:
-                self.set_line(flight_log.mission[0][:2], flight_log.mission[-1][:2], "mission")
-            self.event(f"replaying {path.name} ({replayer.duration_s:.0f} s) at x{speed:g}")
+            self.event(f"replaying {path.name} ({replayer.duration_s:.0f} s) at x{speed:g}: analysing it first",
+                       t_s=0.0)
             if not len(flight_log.mag):
                 self.event(f"{path.name} has no magnetometer samples: no heading, calibration or "
-                           "interference tests for this log", level="warning")
+                           "interference tests for this log", level="warning", t_s=0.0)
             self.changed()
 
-    def _new_source(self, start_unix_s: float | None, mission: list | None) -> None:
-        stack = self.flight.stack
-        stack.start_unix_s = start_unix_s
+    def _new_source(self, start_unix_s: float | None, autopilot: str | None, params: dict,
+                    mission: list | None) -> None:
+        """Everything of the previous source goes (lock held)."""
+        self.events.clear()
+        self.flight.new_source(start_unix_s)
+        self.vehicle.reset(autopilot, params)
+        self.calibration.new_source()
         self.log_calibration = None
-        stack.set_calibration(None)
         self._log_mission = mission
+        self._review_generation += 1
+
+    def prepare_replay(self, flight_log: FlightLog) -> tuple:
+        """Without the lock: the log's own calibration (if it has a calibration dance) and the
+        whole-log analysis with it and the preset line."""
+        calibration = self.fit_log_calibration(flight_log)
+        with self._lock:
+            line = self.flight.line
+        return calibration, line, build_review(flight_log, calibration, line)
+
+    def start_review(self, prepared: tuple) -> None:
+        calibration, line, review = prepared
+        if calibration is not None:
+            self.log_calibration = calibration
+            self.event(f"using the calibration fitted to this log (residual "
+                       f"{calibration.get('residual_rms_mG') or 0:.1f} mG)", t_s=0.0)
+        self.flight.calibration = calibration
+        self.flight.load_review(review, 0.0)
+        if line != self.flight.line:          # the line changed while the log was analysed
+            self._review_again()
+
+    def replay_moved(self, t_s: float) -> bool:
+        f = self.flight
+        if f.review is None:
+            return False
+        before = (f.n_shown, f.gps_shown)
+        f.show_until(t_s)
+        return (f.n_shown, f.gps_shown) != before
 
     @staticmethod
     def fit_log_calibration(flight_log: FlightLog) -> dict | None:
@@ -188,16 +254,37 @@ class Session:
             return None
         return jsonable(result) if result.get("status") == "ok" else None
 
-    def use_log_calibration(self, calibration: dict) -> None:
-        with self._lock:
-            self.log_calibration = calibration
-            self.flight.stack.set_calibration(calibration)
-            self.event(f"using the calibration fitted to this log (residual "
-                       f"{calibration.get('residual_rms_mG') or 0:.1f} mG)")
+    def use_calibration(self, calibration: dict | None) -> None:
+        """The calibration headings and detection use from now on (lock held); a replay is
+        analysed again with it."""
+        self.flight.set_calibration(calibration)
+        self._review_again()
+
+    def _review_again(self) -> None:
+        """Analyse the replayed log again with the current calibration and line (in the
+        background; the replay keeps its place)."""
+        r = self.sources.replay
+        if r is None or not self.flight.needs_review():
+            return
+        self._review_generation += 1
+        gen, flog = self._review_generation, r.log
+        calibration, line = self.flight.calibration, self.flight.line
+
+        def run() -> None:
+            review = build_review(flog, calibration, line)
+            with self._lock:
+                if gen != self._review_generation or self.sources.replay is not r:
+                    return
+                self.flight.load_review(review, min(r.position_s, r.duration_s))
+                self.event("replay analysed again with the new calibration or preset line")
+                self.changed()
+
+        threading.Thread(target=run, daemon=True, name="review").start()
 
     def stop(self) -> None:
         with self._lock:
             name = self.sources.name
+            self.sources.cancel_pending()
         self.sources.stop()
         with self._lock:
             if name:
@@ -205,10 +292,15 @@ class Session:
             self.changed()
 
     def recording_names(self) -> list[str]:
-        return self.sources.recording_names()
+        return self.recordings.names()
 
     def resolve_recording(self, name: str) -> Path:
-        return self.sources.resolve_recording(name)
+        try:
+            return self.recordings.resolve(name)
+        except ValueError as err:
+            raise SessionError(str(err)) from None
+        except FileNotFoundError as err:
+            raise NotFoundError(str(err)) from None
 
     # ------------------------------------------------------------------ replay controls
     def replay_pause(self, paused: bool) -> None:
@@ -224,81 +316,27 @@ class Session:
             self.changed()
 
     def replay_seek(self, t_s: float) -> None:
+        """Move the replay to ``t_s``: route, alarms, plots and vehicle as they were then."""
         with self._lock:
             self.sources.seek(t_s)
-            self.restart_flight()
-            self.flight.t_s = t_s
-            self.event(f"seek to {t_s:.1f} s")
+            t_s = min(t_s, self.sources.replay.duration_s)
+            self.flight.show_until(t_s, seek=True)
+            self.event(f"seek to {t_s:.1f} s ({len(self.flight.tracker.alarms)} alarms so far)", t_s=t_s)
             self.changed()
 
-    # ------------------------------------------------------------------ calibration wizard
-    def wizard_start(self) -> None:
-        with self._lock:
-            if self.wizard.state == "running":
-                return  # a second client pressing Start joins the running wizard
-            self.wizard.start()
-            self.vehicle.request_params(self.sources.link)   # the onboard calibration to un-apply
-            self.event("calibration started: turn about X")
-            self.changed()
+    # ------------------------------------------------------------------ calibration (hub/calibration.py)
+    def wizard_start(self, mode: str = "guided") -> None:
+        self.calibration.start(mode)
 
     def wizard_reset(self) -> None:
-        with self._lock:
-            self.wizard.reset()
-            self.event("calibration reset")
-            self.changed()
+        self.calibration.reset()
 
     def wizard_finish_now(self) -> dict:
-        with self._lock:
-            if self.wizard.state != "running":
-                raise ConflictError("the calibration wizard is not running")
-            return self.wizard.finish(self.vehicle.autopilot, self.vehicle.params)
+        return self.calibration.finish_now()
 
     def wizard_accept(self) -> dict:
         """Use the result for heading; on a live link write it to the vehicle (background)."""
-        with self._lock:
-            w = self.wizard
-            if w.result is None or w.result.get("status") != "ok":
-                raise ConflictError("no successful calibration result to accept")
-            if w.param_write is not None and w.param_write.get("state") == "writing":
-                return w.param_write
-            self.flight.stack.set_calibration(w.result)     # the detector re-learns with it
-            w.state = "accepted"
-            autopilot = self.vehicle.autopilot or "ardupilot"
-            params = w.result.get(f"{autopilot}_params") or {}
-            link = self.sources.link
-            if link is not None and self.sources.link_state == "up" and params:
-                w.param_write = {"state": "writing", "autopilot": autopilot, "total": len(params),
-                                 "confirmed": [], "failed": [], "message": "writing parameters"}
-                threading.Thread(target=self._write_params, args=(link, dict(params)), daemon=True,
-                                 name="param-write").start()
-            else:
-                w.param_write = {"state": "not_connected", "autopilot": autopilot, "total": len(params),
-                                 "confirmed": [], "failed": [],
-                                 "message": "accepted for this station; no live link, export the parameters"}
-            self.event("calibration accepted")
-            self.changed()
-            return w.param_write
-
-    def _write_params(self, link, params: dict[str, float]) -> None:
-        def progress(confirmed: list[str]) -> None:
-            self.wizard.param_write = dict(self.wizard.param_write or {}, confirmed=confirmed)
-
-        confirmed, failed = self.vehicle.write_params(link, params, progress)
-        with self._lock:
-            pw = self.wizard.param_write or {}
-            pw.update(confirmed=confirmed, failed=failed)
-            if failed:
-                pw.update(state="failed", message=f"{len(failed)} of {len(params)} parameters did not stick "
-                                                  f"after 3 tries: {', '.join(failed)}")
-                self.event(pw["message"], "error")
-            else:
-                pw.update(state="written", message=f"all {len(params)} parameters written and confirmed")
-                self.event(pw["message"])
-                # the vehicle now corrects its own field: applying the result here too would
-                # correct twice (its onboard calibration was un-applied for the fit)
-                self.flight.stack.set_calibration(None)
-            self.wizard.param_write = pw
-            self.changed()
+        return self.calibration.accept()
 
     # ------------------------------------------------------------------ preset line
     def set_line(self, a, b, source: str = "user") -> dict:
@@ -310,10 +348,20 @@ class Session:
         if a == b:
             raise SessionError("line points A and B must differ")
         with self._lock:
-            self.flight.stack.set_line({"a": a, "b": b, "source": source})
+            self.flight.set_line({"a": a, "b": b, "source": source})
             self.event(f"preset line set from {source}")
+            self._review_again()
             self.changed()
-            return self.flight.stack.line
+            return self.flight.line
+
+    def clear_line(self) -> None:
+        with self._lock:
+            if self.flight.line is None:
+                return
+            self.flight.set_line(None)
+            self.event("preset line cleared: no path-deviation test")
+            self._review_again()
+            self.changed()
 
     def line_from_mission(self) -> dict:
         with self._lock:
@@ -322,95 +370,6 @@ class Session:
             raise ConflictError("no mission with at least two waypoints received")
         return self.set_line(wps[0][:2], wps[-1][:2], "mission")
 
-    # ------------------------------------------------------------------ reading
-    def snapshot(self) -> dict:
-        with self._lock:
-            now = time.time()
-            src = self.sources
-            stack = self.flight.stack
-            return {
-                "version": self.version,
-                "wall_unix_s": now,
-                "t_s": round(self.flight.t_s, 3),
-                "rx_count": src.rx_count,
-                "rx_age_s": None if src.rx_last_unix is None else round(now - src.rx_last_unix, 3),
-                "source": src.source_snapshot(self.vehicle.autopilot),
-                "replay": src.replay_snapshot(),
-                "vehicle": stack.vehicle_snapshot(),
-                "alarm": self.flight.alarm_snapshot(),
-                "alarm_count": len(self.flight.alarms),
-                "line": stack.line,
-                "calibration_in_use": stack.calibration is not None,
-                "wizard": self.wizard.snapshot(),
-                "events": list(self.events)[-EVENTS_SHOWN:],
-            }
-
-    def snapshot_json(self) -> str:
-        """The snapshot as JSON, built once per state version whatever the number of clients."""
-        with self._lock:
-            cache = self._json_cache
-            if cache is not None and cache[0] == self.version:
-                return cache[1]
-            text = json.dumps(self.snapshot(), allow_nan=False, default=json_default)
-            self._json_cache = (self.version, text)
-            return text
-
-    def scene_data(self) -> dict:
-        """Arrays for the 3-D view (copies, safe to use outside the lock)."""
-        with self._lock:
-            w = self.wizard
-            flight, stack = self.flight, self.flight.stack
-            est = w.rls_estimate_cached
-            res = w.result if w.result and w.result.get("status") == "ok" else None
-            return {
-                "att": (stack.roll_rad, stack.pitch_rad, stack.yaw_rad),
-                "ap_att": stack.ap_rpy_rad,
-                "cloud": w.mag.view()[:, 1:4].copy(),
-                "fit": ({"offsets_mG": res["offsets_mG"], "matrix": res["matrix"],
-                         "field_mG": res.get("field_strength_mG")} if res else
-                        ({"offsets_mG": est[0].tolist(), "matrix": est[1].tolist(), "field_mG": est[2]} if est else None)),
-                "route": flight.route.view().copy(),
-                "line": stack.line,
-                "origin": flight.origin,
-                "alarm": stack.alarm_active,
-                "alarm_text": ", ".join(stack.alarm_kinds),
-                "calibrating": w.state != "idle",
-                "history": np.array(flight.history, dtype=float).reshape(-1, 6),
-            }
-
-    def alarm_list(self) -> list[dict]:
-        with self._lock:
-            return [dict(a) for a in self.flight.alarms]
-
-    def session_tlog(self) -> Path:
-        with self._lock:
-            self.sources.flush_recording()
-            path = self.sources.recording_path
-            if path is None or not path.is_file():
-                raise NotFoundError("this session has no .tlog (replays of .bin/.ulg/.csv are not MAVLink)")
-            return path
-
-    def analysis(self) -> tuple[dict, dict]:
-        """analyze_log on the session's log (the live recording or the replayed file)."""
-        from groundstation.io.errors import IngestError
-        from groundstation.io.logs import read_log
-        from groundstation.jobs.analyze import analyze_log
-
-        with self._lock:
-            src = self.sources
-            src.flush_recording()
-            path = src.recording_path or (src.replay_path if src.replay else None)
-            cal = self.flight.stack.calibration
-            line = self.flight.stack.line
-        if path is None:
-            raise ConflictError("no session to analyse: connect or replay first")
-        try:
-            flight_log = read_log(path)
-        except IngestError as err:
-            raise SessionError(str(err)) from err
-        mission = [(line["a"][0], line["a"][1], 0.0), (line["b"][0], line["b"][1], 0.0)] if line else None
-        report, table = analyze_log(flight_log, cal, mission)
-        return jsonable(report), table
-
     def close(self) -> None:
+        self.sources.cancel_pending()
         self.sources.stop()

@@ -1,12 +1,16 @@
 """The station's one source at a time: a live MAVLink link (recorded as it arrives) or a replay.
 
 ``SourceControl`` opens and closes sources, runs the worker thread that reads them, and paces
-replays (pause, speed, seek).  Samples go to the hub through the ``Feed`` it is given; the
-hub's lock is held while a batch is processed, so readers see whole batches.
+replays (pause, speed, seek).  A replay is analysed once (``Feed.prepare_replay``) and then
+moves a cursor (``Feed.replay_moved``); its samples still go to the hub (status, calibration
+wizard).  Connecting while a source runs arms the new link: the running source goes on until
+the link hears its first packet, so a connect that reaches nothing stops nothing.  Samples go to
+the hub through the ``Feed`` it is given, with the hub's lock held, so readers see whole batches.
 """
 from __future__ import annotations
 
 import math
+import socket
 import threading
 import time
 from pathlib import Path
@@ -14,13 +18,14 @@ from typing import Protocol
 
 from groundstation.io.errors import IngestError
 from groundstation.samples import FlightLog, Sample
+from groundstation.station.hub.recordings import RECORDING_SUFFIXES, LazyRecording, RecordingsFolder
 
 __all__ = ["SourceControl", "Feed", "RECORDING_SUFFIXES", "check_speed", "SessionError", "NotFoundError",
            "ConflictError"]
 
-RECORDING_SUFFIXES = (".tlog", ".bin", ".ulg", ".csv")
 REPLAY_BATCH = 2000
 FLUSH_EVERY_S = 0.5
+TCP_PROBE_TIMEOUT_S = 2.0
 
 
 class SessionError(Exception):
@@ -36,14 +41,17 @@ class ConflictError(SessionError):
 
 
 class Feed(Protocol):
-    """What a source worker needs from the hub (called with the hub lock held)."""
+    """What a source worker needs from the hub (called with the hub lock held unless noted)."""
 
     def process_batch(self, samples: list[Sample]) -> None: ...
-    def event(self, text: str, level: str = "info") -> None: ...
+    def event(self, text: str, level: str = "info", t_s: float | None = None) -> None: ...
     def changed(self) -> None: ...
-    def fit_log_calibration(self, log: FlightLog) -> dict | None: ...
-    def use_log_calibration(self, calibration: dict) -> None: ...
+    def prepare_replay(self, log: FlightLog): ...              # without the lock (slow)
+    def start_review(self, prepared) -> None: ...
+    def replay_moved(self, t_s: float) -> bool: ...
     def restart_flight(self) -> None: ...
+    def flush_live(self) -> None: ...
+    def switch_to_live(self, url: str, link, recording, samples: list[Sample]) -> None: ...   # without the lock
 
 
 def check_speed(speed: float) -> float:
@@ -53,13 +61,28 @@ def check_speed(speed: float) -> float:
     return speed
 
 
+def probe_tcp(url: str) -> None:
+    """A tcp: link to a port nobody listens on fails here, quickly and in one line (pymavlink
+    would retry and print each refusal).  Raises SessionError."""
+    rest = url.split(":", 1)[1]
+    host, _, port = rest.rpartition(":")
+    try:
+        with socket.create_connection((host, int(port)), timeout=TCP_PROBE_TIMEOUT_S):
+            pass
+    except OSError as err:
+        reason = "connection refused" if isinstance(err, ConnectionRefusedError) else (err.strerror or str(err))
+        raise SessionError(f"cannot connect to {host}:{port}: {reason} (is the vehicle or SITL listening there?)") \
+            from None
+
+
 class SourceControl:
     """Live link or replay, its worker thread and its pacing."""
 
-    def __init__(self, feed: Feed, lock: threading.RLock, recordings_dir: Path, record_live: bool) -> None:
+    def __init__(self, feed: Feed, lock: threading.RLock, folder: RecordingsFolder, record_live: bool) -> None:
         self._feed = feed
         self._lock = lock
-        self.recordings_dir = recordings_dir
+        self.folder = folder
+        self.recordings_dir = folder.dir
         self.record_live = record_live
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -67,93 +90,99 @@ class SourceControl:
         self.name = ""
         self.link_state = "n/a"
         self.link = None
-        self.recorder = None
-        self.recording_path: Path | None = None
+        self.recording: LazyRecording | None = None
         self.replay = None                # groundstation.io.replay.Replayer while replaying
         self.replay_path: Path | None = None
         self.rx_count = 0
         self.rx_last_unix: float | None = None
+        self.pending: tuple | None = None  # (url, link, recording, stop event) armed while a source runs
+        self._finished_told = False
 
-    # ------------------------------------------------------------------ recordings folder
-    def recording_names(self) -> list[str]:
-        if not self.recordings_dir.is_dir():
-            return []
-        return sorted(p.name for p in self.recordings_dir.iterdir()
-                      if p.is_file() and p.suffix.lower() in RECORDING_SUFFIXES)
+    @property
+    def recording_path(self) -> Path | None:
+        """The live session's .tlog once its first packet came, else the replayed .tlog."""
+        if self.recording is not None:
+            return self.recording.path
+        if self.replay_path is not None and self.replay_path.suffix.lower() == ".tlog":
+            return self.replay_path
+        return None
 
-    def resolve_recording(self, name: str) -> Path:
-        """A file name from recordings/ -> its path; anything else (paths, ..) is refused."""
-        if not name or "/" in name or "\\" in name or name.startswith(".") or \
-                Path(name).suffix.lower() not in RECORDING_SUFFIXES:
-            raise SessionError(f"'{name}' is not a recording name (a file name from recordings/)")
-        path = (self.recordings_dir / name).resolve()
-        if path.parent != self.recordings_dir or not path.is_file():
-            raise NotFoundError(f"no recording named '{name}' (see GET /api/recordings)")
-        return path
-
-    def _new_recording_path(self) -> Path:
-        path = self.recordings_dir / time.strftime("session-%Y%m%d-%H%M%S.tlog", time.gmtime())
-        n = 1
-        while path.exists():
-            path = path.with_name(f"{path.stem.split('_')[0]}_{n}.tlog")
-            n += 1
-        return path
+    @property
+    def log_path(self) -> Path | None:
+        """The session's log file in its own format (live recording or the replayed file)."""
+        if self.recording is not None:
+            return self.recording.path
+        return self.replay_path
 
     # ------------------------------------------------------------------ opening / closing
     def open_link(self, url: str):
-        """Open a live link (pymavlink connection string) with its recorder; nothing is
-        changed when it fails.  Returns (link, recorder, path) for ``start_live``."""
+        """Open a live link (pymavlink connection string) with its lazy recording; nothing is
+        changed when it fails.  Returns (url, link, recording)."""
         from groundstation.io.link import LiveLink, validate_connection_string
-        from groundstation.io.mavlink import TlogWriter
 
         try:
             url = validate_connection_string(url)
         except IngestError as err:
             raise SessionError(str(err)) from err
-        recorder = path = None
-        if self.record_live:
-            path = self._new_recording_path()
-            recorder = TlogWriter(path)
+        if url.startswith("tcp:"):
+            probe_tcp(url)
+        recording = LazyRecording(self.folder.new_session_path) if self.record_live else None
         try:
-            link = LiveLink(url, recorder=recorder)
+            link = LiveLink(url, recorder=recording)
         except IngestError as err:
-            if recorder is not None:
-                recorder.close()
-                path.unlink(missing_ok=True)
             raise SessionError(str(err)) from err
-        return url, link, recorder, path
+        return url, link, recording
 
-    def start_live(self, url: str, link, recorder, path: Path | None) -> None:
+    def start_live(self, url: str, link, recording) -> None:
         """Called with the hub lock held, after ``stop``."""
-        self.link, self.recorder, self.recording_path = link, recorder, path
+        self.link, self.recording = link, recording
+        self.replay = self.replay_path = None
         self.kind, self.name, self.link_state = "live", url, "waiting"
-        self.rx_count = 0
+        self.rx_count, self.rx_last_unix = 0, None
         self._start_worker(self._run_live)
 
+    def arm_pending(self, url: str, link, recording) -> None:
+        """Keep the running source until ``link`` hears its first packet (then the hub switches)."""
+        self.cancel_pending()
+        stop = threading.Event()
+        self.pending = (url, link, recording, stop)
+        threading.Thread(target=self._run_pending, args=(stop, url, link, recording), daemon=True,
+                         name="pending-link").start()
+
+    def cancel_pending(self) -> None:
+        pending, self.pending = self.pending, None
+        if pending is not None:
+            pending[3].set()
+            pending[1].close()
+            if pending[2] is not None:
+                pending[2].close()
+
     @staticmethod
-    def load_replay(path: Path, speed: float, loop: bool):
-        """Read a log and make its (paused) replay clock; nothing is changed when it fails."""
+    def load_replay(path: Path, speed: float, loop: bool, log: FlightLog | None = None):
+        """Read a log (unless given) and make its (paused) replay clock; nothing is changed
+        when it fails."""
         from groundstation.io.logs import read_log
         from groundstation.io.replay import Replayer
 
         try:
-            log = read_log(path)
+            log = log if log is not None else read_log(path)
         except IngestError as err:
             raise SessionError(str(err)) from err
         replayer = Replayer(log, speed=check_speed(speed), loop=loop)
-        replayer.pause()          # the worker fits the log's calibration first, then plays
+        replayer.pause()          # the worker analyses the log first, then plays
         return log, replayer
 
     def start_replay(self, path: Path, log: FlightLog, replayer) -> None:
         """Called with the hub lock held, after ``stop``."""
         self.replay, self.replay_path = replayer, path
+        self.recording = None
         self.kind, self.name, self.link_state = "replay", path.name, "n/a"
-        self.recording_path = path if path.suffix == ".tlog" else None
-        self.rx_count = 0
+        self.rx_count, self.rx_last_unix = 0, None
+        self._finished_told = False
         self._start_worker(self._run_replay, log)
 
     def stop(self) -> None:
-        """Stop the worker and close the link/recorder (call without holding the hub lock)."""
+        """Stop the worker and close the link/recording (call without holding the hub lock)."""
         self._stop.set()
         t = self._thread
         if t is not None and t is not threading.current_thread():
@@ -162,9 +191,8 @@ class SourceControl:
         if self.link is not None:
             self.link.close()
             self.link = None
-        if self.recorder is not None:
-            self.recorder.close()
-            self.recorder = None
+        if self.recording is not None:
+            self.recording.close()
         self.replay = None
         self.kind, self.link_state = "none", "n/a"
 
@@ -181,9 +209,10 @@ class SourceControl:
 
     def seek(self, t_s: float) -> None:
         r = self.need_replay()
-        if not math.isfinite(t_s) or t_s < 0 or t_s > r.duration_s:
+        if not math.isfinite(t_s) or t_s < 0 or t_s > r.duration_s + 0.01:     # the page has it rounded
             raise SessionError(f"seek time must be within 0..{r.duration_s:.1f} s")
-        r.seek(t_s)
+        r.seek(min(t_s, r.duration_s))
+        self._finished_told = False
 
     def replay_snapshot(self) -> dict | None:
         r = self.replay
@@ -193,25 +222,28 @@ class SourceControl:
                 "paused": r.paused, "speed": r.speed, "finished": r.finished, "loop": r.loop}
 
     def source_snapshot(self, autopilot: str | None) -> dict:
+        path = self.log_path
         return {"kind": self.kind, "name": self.name, "link": self.link_state, "autopilot": autopilot,
-                "recording": self.recording_path.name if self.recording_path else None}
+                "recording": path.name if path is not None and self.recording is not None else
+                (path.name if path is not None and path.suffix.lower() == ".tlog" else None),
+                "log_file": path.name if path is not None else None,
+                "pending": self.pending[0] if self.pending else None}
 
     def flush_recording(self) -> None:
-        if self.recorder is not None:
-            self.recorder.flush()
+        if self.recording is not None:
+            self.recording.flush()
 
     # ------------------------------------------------------------------ worker loops
     def _run_replay(self, stop: threading.Event, log: FlightLog) -> None:
         feed = self._feed
-        calibration = feed.fit_log_calibration(log)     # slow: outside the lock
+        prepared = feed.prepare_replay(log)     # slow: outside the lock
         with self._lock:
             if self.replay is None or stop.is_set():
                 return
-            if calibration is not None:
-                feed.use_log_calibration(calibration)
+            feed.start_review(prepared)
             self.replay.resume()
             feed.changed()
-        del log
+        del log, prepared
         loops = 0
         while not stop.is_set():
             with self._lock:
@@ -222,15 +254,18 @@ class SourceControl:
                 if r.loops != loops:
                     loops = r.loops
                     feed.restart_flight()
-                    feed.event("replay looped to the start")
+                    feed.event("replay looped to the start", t_s=0.0)
                 if batch:
                     feed.process_batch(batch)
                     self.rx_count += len(batch)
                     self.rx_last_unix = time.time()
-                    if r.finished:
-                        feed.event("replay finished")
+                moved = feed.replay_moved(min(r.position_s, r.duration_s))
+                if r.finished and not self._finished_told:
+                    self._finished_told = True
+                    feed.event("replay finished")
+                if batch or moved:
                     feed.changed()
-                wait = 0.1 if (r.paused or r.finished) else 0.01
+                wait = 0.1 if (r.paused or r.finished) else 0.02
             stop.wait(wait)
 
     def _run_live(self, stop: threading.Event) -> None:
@@ -240,16 +275,7 @@ class SourceControl:
             link = self.link
             if link is None:
                 return
-            try:
-                link.mav.select(0.05)
-            except Exception:
-                stop.wait(0.05)
-            try:
-                samples = link.poll()
-            except Exception as err:  # a link read error must not kill the station
-                samples = []
-                feed.event(f"link read error: {type(err).__name__}", "warning")
-                stop.wait(0.2)
+            samples = _poll(link, feed, stop)
             with self._lock:
                 if self.link is not link:
                     return
@@ -259,10 +285,37 @@ class SourceControl:
                     self.rx_count = count
                     self.rx_last_unix = link.last_rx_unix
                     feed.changed()
+                feed.flush_live()
                 if time.monotonic() - last_flush >= FLUSH_EVERY_S:
                     last_flush = time.monotonic()
                     self.flush_recording()
                     feed.changed()   # keeps "age since last packet" moving on the page
+
+    def _run_pending(self, stop: threading.Event, url: str, link, recording) -> None:
+        """Poll an armed link until it hears the vehicle, then hand it to the hub."""
+        got: list[Sample] = []
+        while not stop.is_set():
+            got += _poll(link, self._feed, stop)
+            if link.last_rx_unix is not None:
+                with self._lock:
+                    if self.pending is None or self.pending[1] is not link:
+                        return
+                    self.pending = None
+                self._feed.switch_to_live(url, link, recording, got)
+                return
+
+
+def _poll(link, feed: Feed, stop: threading.Event) -> list[Sample]:
+    try:
+        link.mav.select(0.05)
+    except Exception:
+        stop.wait(0.05)
+    try:
+        return link.poll()
+    except Exception as err:  # a link read error must not kill the station
+        feed.event(f"link read error: {type(err).__name__}", "warning")
+        stop.wait(0.2)
+        return []
 
 
 def _link_msg_count(link) -> int:

@@ -1,4 +1,5 @@
-"""The guided calibration: start, reset, finish, accept (writes the vehicle), .param export."""
+"""The compass calibration: guided dance, onboard and large-vehicle modes, accept/write, reboot, heading
+check, .param export."""
 from __future__ import annotations
 
 from typing import Literal
@@ -6,41 +7,97 @@ from typing import Literal
 from fastapi import APIRouter, Query
 from fastapi.responses import PlainTextResponse, Response
 
+from groundstation.io.magcal import section_centres
 from groundstation.io.params import format_param_file
 from groundstation.station.deps import HubDep
 from groundstation.station.hub.session import NotFoundError
-from groundstation.station.schemas import ParamWrite, Wizard
+from groundstation.station.schemas import (AcceptRequest, CalibrationStart, CompassInclude, FixedYawRequest, Fitness,
+                                           HeadingCheckRequest, ParamWrite, RebootRequest, Wizard)
 
 router = APIRouter(prefix="/api/calibration", tags=["calibration"])
 
 
+def _wizard(hub) -> dict:
+    return hub.snapshot()["wizard"]
+
+
 @router.get("", response_model=Wizard)
 def calibration(hub: HubDep) -> dict:
-    return hub.snapshot()["wizard"]
+    return _wizard(hub)
 
 
-@router.post("/start", response_model=Wizard)
-def calibration_start(hub: HubDep) -> dict:
-    hub.wizard_start()
-    return hub.snapshot()["wizard"]
+@router.post("/start", response_model=Wizard,
+             summary="Start: guided dance, the vehicle's onboard calibrator, or large-vehicle (fixed yaw)")
+def calibration_start(hub: HubDep, body: CalibrationStart | None = None) -> dict:
+    hub.wizard_start((body or CalibrationStart()).mode)
+    return _wizard(hub)
 
 
 @router.post("/reset", response_model=Wizard)
 def calibration_reset(hub: HubDep) -> dict:
     hub.wizard_reset()
-    return hub.snapshot()["wizard"]
+    return _wizard(hub)
 
 
 @router.post("/finish", response_model=Wizard, summary="Fit now with what was collected (skip the remaining steps)")
 def calibration_finish(hub: HubDep) -> dict:
     hub.wizard_finish_now()
-    return hub.snapshot()["wizard"]
+    return _wizard(hub)
+
+
+@router.put("/compasses/{index}", response_model=Wizard, summary="Include a compass or leave it out")
+def calibration_compass(hub: HubDep, index: int, body: CompassInclude) -> dict:
+    hub.calibration.set_included(index, body.included)
+    return _wizard(hub)
+
+
+@router.put("/fitness", response_model=Wizard, summary="Fitness threshold (ArduPilot COMPASS_CAL_FIT levels)")
+def calibration_fitness(hub: HubDep, body: Fitness) -> dict:
+    hub.calibration.set_fitness(body.level)
+    return _wizard(hub)
 
 
 @router.post("/accept", response_model=ParamWrite,
-             summary="Use the result; on a live link write it to the vehicle (confirmed by echo)")
-def calibration_accept(hub: HubDep) -> dict:
-    return hub.wizard_accept()
+             summary="Use the result; on a live link write it (confirmed by echo), or accept the vehicle's own fit")
+def calibration_accept(hub: HubDep, body: AcceptRequest | None = None) -> dict:
+    return hub.calibration.accept((body or AcceptRequest()).which)
+
+
+@router.post("/onboard/cancel", response_model=Wizard, summary="Cancel the vehicle's calibrator")
+def calibration_onboard_cancel(hub: HubDep) -> dict:
+    hub.calibration.cancel_onboard()
+    return _wizard(hub)
+
+
+@router.post("/fixed-yaw", response_model=Wizard,
+             summary="Large vehicle: MAV_CMD_FIXED_MAG_CAL_YAW with the entered heading or the walk's GPS course")
+def calibration_fixed_yaw(hub: HubDep, body: FixedYawRequest) -> dict:
+    hub.calibration.fixed_yaw(body.yaw_deg, body.source)
+    return _wizard(hub)
+
+
+@router.post("/reboot", response_model=Wizard, summary="Reboot the vehicle (needs confirm: true)")
+def calibration_reboot(hub: HubDep, body: RebootRequest) -> dict:
+    hub.calibration.reboot(body.confirm)
+    return _wizard(hub)
+
+
+@router.post("/heading-check", response_model=Wizard,
+             summary="Heading check: held at a known bearing, or a straight walk (GPS course)")
+def calibration_heading_check(hub: HubDep, body: HeadingCheckRequest) -> dict:
+    hub.calibration.heading_check(body.kind, body.bearing_deg)
+    return _wizard(hub)
+
+
+@router.post("/heading-check/stop", response_model=Wizard, summary="End the walk and compare with its GPS course")
+def calibration_heading_check_stop(hub: HubDep) -> dict:
+    hub.calibration.stop_walk()
+    return _wizard(hub)
+
+
+@router.get("/sections", summary="Unit vectors of the 80 sections of MAG_CAL_PROGRESS's completion mask")
+def calibration_sections() -> list[list[float]]:
+    return [[round(float(v), 4) for v in c] for c in section_centres()]
 
 
 @router.get("/params", response_class=PlainTextResponse, summary="The result as an autopilot .param file")

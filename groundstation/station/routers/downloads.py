@@ -1,4 +1,5 @@
-"""Downloads: the session .tlog, the analysis report (JSON) and its per-step CSV."""
+"""Downloads: the session's log (its own format, or the .tlog), the analysis report (JSON) and its
+per-step CSV."""
 from __future__ import annotations
 
 import tempfile
@@ -13,9 +14,17 @@ from groundstation.station.deps import HubDep
 router = APIRouter(prefix="/api", tags=["downloads"])
 
 
-@router.get("/session.tlog", response_class=FileResponse)
+@router.get("/session.tlog", response_class=FileResponse,
+            summary="The session as a .tlog (a live link's recording, or a replayed .tlog)")
 def session_tlog(hub: HubDep) -> FileResponse:
     path = hub.session_tlog()
+    return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
+
+@router.get("/session/file", response_class=FileResponse,
+            summary="The session's log as recorded or replayed (.tlog, .bin, .ulg or .csv)")
+def session_file(hub: HubDep) -> FileResponse:
+    path = hub.session_file()
     return FileResponse(path, media_type="application/octet-stream", filename=path.name)
 
 

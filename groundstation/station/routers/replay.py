@@ -1,11 +1,11 @@
-"""Replay controls: start, stop, pause, seek, speed."""
+"""Replay controls: start, stop, pause, seek, speed, and the timeline of the replayed log."""
 from __future__ import annotations
 
 from fastapi import APIRouter
 
 from groundstation.station.deps import HubDep
 from groundstation.station.hub.session import ConflictError
-from groundstation.station.schemas import Ok, Pause, ReplayInfo, ReplayStart, Seek, Speed
+from groundstation.station.schemas import Ok, Pause, ReplayInfo, ReplayStart, Seek, Speed, Timeline
 
 router = APIRouter(prefix="/api/replay", tags=["replay"])
 
@@ -40,3 +40,9 @@ def replay_seek(req: Seek, hub: HubDep) -> dict:
 def replay_speed(req: Speed, hub: HubDep) -> dict:
     hub.replay_speed(req.speed)
     return hub.snapshot()["replay"]
+
+
+@router.get("/timeline", response_model=Timeline,
+            summary="Markers of the replayed log: alarms, GPS outages, data gaps, vehicle messages")
+def replay_timeline(hub: HubDep) -> dict:
+    return hub.timeline()

@@ -1,0 +1,308 @@
+"""The hub's calibration part: the wizard, its result in use, and what it says to the vehicle.
+
+``CalibrationControl`` owns the ``CalibrationWizard`` and everything around it that touches the
+rest of the hub: starting (asks for the vehicle's parameters, the onboard calibration to
+un-apply; in "onboard" mode MAV_CMD_DO_START_MAG_CAL), pausing on link drops, finishing,
+leaving compasses out, accepting (the result goes to the estimation stack and, on a live link, to
+the vehicle by confirmed PARAM_SET, or MAV_CMD_DO_ACCEPT_MAG_CAL for the vehicle's own fit),
+large-vehicle MAV_CMD_FIXED_MAG_CAL_YAW, the reboot (MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN) and the
+heading check.  ``Session`` keeps thin ``wizard_*`` methods that call these.  It takes no lock of
+its own: the hub's lock is passed in and held by every public method.
+"""
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import replace
+from typing import Protocol
+
+import numpy as np
+
+from groundstation.io.mavlink import mavlink2
+from groundstation.samples import GpsSample, MagSample, Sample
+from groundstation.station.hub.after_write import AfterWrite
+from groundstation.station.hub.sources import ConflictError, SessionError
+from groundstation.station.hub.vehicle import RESULT_TEXT
+from groundstation.station.wizard import FITNESS_LEVELS, MODES, CalibrationWizard
+from groundstation.station.wizard.compass import compass_index
+from groundstation.station.wizard.fit import raw_in_result_frame
+from groundstation.station.wizard.results import consistency_of, unapply_function
+from groundstation.station.wizard.onboard import OnboardCalibration
+
+__all__ = ["CalibrationControl", "Hub"]
+
+_M = mavlink2
+
+
+class Hub(Protocol):
+    """What the calibration part needs from the session hub."""
+
+    vehicle: object      # hub.vehicle.VehicleLink
+    sources: object      # hub.sources.SourceControl
+    flight: object       # hub.flight.FlightState
+
+    def event(self, text: str, level: str = "info") -> None: ...
+    def use_calibration(self, calibration: dict | None) -> None: ...
+    def changed(self) -> None: ...
+
+
+class CalibrationControl:
+    """Wizard, accepted result, vehicle commands; every public method runs under the hub lock."""
+
+    def __init__(self, lock: threading.RLock, hub: Hub) -> None:
+        self._lock = lock
+        self._hub = hub
+        self.wizard = CalibrationWizard()
+        self.after = AfterWrite(self)
+
+    # ------------------------------------------------------------------ helpers
+    def live_link(self, why: str):
+        """The live link, or ConflictError saying what needs one."""
+        src = self._hub.sources
+        if src.link is None or src.link_state != "up":
+            raise ConflictError(f"{why} needs a live link to the vehicle")
+        return src.link
+
+    def send(self, why: str, command: int, *params: float) -> None:
+        link = self.live_link(why)
+        if not self._hub.vehicle.send_command(link, command, *params):
+            raise ConflictError(f"could not send the command for {why}")
+
+    # ------------------------------------------------------------------ samples (lock held)
+    def on_sample(self, s: Sample) -> None:
+        """Every sensor sample, all compass instances (before the flight's primary filter)."""
+        w = self.wizard
+        w.on_sample(s)
+        if isinstance(s, MagSample) and compass_index(s.instance) == 0:
+            self.after.on_compass0(s)
+        elif isinstance(s, GpsSample):
+            self.after.on_gps(s)
+
+    def on_link(self, up: bool, t_s: float) -> None:
+        text = self.wizard.on_link(up, t_s)
+        if text:
+            self._hub.event(text, "info" if up else "warning")
+        self.after.on_link(up)
+
+    def after_batch(self) -> None:
+        """Vehicle messages (acks, MAG_CAL_*), then finish the wizard once it is complete."""
+        hub, w = self._hub, self.wizard
+        for msg in hub.vehicle.vehicle_messages(hub.sources.link):
+            self._on_vehicle_message(msg)
+        self.after.tick()
+        if w.ready():
+            w.finish(hub.vehicle.autopilot, hub.vehicle.params)
+            r = w.result or {}
+            hub.event(f"calibration finished: {r.get('status')} {r.get('message') or ''}".strip()[:300])
+
+    def _on_vehicle_message(self, msg) -> None:
+        w, kind = self.wizard, msg.get_type()
+        if kind == "MAG_CAL_PROGRESS" and w.onboard is not None:
+            w.onboard.on_progress(msg)
+        elif kind == "MAG_CAL_REPORT" and w.onboard is not None:
+            before = w.onboard.state
+            w.onboard.on_report(msg)
+            if w.onboard.state != before:
+                self._hub.event("vehicle calibrator: " + w.onboard.message)
+        elif kind == "COMMAND_ACK":
+            self._on_ack(int(msg.command), int(msg.result))
+
+    def _on_ack(self, command: int, result: int) -> None:
+        w, ok, text = self.wizard, result == _M.MAV_RESULT_ACCEPTED, RESULT_TEXT.get(result, str(result))
+        if command == _M.MAV_CMD_DO_START_MAG_CAL and w.onboard is not None:
+            w.onboard.on_ack(ok, text)
+            if not ok:
+                self._hub.event(w.onboard.message, "warning")
+        elif command == _M.MAV_CMD_DO_ACCEPT_MAG_CAL:
+            self.after.onboard_accepted(ok, text)
+        elif command == _M.MAV_CMD_FIXED_MAG_CAL_YAW and w.fixed_yaw is not None:
+            w.fixed_yaw.on_ack(ok, text, w._last_t)
+            if ok:
+                self._vehicle_in_use("the vehicle calibrated its compasses at the entered heading")
+            self._hub.event(w.fixed_yaw.message, "info" if ok else "warning")
+        elif command == _M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
+            self.after.reboot_ack(ok, text)
+
+    def _vehicle_in_use(self, why: str) -> None:
+        """The vehicle corrects its own field now: the station stops applying its copy."""
+        self.wizard.in_use = "vehicle"
+        self._hub.use_calibration(None)
+        self._hub.event(why)
+
+    # ------------------------------------------------------------------ the dance
+    def start(self, mode: str = "guided") -> None:
+        hub = self._hub
+        if mode not in MODES:
+            raise SessionError(f"mode must be one of {', '.join(MODES)}")
+        with self._lock:
+            w = self.wizard
+            if w.state == "running":
+                return  # a second client pressing Start joins the running wizard
+            if mode == "onboard":
+                if hub.vehicle.autopilot == "px4":
+                    raise ConflictError("the onboard calibrator over MAVLink (MAV_CMD_DO_START_MAG_CAL) is "
+                                        "ArduPilot's; use the guided mode for PX4")
+                self.send("the onboard calibration", _M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0, 0)
+            w.start(mode)
+            if mode == "onboard":
+                w.onboard = OnboardCalibration()
+            hub.vehicle.request_params(hub.sources.link)   # the onboard calibration to un-apply
+            hub.event({"guided": "calibration started: turn about X",
+                       "onboard": "onboard calibration started (MAV_CMD_DO_START_MAG_CAL): turn about X",
+                       "fixed_yaw": "large-vehicle calibration: enter the heading"}[mode])
+            hub.changed()
+
+    def new_source(self) -> None:
+        """A new source: the wizard starts over, silently (lock held; nothing is sent, the old
+        link is gone)."""
+        self.wizard.reset()
+
+    def reset(self) -> None:
+        with self._lock:
+            w = self.wizard
+            if w.onboard is not None and w.onboard.state in ("starting", "running", "reported"):
+                self._cancel_onboard()
+            w.reset()
+            self._hub.event("calibration reset")
+            self._hub.changed()
+
+    def finish_now(self) -> dict:
+        with self._lock:
+            w = self.wizard
+            if w.state != "running" or w.mode == "fixed_yaw":
+                raise ConflictError("the calibration wizard is not running")
+            result = w.finish(self._hub.vehicle.autopilot, self._hub.vehicle.params)
+            self._hub.changed()
+            return result
+
+    def set_included(self, compass: int, included: bool) -> dict:
+        with self._lock:
+            w = self.wizard
+            track = w.tracks.get(int(compass))
+            if track is None:
+                raise SessionError(f"no compass {compass + 1} in this calibration")
+            track.included = bool(included)
+            if w.results:
+                w.consistency = consistency_of(w, self._hub.vehicle.autopilot or "ardupilot", self._hub.vehicle.params,
+                                               w.results)
+                w.rebuild_result(self._hub.vehicle.autopilot)
+            self._hub.event(f"{track.name} {'included' if included else 'left out'}")
+            self._hub.changed()
+            return w.snapshot()
+
+    def set_fitness(self, level: str) -> None:
+        if level not in FITNESS_LEVELS:
+            raise SessionError(f"fitness level must be one of {', '.join(FITNESS_LEVELS)}")
+        with self._lock:
+            w = self.wizard
+            w.settings = replace(w.settings, fitness_level=level)
+            for t in w.tracks.values():
+                t.settings = w.settings
+            if w.results:
+                w.rebuild_result(self._hub.vehicle.autopilot)
+            self._hub.changed()
+
+    # ------------------------------------------------------------------ accepting
+    def accept(self, which: str = "ours") -> dict:
+        """Use the result for heading; on a live link write it to the vehicle (background).
+        In onboard mode ``which="vehicle"`` accepts the vehicle's own fit instead."""
+        with self._lock:
+            w = self.wizard
+            if which == "vehicle":
+                return self.after.accept_onboard()
+            if w.result is None or w.result.get("status") != "ok":
+                raise ConflictError("no successful calibration result to accept")
+            if w.param_write is not None and w.param_write.get("state") == "writing":
+                return w.param_write
+            if w.onboard is not None and w.onboard.state in ("running", "reported"):
+                self._cancel_onboard()
+            return self.after.write_ours()
+
+    def cancel_onboard(self) -> None:
+        with self._lock:
+            if self.wizard.onboard is None:
+                raise ConflictError("the vehicle's calibrator is not running")
+            self._cancel_onboard()
+            self._hub.changed()
+
+    def _cancel_onboard(self) -> None:
+        w = self.wizard
+        try:
+            self.send("cancelling the vehicle's calibrator", _M.MAV_CMD_DO_CANCEL_MAG_CAL, 0)
+        except ConflictError:
+            pass
+        w.onboard.state, w.onboard.message = "cancelled", "the vehicle's calibrator was cancelled"
+        self._hub.event("vehicle calibrator cancelled (MAV_CMD_DO_CANCEL_MAG_CAL)")
+
+    # ------------------------------------------------------------------ large vehicle
+    def fixed_yaw(self, yaw_deg: float | None, source: str = "entered") -> dict:
+        """MAV_CMD_FIXED_MAG_CAL_YAW with the crew's heading, or the course of the last walk."""
+        from groundstation.station.wizard.largevehicle import FixedYawCalibration
+
+        with self._lock:
+            w = self.wizard
+            if w.mode != "fixed_yaw" or w.state != "running":
+                raise ConflictError("start the large-vehicle mode first")
+            if source == "gps":
+                walk = w.heading_check
+                if walk is None or walk.result is None or walk.result.get("reference_deg") is None:
+                    raise ConflictError("walk the vehicle straight first (Start walk, Stop walk)")
+                yaw_deg = walk.result["reference_deg"]
+            if yaw_deg is None or not math.isfinite(float(yaw_deg)):
+                raise SessionError("give the vehicle's true heading in degrees")
+            self.send("the large-vehicle calibration", _M.MAV_CMD_FIXED_MAG_CAL_YAW, float(yaw_deg) % 360.0, 0, 0, 0)
+            fy = FixedYawCalibration(float(yaw_deg), source, w.field_ned_mG, w.declination_deg)
+            roll, pitch, _ = w.latest_att
+            fy.compute_ours({k: np.mean(list(v), axis=0) for k, v in w.latest_mag.items() if v},
+                            self._hub.vehicle.params, roll, pitch)
+            w.fixed_yaw = fy
+            w.heading_check = None
+            self._hub.event(fy.message)
+            self._hub.changed()
+            return fy.snapshot()
+
+    # ------------------------------------------------------------------ after writing
+    def reboot(self, confirm: bool) -> dict:
+        with self._lock:
+            return self.after.reboot(confirm)
+
+    def heading_check(self, kind: str, bearing_deg: float | None = None) -> dict:
+        with self._lock:
+            return self.after.heading_check(kind, bearing_deg)
+
+    def stop_walk(self) -> dict:
+        with self._lock:
+            return self.after.stop_walk()
+
+    # ------------------------------------------------------------------ reading (lock held)
+    def in_use(self) -> bool:
+        return self._hub.flight.calibration is not None or self.wizard.in_use == "vehicle"
+
+    def snapshot(self) -> dict:
+        if self.wizard.fixed_yaw is not None:
+            self.wizard.fixed_yaw.on_params(self._hub.vehicle.params)
+        snap = self.wizard.snapshot()
+        ob = snap.get("onboard")
+        if ob is not None:
+            from groundstation.station.wizard.onboard import compare
+            for c in ob["compasses"]:
+                c["compare"] = compare((c.get("report") or None), self.wizard.results.get(c["index"]))
+        return snap
+
+    def scene_data(self) -> dict:
+        """The wizard's arrays for the 3-D view (copies): the first compass's cloud and fit, and
+        the directions covered."""
+        w = self.wizard
+        track = w.tracks.get(0)
+        res = w.results.get(0) if w.results else None
+        fit = None
+        cloud = track.mag.view()[:, 1:4].copy() if track is not None else np.empty((0, 3))
+        if res and res.get("status") == "ok":
+            fit = {"offsets_mG": res["offsets_mG"], "matrix": res["matrix"], "field_mG": res.get("field_strength_mG")}
+            cloud = raw_in_result_frame(res, cloud, unapply_function(self._hub.vehicle.autopilot or "ardupilot",
+                                                                     self._hub.vehicle.params, 0))
+        elif track is not None and track.live is not None:
+            fit = {"offsets_mG": track.live.offsets_mG.tolist(), "matrix": track.live.matrix.tolist(),
+                   "field_mG": track.live.field_mG}
+        return {"cloud": cloud, "fit": fit, "calibrating": w.state != "idle",
+                "coverage": w.cells.copy() if w.state != "idle" and w.mode != "fixed_yaw" else None}

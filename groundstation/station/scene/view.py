@@ -1,0 +1,287 @@
+"""The viser 3-D view of a session, framed for what the operator is doing.
+
+Two activities, each with its own camera (set for every browser as it connects and whenever the
+activity changes, fitted to the browser's aspect ratio; ``camera_for_box``):
+  * calibration (the wizard is running or has a result): the vehicle, the raw field points
+    coloured by residual with the fitted ellipsoid, and the corrected points on a unit sphere,
+    side by side;
+  * flight: the route against the preset line, the line scaled to fill the view (A left, B
+    right, cross-track exaggerated), or without a line the route fitted to the view north up;
+    the vehicle rides on the route at its last position.
+The vehicle (orange, dark red nose) follows the station's attitude estimate; a translucent grey
+ghost shows the autopilot's own when the two differ by more than 2 deg.  Route points are violet,
+red while an alarm was on; the preset line is cyan.  All updates of a frame go in one
+``server.atomic()`` block at UPDATE_HZ; the cloud and route are decimated for display only.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+
+import numpy as np
+import viser
+
+from estimators.detection import ned_from_lla
+
+from groundstation.station.hub.session import Session
+from groundstation.station.scene.coverage import CoverageSphere
+from groundstation.station.scene.geometry import (S_FLIP, UNIT_SPHERE, RouteFrame, attitude_wxyz, camera_for_box,
+                                                  quat_mul, residual_colors, yaw_wxyz)
+
+log = logging.getLogger(__name__)
+UPDATE_HZ = 15.0
+CLOUD_DISPLAY_POINTS = 6000
+ROUTE_DISPLAY_POINTS = 6000
+# calibration layout (viser units): vehicle, raw cloud, corrected sphere left to right
+CAL_VEHICLE_AT = np.array([0.0, 2.8, 0.0])
+CAL_CENTER = np.array([0.0, 0.0, 0.0])
+SPHERE_CENTER = np.array([0.0, -2.8, 0.0])
+COVERAGE_CENTER = np.array([0.0, 0.0, 2.7])           # above the raw cloud
+CAL_BOX = (np.array([0.0, 0.0, 0.7]), np.array([1.4, 4.1, 2.1]))         # centre, half extents
+# flight layout: the route area centred on the origin
+ROUTE_LENGTH = 8.0                 # the preset line (or the route's width) spans this many units
+ROUTE_MAX_CROSS = 2.0              # cross-track drawn at most this far from the line
+ROUTE_MIN_SPAN_M = 20.0            # a hover's GPS noise is not blown up
+CROSS_UNITS_PER_M = 0.3            # cross-track exaggeration against a preset line
+FLIGHT_BOX = (np.array([0.0, 0.0, 0.2]), np.array([2.0, 4.4, 0.4]))
+FLIGHT_VEHICLE_SCALE = 0.35
+ELEVATION_DEG = {"calibration": 22.0, "flight": 55.0}
+VEHICLE_ORANGE = (240, 130, 20)
+NOSE_RED = (170, 20, 20)
+ROUTE_VIOLET = (120, 50, 190)
+ALARM_RED = (230, 0, 0)
+LINE_CYAN = (0, 190, 225)
+
+__all__ = ["Scene", "CLOUD_DISPLAY_POINTS", "ROUTE_DISPLAY_POINTS"]
+
+
+class Scene:
+    def __init__(self, session: Session, host: str = "127.0.0.1", port: int = 8080) -> None:
+        self.session = session
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.port = self.server.get_port()
+        self.red_segments = 0          # route points drawn red in the last frame (tests read it)
+        self.cloud_points_shown = 0
+        self.route_points_shown = 0
+        self.frames = 0
+        self.activity = "flight"
+        self._framed: dict[int, str] = {}            # client id -> activity its camera shows
+        self._cloud_key = self._route_key = None
+        self._route_frame: RouteFrame | None = None
+        self._build()
+        self.server.on_client_connect(self._on_connect)
+        self.server.on_client_disconnect(lambda c: self._framed.pop(c.client_id, None))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True, name="scene")
+        self._thread.start()
+
+    # ------------------------------------------------------------------------------ building
+    def _build(self) -> None:
+        sc = self.server.scene
+        sc.set_up_direction("+z")
+        sc.configure_fog(100.0, 1000.0, enabled=False)
+        self.server.gui.configure_theme(control_width="small", show_logo=False, show_share_button=False)
+        self.server.gui.add_markdown("MagStation 3-D view: the camera follows the activity (calibration or "
+                                     "flight); drag to look around.")
+        self.server.gui.main_panel.minimize()
+        pos, look = camera_for_box(*FLIGHT_BOX, ELEVATION_DEG["flight"], math.radians(60), 16 / 9)
+        self.server.initial_camera.fov = math.radians(60)
+        self.server.initial_camera.position = tuple(pos)
+        self.server.initial_camera.look_at = tuple(look)
+        self.grid = sc.add_grid("/ground", width=12, height=8, cell_size=1.0, position=(0, 0, -1.0))
+        self.craft = sc.add_frame("/craft", show_axes=False, position=tuple(CAL_VEHICLE_AT))
+        self.vehicle = sc.add_frame("/craft/vehicle", axes_length=1.0, axes_radius=0.025)
+        sc.add_box("/craft/vehicle/body", color=VEHICLE_ORANGE, dimensions=(1.6, 0.5, 0.18))
+        sc.add_box("/craft/vehicle/arms", color=(60, 60, 60), dimensions=(0.12, 2.0, 0.06))
+        sc.add_box("/craft/vehicle/nose", color=NOSE_RED, dimensions=(0.3, 0.3, 0.22), position=(0.85, 0, 0))
+        self.ghost = sc.add_frame("/craft/ghost", show_axes=False, visible=False)
+        sc.add_box("/craft/ghost/body", color=(200, 200, 200), dimensions=(1.6, 0.5, 0.15), opacity=0.35)
+        self.vehicle_label = sc.add_label("/craft/label", "vehicle", position=(0, 0, 1.3), anchor="bottom-center")
+        self.ghost_label = sc.add_label("/craft/ghost_label", "grey ghost: autopilot attitude",
+                                        position=(0, 0, -1.2), anchor="top-center", visible=False)
+        empty = np.zeros((1, 3), dtype=np.float32)
+        self.cal_nodes = [
+            sc.add_label("/cal_label", "raw field + fitted ellipsoid", position=tuple(CAL_CENTER + [0, 0, 1.5]),
+                         anchor="bottom-center", visible=False),
+            sc.add_label("/sphere_label", "corrected", position=tuple(SPHERE_CENTER + [0, 0, 1.3]),
+                         anchor="bottom-center", visible=False),
+            sc.add_line_segments("/sphere_ref", UNIT_SPHERE, colors=(150, 150, 150), thickness=1.0,
+                                 thickness_units="screen", position=tuple(SPHERE_CENTER), visible=False)]
+        self.cloud = sc.add_point_cloud("/cal_raw", empty, colors=(0, 0, 0), point_size=0.035,
+                                        position=tuple(CAL_CENTER), visible=False)
+        self.corrected = sc.add_point_cloud("/cal_corrected", empty, colors=(40, 160, 60), point_size=0.035,
+                                            position=tuple(SPHERE_CENTER), visible=False)
+        self.ellipsoid = sc.add_line_segments("/cal_ellipsoid", UNIT_SPHERE, colors=(240, 180, 0),
+                                              thickness=1.5, thickness_units="screen",
+                                              position=tuple(CAL_CENTER), visible=False)
+        self.coverage = CoverageSphere(sc, COVERAGE_CENTER)
+        seg0 = np.zeros((1, 2, 3), dtype=np.float32)
+        self.route = sc.add_point_cloud("/route", empty, colors=ROUTE_VIOLET, point_size=0.07,
+                                        point_shape="circle", visible=False)
+        self.line = sc.add_line_segments("/preset_line", seg0, colors=LINE_CYAN, thickness=4.0,
+                                         thickness_units="screen", visible=False)
+        self.line_labels = [sc.add_label(f"/line_{k}", k, position=(0, 0, 0), anchor="bottom-center", visible=False)
+                            for k in ("A", "B")]
+
+    # ------------------------------------------------------------------------------ cameras
+    def _on_connect(self, client: viser.ClientHandle) -> None:
+        self._framed.pop(client.client_id, None)      # framed by the loop once its camera reports
+
+    def _frame_clients(self) -> None:
+        """Point every browser whose camera shows another activity at the current one."""
+        for cid, client in list(self.server.get_clients().items()):
+            if self._framed.get(cid) == self.activity:
+                continue
+            try:
+                cam = client.camera
+                aspect = cam.aspect if cam.image_height else 16 / 9
+                fov = cam.fov or math.radians(60)
+            except AssertionError:      # its camera has not reported yet
+                continue
+            box = CAL_BOX if self.activity == "calibration" else FLIGHT_BOX
+            pos, look = camera_for_box(*box, ELEVATION_DEG[self.activity], fov, aspect)
+            cam.up_direction = (0.0, 0.0, 1.0)
+            cam.position = tuple(pos)
+            cam.look_at = tuple(look)
+            self._framed[cid] = self.activity
+
+    # ------------------------------------------------------------------------------ updating
+    def _loop(self) -> None:
+        period = 1.0 / UPDATE_HZ
+        while not self._stop.wait(period):
+            try:
+                data = self.session.scene_data()
+                with self.server.atomic():
+                    self._update(data)
+                self._frame_clients()
+                self.frames += 1
+            except Exception:  # a drawing error must never stop the station
+                log.exception("3-D view update failed")
+                time.sleep(0.5)
+
+    def _update(self, d: dict) -> None:
+        activity = "calibration" if d["calibrating"] else "flight"
+        if activity != self.activity:
+            self.activity = activity
+            self._route_key = None
+        calibrating = activity == "calibration"
+        self._update_cloud(d["cloud"], d["fit"], calibrating)
+        self.coverage.update(d.get("coverage") if calibrating else None)
+        for node in self.cal_nodes:
+            node.visible = calibrating
+        self.vehicle_label.visible = calibrating
+        if calibrating:
+            self.route.visible = self.line.visible = False
+            for label in self.line_labels:
+                label.visible = False
+            self.craft.position = tuple(CAL_VEHICLE_AT)
+            self.craft.scale = 1.0
+            north = 0.0
+        else:
+            north = self._update_route(d["route"], d["line"], d["origin"])
+            self.craft.scale = FLIGHT_VEHICLE_SCALE
+        self._update_attitude(d["att"], d["ap_att"], north)
+
+    def _update_attitude(self, att, ap, north_rad: float) -> None:
+        frame = yaw_wxyz(north_rad)
+        ok = all(map(math.isfinite, att))
+        if ok:
+            self.vehicle.wxyz = quat_mul(frame, attitude_wxyz(*att))
+        differs = False
+        if all(map(math.isfinite, ap)):
+            self.ghost.wxyz = quat_mul(frame, attitude_wxyz(*ap))
+            differs = not ok or max(abs(math.remainder(a - b, 2 * math.pi)) for a, b in zip(ap, att)) > math.radians(2)
+        self.ghost.visible = differs
+        self.ghost_label.visible = differs and self.activity == "calibration"
+
+    def _update_cloud(self, cloud: np.ndarray, fit: dict | None, calibrating: bool) -> None:
+        key = (len(cloud), None if fit is None else (tuple(fit["offsets_mG"]), fit["field_mG"]), calibrating)
+        if key == self._cloud_key:      # nothing new: do not resend the points
+            return
+        self._cloud_key = key
+        if len(cloud) < 3 or not calibrating:
+            self.cloud.visible = self.corrected.visible = self.ellipsoid.visible = False
+            self.cloud_points_shown = 0 if len(cloud) < 3 else self.cloud_points_shown
+            return
+        step = max(1, math.ceil(len(cloud) / CLOUD_DISPLAY_POINTS))
+        pts = cloud[::step]
+        if fit is not None:
+            center = np.asarray(fit["offsets_mG"], dtype=float)
+            field = float(fit["field_mG"] or np.median(np.linalg.norm(pts - center, axis=1)))
+        else:
+            center = (cloud.max(axis=0) + cloud.min(axis=0)) / 2
+            field = float(np.median(np.linalg.norm(pts - center, axis=1))) or 1.0
+        matrix = np.asarray(fit["matrix"], dtype=float) if fit is not None and fit.get("matrix") else None
+        rel = (pts - center) / field
+        corrected = rel @ matrix.T if matrix is not None else rel
+        residual = np.abs(np.linalg.norm(corrected, axis=1) - 1.0)
+        self.cloud.points = (rel @ S_FLIP).astype(np.float32)
+        self.cloud.colors = residual_colors(residual)
+        self.cloud.visible = True
+        self.cloud_points_shown = len(pts)
+        if fit is not None:
+            self.corrected.points = (corrected @ S_FLIP).astype(np.float32)
+            self.corrected.visible = True
+            inv = np.linalg.inv(matrix) if matrix is not None else np.eye(3)
+            ell = UNIT_SPHERE.reshape(-1, 3) @ inv.T
+            self.ellipsoid.points = (ell @ S_FLIP).reshape(-1, 2, 3).astype(np.float32)
+            self.ellipsoid.visible = True
+        else:
+            self.corrected.visible = self.ellipsoid.visible = False
+
+    def _update_route(self, route: np.ndarray, line: dict | None, origin) -> float:
+        """Route and line in the route area; the vehicle at the last fix.  Returns the frame's
+        north angle (the vehicle's yaw is drawn in it)."""
+        key = (len(route), route[-1, 3] if len(route) else None,
+               None if line is None else (tuple(line["a"]), tuple(line["b"])), origin)
+        if key != self._route_key:
+            self._route_key = key
+            self._route_frame = self._draw_route(route, line, origin)
+        frame = self._route_frame
+        if frame is not None and len(route):
+            self.craft.position = tuple(frame.to_viser(route[-1:, 1:3])[0] + [0, 0, 0.3])
+        else:
+            self.craft.position = (0.0, 0.0, 0.3)
+        return frame.north_angle_rad if frame is not None else 0.0
+
+    def _draw_route(self, route: np.ndarray, line: dict | None, origin) -> RouteFrame | None:
+        ne = route[:, 1:3]
+        if line is not None and origin is not None:
+            a = np.array(ned_from_lla(line["a"][0], line["a"][1], origin[0], origin[1]), dtype=float)
+            b = np.array(ned_from_lla(line["b"][0], line["b"][1], origin[0], origin[1]), dtype=float)
+            frame = RouteFrame.for_line(a, b, ne, ROUTE_LENGTH, ROUTE_MAX_CROSS, CROSS_UNITS_PER_M)
+            ends = frame.to_viser(np.array([a, b]))
+            self.line.points = ends.reshape(1, 2, 3).astype(np.float32)
+            self.line.visible = True
+            for label, p in zip(self.line_labels, ends):
+                label.position = tuple(p + [0, 0, 0.25])
+                label.visible = True
+        elif len(ne) >= 2:
+            frame = RouteFrame.for_map(ne, ROUTE_LENGTH, ROUTE_LENGTH / 2, ROUTE_MIN_SPAN_M)
+            self.line.visible = False
+            for label in self.line_labels:
+                label.visible = False
+        else:
+            self.route.visible = self.line.visible = False
+            self.red_segments = self.route_points_shown = 0
+            return None
+        if len(route) >= 2:
+            step = max(1, math.ceil(len(route) / ROUTE_DISPLAY_POINTS))
+            idx = np.unique(np.r_[np.arange(0, len(route), step), len(route) - 1])
+            alarm = route[idx, 3] > 0.5
+            self.route.points = frame.to_viser(ne[idx]).astype(np.float32)
+            self.route.colors = np.where(alarm[:, None], np.array(ALARM_RED), np.array(ROUTE_VIOLET)).astype(np.uint8)
+            self.route.visible = True
+            self.red_segments = int(alarm.sum())
+            self.route_points_shown = len(idx)
+        else:
+            self.route.visible = False
+            self.red_segments = self.route_points_shown = 0
+        return frame
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self.server.stop()

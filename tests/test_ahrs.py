@@ -1,0 +1,201 @@
+"""The AHRS (estimators/ahrs.py, ahrs_batch.py) against simulated truth: gyro-bias learning at rest
+and in motion, magnetic and acceleration rejection and recovery, batch == per-sample, heading wrap."""
+import math
+
+import numpy as np
+import pytest
+
+from estimators.ahrs import Ahrs, AhrsSettings, ExpectedField
+from estimators.ahrs_batch import run_ahrs
+from estimators.heading import HeadingChain, run_heading_chain, tilt_compensated_heading_rad
+from estimators.rotations import (rotation_from_vector_rad, wrap_angle_deg, wrap_heading_deg, wrap_heading_rad,
+                                  wrap_heading_rad_float)
+from groundstation.sim.truth import simulate_manoeuvring_flight
+
+G = 9.80665
+H_NED = np.array([210.0, 25.0, 430.0])             # mG, inclination ~64 deg
+DECL = math.degrees(math.atan2(H_NED[1], H_NED[0]))
+
+
+def _fly(rates_rad_s, rate_hz=100.0, bias_deg_s=(0.0, 0.0, 0.0), acc_ned=None, mag_extra_body=None,
+         c0=None, seed=0):
+    """IMU and magnetometer of a body turning at the given rates (exact integration), gyro bias,
+    extra NED acceleration, an extra body-frame field (a magnet); truth DCMs."""
+    rng = np.random.default_rng(seed)
+    n = len(rates_rad_s)
+    dt = 1.0 / rate_hz
+    C = np.empty((n, 3, 3))
+    C[0] = np.eye(3) if c0 is None else c0
+    for i in range(1, n):
+        C[i] = C[i - 1] @ rotation_from_vector_rad(rates_rad_s[i] * dt)
+    a = np.zeros((n, 3)) if acc_ned is None else acc_ned
+    f = np.einsum("nji,nj->ni", C, a - [0.0, 0.0, G]) + rng.normal(0, 0.03, (n, 3))
+    m = np.einsum("nji,j->ni", C, H_NED) + rng.normal(0, 1.0, (n, 3))
+    if mag_extra_body is not None:
+        m = m + mag_extra_body
+    t = np.arange(n) * dt
+    gyro = rates_rad_s + np.radians(bias_deg_s) + rng.normal(0, 0.002, (n, 3))
+    return np.c_[t, gyro, f], np.c_[t, m], C
+
+
+def _errors_deg(res, C):
+    """(tilt error, true-heading error) [deg] per step against truth."""
+    roll = np.arctan2(C[:, 2, 1], C[:, 2, 2])
+    pitch = -np.arcsin(np.clip(C[:, 2, 0], -1, 1))
+    yaw = np.arctan2(C[:, 1, 0], C[:, 0, 0])
+    tilt = np.hypot(wrap_angle_deg(np.degrees(res.roll_rad - roll)), np.degrees(res.pitch_rad - pitch))
+    return tilt, wrap_angle_deg(np.degrees(res.yaw_rad - yaw) + DECL)
+
+
+def test_bias_learned_at_rest():
+    bias = (0.4, -0.3, 0.25)
+    imu, mag, C = _fly(np.zeros((6000, 3)), bias_deg_s=bias)             # 60 s still
+    r = run_ahrs(imu, mag)
+    assert not r.at_rest[:100].any() and r.at_rest[500:].all()         # still for rest_time_s first
+    np.testing.assert_allclose(np.degrees(r.gyro_bias_rad_s[-1]), bias, atol=0.01)
+    tilt, hdg = _errors_deg(r, C)
+    assert tilt[3000:].max() < 0.1 and np.abs(hdg[3000:]).max() < 0.5
+
+
+def test_bias_learned_in_motion_without_rest():
+    b = np.radians([0.3, -0.3, 0.3])
+    tr = simulate_manoeuvring_flight(duration_s=400.0, imu_rate_hz=100.0, gyro_bias_rad_s=b, seed=2)
+    r = run_ahrs(tr.imu, tr.mag)
+    assert not r.at_rest.any()                                          # a turning vehicle is never "at rest"
+    err0, err1 = np.linalg.norm(b), np.linalg.norm(r.gyro_bias_rad_s[-1] - b)
+    assert err1 < 0.45 * err0                                           # measured: 0.52 -> 0.18 deg/s
+    assert np.all(np.abs(np.degrees(r.gyro_bias_rad_s[-1, :2] - b[:2])) < 0.1)   # tilt axes learn fastest
+
+
+def test_magnet_step_is_rejected_then_recovered():
+    """20 s still (bias learnt), then a slow turn; a 150 mG magnet-like field step on body y from 40 to
+    52 s.  The heading is held on the gyro while the field is rejected, the step is reported as
+    disturbed throughout, and both flags clear and the heading is right again after it."""
+    n = 9000
+    rates = np.zeros((n, 3))
+    rates[2000:, 2] = np.radians(3.0)
+    extra = np.zeros((n, 3))
+    step = slice(4000, 5200)
+    extra[step, 1] = 150.0
+    imu, mag, C = _fly(rates, bias_deg_s=(0.2, -0.1, 0.3), mag_extra_body=extra)
+    r = run_ahrs(imu, mag)
+    _, hdg = _errors_deg(r, C)
+    raw = wrap_angle_deg(np.degrees(r.mag_heading_rad - np.arctan2(C[:, 1, 0], C[:, 0, 0])) + DECL)
+    assert np.median(np.abs(raw[4100:5200])) > 10.0                      # the field step misleads the compass
+    assert r.mag_disturbed[4010:5200].all() and not r.mag_disturbed[2000:4000].any()
+    held = slice(4010, 4450)                                             # before the recovery trigger (5 s)
+    assert r.mag_rejected[held].all() and np.abs(hdg[held]).max() < 1.0
+    assert not r.mag_rejected[5400:].any() and not r.mag_disturbed[5300:].any()
+    assert np.abs(hdg[7000:]).max() < 1.0
+
+
+def test_2g_shock_rejected_and_tilt_recovers():
+    """A shock (2 g lateral for 0.3 s and back: the body is knocked and stops): the first stage
+    swings, the tilt is held on the gyro while it does and handed back after.  A sustained 0.5 g
+    lateral acceleration (8 s, a 27° coordinated turn): the tilt is held on the gyro once the
+    first stage shows it, the recovery rule hands it back to the accelerometer after
+    ``acc_recovery_s`` (tilt is never lost for good, at the price of following the turn), and the
+    tilt is right again once the acceleration ends."""
+    n = 8000
+    acc = np.zeros((n, 3))
+    acc[2000:2030, 1] = 2.0 * G                                          # shock at 20 s ...
+    acc[2030:2060, 1] = -2.0 * G                                         # ... and the stop
+    acc[4000:4800, 1] = 0.5 * G                                          # sustained, 40-48 s
+    imu, mag, C = _fly(np.zeros((n, 3)), bias_deg_s=(0.2, 0.2, -0.2), acc_ned=acc)
+    r = run_ahrs(imu, mag)
+    tilt, hdg = _errors_deg(r, C)
+    assert r.acc_rejected[2000:2100].any() and not r.acc_rejected[2300:4000].any()
+    assert tilt[2000:2600].max() < 1.0 and tilt[3000:4000].max() < 0.2    # measured 0.88, 0.13
+    assert r.acc_rejected[4200:4600].all()                               # held on the gyro ...
+    assert tilt[4200:4600].max() < 8.0                                   # ... measured 6.9 (accelerometer: 26.6)
+    assert not r.acc_rejected[4700:4800].any()                           # recovery after acc_recovery_s
+    assert not r.acc_rejected[5000:].any() and tilt[7000:].max() < 0.3  # the accelerometer back in charge
+    assert np.abs(hdg[7000:]).max() < 1.0
+
+
+def _per_sample(imu, mag, **kw):
+    a, out, j = Ahrs(**kw), [], 0
+    for i in range(len(imu)):
+        while j < len(mag) and mag[j, 0] <= imu[i, 0]:
+            a.update_mag(mag[j, 0], mag[j, 1:4])
+            j += 1
+        s = a.update_imu(imu[i, 0], imu[i, 1:4], imu[i, 4:7])
+        out.append([s.roll_rad, s.pitch_rad, s.yaw_rad, s.mag_heading_rad, *s.gyro_bias_rad_s, *s.gravity_body,
+                    *s.field_body_mG, s.acc_rejected, s.mag_rejected, s.mag_disturbed, s.at_rest, s.valid])
+    return np.array(out, dtype=float)
+
+
+def test_batch_equals_per_sample_with_rejections_rest_and_bad_input():
+    n = 6000
+    rates = np.zeros((n, 3))
+    rates[1500:, :] = np.radians([2.0, -1.5, 6.0])
+    acc = np.zeros((n, 3))
+    acc[2500:3200, 0] = 0.5 * G                                          # acceleration rejection
+    extra = np.zeros((n, 3))
+    extra[3500:4200, 2] = 120.0                                          # magnetic rejection
+    imu, mag, _ = _fly(rates, bias_deg_s=(0.3, 0.1, -0.2), acc_ned=acc, mag_extra_body=extra, seed=4)
+    mag = mag[::2]                                                       # magnetometer at half the IMU rate
+    imu[100:110, 2] = np.nan                                             # gyro dropouts
+    imu[700, 0] = np.nan                                                 # bad time stamp
+    imu[800:805, 4] = np.inf                                             # accelerometer dropouts
+    imu[900, 0] -= 1.0                                                   # backwards time stamp
+    imu[5000:, 0] += 2.0                                                 # a 2 s gap: re-initialisation
+    mag[2500:, 0] += 2.0
+    mag[300, 2] = np.nan
+    mag = np.delete(mag, np.arange(1000, 1100), axis=0)                  # magnetometer missing for 2 s
+    r = run_ahrs(imu, mag, expected_field=ExpectedField(float(np.linalg.norm(H_NED)), 64.0))
+    b = np.c_[r.roll_rad, r.pitch_rad, r.yaw_rad, r.mag_heading_rad, r.gyro_bias_rad_s, r.gravity_body,
+              r.field_body_mG, r.acc_rejected, r.mag_rejected, r.mag_disturbed, r.at_rest, r.valid]
+    assert np.all(np.isfinite(b))
+    for flag in (r.acc_rejected, r.mag_rejected, r.mag_disturbed, r.at_rest):   # every path was exercised
+        assert flag.any() and not flag.all()
+    p = _per_sample(imu, mag, expected_field=ExpectedField(float(np.linalg.norm(H_NED)), 64.0))
+    ang = np.abs(np.angle(np.exp(1j * (p[:, :4] - b[:, :4]))))
+    assert ang.max() < 1e-9
+    np.testing.assert_allclose(p[:, 4:7], b[:, 4:7], rtol=0, atol=1e-12)         # bias
+    np.testing.assert_allclose(p[:, 7:13], b[:, 7:13], rtol=1e-9, atol=1e-9)      # vectors
+    np.testing.assert_array_equal(p[:, 13:], b[:, 13:])                          # flags
+
+
+def test_heading_chain_live_equals_replay_and_reports_the_ahrs_fields():
+    imu, mag, _ = _fly(np.tile(np.radians([1.0, 0.5, 4.0]), (1500, 1)), bias_deg_s=(0.2, 0.2, 0.2), seed=5)
+    r = run_heading_chain(imu, mag, 5.0)
+    hc, rows = HeadingChain(5.0), []
+    for i in range(len(imu)):
+        hc.update_mag(mag[i, 0], mag[i, 1:4])
+        s = hc.update_imu(imu[i, 0], imu[i, 1:4], imu[i, 4:7])
+        rows.append([s.heading_true_rad, s.yaw_rad, *s.gyro_bias_rad_s, s.mag_rejected, s.acc_rejected])
+    rows = np.array(rows, dtype=float)
+    assert np.abs(np.angle(np.exp(1j * (rows[:, 0] - r.heading_true_rad)))).max() < 1e-9
+    np.testing.assert_allclose(rows[:, 2:5], r.gyro_bias_rad_s, atol=1e-12)
+    np.testing.assert_array_equal(rows[:, 5:].astype(bool), np.c_[r.mag_rejected, r.acc_rejected])
+    assert r.estimator == "ahrs" and r.gyro_bias_rad_s.shape == (len(imu), 3)
+
+
+def test_headings_wrap_to_zero_not_360():
+    for a in (-0.0, -1e-18, -1e-300, 2 * math.pi, 0.0):
+        assert wrap_heading_rad(a) == 0.0 and wrap_heading_rad_float(a) == 0.0
+        assert math.copysign(1.0, float(wrap_heading_rad(a))) == 1.0
+    assert wrap_heading_deg(-1e-15) == 0.0 and wrap_heading_deg(-0.0) == 0.0
+    assert wrap_heading_rad(-1e-3) == pytest.approx(2 * math.pi - 1e-3)
+    # a field exactly on the x axis: atan2(-0.0, +x) = -0.0 -> heading 0
+    assert tilt_compensated_heading_rad(np.array([200.0, 0.0, 400.0]), 0.0, 0.0) == 0.0
+    assert tilt_compensated_heading_rad(np.array([200.0, 1e-300, 400.0]), 0.0, 0.0) == 0.0
+    # and through the whole chain: a body exactly on magnetic north reads -0.0, and a declination
+    # of -1e-20 deg makes the true heading -1.7e-22 rad: both must come out as 0, not 2π
+    n = 300
+    imu = np.c_[np.arange(n) * 0.01, np.zeros((n, 3)), np.tile([0.0, 0.0, -G], (n, 1))]
+    mag = np.c_[np.arange(n) * 0.01, np.tile([200.0, 0.0, 400.0], (n, 1))]
+    r = run_heading_chain(imu, mag, -1e-20)
+    assert r.valid[1:].all()
+    assert np.all(r.yaw_rad == 0.0) and np.all(r.heading_true_rad == 0.0) and np.all(r.mag_heading_rad == 0.0)
+    hc = HeadingChain(-1e-20)
+    for i in range(n):
+        hc.update_mag(mag[i, 0], mag[i, 1:4])
+        s = hc.update_imu(imu[i, 0], imu[i, 1:4], imu[i, 4:7])
+        assert s.yaw_rad == 0.0 and s.heading_true_rad == 0.0 and s.mag_heading_rad == 0.0
+
+
+def test_settings_are_checked():
+    with pytest.raises(ValueError):
+        AhrsSettings(block_s=1.0, max_gap_s=0.5)

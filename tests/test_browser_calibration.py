@@ -1,0 +1,348 @@
+"""The calibration page in headless chromium against the fake vehicle (MAVLink over loopback UDP).
+
+One station and one browser for the module; each test connects a fresh fake vehicle.  Screenshots
+of every step at 1280x720 go to tests/artifacts/calibration/ (gitignored)."""
+from __future__ import annotations
+
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from conftest import CHROMIUM, CHROMIUM_ARGS, free_tcp_port, free_udp_port
+from groundstation.sim.fake_vehicle import FakeVehicle
+from groundstation.sim.vehicle_streams import (MORE_TILTS, ROTATION_ROLL_180, ROTATION_YAW_90, TILTS,
+                                               attitude_from_moves, guided_dance_attitude, hold_attitude,
+                                               make_hardware, pack_stream, three_compasses, walk_attitude)
+
+SPEED = 4.0          # x real time; 35 deg/s turns arrive at 140 deg/s, under the 172 deg/s warning
+WAIT_MS = 60_000     # generous: 2 cores shared with other test runs
+
+
+@pytest.fixture(scope="module")
+def station(tmp_path_factory):
+    from groundstation.station.app import Station
+    st = Station(port=0, viser_port=free_tcp_port(), recordings_dir=tmp_path_factory.mktemp("rec"),
+                 record_live=False).start()
+    yield st
+    st.close()
+
+
+@pytest.fixture(scope="module")
+def browser(playwright_instance, station):
+    args = CHROMIUM_ARGS + [f"--isolate-origins=http://127.0.0.1:{station.viser_port}"]
+    b = playwright_instance.chromium.launch(executable_path=CHROMIUM, headless=True, args=args)
+    yield b
+    b.close()
+
+
+@pytest.fixture
+def page(browser, station):
+    ctx = browser.new_context(viewport={"width": 1280, "height": 720})
+    pg = ctx.new_page()
+    pg.errors = []
+    pg.on("console", lambda m: pg.errors.append(m.text) if m.type == "error" else None)
+    pg.on("pageerror", lambda e: pg.errors.append(str(e)))
+    yield pg
+    ctx.close()
+
+
+@pytest.fixture(scope="module")
+def shots(artifacts):
+    d = artifacts / "calibration"
+    d.mkdir(exist_ok=True)
+    return d
+
+
+@pytest.fixture
+def api(station):
+    with httpx.Client(base_url=station.url, timeout=10) as c:
+        c.post("/api/calibration/reset")
+        yield c
+
+
+def connect(api) -> int:
+    port = free_udp_port()
+    assert api.post("/api/source", json={"connect": f"udpin:127.0.0.1:{port}"}).status_code == 200
+    return port
+
+
+def wizard(api) -> dict:
+    return api.get("/api/calibration").json()
+
+
+def wait_api(api, cond, timeout_s=60.0, step_s=0.1) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        w = wizard(api)
+        if cond(w):
+            return w
+        time.sleep(step_s)
+    raise AssertionError(f"timed out; wizard: state {w['state']} step {w['step']} {w['instruction']}")
+
+
+def open_page(page, station):
+    page.goto(station.url + "/calibrate.html")
+    page.wait_for_selector("#status:not(:has-text('connecting'))", timeout=10_000)
+
+
+def in_view(page, selector) -> bool:
+    """The element lies inside the 1280x720 viewport (the page re-renders it on every push, so
+    it is measured in one script call)."""
+    box = page.evaluate("(s) => { const e = document.querySelector(s); if (!e) return null;"
+                        " const r = e.getBoundingClientRect(); return [r.top, r.bottom, r.height]; }", selector)
+    return box is not None and box[2] > 0 and box[0] >= 0 and box[1] <= 720
+
+
+def sent_after(msgs, t_rel_s) -> int:
+    """Index of the first message at or after ``t_rel_s`` of the stream."""
+    t0 = msgs[0][0]
+    return next(i for i, (u, _) in enumerate(msgs) if u - t0 >= t_rel_s)
+
+
+# ------------------------------------------------------------------ defect 1
+def test_steps_fill_only_with_their_own_axis(station, page, api, shots):
+    """Wobbling about Y and Z leaves step X empty; held still the page says so; a turn about X fills it."""
+    wobble = [("body", a, d, 50.0) for a in (1, 2) for d in (40.0, -80.0, 40.0)] * 2
+    moves = [("still", 2.0)] + wobble + [("still", 30.0), ("body", 0, 370.0, 35.0), ("still", 3.0)]
+    hist = attitude_from_moves(moves, 25.0)
+    msgs = pack_stream(hist, make_hardware(three_compasses()))
+    t_wobble_end = 2.0 + sum(abs(m[2]) / m[3] for m in wobble)
+    port = connect(api)
+    open_page(page, station)
+    page.click("#start")
+    with FakeVehicle(msgs, port, speed=3.0) as fv:
+        while fv.sent < sent_after(msgs, t_wobble_end + 0.3):
+            time.sleep(0.05)
+        w = wizard(api)
+        assert w["step"] == "x" and w["progress_deg"]["x"] < 5.0, w["progress_deg"]
+        assert w["progress_deg"]["y"] == 0.0 and w["progress_deg"]["z"] == 0.0
+        w = wait_api(api, lambda w: w["hint"] is not None)
+        assert w["hint"].startswith("No motion") and w["step"] == "x" and w["progress_deg"]["x"] < 5.0
+        page.wait_for_selector("#hint:has-text('No motion')", timeout=WAIT_MS)
+        page.screenshot(path=str(shots / "01_steps_still_after_wobble.png"))
+        page.wait_for_selector("#steps li[data-step='y'].current", timeout=WAIT_MS)
+        assert "full turn" in page.locator("#steps li[data-step='x'] .deg").inner_text()
+        page.screenshot(path=str(shots / "02_steps_x_done.png"))
+    assert wizard(api)["progress_deg"]["x"] >= 345.0
+    assert page.errors == []
+
+
+# ------------------------------------------------------------------ defect 2
+def test_link_drop_pauses_and_resumes_the_step(station, page, api, shots):
+    moves = [("still", 2.0), ("body", 0, 370.0, 35.0), ("still", 1.0), ("body", 1, 200.0, 35.0), ("still", 24.0),
+             ("body", 1, 200.0, 35.0), ("still", 3.0)]
+    msgs = pack_stream(attitude_from_moves(moves, 25.0), make_hardware(three_compasses()))
+    t_still = 2.0 + 370 / 35 + 1.0 + 200 / 35
+    port = connect(api)
+    open_page(page, station)
+    page.click("#start")
+    with FakeVehicle(msgs, port, speed=SPEED) as fv:
+        while fv.sent < sent_after(msgs, t_still + 0.5):
+            time.sleep(0.05)
+        fv.set_link(False)
+        page.wait_for_selector("#banner:has-text('Link lost during step Y')", timeout=WAIT_MS)
+        assert "paused" in page.locator("#instruction").inner_text()
+        assert "paused" in page.locator("#steps li[data-step='y']").get_attribute("class")
+        y_before = wizard(api)["progress_deg"]["y"]
+        assert 150.0 < y_before < 345.0
+        page.screenshot(path=str(shots / "03_link_lost_paused.png"))
+        fv.set_link(True)
+        page.wait_for_selector("#banner:has-text('resumes')", timeout=WAIT_MS)
+        assert wizard(api)["progress_deg"]["y"] >= y_before - 2.0       # resumed, not restarted
+        page.screenshot(path=str(shots / "04_link_back_resumed.png"))
+        page.wait_for_selector("#steps li[data-step='z'].current", timeout=WAIT_MS)
+    events = [e["text"] for e in api.get("/api/state").json()["events"]]
+    assert any("paused: link lost during step Y" in t for t in events)
+    assert page.errors == []
+
+
+# ------------------------------------------------------------------ the full guided flow
+def test_three_compasses_orientation_write_reboot_and_heading_check(station, page, api, shots, browser):
+    """Compasses mounted at YAW_90 and ROLL_180 (COMPASS_ORIENT still 0): a clean dance gives no
+    field warning, three passing compasses with their orientation, written and confirmed; reboot
+    (confirmed), then the heading check at a known bearing and the deviation card."""
+    hw = make_hardware(three_compasses((ROTATION_YAW_90, ROTATION_ROLL_180, 0)))
+    msgs = pack_stream(guided_dance_attitude(), hw)
+    after = pack_stream(hold_attitude(135.0, 120.0, rate_hz=25.0), hw, start_unix=msgs[-1][0] + 60, boot_offset_s=4.0)
+    port = connect(api)
+    open_page(page, station)
+    page.click("#start")
+    warnings: set[str] = set()
+    with FakeVehicle(msgs, port, speed=SPEED, after_reboot=after, reboot_silence_s=4.0) as fv:
+        page.wait_for_selector("#steps li[data-step='y'].current", timeout=WAIT_MS)
+        page.screenshot(path=str(shots / "05_guided_step_y.png"))
+        w = wait_api(api, lambda w: warnings.update(w["warnings"]) or (w["step"] == "tumble" and w["next_pose"])
+                     or w["state"] != "running")
+        if w["state"] == "running":            # (a loaded machine may have passed the tumble already)
+            assert w["instruction"].startswith("Cover the rest of the sphere: " + w["next_pose"]["text"])
+            page.wait_for_selector("#instruction:has-text('Cover the rest of the sphere')", timeout=WAIT_MS)
+            page.screenshot(path=str(shots / "06_guided_tumble_next_pose.png"))
+        w = wait_api(api, lambda w: warnings.update(w["warnings"]) or w["state"] == "result")
+        assert not [x for x in warnings if "WMM" in x or "isturbance" in x], warnings
+        page.wait_for_selector("#result-card:not([hidden])", timeout=WAIT_MS)
+        page.wait_for_timeout(800)          # the 3-D view draws the cloud and ellipsoid
+        page.screenshot(path=str(shots / "07_guided_result.png"))
+        comps = {c["index"]: c["result"] for c in w["compasses"]}
+        assert all(comps[k]["pass"] for k in range(3))
+        assert [comps[k]["orientation"]["detected_name"] for k in range(3)] == ["YAW_90", "ROLL_180", "NONE"]
+        assert w["consistency"]["status"] == "ok"
+        assert page.locator("#compass-table").inner_text().count("pass") == 3
+
+        page.uncheck("#compass-table input[data-compass='2']")      # leave compass 3 out ...
+        wait_api(api, lambda w: "COMPASS_OFS3_X" not in w["result"]["ardupilot_params"])
+        page.wait_for_selector("#compass-table tr.left-out", timeout=WAIT_MS)
+        page.screenshot(path=str(shots / "07b_compass_3_left_out.png"))
+        page.check("#compass-table input[data-compass='2']")        # ... and back in
+        wait_api(api, lambda w: "COMPASS_OFS3_X" in w["result"]["ardupilot_params"])
+
+        page.click("#accept")
+        page.wait_for_selector("#param-write .good", timeout=WAIT_MS)
+        page.screenshot(path=str(shots / "08_written.png"))
+        assert in_view(page, "#param-write .good")             # success line without scrolling
+        assert "Reboot" in page.locator("#instruction").inner_text()
+        params = wizard(api)["result"]["ardupilot_params"]
+        assert params["COMPASS_ORIENT"] == 2 and params["COMPASS_ORIENT2"] == 8
+        for name, value in params.items():
+            assert abs(fv.params[name] - value) <= 1e-4 * max(1.0, abs(value)), name
+        station_page = browser.new_page()
+        station_page.goto(station.url + "/index.html")
+        station_page.wait_for_selector("#v-cal:has-text('in use')", timeout=10_000)
+        station_page.close()
+
+        page.click("#reboot")
+        page.wait_for_selector("#reboot-confirm:not([hidden])", timeout=5000)
+        page.screenshot(path=str(shots / "09_reboot_confirm.png"))
+        page.click("#reboot-yes")
+        page.wait_for_selector("#instruction:has-text('Rebooting')", timeout=WAIT_MS)
+        page.screenshot(path=str(shots / "10_rebooting.png"))
+        page.wait_for_selector("#instruction:has-text('is back')", timeout=WAIT_MS)
+        assert fv.reboots == 1
+        page.fill("#hc-bearing", "135")
+        page.click("#hc-measure")
+        page.wait_for_selector("#hc-result .good", timeout=WAIT_MS)
+        page.wait_for_timeout(300)
+        page.screenshot(path=str(shots / "11_heading_check.png"))
+        check = wizard(api)["heading_check"]["result"]
+        assert abs(check["error_deg"]) < 2.0, check
+        dev = wizard(api)["deviation"]
+        assert dev["max_before_deg"] > 10.0 and dev["max_after_deg"] < 2.0
+        page.locator("#deviation-card").scroll_into_view_if_needed()
+        page.screenshot(path=str(shots / "12_deviation_card.png"))
+    assert page.errors == []
+
+
+# ------------------------------------------------------------------ onboard calibration
+def test_onboard_calibrator_beside_ours(station, page, api, shots):
+    hw = make_hardware(three_compasses())
+    dance = hold_attitude(30.0, 30.0, rate_hz=25.0, wobble_deg=0.0).then(guided_dance_attitude(tilts=TILTS + MORE_TILTS))
+    msgs = pack_stream(dance, hw)
+    port = connect(api)
+    open_page(page, station)
+    page.check("#modes input[value='onboard']")
+    with FakeVehicle(msgs, port, speed=SPEED) as fv:
+        while api.get("/api/state").json()["source"]["link"] != "up":      # the command needs the link
+            time.sleep(0.05)
+        page.click("#start")
+        page.wait_for_selector("#onboard-card:not([hidden])", timeout=WAIT_MS)
+        wait_api(api, lambda w: w["onboard"]["compasses"] and w["onboard"]["compasses"][0].get("completion_pct", 0) > 40)
+        page.wait_for_timeout(500)
+        page.screenshot(path=str(shots / "13_onboard_running.png"))
+        w = wait_api(api, lambda w: w["state"] == "result", timeout_s=120)
+        page.wait_for_selector("#ob-accept:not([disabled])", timeout=WAIT_MS)
+        page.screenshot(path=str(shots / "14_onboard_reported.png"))
+        for c in w["onboard"]["compasses"]:
+            assert c["report"]["success"] and c["compare"]["max_offset_difference_mG"] < 5.0
+            assert len(c["sections"]) > 40                      # the completion mask arrived
+        report0 = w["onboard"]["compasses"][0]["report"]
+        page.click("#ob-accept")
+        page.wait_for_selector("#param-write .good", timeout=WAIT_MS)
+        page.screenshot(path=str(shots / "15_onboard_accepted.png"))
+        np.testing.assert_allclose([fv.params[f"COMPASS_OFS_{a}"] for a in "XYZ"], report0["ofs_mG"], atol=0.1)
+        np.testing.assert_allclose(report0["ofs_mG"], -hw.compasses[0].offsets_mG, atol=3.0)
+    assert any(c[0] == 42424 for c in fv.commands) and any(c[0] == 42425 for c in fv.commands)
+    assert page.errors == []
+
+
+# ------------------------------------------------------------------ large vehicle
+def test_large_vehicle_fixed_yaw_with_gps_course_and_entered_heading(station, page, api, shots):
+    """Walk the vehicle straight (GPS course), calibrate with that course, check against the WMM;
+    then again with the heading entered by hand."""
+    hw = make_hardware(three_compasses())
+    hist = (hold_attitude(75.0, 16.0, rate_hz=25.0).then(walk_attitude(75.0, 24.0, rate_hz=25.0))
+            .then(hold_attitude(75.0, 160.0, rate_hz=25.0)))
+    msgs = pack_stream(hist, hw)
+    port = connect(api)
+    open_page(page, station)
+    page.check("#modes input[value='fixed_yaw']")
+    page.click("#start")
+    page.wait_for_selector("#fixed-card:not([hidden])", timeout=5000)
+    with FakeVehicle(msgs, port, speed=3.0) as fv:
+        page.wait_for_selector("#status:has-text('link up')", timeout=WAIT_MS)
+        while fv.sent < sent_after(msgs, 15.0):     # standing at the start of the line
+            time.sleep(0.05)
+        page.click("#fy-walk")
+        page.wait_for_selector("#fy-walk-text:has-text('walking')", timeout=WAIT_MS)
+        wait_api(api, lambda w: w["heading_check"]["distance_m"] > 12.0)
+        page.screenshot(path=str(shots / "16_large_vehicle_walking.png"))
+        page.click("#fy-walk-stop")
+        page.wait_for_selector("#fy-walk-text:has-text('GPS course')", timeout=WAIT_MS)
+        course = wizard(api)["heading_check"]["result"]["reference_deg"]
+        assert course == pytest.approx(75.0, abs=1.0)
+        while fv.sent < sent_after(msgs, 41.0):     # standing still at the end of the walk
+            time.sleep(0.05)
+        page.click("#fy-gps")
+        w = wait_api(api, lambda w: w["fixed_yaw"] and w["fixed_yaw"]["state"] == "done")
+        page.wait_for_selector("#fy-table:has-text('Check against the WMM')", timeout=WAIT_MS)
+        page.screenshot(path=str(shots / "17_large_vehicle_gps_course.png"))
+        fy = w["fixed_yaw"]
+        assert fy["check"]["ok"] and abs(fy["check"]["heading_error_deg"]) < 2.0
+        assert abs(fy["check"]["strength_mG"] - fy["check"]["wmm_strength_mG"]) < 15.0
+        np.testing.assert_allclose(fy["vehicle_ofs_mG"]["0"], fy["ours_ofs_mG"]["0"], atol=5.0)
+        page.fill("#fy-yaw", "75")
+        page.click("#fy-send")
+        w = wait_api(api, lambda w: w["fixed_yaw"]["source"] == "entered" and w["fixed_yaw"]["state"] == "done")
+        assert abs(w["fixed_yaw"]["check"]["heading_error_deg"]) < 2.0
+        assert "calibration in use: the vehicle's" in page.locator("#status").inner_text()
+        page.screenshot(path=str(shots / "18_large_vehicle_entered.png"))
+    assert page.errors == []
+
+
+# ------------------------------------------------------------------ write failures and PX4
+def test_write_failures_shown_then_px4_write(station, page, api, shots):
+    """No echo, then a wrong echo, each named on the page; the same result written to a PX4 vehicle."""
+    hw = make_hardware(three_compasses())
+    msgs = pack_stream(guided_dance_attitude(rate_deg_s=35.0, rate_hz=12.5), hw)
+    hold = pack_stream(hold_attitude(10.0, 200.0, rate_hz=10.0), hw)
+    port = connect(api)
+    open_page(page, station)
+    page.click("#start")
+    with FakeVehicle(msgs, port, speed=8.0, param_mode="ignore") as fv:
+        wait_api(api, lambda w: w["state"] == "result", timeout_s=90)
+        page.click("#accept")
+        page.wait_for_selector("#param-write .error", timeout=WAIT_MS)
+        assert "no answer from the vehicle" in page.locator("#param-write").inner_text()
+        page.screenshot(path=str(shots / "19_write_failed_no_echo.png"))
+        assert in_view(page, "#param-write .error")
+        assert fv.params["COMPASS_OFS_X"] == 0.0
+    port = connect(api)
+    with FakeVehicle(hold, port, speed=1.0, param_mode="corrupt") as fv:
+        page.wait_for_selector("#status:has-text('link up')", timeout=WAIT_MS)
+        page.click("#accept")                      # "Retry the write"
+        page.wait_for_selector("#param-write li:has-text('kept')", timeout=WAIT_MS)
+        assert "other values" in page.locator("#param-write").inner_text()
+        page.screenshot(path=str(shots / "20_write_failed_wrong_value.png"))
+    port = connect(api)
+    with FakeVehicle(hold, port, speed=1.0, autopilot="px4") as fv:
+        page.wait_for_selector("#status:has-text('px4')", timeout=WAIT_MS)
+        page.click("#accept")
+        page.wait_for_selector("#param-write .good", timeout=WAIT_MS)
+        page.screenshot(path=str(shots / "21_px4_written.png"))
+        px4 = wizard(api)["result"]["px4_params"]
+        assert {f"CAL_MAG{k}_XOFF" for k in range(3)} <= set(px4)
+        for name, value in px4.items():
+            assert abs(fv.params[name] - value) <= 1e-5 * max(1.0, abs(value)), name
+        for k, c in enumerate(hw.compasses):
+            np.testing.assert_allclose([fv.params[f"CAL_MAG{k}_{a}OFF"] for a in "XYZ"], c.offsets_mG / 1000, atol=0.003)
+    assert page.errors == []

@@ -1,0 +1,116 @@
+"""The recordings folder: metadata (cached by file version) and uploads (size limit, type by
+suffix and content, generated names inside the folder), through the routers in process; and
+./run then ./test install stamps (scripts/bootstrap.sh)."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from conftest import SHARED_DATA
+from groundstation.station.app import create_app
+from groundstation.station.hub import recordings as rec_module
+from groundstation.station.hub.session import Session
+
+ROOT = Path(__file__).resolve().parent.parent
+DEMO = ROOT / "recordings" / "demo.tlog"
+ULOG = SHARED_DATA / "px4-pyulog" / "sample_px4_events.ulg"
+
+
+@pytest.fixture
+def folder(tmp_path) -> Path:
+    d = tmp_path / "recordings"
+    d.mkdir()
+    return d
+
+
+@pytest.fixture
+def client(folder):
+    session = Session(folder, max_upload_bytes=3_000_000)
+    with TestClient(create_app(session), base_url="http://127.0.0.1") as c:
+        yield c
+    session.close()
+
+
+def _upload(client, name: str, data: bytes):
+    return client.post("/api/recordings/upload", params={"filename": name}, content=data,
+                       headers={"Content-Type": "application/octet-stream"})
+
+
+def test_upload_stores_a_checked_log_under_its_own_name(client, folder):
+    r = _upload(client, "../../My flight (1).tlog", DEMO.read_bytes())
+    assert r.status_code == 201, r.text
+    info = r.json()
+    name = info["name"]
+    assert name.startswith("upload-") and name.endswith("-My_flight_1.tlog") and "/" not in name
+    assert (folder / name).read_bytes() == DEMO.read_bytes()
+    assert sorted(p.name for p in folder.iterdir()) == [name]           # nothing else, nothing outside
+    assert info["duration_s"] == pytest.approx(235.0, abs=1) and info["autopilot"] == "ardupilot"
+    assert info["vehicle"] == "quadrotor" and info["compasses"] == 1 and info["start_unix_s"] > 1.7e9
+    assert client.get("/api/recordings").json() == [name]
+    assert client.post("/api/replay/start", json={"recording": name, "speed": 20}).status_code == 200
+
+
+def test_upload_refuses_wrong_type_mismatch_garbage_and_size(client, folder):
+    tlog = DEMO.read_bytes()
+    r = _upload(client, "notes.txt", b"hello")
+    assert r.status_code == 422 and "not a log type" in r.json()["detail"]
+    r = _upload(client, "flight.ulg", tlog[:100_000])                       # a .tlog named .ulg
+    assert r.status_code == 422 and "does not look like a .ulg file (its content is a .tlog log)" in r.json()["detail"]
+    r = _upload(client, "flight.tlog", b"")
+    assert r.status_code == 422 and "empty" in r.json()["detail"]
+    garbage = tlog[:10] + os.urandom(50_000)                                  # right magic, nothing readable
+    r = _upload(client, "broken.tlog", garbage)
+    assert r.status_code == 422 and "broken.tlog" in r.json()["detail"]
+    r = _upload(client, "big.tlog", tlog + tlog + tlog)                        # 4.2 MB > 3 MB
+    assert r.status_code == 413 and "3 MB" in r.json()["detail"]
+    assert list(folder.iterdir()) == []                                       # no leftovers, no .part
+
+
+def test_upload_ulog_and_info_of_every_recording(client, folder):
+    if not ULOG.exists():
+        pytest.skip("real logs not available")
+    r = _upload(client, ULOG.name, ULOG.read_bytes())
+    assert r.status_code == 201, r.text
+    assert r.json()["autopilot"] == "px4" and r.json()["compasses"] >= 1
+    shutil.copy(DEMO, folder / "demo.tlog")
+    (folder / "bad.csv").write_text("not,a,log\n")
+    info = {i["name"]: i for i in client.get("/api/recordings/info").json()}
+    assert info["demo.tlog"]["duration_s"] == pytest.approx(235.0, abs=1)
+    assert info["demo.tlog"]["size_bytes"] == DEMO.stat().st_size
+    assert info["bad.csv"]["error"] and info["bad.csv"]["duration_s"] is None
+
+
+def test_info_is_read_once_per_file_version(client, folder, monkeypatch):
+    shutil.copy(DEMO, folder / "demo.tlog")
+    calls = []
+    real = rec_module.RecordingsFolder.describe
+    monkeypatch.setattr(rec_module.RecordingsFolder, "describe", staticmethod(lambda p: calls.append(p) or real(p)))
+    client.get("/api/recordings/info")
+    client.get("/api/recordings/info")
+    assert len(calls) == 1
+    os.utime(folder / "demo.tlog", (1e9, 1e9))                              # a new version of the file
+    client.get("/api/recordings/info")
+    assert len(calls) == 2
+
+
+def test_run_then_test_install_the_test_extras(tmp_path):
+    """./run (no extras) then ./test (extras "test"): each has its own install stamp, so the
+    test extras get installed after a plain install (scripts/bootstrap.sh, in a temp copy with
+    a stand-in python that records what pip was asked)."""
+    shutil.copy(ROOT / "scripts" / "bootstrap.sh", tmp_path / "bootstrap.sh")
+    (tmp_path / "pyproject.toml").write_text("[project]\nname = 'x'\n")
+    bin_dir = tmp_path / ".venv" / "bin"
+    bin_dir.mkdir(parents=True)
+    fake = bin_dir / "python"
+    fake.write_text('#!/bin/sh\necho "$@" >> "$(dirname "$0")/../pip.log"\n')
+    fake.chmod(0o755)
+    script = "source ./bootstrap.sh && bootstrap_venv && bootstrap_venv test && bootstrap_venv test"
+    subprocess.run(["bash", "-c", script], cwd=tmp_path, check=True, timeout=30)
+    installs = [line for line in (tmp_path / ".venv" / "pip.log").read_text().splitlines() if "-e" in line]
+    assert installs == ["-m pip install -q -e .", "-m pip install -q -e .[test]"]      # the third call: up to date
+    assert (tmp_path / ".venv" / ".installed").exists() and (tmp_path / ".venv" / ".installed-test").exists()

@@ -1,0 +1,203 @@
+"""Sources in the hub: a new source starts clean, a connect that reaches nothing stops nothing,
+recordings start at the first packet, seeking rebuilds the state, downloads always answer.
+
+The routers are exercised in process (FastAPI TestClient over a real hub)."""
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from conftest import SHARED_DATA, free_tcp_port, free_udp_port
+from groundstation.jobs.record import COL
+from groundstation.sim.fake_vehicle import FakeVehicle
+from groundstation.sim.scenarios import simulate
+from groundstation.station.app import create_app
+from groundstation.station.hub.session import Session, SessionError
+
+ROOT = Path(__file__).resolve().parent.parent
+DEMO = ROOT / "recordings" / "demo.tlog"
+
+
+def wait_for(cond, timeout=20.0, step=0.05) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(step)
+    return False
+
+
+@pytest.fixture
+def folder(tmp_path) -> Path:
+    d = tmp_path / "recordings"
+    d.mkdir()
+    shutil.copy(DEMO, d / "demo.tlog")
+    simulate("calibration", 0).write(d / "dance.tlog")          # no mission in it
+    return d
+
+
+@pytest.fixture
+def hub(folder):
+    session = Session(folder)
+    yield session
+    session.close()
+
+
+def _replay(hub: Session, path: Path, speed: float = 50.0) -> None:
+    hub.start_replay(path, speed)
+    assert wait_for(lambda: not hub.snapshot()["analysing"])
+
+
+def test_seek_rebuilds_route_alarms_and_plots(hub, folder):
+    """Demo: interference from ~150 s.  Seek to 170 s, back to 60 s, forward to 220 s: every
+    time the page gets the state of that moment (not blank, not the old plots)."""
+    _replay(hub, folder / "demo.tlog")
+    hub.replay_pause(True)
+    for t, alarms, active in ((170.0, 1, True), (60.0, 0, False), (220.0, 1, False), (5.0, 0, False)):
+        hub.replay_seek(t)
+        s = hub.snapshot()
+        assert s["t_s"] == pytest.approx(t) and s["alarm_count"] == alarms and s["alarm"]["active"] is active, t
+        route = hub.scene_data()["route"]
+        assert len(route) and t - 1.0 < route[-1, 0] <= t, t
+        plots = hub.plot_data(60.0)
+        assert t - 0.2 < plots["t_end_s"] <= t and plots["t_s"][0] >= t - 60.5, t
+        assert s["vehicle"]["roll_deg"] is not None and s["line"] is not None, t
+    hub.replay_seek(170.0)
+    [alarm] = hub.alarm_list()
+    assert alarm["end_s"] is None and 145 < alarm["start_s"] < 160
+    assert "compass heading" in alarm["evidence_text"]
+    hub.replay_seek(230.0)
+    assert hub.alarm_list()[0]["end_s"] is not None
+
+
+def test_seek_benchmark_smoke():
+    out = subprocess.run([sys.executable, "benchmarks/seek.py", "--minutes", "5", "--seeks", "5"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    worst = float(re.search(r"worst ([\d.]+) s", out.stdout).group(1))
+    assert 0.0 < worst < 2.0, out.stdout
+    assert re.search(r"\| per-sample re-run .* \| [\d.]+ \| [\d.]+ \| extrapolated \|", out.stdout), out.stdout
+
+
+def test_new_source_starts_clean(hub, folder):
+    """After the demo (line, alarm, events, wizard running) a log without a mission replays
+    with no line, no alarms, none of the demo's events; a live link starts with nothing."""
+    _replay(hub, folder / "demo.tlog")
+    hub.replay_pause(True)
+    hub.replay_seek(170.0)
+    hub.wizard_start()
+    assert hub.snapshot()["line"] is not None and hub.snapshot()["alarm"]["active"]
+    _replay(hub, folder / "dance.tlog")
+    s = hub.snapshot()
+    assert s["line"] is None and s["alarm_count"] == 0 and not s["alarm"]["active"]
+    assert s["wizard"]["state"] == "idle" and s["tests"]["path"]["state"] == "off"
+    assert not any("demo" in e["text"] or "ALARM" in e["text"] for e in s["events"])
+    report, _ = hub.analysis()
+    assert report["mission"] is None and report["max_cross_track_m"] is None
+    hub.stop()
+    hub.connect(f"udpin:127.0.0.1:{free_udp_port()}")
+    s = hub.snapshot()
+    assert s["source"]["kind"] == "live" and s["rx_age_s"] is None and s["rx_count"] == 0
+    assert s["vehicle"]["roll_deg"] is None and s["alarm_count"] == 0 and s["line"] is None
+    assert hub.plot_data(60.0)["t_s"] == [] and len(hub.scene_data()["route"]) == 0
+
+
+def test_clear_line_and_line_route(hub, folder):
+    client = TestClient(create_app(hub), base_url="http://127.0.0.1")
+    _replay(hub, folder / "demo.tlog")
+    assert client.get("/api/line").json()["source"] == "mission"
+    assert client.delete("/api/line").json()["ok"]
+    s = client.get("/api/state").json()
+    assert s["line"] is None and s["tests"]["path"] == {"state": "off", "why": "no preset line"}
+    assert wait_for(lambda: not hub.flight.needs_review(), timeout=20)       # analysed again without it
+    assert client.post("/api/line/from-mission").json()["source"] == "mission"
+
+
+def test_connect_that_reaches_nothing_stops_nothing(hub, folder, capfd):
+    """A refused TCP link fails in one line (no pymavlink retry spam); a UDP link that hears
+    nothing keeps the replay running and writes no file; its first packet switches over."""
+    _replay(hub, folder / "demo.tlog", speed=1.0)
+    port = free_tcp_port()
+    with pytest.raises(SessionError, match=f"cannot connect to 127.0.0.1:{port}: connection refused"):
+        hub.connect(f"tcp:127.0.0.1:{port}")
+    assert "Connection refused" not in capfd.readouterr().out
+    udp = free_udp_port()
+    hub.connect(f"udpin:127.0.0.1:{udp}")
+    t0 = hub.snapshot()["replay"]["t_s"]
+    time.sleep(0.6)
+    s = hub.snapshot()
+    assert s["source"]["kind"] == "replay" and s["source"]["pending"] == f"udpin:127.0.0.1:{udp}"
+    assert s["replay"]["t_s"] > t0 and list(folder.glob("session-*")) == []
+    sim = simulate("mission-clean", 0, duration_s=4.0)
+    with FakeVehicle(sim.messages, udp, speed=2.0) as fv:
+        assert wait_for(lambda: hub.snapshot()["source"]["kind"] == "live", timeout=10)
+        assert fv.finished.wait(10)
+    assert wait_for(lambda: hub.snapshot()["vehicle"]["roll_deg"] is not None, timeout=5)
+    [rec] = folder.glob("session-*.tlog")
+    assert rec.stat().st_size > 1000 and hub.snapshot()["source"]["recording"] == rec.name
+    hub.stop()                         # a stopped connect attempt leaves nothing behind either
+    hub.connect(f"udpin:127.0.0.1:{free_udp_port()}")
+    hub.stop()
+    assert len(list(folder.glob("session-*"))) == 1
+
+
+def test_downloads_of_a_ulog_replay(hub, folder):
+    """A .ulg replay: the session log is the original file; the .tlog route says why it has none."""
+    src = SHARED_DATA / "px4-pyulog" / "sample_px4_events.ulg"
+    if not src.exists():
+        pytest.skip("real logs not available")
+    shutil.copy(src, folder / "events.ulg")
+    client = TestClient(create_app(hub), base_url="http://127.0.0.1")
+    assert client.post("/api/replay/start", json={"recording": "events.ulg", "speed": 20}).status_code == 200
+    assert wait_for(lambda: not hub.snapshot()["analysing"])
+    r = client.get("/api/session/file")
+    assert r.status_code == 200 and r.content == src.read_bytes()
+    assert 'filename="events.ulg"' in r.headers["content-disposition"]
+    r = client.get("/api/session.tlog")
+    assert r.status_code == 404 and "not MAVLink" in r.json()["detail"]
+    assert client.get("/api/analysis").json()["duration_s"] > 10
+    assert client.get("/api/analysis.csv").text.startswith("t_s,")
+    s = client.get("/api/state").json()
+    assert s["downloads"] == {"log": "events.ulg", "tlog": False}
+    tl = client.get("/api/replay/timeline").json()
+    assert tl["ready"] and tl["duration_s"] > 10
+
+
+def test_gps_outage_events_only_when_the_imu_streams(hub, folder):
+    """The demo's 5 s gap between its parts is a gap in all the data, not a GPS outage; the
+    timeline shows it as a data gap."""
+    _replay(hub, folder / "demo.tlog", speed=100.0)
+    assert wait_for(lambda: hub.snapshot()["replay"]["finished"], timeout=20)
+    texts = [e["text"] for e in hub.events]
+    assert not any("GPS fix lost" in t for t in texts), texts
+    kinds = [(m["kind"], m["t_s"]) for m in hub.timeline()["markers"]]
+    assert ("gap", pytest.approx(80.0, abs=1.0)) in kinds and not any(k == "gps" for k, _ in kinds)
+
+
+def test_tests_state_and_field_correction_on_the_real_log(hub, folder):
+    """The real ArduCopter telemetry log: heading test off (2.8 Hz IMU) and said so, the field
+    corrected by the log's own in-flight fit, no path test without a line."""
+    src = SHARED_DATA / "dronekit" / "flight_replay_flight.tlog"
+    if not src.exists():
+        pytest.skip("real log not available")
+    shutil.copy(src, folder / "real.tlog")
+    _replay(hub, folder / "real.tlog")
+    hub.replay_pause(True)
+    hub.replay_seek(600.0)
+    t = hub.snapshot()["tests"]
+    assert t["heading"]["state"] == "off" and re.match(r"IMU rate 2\.\d Hz < 10 Hz", t["heading"]["why"])
+    assert t["field"]["state"] in ("on", "paused") and t["path"]["state"] == "off"
+    # the log has no dance, but its in-flight fit against the WMM is good (jobs.calibrate): the
+    # replay uses it, applied to the raw field with ArduPilot's own corrections un-applied
+    assert hub.log_calibration is not None and hub.log_calibration["method"] == "wmm_inflight"
+    assert t["field_correction"]["kind"] == "station" and "un-applied" in t["field_correction"]["note"]
+    rows = hub.flight.rows()
+    assert not np.any(rows[:, COL["heading_on"]] > 0.5)
