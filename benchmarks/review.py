@@ -6,8 +6,8 @@ throughput with 1 and 2 Dask workers measured in the same run.
 
 The fleet (``groundstation.sim.fleet``) is generated once into ``--fleet DIR`` and reused.  Then:
 1. a plain loop over ``--serial-logs`` logs in this process (the peer: no Dask, as `magstation
-   calibrate` loops today), once with each in-flight fit (ours, and the real-logs WMM fit as peer),
-   scored against the truth on flights without interference away from the anomaly site;
+   calibrate` loops today), its in-flight fit (``jobs.calibrate``'s WMM fit with the review's
+   settings) scored against the truth on flights without interference away from the anomaly site;
 2. review of the whole fleet with 2 workers, scored against the truth (``groundstation.sim.fleet_score``);
 3. review with 1 worker and with 2 workers of the first ``--throughput-logs`` logs (default all: then
    the 2-worker figure is run 2's), each a fresh LocalCluster and a fresh history.
@@ -49,7 +49,8 @@ def ensure_fleet(directory: Path, vehicles: int, flights: int, seed: int) -> tup
     if truth_file.is_file():
         truth = json.loads(truth_file.read_text())
         s = truth["settings"]
-        if (s["vehicles"], s["flights"], s["seed"]) == (vehicles, flights, seed):
+        if (s["vehicles"], s["flights"], s["seed"], s.get("yaw_sweep_deg_s")) == (
+                vehicles, flights, seed, FleetSettings.yaw_sweep_deg_s):
             return truth, None
     settings = FleetSettings(vehicles=vehicles, flights=flights, seed=seed,
                              drift_vehicles=min(3, vehicles - 1), payload_vehicles=1 if vehicles > 1 else 0)
@@ -76,16 +77,16 @@ def timed_review(logs: list[Path], workers: int, db: Path, mapping) -> tuple[obj
                      "load_after": load_avg(), "rss_MB": per_worker, "rows": rows}
 
 
-def serial_peer(logs: list[Path], truth: dict, model: str) -> dict:
-    """A plain loop (no Dask) of the per-log job with in-flight fit ``model``; its accuracy on the
-    flights without interference away from anomaly sites."""
+def serial_peer(logs: list[Path], truth: dict) -> dict:
+    """A plain loop (no Dask) of the per-log job; its in-flight fit's accuracy on the flights
+    without interference away from anomaly sites."""
     before = load_avg()
     by_file = {f["file"]: f for f in truth["flights"]}
     anomalous = {s["name"] for s in truth["sites"] if s["anomaly_ned_mG"]}
     t0 = time.perf_counter()
     flight_s, ofs_err, motor_err = 0.0, [], []
     for p in logs:
-        head = review_log(p, ReviewSettings(fit_model=model))[0]
+        head = review_log(p, ReviewSettings())[0]
         if head.get("status") == "ok":
             flight_s += head.get("duration_s") or 0.0
         f = by_file.get(f"{p.parent.name}/{p.name}")
@@ -107,7 +108,7 @@ def verdict(ok: bool) -> str:
     return "met" if ok else "MISSED"
 
 
-def table(score: dict, one, two, full, serial: dict, wmm: dict, generated_s: float | None, flights_total: int,
+def table(score: dict, one, two, full, serial: dict, generated_s: float | None, flights_total: int,
           timed_logs: int) -> list[str]:
     d, p, s, i, c, f = (score[k] for k in ("drift", "payload", "anomaly_sites", "interference", "corrupt", "fit"))
     s1, m1 = one
@@ -133,12 +134,9 @@ def table(score: dict, one, two, full, serial: dict, wmm: dict, generated_s: flo
          "(reported)", ""),
         ("motor field per A error, median", f"{100 * f['motor_rel_error_median']:.1f} %", "(reported)", ""),
         ("serial loop, no Dask (peer)", f"{serial['logs_per_s']:.2f} logs/s ({serial['logs']} logs)", "", ""),
-        ("in-flight fit residual_matrix (ours, default): offsets median / p90, motor",
+        ("in-flight WMM fit, serial loop: offsets median / p90, motor",
          f"{serial['ofs_med']:.1f} / {serial['ofs_p90']:.1f} mG, {100 * serial['motor_med']:.1f} % "
-         f"({serial['fitted']} flights, {serial['s_per_flight_min']:.3f} s per flight-minute)", "(reported)", ""),
-        ("in-flight fit wmm (estimators.wmm_fit, peer): offsets median / p90, motor",
-         f"{wmm['ofs_med']:.1f} / {wmm['ofs_p90']:.1f} mG, {100 * wmm['motor_med']:.1f} % "
-         f"({wmm['fitted']} flights, {wmm['s_per_flight_min']:.3f} s per flight-minute)", "(reported)", ""),
+         f"({serial['fitted']} flights)", "(reported)", ""),
         (f"1 worker ({timed_logs} logs)", f"{m1['logs_per_s']:.2f} logs/s ({m1['wall_s']:.0f} s)", "", ""),
         (f"2 workers ({timed_logs} logs)", f"{m2['logs_per_s']:.2f} logs/s ({m2['wall_s']:.0f} s)", "", ""),
         ("2 workers / 1 worker", f"{speedup:.2f}x", f">= {TARGET_SPEEDUP}x", verdict(speedup >= TARGET_SPEEDUP)),
@@ -174,8 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     truth, generated_s = ensure_fleet(fleet, a.vehicles, a.flights, a.seed)
     mapping = load_airframes(fleet / "airframes.json")
     logs = discover_logs([fleet])[: a.max_logs]
-    serial = serial_peer(logs[: a.serial_logs], truth, "residual_matrix")
-    wmm = serial_peer(logs[: a.serial_logs], truth, "wmm")
+    serial = serial_peer(logs[: a.serial_logs], truth)
     subset = logs[: a.throughput_logs] if a.throughput_logs else logs
     with tempfile.TemporaryDirectory() as tmp:
         full = timed_review(logs, 2, Path(tmp) / "full.sqlite", mapping)
@@ -184,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
         one = timed_review(subset, 1, Path(tmp) / "one.sqlite", mapping)
         two = full if subset == logs else timed_review(subset, 2, Path(tmp) / "two.sqlite", mapping)
     score = score_review(truth, full[1]["rows"], alerts)
-    print("\n".join(table(score, one, two, full, serial, wmm, generated_s, len(truth["flights"]), len(subset))))
+    print("\n".join(table(score, one, two, full, serial, generated_s, len(truth["flights"]), len(subset))))
     missed = {k: v for k, v in score.items() if isinstance(v, dict) and (v.get("missed") or v.get("false")
                                                                         or v.get("not_reported"))}
     if missed:

@@ -349,3 +349,53 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
         assert main(argv) == 1, argv
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and text in err and "Traceback" not in err, (argv, err)
+
+
+# ------------------------------------------------------------------ the station records what it writes
+def test_a_calibration_written_to_the_vehicle_enters_its_airframe_history(tmp_path, monkeypatch):
+    """The wizard's result written to an ArduPilot fake vehicle (PARAM_SET confirmed by echo) is
+    appended to the compass history in the recordings folder, under the airframe name the review
+    gave that board serial, with every compass's offsets, matrix, fitness, WMM field and place."""
+    from conftest import free_udp_port
+    from groundstation.sim.fake_autopilot import default_params
+    from groundstation.sim.fake_vehicle import FakeVehicle
+    from groundstation.sim.vehicle_streams import guided_dance_attitude, make_hardware, pack_stream, three_compasses
+    from groundstation.station.hub.session import Session
+
+    monkeypatch.delenv("MAGSTATION_FLEET_DB", raising=False)
+    db = tmp_path / fleet_db.DB_NAME
+    with closing(fleet_db.connect(db)) as con:           # the review saw this board as AF-07
+        fleet_db.upsert_rows(con, [dict(fleet_db.empty_row(), log_hash="a" * 64, compass=0, status="ok",
+                                        identity="serial:4242", airframe="AF-07", start_unix_s=1.0)])
+    hw = make_hardware(three_compasses())
+    params = default_params("ardupilot", 3) | {"BRD_SERIAL_NUM": 4242.0}
+    session = Session(tmp_path, record_live=False)
+    port = free_udp_port()
+    session.connect(f"udpin:127.0.0.1:{port}")
+    session.wizard_start()
+    fv = FakeVehicle(pack_stream(guided_dance_attitude(rate_hz=12.5), hw), port, speed=8.0, params=params).start()
+    try:
+        deadline = time.monotonic() + 90
+        while session.snapshot()["wizard"]["state"] != "result" and time.monotonic() < deadline:
+            time.sleep(0.1)
+        w = session.snapshot()["wizard"]
+        assert w["state"] == "result" and w["result"]["status"] == "ok", w["result"]
+        assert session.wizard_accept()["state"] == "writing"
+        deadline = time.monotonic() + 30
+        while not any("fleet history" in e["text"] for e in session.events) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        pw = session.snapshot()["wizard"]["param_write"]
+        events = [e["text"] for e in session.events]
+    finally:
+        fv.stop()
+        session.close()
+    assert pw["state"] == "written", pw
+    assert any("calibration added to the fleet history of AF-07" in t for t in events), events
+    with closing(fleet_db.connect(db, read_only=True)) as con:
+        cals = fleet_db.calibration_rows(con, airframe="AF-07")
+    assert [c["compass"] for c in cals] == [0, 1, 2] and all(c["written_to_vehicle"] == 1 for c in cals)
+    for c, truth in zip(cals, hw.compasses):
+        np.testing.assert_allclose([c[f"ofs_{a}_mG"] for a in "xyz"], truth.offsets_mG, atol=3.0)
+        assert np.asarray(c["matrix"]).shape == (3, 3) and 0 < c["fitness_mG"] < 10
+        assert 200 < c["wmm_strength_mG"] < 700 and -90 < c["wmm_inclination_deg"] < 90
+        assert c["lat_deg"] is not None and c["source"] == "station"

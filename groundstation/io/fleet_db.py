@@ -26,9 +26,11 @@ import sqlite3
 from pathlib import Path
 from typing import Iterable, Sequence
 
+from groundstation.paths import RECORDINGS_DIR
+
 __all__ = ["ROW_COLUMNS", "CALIBRATION_COLUMNS", "ALERT_COLUMNS", "SCHEMA_VERSION", "connect", "upsert_rows",
            "known_hashes", "flight_rows", "insert_calibration", "calibration_rows",
-           "alert_rows", "airframe_summary", "set_airframes", "empty_row", "default_db_path", "replace_findings",
+           "alert_rows", "airframe_summary", "airframe_of_identity", "DB_NAME", "set_airframes", "empty_row", "default_db_path", "replace_findings",
            "site_rows", "worst_flight_rows", "concern_key"]
 
 SCHEMA_VERSION = 1
@@ -47,8 +49,9 @@ ROW_COLUMNS: tuple[tuple[str, str], ...] = tuple([
     ("autopilot", "TEXT"), ("sysid", "INTEGER"), ("serial", "TEXT"), ("board_uid", "TEXT"), ("compasses", "INTEGER"),
     ("start_unix_s", "REAL"), ("date", "TEXT"), ("duration_s", "REAL"),
     ("lat_deg", "REAL"), ("lon_deg", "REAL"), ("alt_m", "REAL"),
-    ("cal_state", "TEXT"), *_vec("cal_ofs", "mG"),
-    ("fit_model", "TEXT"), ("fit_status", "TEXT"), ("fit_samples", "INTEGER"), ("fit_yaw_dependence", "REAL"), *_vec("fit_ofs", "mG"), *_vec("fit_ofs_sd", "mG"),
+    ("device_id", "INTEGER"), ("compass_source", "TEXT"), ("cal_state", "TEXT"), *_vec("cal_ofs", "mG"),
+    ("fit_model", "TEXT"), ("fit_status", "TEXT"), ("fit_samples", "INTEGER"), ("fit_yaw_dependence", "REAL"),
+    ("fit_heading_coverage", "REAL"), *_vec("fit_ofs", "mG"), *_vec("fit_ofs_sd", "mG"), ("motor_status", "TEXT"),
     *_vec("ofs_change", "mG"), ("ofs_change_mG", "REAL"), ("fit_residual_rms_mG", "REAL"),
     *_vec("motor", "mG_per_A"), ("motor_sd_mG_per_A", "REAL"), ("current_max_A", "REAL"), ("interference_pct", "REAL"),
     ("wmm_strength_mG", "REAL"), ("wmm_inclination_deg", "REAL"), ("wmm_declination_deg", "REAL"),
@@ -79,10 +82,16 @@ ALERT_COLUMNS: tuple[tuple[str, str], ...] = tuple([
 ])
 
 
-def default_db_path() -> Path:
-    """Where review and the station meet: $MAGSTATION_FLEET_DB, else ~/.magstation/fleet.sqlite."""
+DB_NAME = "fleet.sqlite"
+
+
+def default_db_path(folder: str | Path | None = None) -> Path:
+    """Where review and the station meet: $MAGSTATION_FLEET_DB when set, else ``fleet.sqlite`` in
+    ``folder`` (the station's recordings folder; default ``groundstation.paths.RECORDINGS_DIR``)."""
     env = os.environ.get("MAGSTATION_FLEET_DB")
-    return Path(env).expanduser() if env else Path.home() / ".magstation" / "fleet.sqlite"
+    if env:
+        return Path(env).expanduser()
+    return Path(folder if folder is not None else RECORDINGS_DIR) / DB_NAME
 
 SITE_COLUMNS: tuple[tuple[str, str], ...] = (
     ("name", "TEXT"), ("lat_deg", "REAL"), ("lon_deg", "REAL"), ("flights", "INTEGER"), ("airframes_json", "TEXT"),
@@ -247,11 +256,18 @@ def alert_rows(con: sqlite3.Connection) -> list[dict]:
     return [dict(r) for r in con.execute("SELECT * FROM alerts ORDER BY kind, airframe, unix_s")]
 
 
+def airframe_of_identity(con: sqlite3.Connection, identity: str) -> str | None:
+    """The airframe name the history last gave a vehicle identity (``serial:N``, ``uid:...``), or None."""
+    row = con.execute("SELECT airframe FROM flights WHERE identity = ? AND airframe IS NOT NULL "
+                      "ORDER BY start_unix_s DESC LIMIT 1", (identity,)).fetchone()
+    return row[0] if row else None
+
+
 def airframe_summary(con: sqlite3.Connection) -> list[dict]:
     """Per airframe: flights, failed logs, first/last date, alarms, latest offset change and interference."""
     sql = """
-        SELECT COALESCE(airframe, '(unreadable logs)') AS airframe, COUNT(*) AS flights,
-               SUM(status NOT IN ('ok', 'no_mag')) AS failed,
+        SELECT COALESCE(airframe, '(unreadable logs)') AS airframe, COUNT(DISTINCT log_hash) AS flights,
+               COUNT(DISTINCT CASE WHEN status NOT IN ('ok', 'no_mag') THEN log_hash END) AS failed,
                MIN(start_unix_s) AS first_unix_s, MAX(start_unix_s) AS last_unix_s,
                SUM(COALESCE(alarm_count, 0)) AS alarms,
                AVG(interference_pct) AS mean_interference_pct,

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import json
 import math
+import sqlite3
 import time
 from contextlib import closing
 from dataclasses import asdict, dataclass
@@ -49,8 +50,10 @@ import numpy as np
 
 from estimators.detection import ned_from_lla
 from groundstation.io import fleet_db
+from groundstation.jsonsafe import jsonable
 
 __all__ = ["DriftSettings", "FleetFindings", "analyse_fleet", "refresh_alerts", "record_calibration",
+           "record_calibrations", "history_airframe",
            "assign_sites"]
 
 XYZ = ("x", "y", "z")
@@ -64,7 +67,7 @@ class DriftSettings:
     sigma_k: float = 5.0
     floor_mG: float = 10.0
     min_scatter_mG: float = 1.0
-    max_fit_sd_mG: float = 5.0
+    max_fit_sd_mG: float = 15.0        # the review's own limit (review_row.REVIEW_CALIBRATE)
     fit_sd_ratio: float = 2.0          # flights whose fit sd is above this × the airframe's median are left out
     site_radius_km: float = 2.0
     anomaly_strength_mG: float = 15.0
@@ -89,6 +92,12 @@ def _col(rows: list[dict], name: str) -> np.ndarray:
 
 def _vec(rows: list[dict], prefix: str, unit: str = "mG") -> np.ndarray:
     return np.stack([_col(rows, f"{prefix}_{a}_{unit}") for a in XYZ], axis=1) if rows else np.zeros((0, 3))
+
+
+def _finite_median(values: np.ndarray) -> float:
+    """Median of the finite values; NaN (no warning) when there are none."""
+    v = values[np.isfinite(values)]
+    return float(np.median(v)) if len(v) else float("nan")
 
 
 def _scatter(values: np.ndarray, floor: float) -> np.ndarray:
@@ -223,7 +232,7 @@ def _distinct_clean_flights(rows: list[dict], same_flight_s: float) -> list[dict
 def _drift_in_segment(seg: list[dict], site_of: dict, site_offsets: dict, anomalous: set[str],
                       s: DriftSettings) -> dict | None:
     seg = [r for r in _distinct_clean_flights(seg, s.same_flight_s) if site_of.get(r["log_hash"]) not in anomalous]
-    sd = np.nanmax(_vec(seg, "fit_ofs_sd"), axis=1) if seg else np.zeros(0)
+    sd = np.fmax.reduce(_vec(seg, "fit_ofs_sd"), axis=1) if seg else np.zeros(0)   # NaN only when all are
     typical = float(np.nanmedian(sd)) if np.isfinite(sd).any() else np.inf
     limit = min(s.max_fit_sd_mG, s.fit_sd_ratio * typical)
     use = [r for r, v in zip(seg, sd) if np.isfinite(v) and v <= limit]
@@ -268,13 +277,13 @@ def _payload_alert(rows: list[dict], s: DriftSettings) -> dict | None:
     z, j, delta = best
     if j is None:
         return None
-    current = float(np.nanmedian(_col(rows, "current_max_A")))
-    strength = float(np.nanmedian(_col(rows, "wmm_strength_mG")))
+    current = _finite_median(_col(rows, "current_max_A"))
+    strength = _finite_median(_col(rows, "wmm_strength_mG"))
     pct = float(np.linalg.norm(delta)) * current / strength * 100.0 if strength > 0 else float("nan")
     if z <= s.sigma_k or not pct >= s.payload_floor_pct:
         return None
     r = rows[j]
-    before, after = np.nanmedian(_col(rows[:j], "interference_pct")), np.nanmedian(_col(rows[j:], "interference_pct"))
+    before, after = _finite_median(_col(rows[:j], "interference_pct")), _finite_median(_col(rows[j:], "interference_pct"))
     return _alert("payload_change", f"{r['airframe']}: motor-current field changed by {np.linalg.norm(delta):.2f} mG/A "
                   f"from {r.get('date') or 'this flight'} on (interference {before:.0f} % -> {after:.0f} % of the Earth field)",
                   airframe=r["airframe"], unix_s=r.get("start_unix_s"), log_hash=r["log_hash"], value=pct,
@@ -342,28 +351,50 @@ def refresh_alerts(con, settings: DriftSettings = DriftSettings()) -> FleetFindi
     return findings
 
 
-def record_calibration(db_path: str | Path, airframe: str, result: dict, *, compass: int = 0,
-                       written_to_vehicle: bool = True, source: str = "station", unix_s: float | None = None,
-                       lat_deg: float | None = None, lon_deg: float | None = None, site: str | None = None,
-                       settings: DriftSettings = DriftSettings()) -> dict:
-    """Append an accepted calibration (the calibrate JSON object: offsets_mG, matrix, residual_rms_mG,
-    expected_field_mG, misalignment_deg, orientation ...) to the airframe's history and refresh the
-    alerts.  Returns {"id": record id, "alerts": alerts of this airframe}.  Raises ValueError when
-    the result holds no offsets."""
+def _calibration_record(airframe: str, compass: int, result: dict, unix_s: float, **where) -> dict:
     offsets = result.get("offsets_mG")
     if not offsets or len(offsets) != 3 or not all(v is not None and math.isfinite(v) for v in offsets):
-        raise ValueError("the calibration result holds no finite offsets_mG")
-    record = {"airframe": airframe, "unix_s": time.time() if unix_s is None else float(unix_s), "source": source,
-              "compass": int(compass), **{f"ofs_{a}_mG": float(v) for a, v in zip(XYZ, offsets)},
-              "matrix_json": json.dumps(result.get("matrix")), "fitness_mG": result.get("residual_rms_mG"),
-              "orientation": json.dumps(result.get("orientation", result.get("misalignment_deg"))),
-              "wmm_strength_mG": result.get("expected_field_mG"), "wmm_inclination_deg": result.get("expected_inclination_deg"),
-              "wmm_declination_deg": result.get("expected_declination_deg"), "lat_deg": lat_deg, "lon_deg": lon_deg,
-              "site": site, "written_to_vehicle": int(bool(written_to_vehicle)), "note": result.get("message")}
+        raise ValueError(f"the calibration result of compass {compass} holds no finite offsets_mG")
+    return {"airframe": airframe, "unix_s": unix_s, "compass": int(compass),
+            **{f"ofs_{a}_mG": float(v) for a, v in zip(XYZ, offsets)},
+            "matrix_json": json.dumps(jsonable(result.get("matrix"))), "fitness_mG": result.get("residual_rms_mG"),
+            "orientation": json.dumps(jsonable(result.get("orientation", result.get("misalignment_deg")))),
+            "wmm_strength_mG": result.get("expected_field_mG"),
+            "wmm_inclination_deg": result.get("expected_inclination_deg"),
+            "wmm_declination_deg": result.get("expected_declination_deg"), "note": result.get("message"), **where}
+
+
+def record_calibrations(db_path: str | Path, airframe: str, results: dict[int, dict], *, written_to_vehicle: bool = True,
+                        source: str = "station", unix_s: float | None = None, lat_deg: float | None = None,
+                        lon_deg: float | None = None, site: str | None = None,
+                        settings: DriftSettings = DriftSettings()) -> dict:
+    """Append accepted calibrations ({compass: the calibrate JSON object: offsets_mG, matrix,
+    residual_rms_mG, expected_field_mG / _inclination_deg / _declination_deg, orientation ...}) to the
+    airframe's history and refresh the alerts once.  Returns {"ids": record ids, "alerts": alerts of
+    this airframe}.  Raises ValueError when a result holds no offsets (nothing is written then)."""
+    when = time.time() if unix_s is None else float(unix_s)
+    records = [_calibration_record(airframe, k, r, when, source=source, lat_deg=lat_deg, lon_deg=lon_deg, site=site,
+                                   written_to_vehicle=int(bool(written_to_vehicle))) for k, r in sorted(results.items())]
     with closing(fleet_db.connect(db_path)) as con:
-        rid = fleet_db.insert_calibration(con, record)
+        ids = [fleet_db.insert_calibration(con, rec) for rec in records]
         findings = refresh_alerts(con, settings)
-    return {"id": rid, "alerts": [a for a in findings.alerts if a["airframe"] == airframe]}
+    return {"ids": ids, "alerts": [a for a in findings.alerts if a["airframe"] == airframe]}
+
+
+def record_calibration(db_path: str | Path, airframe: str, result: dict, *, compass: int = 0, **kw) -> dict:
+    """One compass's calibration (``record_calibrations``); returns {"id", "alerts"}."""
+    out = record_calibrations(db_path, airframe, {compass: result}, **kw)
+    return {"id": out["ids"][0], "alerts": out["alerts"]}
+
+
+def history_airframe(db_path: str | Path, identity: str) -> str:
+    """The name a vehicle identity (``airframes.identity_key``) has in the history (the review's
+    airframe mapping), else the identity itself."""
+    try:
+        with closing(fleet_db.connect(db_path, read_only=True)) as con:
+            return fleet_db.airframe_of_identity(con, identity) or identity
+    except (FileNotFoundError, sqlite3.Error):
+        return identity
 
 
 def settings_dict(settings: DriftSettings) -> dict:

@@ -3,7 +3,8 @@
 ``simulate_fleet(out_dir, FleetSettings(...))`` writes ``<out>/<airframe>/flight-NNN.tlog`` for every
 vehicle and flight, ``<out>/airframes.json`` (the operator's mapping: board serial -> airframe name
 and payload) and ``<out>/fleet.truth.json`` (everything planted).  Each flight is a short closed-loop
-mission of ``groundstation.sim.scenarios.simulate("mission-clean", ...)`` with the vehicle's own
+mission of ``groundstation.sim.scenarios.simulate("mission-clean", ...)`` (the nose turning at
+``yaw_sweep_deg_s`` so that the in-flight WMM fit sees every heading) with the vehicle's own
 sensor errors, re-shaped the way an ArduPilot vehicle would log it:
 
 * the streamed field is the *corrected* one, with the calibration in force (COMPASS_OFS/DIA/ODI
@@ -76,6 +77,7 @@ class FleetSettings:
     corrupt_files: int = 5
     leg_length_m: float = 100.0
     hover_s: float = 10.0
+    yaw_sweep_deg_s: float = 10.0                       # the nose turns through the flight (headings for the WMM fit)
 
     def __post_init__(self) -> None:
         if self.vehicles < 1 or self.flights < 2:
@@ -105,6 +107,7 @@ class FlightPlan:
     interference: dict | None = None
     leg_length_m: float = 150.0
     hover_s: float = 10.0
+    yaw_sweep_deg_s: float = 0.0
 
     @property
     def file(self) -> str:
@@ -176,7 +179,7 @@ def _vehicle_plans(settings: FleetSettings, v: int, role: str, rng: np.random.Ge
             matrix=tuple(map(tuple, mag.matrix.tolist())), offsets_mG=tuple((b0 + drift * k).tolist()),
             motor_mG_per_A=tuple(np.asarray(motor, float).tolist()), cal_offsets_mG=tuple(cal_b.tolist()),
             cal_matrix=tuple(map(tuple, cal_C.tolist())), interference=interf,
-            leg_length_m=settings.leg_length_m, hover_s=settings.hover_s))
+            leg_length_m=settings.leg_length_m, hover_s=settings.hover_s, yaw_sweep_deg_s=settings.yaw_sweep_deg_s))
     return plans
 
 
@@ -270,7 +273,8 @@ def write_flight(plan: FlightPlan, out_dir: str | Path) -> dict:
                       motor_mG_per_A=np.array(plan.motor_mG_per_A))
     over = dict(duration_s=plan.duration_s, mag=mag, origin_lat_deg=plan.site.lat_deg,
                 origin_lon_deg=plan.site.lon_deg, leg_bearing_deg=plan.leg_bearing_deg,
-                mean_wind_mps=plan.wind_mps, leg_length_m=plan.leg_length_m, hover_s=plan.hover_s)
+                mean_wind_mps=plan.wind_mps, leg_length_m=plan.leg_length_m, hover_s=plan.hover_s,
+                yaw_sweep_deg_s=plan.yaw_sweep_deg_s)
     if interf is not None:
         over["interference"] = interf
     sim = simulate("mission-clean", plan.seed, **over)
