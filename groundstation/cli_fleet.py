@@ -31,9 +31,6 @@ def add_review_parser(sub) -> None:
     p.add_argument("--force", action="store_true", help="review logs already in the history again")
     p.add_argument("--timeout", type=float, default=600.0, metavar="S", help="per-log time limit (default 600 s)")
     p.add_argument("--memory-limit", default="2GiB", help="per local worker (default 2GiB)")
-    p.add_argument("--fit", default="residual_matrix", choices=("residual_matrix", "wmm"),
-                   help="in-flight compass fit: residual_matrix (corrections in force as prior; default) or wmm "
-                        "(the real-logs WMM fit, yaw-free unless the yaw is independent)")
     p.set_defaults(func=cmd_review)
 
 
@@ -109,7 +106,6 @@ def cmd_review(args: argparse.Namespace) -> int:
     from groundstation.jobs.compass_history import analyse_fleet
     from groundstation.jobs.fleet import discover_logs, fleet_client, run_review
     from groundstation.jobs.fleet_report import write_html, write_parquet
-    from groundstation.jobs.review_row import ReviewSettings
 
     if args.workers < 1:
         raise ValueError("--workers must be at least 1")
@@ -126,8 +122,7 @@ def cmd_review(args: argparse.Namespace) -> int:
         print(f"Dask dashboard: {dashboard or 'not available (install bokeh)'}; {total} logs", file=sys.stderr)
         try:
             summary = run_review(client, args.paths, db, force=args.force, airframes=airframes,
-                                 timeout_s=args.timeout, on_progress=progress, dashboard=dashboard,
-                                 settings=ReviewSettings(fit_model=args.fit))
+                                 timeout_s=args.timeout, on_progress=progress, dashboard=dashboard)
         finally:
             progress.close()
     with closing(fleet_db.connect(db, read_only=True)) as con:

@@ -31,8 +31,9 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
     out = tmp_path_factory.mktemp("fleet")
-    settings = FleetSettings(vehicles=3, flights=8, drift_vehicles=1, payload_vehicles=1, flight_s=(66.0, 70.0),
-                             interference_fraction=0.15, corrupt_files=5, seed=3, drift_total_mG=70.0)
+    settings = FleetSettings(vehicles=3, flights=10, drift_vehicles=1, payload_vehicles=1, flight_s=(66.0, 70.0),
+                             interference_fraction=0.1, anomaly_visit_fraction=0.15, corrupt_files=5, seed=3,
+                             drift_total_mG=70.0)
     truth = simulate_fleet(out, settings, workers=2)
     return out, truth
 

@@ -13,21 +13,21 @@ Method (rows = ``groundstation.io.fleet_db`` flight rows with status "ok"):
   offsets gives each site's apparent offset (a local field adds a body-fixed vector in level
   flight), removed before the drift test; flights at an anomaly site are left out of it altogether
   (how much of the local field goes into the fitted offsets depends on the headings flown).
-* **Offset drift**: per airframe and calibration segment (a recorded calibration, or a change of the
-  corrections in force in the logs, starts a segment), the median of the fitted offsets over the
-  last ``window_flights`` flights is compared with the median over the first ``window_flights``
-  (W = 3 or 4 when a segment holds fewer than 2 × ``window_flights`` flights).
-  Alarm when |Δ| > max(``floor_mG``, ``sigma_k`` · s), s = 1.2533 · σ · √(2 / W): σ the airframe's
+* **Offset drift**: per airframe, compass and calibration segment (a recorded calibration, or a
+  change of the corrections in force in the logs, starts a segment), the median of the fitted
+  offsets over the last ``window_flights`` flights is compared with the median over the first
+  ``window_flights`` (W = 3 or 4 when a segment holds fewer than 2 × ``window_flights`` flights).
+  Alarm when |Δ| > max(``floor_mG``, ``sigma_k`` · s), s = 1.2533 · σ · √(2 / W): σ the compass's
   flight-to-flight scatter per axis (robust: 1.4826 · MAD of successive differences / √2, so a slow
   drift does not inflate it; never below ``min_scatter_mG``), 1.2533 the standard error factor of a
   median.  Under no drift each axis of Δ/s is ≈ N(0, 1), so |Δ|/s follows a χ law with 3 degrees of
   freedom: P(χ₃ > 5) = 1.5e-5 per test, ≈ 1.5 % for a thousand tests (20 airframes × 50 flights).
-  The fit's own noise sd (``fit_ofs_sd_*``, from the sensor noise) is 5–20× smaller than the
-  flight-to-flight scatter (attitude errors, soft-iron terms the short flights cannot separate);
-  flights whose fit sd exceeds ``max_fit_sd_mG`` or ``fit_sd_ratio`` × the airframe's median fit
-  sd are left out (the headings flown did not separate the offsets: on the simulated fleet these
-  are the legs along magnetic east–west, 15–55 mG off against 2–5 mG for the rest), and so are flights with an interference alarm (the fit saw the disturbance) and
-  second copies of a flight (a GCS .tlog beside the onboard .bin: same airframe, same start).
+  The fit's own sd (``fit_ofs_sd_*``) is smaller than the flight-to-flight scatter (the site,
+  misalignment, the headings flown); flights whose fit sd exceeds ``max_fit_sd_mG`` or
+  ``fit_sd_ratio`` × the compass's median fit sd are left out, and so are second copies of a
+  flight (a GCS .tlog beside the onboard .bin: same airframe, same start).  Flights with an
+  interference alarm stay in: a drifting compass itself raises heading alarms once the nose turns,
+  and leaving those out would hide the drift; the medians absorb a disturbed flight.
 * **Calibration change**: each recorded calibration against the previous one of the same
   airframe and compass, alarm above ``floor_mG`` + ``sigma_k`` · √(f₁² + f₂²) (f: fitness, mG).
 * **Payload change**: the fitted motor field per ampere over an airframe's flights; the split that
@@ -92,6 +92,12 @@ def _col(rows: list[dict], name: str) -> np.ndarray:
 
 def _vec(rows: list[dict], prefix: str, unit: str = "mG") -> np.ndarray:
     return np.stack([_col(rows, f"{prefix}_{a}_{unit}") for a in XYZ], axis=1) if rows else np.zeros((0, 3))
+
+
+def _compass_name(row: dict) -> str:
+    """"AF-01" for the first compass, "AF-01 compass 2" for the others."""
+    k = row.get("compass") or 0
+    return row["airframe"] + (f" compass {k + 1}" if k else "")
 
 
 def _finite_median(values: np.ndarray) -> float:
@@ -214,13 +220,11 @@ def _segments(rows: list[dict], cal_times: list[float]) -> list[list[dict]]:
     return [g for g in segs if g]
 
 
-def _distinct_clean_flights(rows: list[dict], same_flight_s: float) -> list[dict]:
-    """An airframe's rows (time order) without interference alarms, one per flight: a flight logged
-    twice (the GCS .tlog and the onboard .bin, or a damaged copy) keeps the row with fewer warnings."""
+def _distinct_flights(rows: list[dict], same_flight_s: float) -> list[dict]:
+    """A compass's rows (time order), one per flight: a flight logged twice (the GCS .tlog and the
+    onboard .bin, or a damaged copy) keeps the row with fewer warnings."""
     out: list[dict] = []
     for r in rows:
-        if (r.get("alarm_count") or 0) > 0:
-            continue
         if out and abs((r.get("start_unix_s") or 0.0) - (out[-1].get("start_unix_s") or 0.0)) < same_flight_s:
             if (r.get("warnings") is None) and out[-1].get("warnings") is not None:
                 out[-1] = r
@@ -231,7 +235,7 @@ def _distinct_clean_flights(rows: list[dict], same_flight_s: float) -> list[dict
 
 def _drift_in_segment(seg: list[dict], site_of: dict, site_offsets: dict, anomalous: set[str],
                       s: DriftSettings) -> dict | None:
-    seg = [r for r in _distinct_clean_flights(seg, s.same_flight_s) if site_of.get(r["log_hash"]) not in anomalous]
+    seg = [r for r in _distinct_flights(seg, s.same_flight_s) if site_of.get(r["log_hash"]) not in anomalous]
     sd = np.fmax.reduce(_vec(seg, "fit_ofs_sd"), axis=1) if seg else np.zeros(0)   # NaN only when all are
     typical = float(np.nanmedian(sd)) if np.isfinite(sd).any() else np.inf
     limit = min(s.max_fit_sd_mG, s.fit_sd_ratio * typical)
@@ -249,7 +253,7 @@ def _drift_in_segment(seg: list[dict], site_of: dict, site_offsets: dict, anomal
         size = float(np.linalg.norm(delta))
         if z > s.sigma_k and size > s.floor_mG:
             r = use[j]
-            return _alert("offset_drift", f"{r['airframe']}: fitted offsets moved {size:.0f} mG "
+            return _alert("offset_drift", f"{_compass_name(r)}: fitted offsets moved {size:.0f} mG "
                           f"({', '.join(f'{v:+.0f}' for v in delta)} mG) since {use[0].get('date') or 'the first flight'}"
                           f"; {z:.1f} sigma (flight-to-flight sigma {', '.join(f'{v:.1f}' for v in sigma)} mG)",
                           airframe=r["airframe"], unix_s=r.get("start_unix_s"), log_hash=r["log_hash"],
@@ -259,7 +263,7 @@ def _drift_in_segment(seg: list[dict], site_of: dict, site_offsets: dict, anomal
 
 
 def _payload_alert(rows: list[dict], s: DriftSettings) -> dict | None:
-    rows = _distinct_clean_flights(rows, s.same_flight_s)
+    rows = _distinct_flights(rows, s.same_flight_s)
     k = _vec(rows, "motor", "mG_per_A")
     keep = np.all(np.isfinite(k), axis=1)
     rows, k = [r for r, ok in zip(rows, keep) if ok], k[keep]
@@ -284,7 +288,7 @@ def _payload_alert(rows: list[dict], s: DriftSettings) -> dict | None:
         return None
     r = rows[j]
     before, after = _finite_median(_col(rows[:j], "interference_pct")), _finite_median(_col(rows[j:], "interference_pct"))
-    return _alert("payload_change", f"{r['airframe']}: motor-current field changed by {np.linalg.norm(delta):.2f} mG/A "
+    return _alert("payload_change", f"{_compass_name(r)}: motor-current field changed by {np.linalg.norm(delta):.2f} mG/A "
                   f"from {r.get('date') or 'this flight'} on (interference {before:.0f} % -> {after:.0f} % of the Earth field)",
                   airframe=r["airframe"], unix_s=r.get("start_unix_s"), log_hash=r["log_hash"], value=pct,
                   threshold=s.payload_floor_pct, sigma=z, unit="% of Earth field")
@@ -327,12 +331,12 @@ def analyse_fleet(rows: list[dict], calibrations: list[dict] = (), settings: Dri
     alerts, site_offsets = _site_alerts(ok, sites, site_of, settings) if ok else ([], {})
     cals = sorted(calibrations, key=lambda c: (c.get("unix_s") or 0.0))
     anomalous = {site["name"] for site in sites if site.get("anomaly")}
-    by_airframe: dict[str, list[dict]] = {}
+    by_compass: dict[tuple[str, int], list[dict]] = {}
     for r in ok:
-        if (r.get("compass") or 0) == 0:
-            by_airframe.setdefault(r["airframe"], []).append(r)
-    for airframe, mine in sorted(by_airframe.items()):
-        for seg in _segments(mine, [c["unix_s"] for c in cals if c["airframe"] == airframe]):
+        by_compass.setdefault((r["airframe"], r.get("compass") or 0), []).append(r)
+    for (airframe, compass), mine in sorted(by_compass.items()):
+        cal_times = [c["unix_s"] for c in cals if c["airframe"] == airframe and (c.get("compass") or 0) == compass]
+        for seg in _segments(mine, cal_times):
             a = _drift_in_segment(seg, site_of, site_offsets, anomalous, settings)
             if a:
                 alerts.append(a)
@@ -340,7 +344,7 @@ def analyse_fleet(rows: list[dict], calibrations: list[dict] = (), settings: Dri
         if p:
             alerts.append(p)
     alerts += _calibration_alerts(cals, settings)
-    alerts += _interference_alerts(ok)
+    alerts += _interference_alerts([r for r in ok if (r.get("compass") or 0) == 0])   # an alarm is per log
     return FleetFindings(sites, site_of, alerts)
 
 

@@ -1,6 +1,7 @@
 """The fleet page's data: the compass history written by `magstation review` and by accepted
-calibrations, read-only.  The database path comes from the app (``app.state.fleet_db_path``) or
-``fleet_db.default_db_path()`` ($MAGSTATION_FLEET_DB), never from the request."""
+calibrations, read-only.  The database path comes from the app (``app.state.fleet_db_path``), else
+``fleet_db.default_db_path`` ($MAGSTATION_FLEET_DB, else fleet.sqlite in the station's recordings
+folder, where the calibration write records too), never from the request."""
 from __future__ import annotations
 
 import sqlite3
@@ -22,7 +23,11 @@ HISTORY_COLUMNS = ("log_hash", "file_name", "date", "start_unix_s", "duration_s"
 
 
 def db_path(request: Request) -> Path:
-    return Path(getattr(request.app.state, "fleet_db_path", None) or fleet_db.default_db_path())
+    configured = getattr(request.app.state, "fleet_db_path", None)
+    if configured:
+        return Path(configured)
+    sources = getattr(getattr(request.app.state, "hub", None), "sources", None)
+    return fleet_db.default_db_path(getattr(sources, "recordings_dir", None))
 
 
 @contextmanager
