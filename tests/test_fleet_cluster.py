@@ -40,7 +40,7 @@ def fleet(tmp_path_factory):
 
 def _check_against_truth(rows: list[dict], alerts: list[dict], truth: dict) -> dict:
     score = score_review(truth, rows, alerts)
-    assert score["logs"] == {"planted": 29, "rows": 29}, score["logs"]
+    assert score["logs"] == {"planted": 35, "rows": 35}, score["logs"]
     assert score["corrupt"]["reported"] == 5, score["corrupt"]
     assert score["drift"]["found"] == 1 and not score["drift"]["false"], score["drift"]
     assert score["anomaly_sites"]["found"] == 1 and not score["anomaly_sites"]["false"], score["anomaly_sites"]
@@ -57,29 +57,37 @@ def _hangs_on_the_empty_file(path, settings, skip):
     return review_log(path, settings, skip)
 
 
-def test_review_on_a_local_cluster_matches_truth_and_reruns_skip(fleet, tmp_path):
-    """A hung log times out and the run goes on; a rerun skips what is reviewed."""
-    out, truth = fleet
-    db = tmp_path / "fleet.sqlite"
+@pytest.fixture(scope="module")
+def reviewed(fleet, tmp_path_factory):
+    """The fleet reviewed on a LocalCluster of 2 worker processes (one log hangs), then again."""
+    out, _ = fleet
+    db = tmp_path_factory.mktemp("history") / "fleet.sqlite"
     mapping = load_airframes(out / "airframes.json")
     seen = []
     with fleet_client(workers=2) as (client, dashboard):
-        assert len(client.scheduler_info()["workers"]) == 2
-        assert dashboard is None or dashboard.startswith("http://127.0.0.1:")
-        for w in client.scheduler_info()["workers"]:
-            assert w.startswith("tcp://127.0.0.1:")                         # loopback only
+        info = client.scheduler_info()["workers"]
         summary = run_review(client, [out], db, airframes=mapping, job=_hangs_on_the_empty_file, timeout_s=15.0,
                              on_progress=lambda p: seen.append((p.done, p.failed, p.left)))
-        p = summary.progress
-        assert (p.total, p.done, p.failed, p.skipped, p.left) == (29, 29, 3, 0, 0)
-        assert seen[0] == (1, seen[0][1], 28) and seen[-1] == (29, 3, 0) and len(seen) == 29
         again = run_review(client, [out], db, airframes=mapping)
-        assert (again.progress.done, again.progress.skipped) == (3, 26)        # only the failed ones again
+    return {"db": db, "workers": list(info), "dashboard": dashboard, "summary": summary, "again": again, "seen": seen}
+
+
+def test_review_on_a_local_cluster_matches_truth_and_reruns_skip(fleet, reviewed, tmp_path):
+    """A failing log gives an error row and the run goes on; a hung log times out; a rerun skips
+    by content hash (the failed ones are tried again)."""
+    out, truth = fleet
+    db, summary, again, seen = (reviewed[k] for k in ("db", "summary", "again", "seen"))
+    assert len(reviewed["workers"]) == 2 and all(w.startswith("tcp://127.0.0.1:") for w in reviewed["workers"])
+    assert reviewed["dashboard"] is None or reviewed["dashboard"].startswith("http://127.0.0.1:")   # loopback only
+    p = summary.progress
+    assert (p.total, p.done, p.failed, p.skipped, p.left) == (35, 35, 3, 0, 0)
+    assert seen[0] == (1, seen[0][1], 34) and seen[-1] == (35, 3, 0) and len(seen) == 35
+    assert (again.progress.done, again.progress.skipped) == (3, 32)        # only the failed ones again
     assert sorted(f["status"] for f in summary.failures) == ["error", "error", "timeout"]
     assert [f["status"] for f in again.failures] == ["error"] * 3            # the hung one, read normally now
     with closing(fleet_db.connect(db, read_only=True)) as con:
         rows, alerts = fleet_db.flight_rows(con), fleet_db.alert_rows(con)
-    assert len(rows) == 29 and sum(r["status"] == "timeout" for r in rows) == 0   # the timeout row replaced
+    assert len(rows) == 35 and sum(r["status"] == "timeout" for r in rows) == 0   # the timeout row replaced
     assert len({r["worker"] for r in rows if r["worker"]}) == 2                # both workers did logs
     assert summary.peak_worker_rss_MB and summary.peak_worker_rss_MB < 1024
     score = _check_against_truth(rows, alerts, truth)
@@ -87,7 +95,7 @@ def test_review_on_a_local_cluster_matches_truth_and_reruns_skip(fleet, tmp_path
 
     findings = analyse_fleet(rows)
     table = pq.read_table(write_parquet(rows, findings.site_of, tmp_path / "rows.parquet"))
-    assert table.num_rows == 29 and table.column_names[:3] == ["log_hash", "compass", "path"]
+    assert table.num_rows == 35 and table.column_names[:3] == ["log_hash", "compass", "path"]
     quarry = next(s for s in truth["sites"] if s["anomaly_ned_mG"])
     anomaly_site = next(s["name"] for s in findings.sites if s["anomaly"])
     data = table.to_pylist()
@@ -163,9 +171,45 @@ def test_review_benchmark_smoke(fleet):
     """The benchmark's table on four logs of the test fleet (speed figures are not asserted: load)."""
     out, _ = fleet
     res = subprocess.run([sys.executable, "benchmarks/review.py", "--fleet", str(out), "--vehicles", "3", "--flights",
-                          "8", "--seed", "3", "--max-logs", "4", "--serial-logs", "1"], cwd=ROOT, capture_output=True,
+                          "10", "--seed", "3", "--max-logs", "4", "--serial-logs", "1"], cwd=ROOT, capture_output=True,
                          text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "(reused)" in res.stdout and "| 2 workers / 1 worker |" in res.stdout, res.stdout
     for metric in ("serial loop, no Dask (peer)", "per-log cost", "peak memory per worker", "planted drifts found"):
         assert f"| {metric}" in res.stdout, res.stdout
+
+
+def test_fleet_page_lists_airframes_and_the_drift_alert(fleet, reviewed, playwright_instance, artifacts, tmp_path,
+                                                       monkeypatch):
+    """web/fleet.html on the station, its history (the reviewed fleet) in the recordings folder."""
+    import shutil
+
+    from conftest import CHROMIUM, CHROMIUM_ARGS
+    from groundstation.station.app import Station
+
+    _, truth = fleet
+    drifting = next(v["airframe"] for v in truth["vehicles"] if v["role"] == "drift")
+    monkeypatch.delenv("MAGSTATION_FLEET_DB", raising=False)
+    recordings = tmp_path / "recordings"
+    recordings.mkdir()
+    shutil.copy(reviewed["db"], recordings / fleet_db.DB_NAME)
+    station = Station(port=0, viser_port=free_tcp_port(), recordings_dir=recordings).start()
+    browser = playwright_instance.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+    try:
+        page = browser.new_context(viewport={"width": 1280, "height": 1100}).new_page()
+        errors = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(station.url + "/fleet.html")
+        page.wait_for_function("document.querySelectorAll('#airframes tr.pick').length === 4 && "
+                               "document.querySelector('#chart polyline') !== null", polling=200, timeout=60_000)
+        airframes = page.locator("#airframes tr.pick td:first-child").all_text_contents()
+        alerts = page.locator("#alerts").inner_text()
+        title = page.locator("#history-title").inner_text()
+        page.screenshot(path=str(artifacts / "fleet_page.png"), full_page=True)
+    finally:
+        browser.close()
+        station.close()
+    assert sorted(airframes) == sorted([v["airframe"] for v in truth["vehicles"]] + ["(unreadable logs)"])
+    assert "offset_drift" in alerts and f"{drifting}: fitted offsets moved" in alerts, alerts
+    assert "anomaly_site" in alerts and "payload_change" in alerts, alerts
+    assert title == f"Airframe history: {drifting}" and not errors, errors

@@ -37,7 +37,8 @@ function showReplayOffer() {
 
 function drawHistory(h) {
   const svg = $("chart"), W = 900, H = 260, pad = 36;
-  const flights = h.flights.filter((f) => f.start_unix_s && f.fit_ofs_x_mG !== null);
+  // the first compass (the drift alert names any other)
+  const flights = h.flights.filter((f) => !f.compass && f.start_unix_s && f.fit_ofs_x_mG !== null);
   if (!flights.length) { svg.innerHTML = "<text x='20' y='30'>no fitted flights</text>"; return; }
   // the site's apparent offset (a local field) removed, as the drift test does
   const ofs = flights.map((f) => [f.fit_ofs_x_mG - (f.site_offset_x_mG || 0), f.fit_ofs_y_mG - (f.site_offset_y_mG || 0),

@@ -292,11 +292,23 @@ def write_flight(plan: FlightPlan, out_dir: str | Path) -> dict:
 CORRUPTIONS = ("truncated", "garbage_inside", "random_bytes", "empty", "not_a_dataflash")
 
 
+def _inside_a_record(tlog: bytes, near: int) -> int:
+    """A cut in the middle of the .tlog record (8-byte stamp + MAVLink packet) around byte ``near``,
+    never on a record boundary (a cut there leaves a whole, shorter log)."""
+    i = 0
+    while i + 10 < len(tlog):
+        size = 12 + tlog[i + 9] + (13 if tlog[i + 10] & 1 else 0) if tlog[i + 8] == 0xFD else 8 + tlog[i + 9]
+        if i + 8 + size > near:
+            return i + 8 + size // 2
+        i += 8 + size
+    return max(len(tlog) - 1, 0)
+
+
 def _corrupt(kind: str, source: Path, target: Path, rng: np.random.Generator) -> str:
     """Write a damaged copy; returns what review must say ("error" or "damaged": read with warnings)."""
     data = source.read_bytes() if source.exists() else b""
     if kind == "truncated":
-        target.write_bytes(data[: int(len(data) * 0.6) + 5])
+        target.write_bytes(data[:_inside_a_record(data, int(len(data) * 0.6))])
         return "damaged"
     if kind == "garbage_inside":
         buf = bytearray(data)

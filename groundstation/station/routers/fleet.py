@@ -15,7 +15,7 @@ from groundstation.io import fleet_db
 
 router = APIRouter(prefix="/api/fleet", tags=["fleet"])
 
-HISTORY_COLUMNS = ("log_hash", "file_name", "date", "start_unix_s", "duration_s", "payload", "status", "error",
+HISTORY_COLUMNS = ("log_hash", "compass", "file_name", "date", "start_unix_s", "duration_s", "payload", "status", "error",
                    "fit_status", "fit_ofs_x_mG", "fit_ofs_y_mG", "fit_ofs_z_mG", "site", "site_offset_x_mG",
                    "site_offset_y_mG", "site_offset_z_mG", "ofs_change_mG", "interference_pct",
                    "strength_resid_mG", "inclination_resid_deg", "alarm_count", "alarm_evidence",
