@@ -20,7 +20,7 @@ from groundstation.io import fleet_db
 from groundstation.jobs.airframes import load_airframes, resolve_airframe
 from groundstation.jobs.compass_history import DriftSettings, analyse_fleet, record_calibration, refresh_alerts
 from groundstation.jobs.fleet import discover_logs, run_job_with_timeout
-from groundstation.jobs.review_row import ReviewSettings, review_log
+from groundstation.jobs.review_row import review_log
 from groundstation.sim.fleet import FleetSettings, Site, plan_fleet, write_flight
 from groundstation.station.routers import fleet as fleet_router
 
