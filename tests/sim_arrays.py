@@ -14,6 +14,7 @@ from estimators.rotations import dcm_body_to_ned
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+import real_logs  # noqa: E402,F401  (re-exported: pymavlink extraction + the pipeline the benchmark runs)
 
 H_NED = np.array([230.0, 52.0, -531.0])          # Canberra-like, mG
 

@@ -184,7 +184,7 @@ def test_gps_outage_events_only_when_the_imu_streams(hub, folder):
 
 def test_tests_state_and_field_correction_on_the_real_log(hub, folder):
     """The real ArduCopter telemetry log: heading test off (2.8 Hz IMU) and said so, the field
-    corrected by the log's own in-flight fit, no path test without a line."""
+    autopilot-corrected (ArduPilot applies COMPASS_OFS), no path test without a line."""
     src = SHARED_DATA / "dronekit" / "flight_replay_flight.tlog"
     if not src.exists():
         pytest.skip("real log not available")
@@ -195,9 +195,8 @@ def test_tests_state_and_field_correction_on_the_real_log(hub, folder):
     t = hub.snapshot()["tests"]
     assert t["heading"]["state"] == "off" and re.match(r"IMU rate 2\.\d Hz < 10 Hz", t["heading"]["why"])
     assert t["field"]["state"] in ("on", "paused") and t["path"]["state"] == "off"
-    # the log has no dance, but its in-flight fit against the WMM is good (jobs.calibrate): the
-    # replay uses it, applied to the raw field with ArduPilot's own corrections un-applied
-    assert hub.log_calibration is not None and hub.log_calibration["method"] == "wmm_inflight"
-    assert t["field_correction"]["kind"] == "station" and "un-applied" in t["field_correction"]["note"]
+    # no dance in the log: its in-flight fit (jobs.calibrate) is not used, ArduPilot's own stands
+    assert hub.log_calibration is None
+    assert t["field_correction"]["kind"] == "autopilot" and "ArduPilot" in t["field_correction"]["note"]
     rows = hub.flight.rows()
     assert not np.any(rows[:, COL["heading_on"]] > 0.5)

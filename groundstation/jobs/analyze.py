@@ -22,10 +22,11 @@ import numpy as np
 
 from estimators.detection import DetectionResult, DetectionSettings, alarm_intervals, detect
 from estimators.heading import split_velocity
+from estimators.ins_gps import MODE_NAMES
 
 from groundstation.jobs.compass_report import compass_summaries
 from groundstation.jobs.inputs import detection_inputs, heading_deg, rounded
-from groundstation.jobs.navigation import navigation
+from groundstation.jobs.navigation import ins_runs
 from groundstation.jobs.record import COL, AlarmTracker, record_rows
 from groundstation.samples import FlightLog
 
@@ -79,15 +80,18 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
     gps = x["gps_held"]
     hdg_true = np.where(valid, chain.heading_true_rad, np.nan)
     v_fwd, v_lat = split_velocity(gps[:, 5], gps[:, 6], hdg_true)
-    deg = lambda a: np.where(valid, np.degrees(a), np.nan)  # noqa: E731
     hdg = lambda a: np.where(valid, heading_deg(a), np.nan)  # noqa: E731
+    declination = ef.declination_deg if ef else 0.0
+    nav, runs = ins_runs(log, x["mag_cal"], declination, x["imu_rate_hz"], settings)
+    best = best_attitude(t, chain, valid, runs, declination)
     columns = {
         "t_s": t,
-        "roll_deg": deg(chain.roll_rad), "pitch_deg": deg(chain.pitch_rad),
-        "yaw_deg": hdg(chain.yaw_rad), "mag_heading_deg": hdg(chain.mag_heading_rad),
-        "heading_true_deg": hdg(chain.heading_true_rad),
+        "roll_deg": best["roll_deg"], "pitch_deg": best["pitch_deg"],
+        "yaw_deg": best["yaw_deg"], "mag_heading_deg": hdg(chain.mag_heading_rad),
+        "heading_true_deg": best["heading_true_deg"],
         "v_forward_mps": v_fwd, "v_lateral_mps": v_lat,
         "cross_track_m": d, "alarm": det.combined.astype(int),
+        **bias_and_rejection(chain, valid), "ins_mode": best["ins_mode"],
     }
 
     alarms = alarm_list(t, det, d, settings) + fa.combined_alarms()
@@ -123,7 +127,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "alarms": alarms,
         "first_alarm_s": combined[0]["start_s"] if combined else None,
         "interference_detected": bool(combined),
-        "navigation": navigation(log, x["mag_cal"], ef.declination_deg if ef else 0.0, x["imu_rate_hz"], settings),
+        "navigation": nav,
         "detection": {
             "heading_sigma_deg": rounded(det.heading_sigma_deg), "heading_threshold_deg": rounded(settings.sigma_k * det.heading_sigma_deg),
             "learn_s": settings.learn_s, "path_threshold_m": settings.path_threshold_m,
@@ -137,6 +141,35 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
 
 ALARM_UNITS = {"heading_difference": "deg", "path_deviation": "m",
                "field_anomaly": "score (strength or inclination deviation / threshold)"}
+
+
+def best_attitude(t: np.ndarray, chain, valid: np.ndarray, runs: list, declination_deg: float) -> dict:
+    """The best attitude on every step: the heading chain (AHRS), and where the seed-003 INS/GPS
+    filter runs (around GPS outages, ``jobs.navigation.ins_runs``) its attitude; ``ins_mode`` the
+    filter's mode there ("" elsewhere).  Degrees, headings in [0, 360)."""
+    roll, pitch = np.where(valid, chain.roll_rad, np.nan), np.where(valid, chain.pitch_rad, np.nan)
+    yaw_true = np.where(valid, chain.heading_true_rad, np.nan)
+    mode = np.full(len(t), "", dtype=object)
+    for res in runs:
+        k = np.searchsorted(t, res.t_s)
+        hit = (k < len(t)) & (t[np.minimum(k, len(t) - 1)] == res.t_s) if len(t) else np.zeros(0, bool)
+        k, sel = k[hit], np.flatnonzero(hit)
+        roll[k], pitch[k], yaw_true[k] = res.roll_rad[sel], res.pitch_rad[sel], res.yaw_rad[sel]
+        mode[k] = [MODE_NAMES[int(m)] for m in res.mode[sel]]
+    return {"roll_deg": np.degrees(roll), "pitch_deg": np.degrees(pitch),
+            "yaw_deg": heading_deg(yaw_true - np.radians(declination_deg)), "heading_true_deg": heading_deg(yaw_true),
+            "ins_mode": mode}
+
+
+def bias_and_rejection(chain, valid: np.ndarray) -> dict:
+    """The AHRS's gyro bias in effect [°/s] and its rejection flags (0/1) per step (issue 12)."""
+    bias = np.degrees(np.asarray(chain.gyro_bias_rad_s, dtype=float).reshape(-1, 3))
+    if len(bias) != len(valid):
+        bias = np.zeros((len(valid), 3))
+    flag = lambda a: (np.asarray(a, bool) if len(a) == len(valid) else np.zeros(len(valid), bool)).astype(int)  # noqa: E731
+    return {"gyro_bias_x_dps": np.where(valid, bias[:, 0], np.nan), "gyro_bias_y_dps": np.where(valid, bias[:, 1], np.nan),
+            "gyro_bias_z_dps": np.where(valid, bias[:, 2], np.nan),
+            "acc_rejected": flag(chain.acc_rejected), "mag_rejected": flag(chain.mag_rejected)}
 
 
 def alarm_list(t: np.ndarray, det, cross_track_m: np.ndarray, settings: DetectionSettings) -> list[dict]:

@@ -10,22 +10,31 @@ import numpy as np
 __all__ = ["CSV_COLUMNS", "write_csv", "format_report"]
 
 CSV_COLUMNS = ("t_s", "roll_deg", "pitch_deg", "yaw_deg", "mag_heading_deg", "heading_true_deg",
-               "v_forward_mps", "v_lateral_mps", "cross_track_m", "alarm")
+               "v_forward_mps", "v_lateral_mps", "cross_track_m", "alarm", "gyro_bias_x_dps", "gyro_bias_y_dps",
+               "gyro_bias_z_dps", "acc_rejected", "mag_rejected", "ins_mode")
+INTEGER_COLUMNS = ("alarm", "acc_rejected", "mag_rejected")
+TEXT_COLUMNS = ("ins_mode",)
 
 
 def write_csv(path: str | Path, columns: dict[str, np.ndarray]) -> Path:
-    """Write the issue-4 CSV (header = CSV_COLUMNS, then one row per IMU step; empty cell = NaN)."""
+    """Write the analyze CSV (header = CSV_COLUMNS present, then one row per IMU step; an empty
+    cell is NaN, or no INS/GPS in ``ins_mode``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     names = [c for c in CSV_COLUMNS if c in columns] + [c for c in columns if c not in CSV_COLUMNS]
-    arr = np.column_stack([np.asarray(columns[c], dtype=float) for c in names]) if names else np.zeros((0, 0))
+    cells = [_cells(c, columns[c]) for c in names]
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(names)
-        for row in arr.tolist():
-            w.writerow(["" if not math.isfinite(v) else (str(int(v)) if c == "alarm" else f"{v:.6g}")
-                        for c, v in zip(names, row)])
+        w.writerows(zip(*cells))
     return path
+
+
+def _cells(name: str, values) -> list[str]:
+    if name in TEXT_COLUMNS:
+        return ["" if v is None else str(v) for v in values]
+    fmt = (lambda v: str(int(v))) if name in INTEGER_COLUMNS else (lambda v: f"{v:.6g}")  # noqa: E731
+    return ["" if not math.isfinite(v) else fmt(v) for v in np.asarray(values, dtype=float).tolist()]
 
 
 def format_report(report: dict) -> str:

@@ -242,7 +242,7 @@ class Session(SessionViews):
     @staticmethod
     def fit_log_calibration(flight_log: FlightLog) -> dict | None:
         """A replayed log that contains a calibration dance calibrates its own magnetometer
-        (calibrate_log on the whole log; None unless the fit is 'ok')."""
+        (calibrate_log on the whole log; None unless the fit is 'ok' and from a rotation window)."""
         from groundstation.jobs.calibrate import calibrate_log
 
         if len(flight_log.mag) < 200:
@@ -252,7 +252,11 @@ class Session(SessionViews):
         except Exception:
             log.exception("calibration of the replayed log failed")
             return None
-        return jsonable(result) if result.get("status") == "ok" else None
+        # only a rotation window (a calibration dance) observes every offset axis; an in-flight fit
+        # against the WMM from level flight does not beat the autopilot's own correction (on the
+        # real ArduCopter log it raised a field alarm the autopilot-corrected field does not)
+        ok = result.get("status") == "ok" and result.get("method") == "window"
+        return jsonable(result) if ok else None
 
     def use_calibration(self, calibration: dict | None) -> None:
         """The calibration headings and detection use from now on (lock held); a replay is
