@@ -18,6 +18,7 @@ from groundstation.io.params import ardupilot_never_calibrated
 from groundstation.io.errors import IngestError
 from groundstation.io.logs import read_log
 from groundstation.samples import FlightLog
+from groundstation.cli_fleet import add_fleet_simulate_options, add_review_parser
 
 from groundstation.paths import RECORDINGS_DIR
 DEMO_RECORDING = RECORDINGS_DIR / "demo.tlog"
@@ -170,6 +171,9 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 def cmd_simulate(args: argparse.Namespace) -> int:
     from .sim.scenarios import SCENARIOS, simulate
 
+    if args.scenario == "fleet":
+        from groundstation.cli_fleet import cmd_simulate_fleet
+        return cmd_simulate_fleet(args)
     if args.scenario not in SCENARIOS:
         raise CliError(f"unknown scenario '{args.scenario}' (choose from {', '.join(SCENARIOS)})")
     sim = simulate(args.scenario, seed=args.seed)
@@ -267,11 +271,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--csv", metavar="OUT")
     p.set_defaults(func=cmd_analyze)
 
-    p = sub.add_parser("simulate", help="write a simulated flight as a .tlog (+ truth JSON)")
-    p.add_argument("scenario")
-    p.add_argument("--out", required=True, metavar="FILE.tlog")
+    p = sub.add_parser("simulate", help="write a simulated flight as a .tlog (+ truth JSON), or a fleet")
+    p.add_argument("scenario", help="a scenario, or 'fleet' (a folder of logs with known truth)")
+    p.add_argument("--out", required=True, metavar="FILE.tlog|DIR")
     p.add_argument("--seed", type=int, default=0)
+    add_fleet_simulate_options(p)
     p.set_defaults(func=cmd_simulate)
+
+    add_review_parser(sub)
 
     p = sub.add_parser("info", help="what is in a log")
     p.add_argument("file", metavar="FILE")

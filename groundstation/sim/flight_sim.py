@@ -158,6 +158,7 @@ class SimConfig:
     leg_length_m: float = 400.0
     speed_mps: float = 6.0
     hover_s: float = 20.0
+    yaw_sweep_deg_s: float = 0.0          # nose turning at this rate through the mission (0: along the leg)
     mean_wind_mps: tuple[float, float] = (1.5, -1.0)     # NE
     gust_sigma_mps: float = 0.3
     gust_tau_s: float = 2.0
@@ -416,6 +417,8 @@ def _mission_targets(cfg: SimConfig, t: np.ndarray):
         s_tgt[sel] = start + direction * dist[sel]
         v_ff[sel] = np.where((t[sel] <= t1), direction * spd[sel], 0.0)
         yaw_cmd[sel] = brg if direction > 0 else _wrap(brg + math.pi)
+    if cfg.yaw_sweep_deg_s:
+        yaw_cmd = wrap_angle_rad(yaw_cmd + math.radians(cfg.yaw_sweep_deg_s) * np.maximum(t - cfg.hover_s, 0.0))
     return legs, s_tgt, v_ff, yaw_cmd
 
 

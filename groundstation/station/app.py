@@ -28,14 +28,14 @@ from groundstation.station import security
 from groundstation.station.deps import install_error_handlers
 from groundstation.station.hub.session import Session, SessionError
 from groundstation.station.push import Pusher
-from groundstation.station.routers import (alarms, calibration, downloads, line, plots, recordings, replay, source,
-                                           status, vehicles, ws)
+from groundstation.station.routers import (alarms, calibration, downloads, fleet, line, plots, recordings, replay,
+                                           source, status, vehicles, ws)
 from groundstation.station.security import AccessPolicy, StationGuard, protect_viser, require_operator
 from groundstation.station.settings import WILDCARD_HOSTS, StationSettings
 
 __all__ = ["create_app", "Station", "StationStartError", "serve"]
 
-ROUTERS = (status, source, recordings, replay, plots, calibration, line, alarms, downloads, vehicles)
+ROUTERS = (status, source, recordings, replay, plots, calibration, line, alarms, downloads, vehicles, fleet)
 
 
 class StationStartError(Exception):

@@ -4,18 +4,25 @@
 background parameter write (PARAM_SET confirmed by PARAM_VALUE echo, failures named with what the
 vehicle answered), MAV_CMD_DO_ACCEPT_MAG_CAL, MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN after the
 operator's confirmation (then waiting for the link to drop and return), and the heading check
-(held at a bearing, or a straight walk whose GPS course is the reference).  Called by
+(held at a bearing, or a straight walk whose GPS course is the reference).  A confirmed write is
+added to the airframe's compass history (``jobs.compass_history.record_calibrations``, the fleet
+database in the recordings folder or $MAGSTATION_FLEET_DB).  Called by
 ``calibration.CalibrationControl`` with the hub lock held, except the write thread, which takes it.
 """
 from __future__ import annotations
 
 import math
+import sqlite3
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
+from groundstation.io import fleet_db
 from groundstation.io.mavlink import mavlink2
+from groundstation.jobs.airframes import identity_key
+from groundstation.jobs.compass_history import history_airframe, record_calibrations
 from groundstation.samples import GpsSample, MagSample
 from groundstation.station.hub.sources import ConflictError, SessionError
 from groundstation.station.wizard.aftercheck import HeadingCheck, compass_heading_deg
@@ -88,6 +95,61 @@ class AfterWrite:
                 hub.use_calibration(None)
             w.param_write = pw
             hub.changed()
+            recorded = self._history_entry(self._our_results()) if not failed else None
+        if recorded is not None:
+            self._record_in_history(*recorded)
+
+    # ------------------------------------------------------------------ the fleet's compass history
+    def _our_results(self) -> dict[int, dict]:
+        w = self._w
+        included = (w.result or {}).get("compasses_included") or []
+        return {k: dict(w.results[k]) for k in included if k in w.results}
+
+    def _onboard_results(self) -> dict[int, dict]:
+        """The vehicle's own calibration as the history keeps it (MAG_CAL_REPORT: COMPASS_OFS = −b,
+        DIA/ODI the symmetric matrix, fitness the RMS residual)."""
+        out = {}
+        for k, c in (self._w.onboard.compasses if self._w.onboard is not None else {}).items():
+            rep = c.get("report") or {}
+            if not rep.get("success") or None in rep.get("ofs_mG", [None]):
+                continue
+            (dx, dy, dz), (ox, oy, oz) = rep["diag"], rep["offdiag"]
+            out[int(k)] = {"offsets_mG": [-v for v in rep["ofs_mG"]], "matrix": [[dx, ox, oy], [ox, dy, oz], [oy, oz, dz]],
+                           "residual_rms_mG": rep["fitness_mG"], "message": "the vehicle's onboard calibration",
+                           "orientation": {"old": rep["old_orientation"], "new": rep["new_orientation"]}}
+        return out
+
+    def _history_entry(self, results: dict[int, dict]) -> tuple[Path, dict, dict[int, dict], dict]:
+        """What the history keeps of a confirmed write (taken with the lock held): the database
+        (``fleet_db.default_db_path`` under the recordings folder), the vehicle's parameters, the
+        compasses' results with the WMM field, and where the vehicle was."""
+        w, hub = self._w, self._hub
+        if w.field_ned_mG is not None:
+            n, e, d = (float(v) for v in w.field_ned_mG)
+            wmm = {"expected_field_mG": math.sqrt(n * n + e * e + d * d),
+                   "expected_inclination_deg": math.degrees(math.atan2(d, math.hypot(n, e))),
+                   "expected_declination_deg": w.declination_deg}
+            results = {k: {**r, **wmm} for k, r in results.items()}
+        gps = w.gps.view()
+        fixes = gps[gps[:, 7] >= 3] if len(gps) else gps
+        where = {"lat_deg": float(fixes[-1, 1]), "lon_deg": float(fixes[-1, 2])} if len(fixes) else {}
+        path = fleet_db.default_db_path(hub.sources.recordings_dir)
+        return path, dict(hub.vehicle.params), results, where
+
+    def _record_in_history(self, path: Path, params: dict, results: dict[int, dict], where: dict) -> None:
+        """Append the written calibration to the airframe's compass history (outside the hub lock:
+        the drift alerts are recomputed); a failure is an event, never an error of the write."""
+        try:
+            airframe = history_airframe(path, identity_key(params)["identity"])
+            out = record_calibrations(path, airframe, results, **where)
+        except (OSError, sqlite3.Error, ValueError) as err:
+            text, level = f"calibration not added to the fleet history ({path.name}): {err}", "warning"
+        else:
+            text, level = f"calibration added to the fleet history of {airframe} ({path.name})", "info"
+            text += "".join(f"; {a['message']}" for a in out["alerts"] if a["kind"] == "calibration_change")
+        with self._c._lock:
+            self._hub.event(text, level)
+            self._hub.changed()
 
     # ------------------------------------------------------------------ the vehicle's own fit
     def accept_onboard(self) -> dict:
@@ -115,6 +177,8 @@ class AfterWrite:
                                                           "(MAV_CMD_DO_ACCEPT_MAG_CAL accepted)")
             self._c._vehicle_in_use("the vehicle saved its own calibration")
             hub.vehicle.request_params(hub.sources.link)
+            threading.Thread(target=self._record_in_history, args=self._history_entry(self._onboard_results()),
+                             daemon=True, name="fleet-history").start()
         else:
             w.param_write.update(state="failed", message=f"the vehicle refused to save its calibration ({text})")
             hub.event(w.param_write["message"], "error")

@@ -1,0 +1,430 @@
+"""Fleet review pieces without a cluster: the per-log row against a simulated flight's truth, the
+SQLite history, the airframe mapping, the fleet findings on synthetic histories, the per-log
+timeout, and the station's read-only fleet router.  (tests/test_fleet_cluster.py runs `review`
+through real Dask clusters.)"""
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+from contextlib import closing
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi import FastAPI
+from fastapi.testclient import TestClient
+
+from groundstation.io import fleet_db
+from groundstation.jobs.airframes import load_airframes, resolve_airframe
+from groundstation.jobs.compass_history import DriftSettings, analyse_fleet, record_calibration, refresh_alerts
+from groundstation.jobs.fleet import discover_logs, run_job_with_timeout
+from groundstation.jobs.review_row import review_log
+from groundstation.sim.fleet import FleetSettings, Site, plan_fleet, write_flight
+from groundstation.station.routers import fleet as fleet_router
+
+from conftest import SHARED_DATA
+
+DAY = 86400.0
+
+
+# ------------------------------------------------------------------------------ the per-log row
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory):
+    """Three flights (random bearings) of one drifting vehicle at an anomaly-free site."""
+    settings = FleetSettings(vehicles=1, flights=4, drift_vehicles=1, payload_vehicles=0, flight_s=(75.0, 85.0),
+                             interference_fraction=0.0, sites=(Site("base", 30.26, 120.12),), seed=5)
+    plans, truth = plan_fleet(settings)
+    out = tmp_path_factory.mktemp("flights")
+    entries = [write_flight(p, out) for p in plans[1:]]
+    return [(out / e["file"], e) for e in entries]
+
+
+@pytest.fixture(scope="module")
+def one_flight(flights):
+    return flights[-1]
+
+
+def test_review_row_recovers_offset_change_and_motor_field(flights):
+    errors, motor_errors, changes = [], [], []
+    for path, truth in flights:
+        (r,) = review_log(path)
+        assert r["status"] == "ok" and r["fit_status"] == "ok" and r["fit_model"] == "yaw_free", r
+        true_change = np.array(truth["offsets_change_mG"])
+        fit_change = np.array([r[f"ofs_change_{a}_mG"] for a in "xyz"])
+        errors.append(np.linalg.norm(fit_change - true_change))
+        changes.append(fit_change)
+        motor = np.array([r[f"motor_{a}_mG_per_A"] for a in "xyz"])
+        motor_errors.append(np.linalg.norm(motor - truth["motor_mG_per_A"]) / np.linalg.norm(truth["motor_mG_per_A"]))
+    planted = np.array(flights[-1][1]["offsets_change_mG"]) - flights[0][1]["offsets_change_mG"]
+    assert np.linalg.norm(planted) > 30.0                                   # the drift between first and last
+    assert np.linalg.norm((changes[-1] - changes[0]) - planted) < 0.5 * np.linalg.norm(planted)
+    assert np.median(errors) < 20.0, errors
+    assert max(motor_errors) < 0.35, motor_errors
+
+
+def test_review_row_is_the_calibrate_jobs_fit(one_flight):
+    """One way to fit: the row's offsets and motor field are jobs.calibrate's for that compass."""
+    from groundstation.io.logs import read_log
+    from groundstation.jobs.calibrate.compass import calibrate_compass
+    from groundstation.jobs.calibrate.context import log_context
+    from groundstation.jobs.compass_raw import compass_fields
+    from groundstation.jobs.review_row import REVIEW_CALIBRATE
+
+    path, _ = one_flight
+    (r,) = review_log(path)
+    log = read_log(path)
+    (cf,) = compass_fields(log)
+    result, _ = calibrate_compass(log, cf, log_context(log), REVIEW_CALIBRATE)
+    assert [r[f"fit_ofs_{a}_mG"] for a in "xyz"] == pytest.approx(result["inflight"]["offsets_mG"], abs=0.01)
+    assert [r[f"motor_{a}_mG_per_A"] for a in "xyz"] == pytest.approx(result["motor"]["motor_mG_per_unit"], abs=0.001)
+    assert r["interference_pct"] == result["motor"]["interference_pct"] and r["motor_status"] == "ok"
+    assert [r[f"cal_ofs_{a}_mG"] for a in "xyz"] == pytest.approx(cf.offsets_in_force_mG[-1], abs=0.01)
+
+
+def test_review_row_fields(one_flight):
+    path, truth = one_flight
+    (r,) = review_log(path)
+    assert r["identity"] == f"serial:{truth['serial']}" and r["autopilot"] == "ardupilot" and r["sysid"] == 1
+    assert np.allclose([r[f"cal_ofs_{a}_mG"] for a in "xyz"], truth["calibration_offsets_mG"], atol=0.01)
+    assert r["cal_state"] == "ok" and r["alarm_count"] == 0 and r["compasses"] == 1
+    assert abs(r["duration_s"] - truth["duration_s"]) < 0.1 and r["mag_rate_hz"] == pytest.approx(50.0, abs=0.5)
+    assert r["date"].startswith("2026-01-0") and abs(r["lat_deg"] - 30.26) < 0.01
+    assert abs(r["strength_resid_mG"]) < 60 and r["wmm_strength_mG"] == pytest.approx(489, abs=3)
+    assert len(r["log_hash"]) == 64 and r["review_s"] > 0 and r["row_version"] == 2
+    assert r["fit_model"] == "yaw_free" and r["compass_source"] and r["fit_heading_coverage"] > 0.9
+
+
+def test_review_row_for_bad_files_is_an_error_row_not_an_exception(tmp_path):
+    empty = tmp_path / "empty.tlog"
+    empty.write_bytes(b"")
+    garbage = tmp_path / "garbage.bin"
+    garbage.write_bytes(np.random.default_rng(0).integers(0, 256, 50_000, dtype=np.uint8).tobytes())
+    for path, text in ((empty, "empty"), (garbage, "no readable messages")):
+        (r,) = review_log(path)
+        assert r["status"] == "error" and text in r["error"], r
+        assert len(r["log_hash"]) == 64
+    (r,) = review_log(tmp_path / "missing.tlog")
+    assert r["status"] == "error" and "missing.tlog" in r["error"]
+
+
+def test_review_row_skips_known_hash(one_flight):
+    path, _ = one_flight
+    (first,) = review_log(path)
+    (again,) = review_log(path, skip_hashes={first["log_hash"]})
+    assert again == {"log_hash": first["log_hash"], "path": str(path), "status": "skipped"}
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "px4-pyulog" / "sample.ulg").exists(), reason="shared data missing")
+def test_review_row_on_real_logs():
+    (r,) = review_log(SHARED_DATA / "px4-pyulog" / "sample.ulg")          # attitude, no magnetometer
+    assert r["status"] == "no_mag" and r["autopilot"] == "px4" and r["sysid"] == 1
+    rows = review_log(SHARED_DATA / "dronekit" / "flight_replay_flight.tlog")     # RAW_IMU and SCALED_IMU2
+    assert [r["compass"] for r in rows] == [0, 1] and {r["compasses"] for r in rows} == {2}
+    assert len({r["log_hash"] for r in rows}) == 1 and len({r["device_id"] for r in rows}) == 2
+    assert all(r["fit_status"] == "ok" and r["fit_ofs_x_mG"] is not None for r in rows)    # in-flight WMM fit
+    r = rows[0]
+    assert r["status"] == "ok" and r["autopilot"] == "ardupilot" and r["motor_status"] == "ok"
+    assert r["corrupt_packets"] > 1000 and "corrupt" in r["warnings"]       # the radio link's damage, counted
+    assert r["identity_source"] == "folder" and r["identity"] == "folder:dronekit"
+    assert r["mag_rate_hz"] < 5.0 and r["max_gap_s"] > 1.0
+
+
+def test_discover_logs_recursive_and_sorted(tmp_path):
+    for name in ("a/x.tlog", "a/b/y.BIN", "c.ulg", "d.csv", "e.txt", ".hidden/z.tlog"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_bytes(b"1")
+    found = [p.relative_to(tmp_path).as_posix() for p in discover_logs([tmp_path, tmp_path / "c.ulg"])]
+    assert found == ["a/b/y.BIN", "a/x.tlog", "c.ulg", "d.csv"]
+    with pytest.raises(FileNotFoundError):
+        discover_logs([tmp_path / "nope"])
+
+
+# ------------------------------------------------------------------------------ per-log timeout
+def _hangs(path, *args):
+    while True:            # a reader stuck in a pure-Python loop
+        time.sleep(0.001)
+
+
+def test_job_past_its_timeout_gives_a_timeout_row_and_stops():
+    before = threading.active_count()
+    t0 = time.perf_counter()
+    (r,) = run_job_with_timeout(_hangs, "/logs/hung.tlog", 0.3)
+    assert time.perf_counter() - t0 < 3.0
+    assert r["status"] == "timeout" and "0.3 s" in r["error"] and r["file_name"] == "hung.tlog"
+    time.sleep(0.1)
+    assert threading.active_count() == before          # the job's thread was interrupted, not left running
+
+
+# ------------------------------------------------------------------------------ history + mapping
+def _row(airframe: str, k: int, ofs, motor=(1.0, 0.5, -1.5), lat=30.26, lon=120.12, strength=0.0, **extra) -> dict:
+    r = fleet_db.empty_row()
+    r.update(log_hash=f"{airframe}-{k:03d}-{lat}", compass=0, path=f"/fleet/{airframe}/flight-{k:03d}.tlog",
+             file_name=f"flight-{k:03d}.tlog", status="ok", airframe=airframe, identity=f"folder:{airframe}",
+             start_unix_s=1.77e9 + k * DAY, date=f"day {k}", duration_s=80.0, lat_deg=lat, lon_deg=lon,
+             fit_status="ok", strength_resid_mG=strength, inclination_resid_deg=strength / 20.0,
+             current_max_A=25.0, wmm_strength_mG=490.0, alarm_count=0, **extra)
+    for a, v in zip("xyz", ofs):
+        r[f"fit_ofs_{a}_mG"] = float(v)
+        r[f"fit_ofs_sd_{a}_mG"] = 0.5
+        r[f"cal_ofs_{a}_mG"] = 0.0
+    for a, v in zip("xyz", motor):
+        r[f"motor_{a}_mG_per_A"] = float(v)
+    r["interference_pct"] = float(np.linalg.norm(motor)) * 25.0 / 490.0 * 100.0
+    return r
+
+
+def _synthetic_fleet(seed: int = 1, flights: int = 40) -> list[dict]:
+    """Six airframes, 4 mG flight-to-flight scatter: AF-1 drifts 50 mG, AF-2 gets a payload at
+    flight 20, everyone visits a site 20 km away whose local field adds (0, 0, 40) mG."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for a in range(6):
+        base = rng.uniform(-150, 150, 3)
+        drift = np.array([30.0, -40.0, 0.0]) / (flights - 1) if a == 1 else np.zeros(3)
+        for k in range(flights):
+            anomaly = k % 4 == 3
+            ofs = base + drift * k + rng.normal(0, 4.0, 3) + (np.array([0, 0, 40.0]) if anomaly else 0.0)
+            motor = np.array([1.0, 0.5, -1.5]) + (np.array([1.5, 1.5, 0.5]) if a == 2 and k >= 20 else 0.0)
+            rows.append(_row(f"AF-{a}", k, ofs, motor + rng.normal(0, 0.05, 3), lat=30.44 if anomaly else 30.26,
+                             strength=(40.0 if anomaly else 0.0) + rng.normal(0, 3.0)))
+    return rows
+
+
+def test_findings_on_a_synthetic_history():
+    f = analyse_fleet(_synthetic_fleet())
+    kinds = {(a["kind"], a["airframe"]) for a in f.alerts}
+    assert ("offset_drift", "AF-1") in kinds
+    assert not [k for k in kinds if k[0] == "offset_drift" and k[1] != "AF-1"], kinds
+    payload = [a for a in f.alerts if a["kind"] == "payload_change"]
+    assert [a["airframe"] for a in payload] == ["AF-2"]
+    assert payload[0]["log_hash"].startswith("AF-2-02")                         # flight 20 ± 1
+    anomaly = [a for a in f.alerts if a["kind"] == "anomaly_site"]
+    assert len(anomaly) == 1 and abs(anomaly[0]["lat_deg"] - 30.44) < 0.01 and abs(anomaly[0]["value"] - 40) < 5
+    assert len(f.sites) == 2
+
+
+def test_no_false_drift_alerts_on_steady_noise():
+    """The statistical threshold: 100 steady airframes × 40 flights of 4 mG scatter, no alert."""
+    rng = np.random.default_rng(7)
+    rows = [_row(f"S{a}", k, rng.normal(0, 4.0, 3)) for a in range(100) for k in range(40)]
+    f = analyse_fleet(rows, settings=DriftSettings(floor_mG=0.0))      # the sigma test alone
+    assert not [a for a in f.alerts if a["kind"] in ("offset_drift", "payload_change")]
+
+
+def test_a_calibration_starts_a_new_segment_and_changes_are_alerted(tmp_path):
+    db = tmp_path / "fleet.sqlite"
+    rows = [_row("AF-9", k, (10.0 + (40.0 if k >= 12 else 0.0), 0.0, 0.0)) for k in range(24)]
+    with closing(fleet_db.connect(db)) as con:
+        fleet_db.upsert_rows(con, rows)
+        assert [a["kind"] for a in refresh_alerts(con).alerts] == ["offset_drift"]
+    t_cal = rows[12]["start_unix_s"] - 3600.0         # a calibration just before the offsets moved
+    first = record_calibration(db, "AF-9", {"offsets_mG": [10.0, 0.0, 0.0], "matrix": np.eye(3).tolist(),
+                                            "residual_rms_mG": 2.0}, unix_s=t_cal - 5 * DAY)
+    second = record_calibration(db, "AF-9", {"offsets_mG": [50.0, 0.0, 0.0], "matrix": np.eye(3).tolist(),
+                                             "residual_rms_mG": 2.0, "expected_field_mG": 489.0}, unix_s=t_cal)
+    assert first["id"] == 1 and second["id"] == 2
+    kinds = sorted(a["kind"] for a in second["alerts"])
+    assert kinds == ["calibration_change"], second["alerts"]      # the drift is explained by the calibration
+    with closing(fleet_db.connect(db, read_only=True)) as con:
+        cals = fleet_db.calibration_rows(con, "AF-9")
+        assert [c["ofs_x_mG"] for c in cals] == [10.0, 50.0] and cals[1]["wmm_strength_mG"] == 489.0
+        with pytest.raises(sqlite3.OperationalError):
+            con.execute("DELETE FROM calibrations")
+    with pytest.raises(ValueError):
+        record_calibration(db, "AF-9", {"status": "insufficient_coverage", "offsets_mG": None})
+
+
+def test_history_is_readable_while_written(tmp_path):
+    db = tmp_path / "fleet.sqlite"
+    with pytest.raises(FileNotFoundError):
+        fleet_db.connect(db, read_only=True)
+    writer = fleet_db.connect(db)
+    fleet_db.upsert_rows(writer, [_row("A", 0, (1, 2, 3))])
+    reader = fleet_db.connect(db, read_only=True)
+    writer.execute("BEGIN")
+    writer.execute("UPDATE flights SET airframe = 'B'")
+    assert [r["airframe"] for r in fleet_db.flight_rows(reader)] == ["A"]     # WAL: the reader is not blocked
+    writer.commit()
+    assert [r["airframe"] for r in fleet_db.flight_rows(reader)] == ["B"]
+    failed = dict(_row("A", 1, (0, 0, 0)), log_hash="error:/fleet/A/flight-001.tlog", status="error")
+    fleet_db.upsert_rows(writer, [failed])
+    fleet_db.upsert_rows(writer, [_row("A", 1, (0, 0, 0))])                   # reviewed fine later
+    assert sorted(r["status"] for r in fleet_db.flight_rows(reader)) == ["ok", "ok"]
+    writer.close(), reader.close()
+
+
+def test_airframe_mapping_json_and_csv(tmp_path):
+    js = tmp_path / "m.json"
+    js.write_text(json.dumps({"airframes": [
+        {"match": {"serial": 7100}, "airframe": "hexa-1", "payload": "camera"},
+        {"match": {"serial": "7100"}, "airframe": "hexa-1", "payload": "lidar", "from_date": "2026-02-01"},
+        {"match": {"path": "*/spare/*"}, "airframe": "spare"}]}))
+    entries = load_airframes(js)
+    row = {"serial": "7100", "start_unix_s": 1.7696e9, "path": "/x/flight.tlog", "identity": "serial:7100"}
+    assert resolve_airframe(row, entries) == ("hexa-1", "camera")              # 2026-01-28
+    assert resolve_airframe(dict(row, start_unix_s=1.7702e9), entries) == ("hexa-1", "lidar")
+    assert resolve_airframe({"path": "/logs/spare/a.bin", "identity": "folder:spare"}, entries) == ("spare", None)
+    assert resolve_airframe({"serial": "1", "identity": "serial:1"}, entries) == ("serial:1", None)
+    csv = tmp_path / "m.csv"
+    csv.write_text("key,airframe,payload,from_date\nsysid:3,quad-3,,\nfolder:AF-07,AF-07,lidar,\n")
+    entries = load_airframes(csv)
+    assert resolve_airframe({"sysid": 3, "identity": "sysid:3"}, entries) == ("quad-3", None)
+    assert resolve_airframe({"path": "/f/AF-07/x.tlog", "identity": "?"}, entries) == ("AF-07", "lidar")
+    csv.write_text("key,airframe\nserial7100,x\n")
+    with pytest.raises(ValueError, match="line 2"):
+        load_airframes(csv)
+    js.write_text(json.dumps({"airframes": [{"match": {"colour": "red"}, "airframe": "x"}]}))
+    with pytest.raises(ValueError, match="unknown match key"):
+        load_airframes(js)
+
+
+def test_vehicle_identity_order_and_the_station_helper(tmp_path):
+    from groundstation.jobs.airframes import airframe_for_vehicle, identity_key
+    from groundstation.jobs.review_row import vehicle_identity
+    from groundstation.samples import FlightLog, StatusSample
+
+    log = FlightLog("x", params={"SYSID_THISMAV": 1.0, "BRD_SERIAL_NUM": 0.0})
+    log.status.append(StatusSample(1.0, "statustext", "CubeOrange 00360024 3039510c 30393437"))
+    ident = vehicle_identity(log, Path("/logs/hexa/a.tlog"))
+    assert ident["identity"] == "uid:00360024 3039510C 30393437" and ident["identity_source"] == "board_uid"
+    assert identity_key({"MAV_SYS_ID": 7.0})["identity"] == "sysid:7"
+    assert identity_key({"SYSID_THISMAV": 1.0}, folder="hexa")["identity"] == "folder:hexa"   # default sysid 1
+    assert identity_key({"BRD_SERIAL_NUM": 7100.0, "SYSID_THISMAV": 4.0})["identity"] == "serial:7100"
+    (tmp_path / "m.json").write_text(json.dumps({"airframes": [{"match": {"sysid": 4}, "airframe": "quad-4"}]}))
+    entries = load_airframes(tmp_path / "m.json")
+    assert airframe_for_vehicle({"SYSID_THISMAV": 4.0}, entries) == "quad-4"
+    assert airframe_for_vehicle({"SYSID_THISMAV": 5.0}, entries) == "sysid:5"
+
+
+
+# ------------------------------------------------------------------------------ station router
+@pytest.fixture
+def fleet_app(tmp_path):
+    db = tmp_path / "fleet.sqlite"
+    app = FastAPI()
+    app.include_router(fleet_router.router)
+    app.state.fleet_db_path = db
+    return TestClient(app), db
+
+
+def test_fleet_router_reads_the_history(fleet_app):
+    client, db = fleet_app
+    res = client.get("/api/fleet/summary")
+    assert res.status_code == 404 and "run `magstation review`" in res.json()["detail"]
+    with closing(fleet_db.connect(db)) as con:
+        fleet_db.upsert_rows(con, _synthetic_fleet(flights=24))
+        refresh_alerts(con)
+    s = client.get("/api/fleet/summary").json()
+    assert s["flights"] == 6 * 24 and len(s["airframes"]) == 6 and len(s["sites"]) == 2
+    assert {"offset_drift", "payload_change", "anomaly_site"} <= {a["kind"] for a in s["alerts"]}
+    h = client.get("/api/fleet/airframes/AF-1").json()
+    assert len(h["flights"]) == 24 and h["flights"][0]["start_unix_s"] < h["flights"][-1]["start_unix_s"]
+    assert client.get("/api/fleet/airframes/nope").status_code == 404
+    worst = client.get("/api/fleet/flights", params={"limit": 5}).json()
+    assert len(worst) == 5 and all(w["site"] for w in worst)
+    assert client.get("/api/fleet/flights", params={"limit": 0}).status_code == 422
+    assert client.post("/api/fleet/summary").status_code == 405                 # read-only
+
+
+def test_station_app_serves_the_fleet_page_and_router(tmp_path, monkeypatch):
+    """The fleet router is in the station's ROUTERS (behind require_operator); its history is the
+    recordings folder's fleet.sqlite unless $MAGSTATION_FLEET_DB names another."""
+    from groundstation.station.app import ROUTERS, create_app
+    from groundstation.station.hub.session import Session
+
+    assert fleet_router in ROUTERS
+    monkeypatch.delenv("MAGSTATION_FLEET_DB", raising=False)
+    session = Session(tmp_path, record_live=False)
+    try:
+        client = TestClient(create_app(session), base_url="http://127.0.0.1")
+        missing = client.get("/api/fleet/summary")
+        assert missing.status_code == 404 and fleet_db.DB_NAME in missing.json()["detail"]
+        with closing(fleet_db.connect(tmp_path / fleet_db.DB_NAME)) as con:
+            fleet_db.upsert_rows(con, [dict(fleet_db.empty_row(), log_hash="b" * 64, compass=0, status="ok",
+                                            airframe="AF-09", start_unix_s=1.0)])
+        assert [a["airframe"] for a in client.get("/api/fleet/summary").json()["airframes"]] == ["AF-09"]
+        cross = client.get("/api/fleet/summary", headers={"Sec-Fetch-Site": "cross-site"})
+        assert cross.status_code == 403                                       # never answered to another site
+        monkeypatch.setenv("MAGSTATION_FLEET_DB", str(tmp_path / "none.sqlite"))
+        assert client.get("/api/fleet/summary").status_code == 404          # path from the environment
+        page = client.get("/fleet.html")
+        assert page.status_code == 200 and "fleet.js" in page.text
+    finally:
+        session.close()
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    from groundstation.cli import main
+
+    (tmp_path / "empty").mkdir()
+    bad_map = tmp_path / "m.csv"
+    bad_map.write_text("key,airframe\nnokey,x\n")
+    log = tmp_path / "a.tlog"
+    log.write_bytes(b"1")
+    cases = [(["review", str(tmp_path / "empty")], "no .tlog/.bin/.ulg/.csv logs"),
+             (["review", str(tmp_path / "missing")], "no such file or folder"),
+             (["review", str(log), "--scheduler", "nohost"], "expected tcp://HOST:PORT"),
+             (["review", str(log), "--airframes", str(bad_map)], "must look like serial:7100"),
+             (["review", str(log), "--workers", "0"], "at least 1"),
+             (["simulate", "fleet", "--vehicles", "0", "--out", str(tmp_path / "f")], "at least 1 vehicle")]
+    for argv, text in cases:
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and text in err and "Traceback" not in err, (argv, err)
+
+
+# ------------------------------------------------------------------ the station records what it writes
+def _wait_until(read, done, timeout_s: float):
+    """``read()`` polled until ``done`` holds of it or the time is up; the last value read."""
+    deadline = time.monotonic() + timeout_s
+    value = read()
+    while not done(value) and time.monotonic() < deadline:
+        time.sleep(0.05)
+        value = read()
+    return value
+
+
+def test_a_calibration_written_to_the_vehicle_enters_its_airframe_history(tmp_path, monkeypatch):
+    """The wizard's result written to an ArduPilot fake vehicle (PARAM_SET confirmed by echo) is
+    appended to the compass history in the recordings folder, under the airframe name the review
+    gave that board serial, with every compass's offsets, matrix, fitness, WMM field and place."""
+    from conftest import free_udp_port
+    from groundstation.sim.fake_autopilot import default_params
+    from groundstation.sim.fake_vehicle import FakeVehicle
+    from groundstation.sim.vehicle_streams import guided_dance_attitude, make_hardware, pack_stream, three_compasses
+    from groundstation.station.hub.session import Session
+
+    monkeypatch.delenv("MAGSTATION_FLEET_DB", raising=False)
+    db = tmp_path / fleet_db.DB_NAME
+    with closing(fleet_db.connect(db)) as con:           # the review saw this board as AF-07
+        fleet_db.upsert_rows(con, [dict(fleet_db.empty_row(), log_hash="a" * 64, compass=0, status="ok",
+                                        identity="serial:4242", airframe="AF-07", start_unix_s=1.0)])
+    hw = make_hardware(three_compasses())
+    params = default_params("ardupilot", 3) | {"BRD_SERIAL_NUM": 4242.0}
+    session = Session(tmp_path, record_live=False)
+    port = free_udp_port()
+    session.connect(f"udpin:127.0.0.1:{port}")
+    session.wizard_start()
+    fv = FakeVehicle(pack_stream(guided_dance_attitude(rate_hz=12.5), hw), port, speed=8.0, params=params).start()
+    try:
+        w = _wait_until(lambda: session.snapshot()["wizard"], lambda w: w["state"] == "result", 90.0)
+        assert w["state"] == "result" and w["result"]["status"] == "ok", w["result"]
+        assert session.wizard_accept()["state"] == "writing"
+        _wait_until(lambda: list(session.events), lambda ev: any("fleet history" in e["text"] for e in ev), 30.0)
+        pw = session.snapshot()["wizard"]["param_write"]
+        events = [e["text"] for e in session.events]
+    finally:
+        fv.stop()
+        session.close()
+    assert pw["state"] == "written", pw
+    assert any("calibration added to the fleet history of AF-07" in t for t in events), events
+    with closing(fleet_db.connect(db, read_only=True)) as con:
+        cals = fleet_db.calibration_rows(con, airframe="AF-07")
+    assert [c["compass"] for c in cals] == [0, 1, 2] and all(c["written_to_vehicle"] == 1 for c in cals)
+    for c, truth in zip(cals, hw.compasses):
+        np.testing.assert_allclose([c[f"ofs_{a}_mG"] for a in "xyz"], truth.offsets_mG, atol=3.0)
+        assert np.asarray(c["matrix"]).shape == (3, 3) and 0 < c["fitness_mG"] < 10
+        assert 200 < c["wmm_strength_mG"] < 700 and -90 < c["wmm_inclination_deg"] < 90
+        assert c["lat_deg"] is not None and c["source"] == "station"
