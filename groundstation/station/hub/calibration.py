@@ -290,8 +290,8 @@ class CalibrationControl:
         return snap
 
     def scene_data(self) -> dict:
-        """The wizard's arrays for the 3-D view (copies): the first compass's cloud and fit (the
-        directions covered are drawn on the calibration page)."""
+        """The wizard's arrays for the 3-D view (copies): the first compass's cloud and fit, and
+        the directions covered."""
         w = self.wizard
         track = w.tracks.get(0)
         res = w.results.get(0) if w.results else None
@@ -304,4 +304,5 @@ class CalibrationControl:
         elif track is not None and track.live is not None:
             fit = {"offsets_mG": track.live.offsets_mG.tolist(), "matrix": track.live.matrix.tolist(),
                    "field_mG": track.live.field_mG}
-        return {"cloud": cloud, "fit": fit, "calibrating": w.state != "idle"}
+        return {"cloud": cloud, "fit": fit, "calibrating": w.state != "idle",
+                "coverage": w.cells.copy() if w.state != "idle" and w.mode != "fixed_yaw" else None}

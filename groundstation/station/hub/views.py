@@ -75,7 +75,7 @@ class SessionViews:
             return {
                 "att": (rad("roll_deg"), rad("pitch_deg"), rad("heading_deg")),
                 "ap_att": (rad("ap_roll_deg"), rad("ap_pitch_deg"), rad("ap_heading_deg")),
-                **self.calibration.scene_data(),      # cloud, fit, calibrating
+                **self.calibration.scene_data(),      # cloud, fit, calibrating, coverage
                 "route": _route_ne(route, origin),
                 "line": flight.line,
                 "origin": origin,

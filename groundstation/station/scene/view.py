@@ -26,6 +26,7 @@ import viser
 from estimators.detection import ned_from_lla
 
 from groundstation.station.hub.session import Session
+from groundstation.station.scene.coverage import CoverageSphere
 from groundstation.station.scene.geometry import (S_FLIP, UNIT_SPHERE, RouteFrame, attitude_wxyz, camera_for_box,
                                                   quat_mul, residual_colors, yaw_wxyz)
 
@@ -116,6 +117,7 @@ class Scene:
         self.ellipsoid = sc.add_line_segments("/cal_ellipsoid", UNIT_SPHERE, colors=(240, 180, 0),
                                               thickness=1.5, thickness_units="screen",
                                               position=tuple(CAL_CENTER), visible=False)
+        self.coverage = CoverageSphere(sc, SPHERE_CENTER)      # the directions covered, on the corrected sphere
         seg0 = np.zeros((1, 2, 3), dtype=np.float32)
         self.route = sc.add_point_cloud("/route", empty, colors=ROUTE_VIOLET, point_size=0.07,
                                         point_shape="circle", visible=False)
@@ -167,6 +169,7 @@ class Scene:
             self._route_key = None
         calibrating = activity == "calibration"
         self._update_cloud(d["cloud"], d["fit"], calibrating)
+        self.coverage.update(d.get("coverage") if calibrating else None)
         for node in self.cal_nodes:
             node.visible = calibrating
         self.vehicle_label.visible = calibrating
