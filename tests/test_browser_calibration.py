@@ -27,7 +27,7 @@ def shown(page, selector: str, timeout_ms: float = WAIT_MS) -> None:
     seconds on a loaded machine (tests/browser_checks.py, ``wait_js``)."""
     if not wait_until(lambda: page.locator(selector).first.is_visible(), timeout_ms / 1000.0, 0.1):
         state = page.evaluate("[document.getElementById('status').textContent, (document.getElementById('hint')||{}).textContent, document.querySelector('#steps li.current') && document.querySelector('#steps li.current').dataset.step]")
-        raise AssertionError(f"{selector} not shown; page: {state}")
+        raise AssertionError(f"{selector} not shown; page: {state}; errors: {getattr(page, 'errors', None)}")
 
 
 def press(page, selector: str) -> None:
@@ -154,8 +154,10 @@ def test_steps_fill_only_with_their_own_axis(station, page, api, shots):
 
 # ------------------------------------------------------------------ defect 2
 def test_link_drop_pauses_and_resumes_the_step(station, page, api, shots):
-    moves = [("still", 2.0), ("body", 0, 370.0, 35.0), ("still", 1.0), ("body", 1, 200.0, 35.0), ("still", 24.0),
-             ("body", 1, 200.0, 35.0), ("still", 3.0)]
+    # the still stretch spans the drop, the banner and the return on a loaded machine; the second Y
+    # turn is long enough to finish the step whatever part of it falls in the gap
+    moves = [("still", 2.0), ("body", 0, 370.0, 35.0), ("still", 1.0), ("body", 1, 200.0, 35.0), ("still", 36.0),
+             ("body", 1, 400.0, 35.0), ("still", 3.0)]
     msgs = pack_stream(attitude_from_moves(moves, 25.0), make_hardware(three_compasses()))
     t_still = 2.0 + 370 / 35 + 1.0 + 200 / 35
     port = connect(api)
