@@ -32,9 +32,10 @@ from groundstation.samples import FlightLog
 __all__ = ["analyze_log", "analyze_flight", "FlightAnalysis", "detector_score"]
 
 
-def detector_score(z_heading, z_path, z_field) -> np.ndarray:
+def detector_score(z_heading, z_path, z_field, z_vector=np.nan) -> np.ndarray:
     """The largest test score of each step (NaN where no test has one)."""
-    return np.fmax(np.fmax(np.asarray(z_heading, float), np.asarray(z_path, float)), np.asarray(z_field, float))
+    best = np.fmax(np.fmax(np.asarray(z_heading, float), np.asarray(z_path, float)), np.asarray(z_field, float))
+    return np.fmax(best, np.asarray(z_vector, float))
 
 
 @dataclass
@@ -61,9 +62,10 @@ def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: lis
     x = detection_inputs(log, calibration, mission, settings)
     ef = x["ef"]
     det = detect(x["t"], x["e"], x["d"], x["trusted"], x["strength"], x["incl"], x["heading"], x["yaw_rate"],
-                 ef.field_strength_mG if ef else np.nan, ef.inclination_deg if ef else np.nan, settings)
+                 ef.field_strength_mG if ef else np.nan, ef.inclination_deg if ef else np.nan, settings,
+                 z_vector=x["z_vector"])
     rows = record_rows(x["t"], x["chain"], x, ef.declination_deg if ef else 0.0, det.combined, det.trigger,
-                       detector_score(det.z_heading, det.z_path, det.z_field))
+                       detector_score(det.z_heading, det.z_path, det.z_field, det.z_vector))
     return FlightAnalysis(x, det, rows, settings)
 
 
