@@ -324,8 +324,8 @@ class DetectorStep:
     z_path: float
     z_field: float
     combined: bool
-    z_vector: float = float("nan")
     evidence: list[str] = field(default_factory=list)
+    z_vector: float = float("nan")
 
 
 class InterferenceDetector:

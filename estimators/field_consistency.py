@@ -63,7 +63,7 @@ class FieldConsistencySettings:
     field_learn_ratio: float = 10.0     # the Earth field h learns this many times slower than b
     turn_deg: float = 45.0              # the first turn this far from the learning heading ...
     turn_learn_s: float = 10.0          # ... is learned again this long, h as fast as b
-    motor_learn_s: float = 60.0         # NLMS time constant of the motor field per unit signal
+    motor_learn_s: float = 5.0          # NLMS time constant of the motor field per unit signal
     motor_signal_floor: float = 1.0     # NLMS regularisation of the signal deviation (A; throttle %)
     heading_track_s: float = 30.0       # ψ_f follows the magnetic heading with this time constant
     heading_learn_s: float = 5.0        # ... while learning
@@ -106,9 +106,13 @@ class FieldConsistency:
         self.prior = tuple(float(v) for v in earth_field_mG) if earth_field_mG is not None else None
         self._reset()
 
+    def set_prior(self, earth_field_mG) -> None:
+        """The WMM prior, known from now on (live: at the first GPS fix); used if the Earth field
+        is not yet initialised (at the first tested step)."""
+        self.prior = tuple(float(v) for v in earth_field_mG) if earth_field_mG is not None else None
+
     def _reset(self) -> None:
-        s = self.s
-        self.h = list(self.prior) if self.prior is not None and all(map(math.isfinite, self.prior)) else None
+        self.h = None
         self.b = [0.0, 0.0, 0.0]
         self.f = [0.0, 0.0, 0.0]
         self.x_ref: float | None = None
@@ -116,6 +120,7 @@ class FieldConsistency:
         self.turn_until: float | None = None        # the first turn is learned again until then
         self.learned_s = 0.0
         self.yaw_bias_rad_s = 0.0
+        self.heading_pull_on_alarm = True
         self._frozen_since: float | None = None
         self._noise_sum = 0.0
         self._noise_n = 0
@@ -162,7 +167,9 @@ class FieldConsistency:
         if self.psi is None:
             return self._off(t, OFF_ATTITUDE)
         c = dcm_body_to_ned_float(roll_rad, pitch_rad, self.psi)
-        if self.h is None:                                   # no prior: the first field is the Earth field
+        if self.h is None and self.prior is not None and all(map(math.isfinite, self.prior)):
+            self.h = list(self.prior)
+        elif self.h is None:                                 # no prior: the first field is the Earth field
             self.h = [c[0] * mx + c[1] * my + c[2] * mz, c[3] * mx + c[4] * my + c[5] * mz,
                       c[6] * mx + c[7] * my + c[8] * mz]
         return self._test(t, dt, c, (mx, my, mz), motor_signal)
@@ -182,7 +189,7 @@ class FieldConsistency:
         if not math.isfinite(rate):
             rate = 0.0
         pred = self.psi + (rate - self.yaw_bias_rad_s) * dt
-        if self._learning_allowed():
+        if self.heading_pull_on_alarm or self._learning_allowed():
             tau = self.s.heading_learn_s if self.learned_s < self.s.learn_s else self.s.heading_track_s
             innovation = _wrap(yaw - pred)
             pred += 2.0 * min(dt / tau, 0.5) * innovation          # PI loop, ζ = 1, ω_n = 1/τ
@@ -282,9 +289,10 @@ class FieldConsistencyResult:
 
 def field_consistency(t_s, mag_body_mG, roll_rad, pitch_rad, attitude_ok, gyro_rad_s, motor_signal,
                       rate_hz, field_ok, settings: FieldConsistencySettings | None = None,
-                      earth_field_mG=None) -> FieldConsistencyResult:
-    """Batch form: ``FieldConsistency.update`` over arrays of length N (identical numbers)."""
-    fc = FieldConsistency(settings, earth_field_mG)
+                      earth_field_mG=None, prior_from_s: float = -math.inf) -> FieldConsistencyResult:
+    """Batch form: ``FieldConsistency.update`` over arrays of length N (identical numbers); the
+    prior ``earth_field_mG`` is known from ``prior_from_s`` on (live: the first GPS fix)."""
+    fc = FieldConsistency(settings, None)
     t = np.asarray(t_s, dtype=float)
     n = len(t)
     cols = [np.broadcast_to(np.asarray(a, dtype=float), (n,)).tolist()
@@ -297,6 +305,8 @@ def field_consistency(t_s, mag_body_mG, roll_rad, pitch_rad, attitude_ok, gyro_r
     res, mot = np.full((n, 3), np.nan), np.zeros((n, 3))
     tl = t.tolist()
     for i in range(n):
+        if fc.prior is None and earth_field_mG is not None and tl[i] >= prior_from_s:
+            fc.set_prior(earth_field_mG)
         step = fc.update(tl[i], mag[i], cols[0][i], cols[1][i], ok[i], gyro[i], cols[2][i], cols[3][i], fok[i])
         z[i], q[i], st[i] = step.z, step.q, step.status
         res[i] = step.residual_mG

@@ -362,11 +362,27 @@ def step_inputs(t, chain, mag_held, att_rp, gps_held, rate_hz, gyro, policy: Fie
 
 # ----------------------------------------------------------------------------- the field-vector test
 def earth_prior_mG(ef) -> tuple[float, float, float] | None:
-    """The WMM field in the magnetic navigation frame (H, 0, Z) [mG], the field test's prior."""
+    """The WMM field in the magnetic navigation frame (H, 0, Z) [mG], the field test's prior,
+    rounded to 1 mG (far below its uncertainty; the live twin's WMM date and position may differ a
+    little from the log's)."""
     if ef is None:
         return None
     incl = np.radians(ef.inclination_deg)
-    return (float(ef.field_strength_mG * np.cos(incl)), 0.0, float(ef.field_strength_mG * np.sin(incl)))
+    return (round(float(ef.field_strength_mG * np.cos(incl))), 0.0, round(float(ef.field_strength_mG * np.sin(incl))))
+
+
+def first_fix_prior(log: FlightLog) -> tuple[tuple[float, float, float] | None, float]:
+    """(prior, time) from the WMM at the first GPS fix, the live twin's rule (LiveAnalyzer._start)."""
+    g = np.asarray(log.gps, dtype=float).reshape(-1, 8)
+    ok = np.flatnonzero(np.isfinite(g[:, 1]) & np.isfinite(g[:, 2]) & np.isfinite(g[:, 3]))
+    if not len(ok):
+        return None, np.inf
+    row = g[ok[0]]
+    start = log.start_unix_s if log.start_unix_s else time.time() - row[0]
+    try:
+        return earth_prior_mG(earth_field(row[1], row[2], row[3], decimal_year_from_unix(start + row[0]))), float(row[0])
+    except ValueError:
+        return None, np.inf
 
 
 def motor_signal_table(log: FlightLog) -> tuple[np.ndarray, str]:
@@ -448,7 +464,7 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
     roll_v, pitch_v, ok_v, gyro_v = vector_test_inputs(chain, att_held[:, :2], imu[:, 1:4], x["steep"])
     vector = field_consistency(t, hold_last(mag_cal[:, 0], mag_cal[:, 1:4], t, GPS_TIMEOUT_S), roll_v, pitch_v,
                                ok_v, gyro_v, motor_held, rate, policy.field_on, settings.vector,
-                               earth_prior_mG(ef))
+                               *first_fix_prior(log))
     med_dt = float(np.median(np.diff(t))) if n > 10 else 0.0
     log_rate = 1.0 / med_dt if med_dt > 0 else 0.0
     rtk = bool(len(g) and np.mean(g[:, 7] >= settings.rtk_min_fix) > 0.5)

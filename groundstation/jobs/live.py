@@ -101,6 +101,8 @@ class LiveAnalyzer:
         new.legs = self.legs
         new.params, new.autopilot, new._primary = dict(self.params), self.autopilot, dict(self._primary)
         new.earth_field = self.earth_field
+        if self.earth_field is not None:
+            new.vector = FieldConsistency(self.settings.vector, earth_prior_mG(self.earth_field))
         new.chain.declination_deg = self.chain.declination_deg
         return new
 
@@ -127,7 +129,8 @@ class LiveAnalyzer:
         self.chain.declination_deg = ef.declination_deg
         self.earth_field = ef
         if self.vector is None:
-            self.vector = FieldConsistency(self.settings.vector, earth_prior_mG(ef))
+            self.vector = FieldConsistency(self.settings.vector, None)
+        self.vector.set_prior(earth_prior_mG(ef))
 
     # ------------------------------------------------------------------ samples
     def on_sample(self, s: Sample) -> np.ndarray | None:
