@@ -22,8 +22,8 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   turn round, equal-gain LMS puts exactly half of the new residual in b and half in h, which is the
   split that removes a wrong one (the residual of a wrong split flips sign with the heading).
 * d: the disturbance.  The residual e = m − C ᵀh − b − f(x − x_ref) is low-passed (``smooth_s``),
-  r̄; its size in noise units q = |r̄| / σ (σ: RMS of |r̄| over the second half of the learning
-  time, at least ``noise_floor_mG``) feeds a one-sided CUSUM (Page, Biometrika 41, 1954):
+  r̄; its size in noise units q = |r̄| / σ (σ: RMS of |r̄| over the last quarter of the learning
+  time, then following it with ``noise_track_s`` while the test is quiet; at least ``noise_floor_mG``) feeds a one-sided CUSUM (Page, Biometrika 41, 1954):
   S ← max(0, S + Δt (q − κ)), alarm at S ≥ ``cusum_threshold_s``; score z = S / threshold (z ≥ 1:
   the test's alarm).  A disturbance in any direction counts, long before it turns the heading by 5°.
   Learning pauses while z ≥ ``freeze_z`` so a slow ramp is not learned away.
@@ -70,6 +70,7 @@ class FieldConsistencySettings:
     freeze_max_s: float = 20.0          # learning resumes after this long frozen (a lasting change is learned)
     smooth_s: float = 0.5               # low-pass of the residual vector
     noise_floor_mG: float = 4.0         # σ is at least this
+    noise_track_s: float = 60.0         # σ² follows the residual's mean square this slowly after learning
     cusum_drift: float = 3.0            # κ: residual below κσ never accumulates
     cusum_threshold_s: float = 1.0      # alarm when S (σ-units × s above κ) reaches this
     freeze_z: float = 0.2               # learning pauses at this score
@@ -124,6 +125,7 @@ class FieldConsistency:
         self._frozen_since: float | None = None
         self._noise_sum = 0.0
         self._noise_n = 0
+        self._noise_ms = 0.0
         self.noise_mG = float("nan")
         self._t: float | None = None
         self._restart(-math.inf)
@@ -256,11 +258,14 @@ class FieldConsistency:
         a = 1.0 - math.exp(-dt / s.smooth_s) if self.r is not None else 1.0
         r = self.r = e if self.r is None else [self.r[k] + a * (e[k] - self.r[k]) for k in range(3)]
         size = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
-        if learning and self.learned_s >= 0.5 * s.learn_s:
+        if learning and self.learned_s >= 0.75 * s.learn_s:
             self._noise_sum += size * size
             self._noise_n += 1
+            self._noise_ms = self._noise_sum / self._noise_n
+        elif not learning and self._noise_n and self.z < s.freeze_z:     # follows the noise, slowly
+            self._noise_ms += (1.0 - math.exp(-dt / s.noise_track_s)) * (size * size - self._noise_ms)
         if self._noise_n:
-            self.noise_mG = max(s.noise_floor_mG, math.sqrt(self._noise_sum / self._noise_n))
+            self.noise_mG = max(s.noise_floor_mG, math.sqrt(self._noise_ms))
         sigma = self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG
         q = size / sigma
         if learning or turn or t < self.settle_until:
