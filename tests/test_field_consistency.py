@@ -114,3 +114,40 @@ def test_detector_takes_the_vector_score_as_field_evidence():
     off = detect(t, zero, nan, np.zeros(n, bool), nan, nan, zero, zero,
                  settings=DetectionSettings(use_vector=False), z_vector=z_vector)
     assert not off.combined.any()
+
+
+# ----------------------------------------------------------------------------- alarm explanations
+def _explain_case(kind: str):
+    """Per-step arrays of one alarm built for each kind (residual, current, position)."""
+    from estimators.detection_explain import explain_alarm
+    t = np.arange(0.0, 40.0, 0.02)
+    n = len(t)
+    north, east = 6.0 * t, np.zeros(n)                       # flying north at 6 m/s
+    current = np.full(n, 20.0)
+    axis = np.array([0.3, 0.9, 0.3])
+    if kind == "current":                                    # a payload current 20 -> 35 A with its field
+        current = 20.0 + 15.0 * np.clip((t - 20.0) / 2.0, 0.0, 1.0)
+        size = 4.0 * (current - 20.0)
+    elif kind == "place":                                    # an anomaly at 150 m north (passed at t = 25 s)
+        size = 120.0 / (1.0 + ((north - 150.0) / 12.0) ** 2)
+    else:                                                    # a ramp
+        size = np.clip(t - 20.0, 0.0, None) * 12.5
+    rng = np.random.default_rng(1)
+    residual = size[:, None] * axis + rng.normal(0, 1.0, (n, 3))
+    lat, lon = 30.0 + north / 111_000.0, np.full(n, 120.0)
+    z = np.where(size > 40.0, 2.0, 0.1)
+    i0 = int(np.argmax(size > 40.0))
+    i1 = n - 1 if kind != "place" else int(np.flatnonzero(size > 40.0)[-1])
+    return explain_alarm(t, residual, current, north, east, lat, lon, {"field_vector": z, "heading_difference": 0 * z},
+                         i0, i1)
+
+
+def test_alarm_explanations_name_each_kind():
+    cur, place, ramp = _explain_case("current"), _explain_case("place"), _explain_case("ramp")
+    assert cur["kind"] == "moving with current" and cur["current_correlation"] > 0.9
+    assert place["kind"] == "fixed in place"
+    assert abs((place["position"]["lat"] - 30.0) * 111_000.0 - 150.0) < 5.0   # the anomaly's place
+    assert ramp["kind"] == "rising with time" and 10.0 < ramp["growth_mG_s"] < 15.0
+    assert ramp["tests"] == ["field_vector"]
+    v = np.array(ramp["disturbance_mG"]) / ramp["disturbance_size_mG"]
+    assert v @ np.array([0.3, 0.9, 0.3]) / np.linalg.norm([0.3, 0.9, 0.3]) > 0.99   # its direction, body frame

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.detection import DetectionResult, DetectionSettings, alarm_intervals, detect
+from estimators.detection import DetectionResult, DetectionSettings, alarm_intervals, detect, ned_from_lla
+from estimators.detection_explain import explain_alarm
 from estimators.heading import split_velocity
 
 from groundstation.jobs.compass_report import compass_summaries
@@ -29,7 +30,7 @@ from groundstation.jobs.navigation import navigation
 from groundstation.jobs.record import COL, AlarmTracker, record_rows
 from groundstation.samples import FlightLog
 
-__all__ = ["analyze_log", "analyze_flight", "FlightAnalysis", "detector_score"]
+__all__ = ["analyze_log", "analyze_flight", "FlightAnalysis", "detector_score", "explanation_text"]
 
 
 def detector_score(z_heading, z_path, z_field, z_vector=np.nan) -> np.ndarray:
@@ -52,7 +53,41 @@ class FlightAnalysis:
         r = self.rows
         tracker.update(r[:, COL["t_s"]], r[:, COL["alarm"]] > 0.5,
                        r[:, [COL["ev_heading"], COL["ev_path"], COL["ev_field"]]] > 0.5, r[:, COL["score"]])
+        for alarm in tracker.alarms:
+            alarm["explanation"] = self.explain(alarm["start_s"], alarm["end_s"])
+            alarm["explanation_text"] = explanation_text(alarm["explanation"], self.x.get("motor_signal", "none"))
         return tracker.alarms
+
+    def explain(self, start_s: float, end_s: float | None) -> dict:
+        """The disturbance, growth, tests and likely kind of the alarm (estimators.detection_explain)."""
+        x, det = self.x, self.det
+        t = x["t"]
+        i0 = int(min(np.searchsorted(t, start_s - 1e-6), len(t) - 1))
+        i1 = len(t) - 1 if end_s is None else int(min(np.searchsorted(t, end_s + 1e-6), len(t) - 1))
+        lat, lon = x["gps_held"][:, 3], x["gps_held"][:, 4]
+        ok = np.flatnonzero(np.isfinite(lat) & np.isfinite(lon))
+        north, east = (ned_from_lla(lat, lon, lat[ok[0]], lon[ok[0]]) if len(ok)
+                       else (np.full(len(t), np.nan), np.full(len(t), np.nan)))
+        scores = {"heading_difference": det.z_heading, "path_deviation": det.z_path,
+                  "field_strength_inclination": det.z_field, "field_vector": det.z_vector}
+        return explain_alarm(t, x["vector"].residual_mG, x["motor_held"], north, east, lat, lon, scores, i0, i1)
+
+
+def explanation_text(e: dict, signal: str = "current_A") -> str:
+    """An alarm's explanation in words, for people."""
+    parts = [f"likely {e['kind']}"]
+    if e.get("position"):
+        parts[0] += f" at {e['position']['lat']:.6f}, {e['position']['lon']:.6f}"
+    if e.get("disturbance_size_mG") is not None:
+        v = e["disturbance_mG"]
+        parts.append(f"disturbance {e['disturbance_size_mG']:.0f} mG (body x {v[0]:+.0f}, y {v[1]:+.0f}, z {v[2]:+.0f})")
+    if e.get("growth_mG_s") is not None:
+        parts.append(f"growing {e['growth_mG_s']:+.1f} mG/s before the alarm")
+    if e["kind"] == "moving with current" and e.get("current_correlation") is not None:
+        parts.append(f"follows the {'current' if signal == 'current_A' else 'throttle'} (r = {e['current_correlation']:.2f})")
+    if e.get("tests"):
+        parts.append("tests: " + ", ".join(k.replace("_", " ") for k in e["tests"]))
+    return "; ".join(parts)
 
 
 def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: list | None = None,
