@@ -25,6 +25,7 @@ from estimators.detection_explain import explain_alarm
 from estimators.heading import split_velocity
 
 from groundstation.jobs.compass_report import compass_summaries
+from groundstation.jobs.flight_plot import vector_test_status
 from groundstation.jobs.inputs import detection_inputs, heading_deg, rounded
 from groundstation.jobs.navigation import navigation
 from groundstation.jobs.record import COL, AlarmTracker, record_rows
@@ -71,6 +72,19 @@ class FlightAnalysis:
         scores = {"heading_difference": det.z_heading, "path_deviation": det.z_path,
                   "field_strength_inclination": det.z_field, "field_vector": det.z_vector}
         return explain_alarm(t, x["vector"].residual_mG, x["motor_held"], north, east, lat, lon, scores, i0, i1)
+
+
+def motor_field_report(x: dict) -> dict | None:
+    """The motor field per unit of the motor signal as learned in flight: its last value and its
+    trend (the value at each quarter of the flight)."""
+    if x.get("motor_signal", "none") == "none":
+        return None
+    f = x["vector"].motor_mG_per_unit
+    if not (x["vector"].status == 0).any():
+        return None
+    unit = "mG/A" if x["motor_signal"] == "current_A" else "mG/%"
+    quarters = [[round(float(v), 2) for v in f[min(len(f) - 1, k * len(f) // 4)]] for k in (1, 2, 3, 4)]
+    return {"signal": x["motor_signal"], "unit": unit, "estimate": quarters[-1], "trend": quarters}
 
 
 def explanation_text(e: dict, signal: str = "current_A") -> str:
@@ -153,6 +167,8 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "path_test": path_test,
         "heading_test": x["heading_test"],
         "field_test": x["field_test"],
+        "field_vector_test": vector_test_status(x["vector"].status),
+        "motor_field": motor_field_report(x),
         "imu_rate_hz": rounded(x["imu_rate_hz"], 1),
         "max_cross_track_m": rounded(np.nanmax(d_gps)) if len(d_gps) and np.isfinite(d_gps).any() else None,
         "compasses": compasses,
