@@ -13,8 +13,10 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   prior (H, 0, Z) (without one, the first field), learned in flight; b: a body-fixed residual
   offset (calibration error, motor field at the reference signal);
 * f: the motor field per unit of the motor signal x (current [A], or throttle in % without a
-  current sensor), on x − x_ref (x_ref: the first signal value), as ArduPilot's compassmot /
-  PX4's mag_compensation fit it offline (estimators.motor_field).
+  current sensor), on x − x_ref (x_ref: the signal low-passed with ``motor_ref_s``), as ArduPilot's compassmot /
+  PX4's mag_compensation fit it offline (estimators.motor_field); its residual is clipped at
+  ``motor_clip_sigma`` σ and it does not learn in turns, so what the model cannot explain (a turn,
+  a disturbance) does not teach it a wrong field per ampere.
   h, b and f are learned by (normalised) LMS on the residual (gradients C e, e and Δx e), fast
   during the first ``learn_s`` of data, then slowly.  While the vehicle flies one heading, h (a
   heading offset) and b are not separable; b learns ``field_learn_ratio`` times faster, and the
@@ -64,6 +66,9 @@ class FieldConsistencySettings:
     turn_deg: float = 45.0              # the first turn this far from the learning heading ...
     turn_learn_s: float = 10.0          # ... is learned again this long, h as fast as b
     motor_learn_s: float = 5.0          # NLMS time constant of the motor field per unit signal
+    motor_clip_sigma: float = 3.0       # f learns from residuals clipped at this many σ (Huber) ...
+    motor_max_turn_deg_s: float = 10.0  # ... and not while turning faster than this
+    motor_ref_s: float = 30.0           # the reference signal x_ref follows the signal this slowly
     motor_signal_floor: float = 1.0     # NLMS regularisation of the signal deviation (A; throttle %)
     heading_track_s: float = 30.0       # ψ_f follows the magnetic heading with this time constant
     heading_learn_s: float = 5.0        # ... while learning
@@ -121,6 +126,7 @@ class FieldConsistency:
         self.turn_until: float | None = None        # the first turn is learned again until then
         self.learned_s = 0.0
         self.yaw_bias_rad_s = 0.0
+        self.yaw_rate_rad_s = 0.0
         self.heading_pull_on_alarm = True
         self._frozen_since: float | None = None
         self._noise_sum = 0.0
@@ -190,6 +196,7 @@ class FieldConsistency:
         rate = (q * math.sin(roll) + r * math.cos(roll)) / cos_p if abs(cos_p) > 1e-3 else 0.0
         if not math.isfinite(rate):
             rate = 0.0
+        self.yaw_rate_rad_s = rate
         pred = self.psi + (rate - self.yaw_bias_rad_s) * dt
         if self.heading_pull_on_alarm or self._learning_allowed():
             tau = self.s.heading_learn_s if self.learned_s < self.s.learn_s else self.s.heading_track_s
@@ -211,12 +218,17 @@ class FieldConsistency:
         nan = float("nan")
         return FieldStep(t, nan, nan, (nan, nan, nan), status, tuple(self.f))
 
-    def _motor(self, x: float) -> float:
-        """x − x_ref (0 without a signal); x_ref is the first signal value."""
+    def _motor(self, x: float, dt: float) -> float:
+        """x − x_ref (0 without a signal); x_ref follows the signal with ``motor_ref_s``, so Δx has
+        no lasting mean and f learns from the signal's changes only (b keeps the rest)."""
         if not math.isfinite(x):
             return 0.0
         if self.x_ref is None:
             self.x_ref = x
+        step = (1.0 - math.exp(-dt / self.s.motor_ref_s)) * (x - self.x_ref)
+        self.x_ref += step
+        for k in range(3):                   # b + f (x − x_ref) unchanged: b carries f x_ref
+            self.b[k] += self.f[k] * step
         return x - self.x_ref
 
     def _relearning_turn(self, t: float, learning: bool) -> bool:
@@ -236,19 +248,21 @@ class FieldConsistency:
         g_h = g if turn else 1.0 - math.exp(-dt / (tau_b * s.field_learn_ratio))
         en = [c[0] * e[0] + c[1] * e[1] + c[2] * e[2], c[3] * e[0] + c[4] * e[1] + c[5] * e[2],
               c[6] * e[0] + c[7] * e[1] + c[8] * e[2]]
-        gm = 0.0 if turn else (1.0 - math.exp(-dt / s.motor_learn_s)) * dx / (dx * dx + s.motor_signal_floor ** 2)
+        steady = not turn and abs(self.yaw_rate_rad_s) < math.radians(s.motor_max_turn_deg_s)
+        gm = (1.0 - math.exp(-dt / s.motor_learn_s)) * dx / (dx * dx + s.motor_signal_floor ** 2) if steady else 0.0
+        clip = s.motor_clip_sigma * (self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG)
         h, b, f = self.h, self.b, self.f
         for k in range(3):
             h[k] += 0.5 * g_h * en[k]
             b[k] += 0.5 * g * e[k]
-            f[k] += gm * e[k]
+            f[k] += gm * min(max(e[k], -clip), clip)
 
     def _test(self, t: float, dt: float, c: tuple, m: tuple, x: float) -> FieldStep:
         s = self.s
         learning = self.learned_s < s.learn_s
         self.learned_s += min(dt, s.max_gap_s)
         h, b, f = self.h, self.b, self.f
-        dx = self._motor(x)
+        dx = self._motor(x, dt)
         pred = [c[0] * h[0] + c[3] * h[1] + c[6] * h[2], c[1] * h[0] + c[4] * h[1] + c[7] * h[2],
                 c[2] * h[0] + c[5] * h[1] + c[8] * h[2]]
         e = [m[k] - pred[k] - b[k] - f[k] * dx for k in range(3)]
