@@ -41,8 +41,9 @@ REAL_LOGS = ("dronekit/flight_replay_flight.tlog", "px4-pyulog/sample_log_small.
 BASE = DetectionSettings()
 VARIANTS = {
     "seed 002 + sector field check": replace(BASE, use_vector=False),
-    "+ field vector, corroborated": replace(BASE, vector_alone=float("inf")),
-    "+ field vector alone (default)": BASE,
+    "+ field vector, corroborated": replace(BASE, vector_alone=float("inf"), vector_gate=float("-inf")),
+    "+ field vector alone, no gate": replace(BASE, vector_gate=float("-inf")),
+    "+ field vector alone, gating the others (default)": BASE,
 }
 RAMPS = (("fast", "mission-fast"), ("slow", "mission-slow"), ("step", "mission-step"), ("bump", "mission-bump"))
 TARGET_S = {"fast": 1.5, "slow": 3.5}

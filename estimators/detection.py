@@ -28,6 +28,9 @@ Tests, each reduced to a score z (z ≥ 1 = the test's own alarm threshold):
      vector:   z_V ≥ ``vector_alone``, or z_V ≥ 1 and (z_H ≥ ½ or z_P ≥ ½ held): the field-vector
                consistency test (estimators.field_consistency, a CUSUM that already integrates,
                so no hold), reported as field evidence.
+   Gate: where the field-vector test is on (finite z_V), the heading, path and sector-field rules
+   fire only while z_V ≥ ``vector_gate``: a compass heading that moves with the motor current
+   (explained by the learned field per ampere) is not evidence of interference.
    The alarm stays on ``release_s`` after the last trigger.  Every step names its evidence.
 5. A gap in the data longer than ``segment_gap_s`` starts a new segment that learns everything
    again (a calibration dance and a flight in one log).
@@ -107,6 +110,8 @@ class DetectionSettings:
     vector: FieldConsistencySettings = field(default_factory=FieldConsistencySettings)  # field-vector test
     vector_alone: float = 1.0             # field-vector score that alarms on its own (inf: only corroborated)
     use_vector: bool = True               # False: the seed-002 tests and the sector field check only
+    vector_gate: float = 0.3              # where the field-vector test is on, the other tests count only
+                                          # while its score is at least this (inf: no gate)
 
 
 @dataclass
@@ -307,9 +312,10 @@ def _detect_segment(t_s, heading_diff_rad, cross_track, path_trusted, strength_m
     p1 = _gt(z_p, 1.0)
     zv = np.where(armed, np.asarray(z_vector, dtype=float), np.nan) if s.use_vector else np.full(n, np.nan)
     vec = _gt(zv, s.vector_alone) | (_gt(zv, 1.0) & (hh | ph))
-    trig = np.stack([held(_gt(z_hq, s.strong), hs) | (h_sus & (ph | fh)),
-                     p1 & (hh | fh),
-                     held(_gt(z_f, s.strong), s.field_hold_s) | (f_sus & (hh | ph)) | vec], axis=1)
+    gate = ~np.isfinite(zv) | (np.nan_to_num(zv) >= s.vector_gate)
+    trig = np.stack([gate & (held(_gt(z_hq, s.strong), hs) | (h_sus & (ph | fh))),
+                     gate & p1 & (hh | fh),
+                     (gate & (held(_gt(z_f, s.strong), s.field_hold_s) | (f_sus & (hh | ph)))) | vec], axis=1)
     any_trig = trig.any(axis=1)
     combined = _since_last(t, any_trig) <= s.release_s
     return DetectionResult(t, z_h, z_p, z_f, _gt(z_h, 1.0), p1, f_sus, combined, trig, float(sig_e),
@@ -428,8 +434,9 @@ class InterferenceDetector:
         p1 = ge(z_p, 1.0)
         z_v = float(z_vector) if (armed and s.use_vector) else float("nan")
         vec = ge(z_v, s.vector_alone) or (ge(z_v, 1.0) and (hh or ph))
-        trig = [held("hs", hs) or (h_sus and (ph or fh)), p1 and (hh or fh),
-                held("fs", s.field_hold_s) or (f_sus and (hh or ph)) or vec]
+        gate = not np.isfinite(z_v) or z_v >= s.vector_gate
+        trig = [gate and (held("hs", hs) or (h_sus and (ph or fh))), gate and p1 and (hh or fh),
+                (gate and (held("fs", s.field_hold_s) or (f_sus and (hh or ph)))) or vec]
         if any(trig):
             self._last_trigger = t
             self.alarm_kinds = [EVIDENCE[j] for j in range(3) if trig[j]]

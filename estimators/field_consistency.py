@@ -64,8 +64,11 @@ class FieldConsistencySettings:
     offset_learn_s: float = 60.0        # ... and afterwards
     field_learn_ratio: float = 10.0     # the Earth field h learns this many times slower than b
     turn_deg: float = 45.0              # the first turn this far from the learning heading ...
-    turn_learn_s: float = 10.0          # ... is learned again this long, h as fast as b
-    motor_learn_s: float = 5.0          # NLMS time constant of the motor field per unit signal
+    turn_learn_s: float = 10.0
+    first_turn_hold_deg_s: float = 20.0
+    motor_excitation: float = 500.0     # Σ Δx² Δt [A² s] before f is trusted; until then the CUSUM ...
+    motor_hold_signal: float = 3.0      # ... holds while the signal is this far from its reference  # until the first turn is learned, the CUSUM holds in faster turns          # ... is learned again this long, h as fast as b
+    motor_learn_s: float = 10.0         # NLMS time constant of the motor field per unit signal
     motor_clip_sigma: float = 3.0       # f learns from residuals clipped at this many σ (Huber) ...
     motor_max_turn_deg_s: float = 10.0  # ... and not while turning faster than this
     motor_ref_s: float = 30.0           # the reference signal x_ref follows the signal this slowly
@@ -127,6 +130,8 @@ class FieldConsistency:
         self.learned_s = 0.0
         self.yaw_bias_rad_s = 0.0
         self.yaw_rate_rad_s = 0.0
+        self.excitation = 0.0                        # Σ Δx² Δt the motor field has learned from
+        self._dx = 0.0
         self.heading_pull_on_alarm = True
         self._frozen_since: float | None = None
         self._noise_sum = 0.0
@@ -250,6 +255,7 @@ class FieldConsistency:
               c[6] * e[0] + c[7] * e[1] + c[8] * e[2]]
         steady = not turn and abs(self.yaw_rate_rad_s) < math.radians(s.motor_max_turn_deg_s)
         gm = (1.0 - math.exp(-dt / s.motor_learn_s)) * dx / (dx * dx + s.motor_signal_floor ** 2) if steady else 0.0
+        self.excitation += dx * dx * dt if steady else 0.0
         clip = s.motor_clip_sigma * (self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG)
         h, b, f = self.h, self.b, self.f
         for k in range(3):
@@ -262,7 +268,7 @@ class FieldConsistency:
         learning = self.learned_s < s.learn_s
         self.learned_s += min(dt, s.max_gap_s)
         h, b, f = self.h, self.b, self.f
-        dx = self._motor(x, dt)
+        dx = self._dx = self._motor(x, dt)
         pred = [c[0] * h[0] + c[3] * h[1] + c[6] * h[2], c[1] * h[0] + c[4] * h[1] + c[7] * h[2],
                 c[2] * h[0] + c[5] * h[1] + c[8] * h[2]]
         e = [m[k] - pred[k] - b[k] - f[k] * dx for k in range(3)]
@@ -285,7 +291,10 @@ class FieldConsistency:
         if learning or turn or t < self.settle_until:
             self.S = self.z = 0.0
             return FieldStep(t, float("nan"), q, tuple(r), LEARNING if (learning or turn) else SETTLING, tuple(f))
-        self.S = max(0.0, self.S + dt * (q - s.cusum_drift))
+        first_turn = self.turn_until is None and abs(self.yaw_rate_rad_s) > math.radians(s.first_turn_hold_deg_s)
+        unknown_motor = self.excitation < s.motor_excitation and abs(self._dx) > s.motor_hold_signal
+        if not (first_turn or unknown_motor):
+            self.S = max(0.0, self.S + dt * (q - s.cusum_drift))      # (held in turns until one is learned)
         self.z = self.S / s.cusum_threshold_s
         frozen = self.z >= s.freeze_z
         self._frozen_since = (self._frozen_since if self._frozen_since is not None else t) if frozen else None

@@ -76,8 +76,8 @@ def test_detection_benchmark_quick(tmp_path):
     and the latency-vs-false-alarm chart is written."""
     png = tmp_path / "det.png"
     out = _run("benchmarks/detection.py", "--quick", "--png", str(png))
-    assert "+ field vector alone (default): all targets met" in out, out
+    assert "+ field vector alone, gating the others (default): all targets met" in out, out
     rows = re.findall(r"^  fast\s+([\d.]+)\s+([\d.]+)\s+0 ", out, re.M)
-    assert len(rows) == 3 and all(float(med) <= 1.5 for med, _ in rows), out
+    assert len(rows) == 4 and all(float(med) <= 1.5 for med, _ in rows), out
     assert len(re.findall(r"clean motor-current 0 / 1 flights", out)) >= 2, out
     assert png.exists() and png.stat().st_size > 1000
