@@ -66,7 +66,7 @@ class FieldConsistencySettings:
     turn_deg: float = 45.0              # the first turn this far from the learning heading ...
     turn_learn_s: float = 10.0
     first_turn_hold_deg_s: float = 20.0
-    motor_excitation: float = 500.0     # Σ Δx² Δt [A² s] before f is trusted; until then the CUSUM ...
+    motor_excitation: float = 2000.0    # Σ Δx² Δt [A² s] before f is trusted; until then the CUSUM ...
     motor_hold_signal: float = 3.0      # ... holds while the signal is this far from its reference  # until the first turn is learned, the CUSUM holds in faster turns          # ... is learned again this long, h as fast as b
     motor_learn_s: float = 10.0         # NLMS time constant of the motor field per unit signal
     motor_clip_sigma: float = 3.0       # f learns from residuals clipped at this many σ (Huber) ...
@@ -95,7 +95,7 @@ def status_text(code: int) -> str:
 @dataclass
 class FieldStep:
     t_s: float
-    z: float                            # CUSUM / threshold (NaN unless status is ON)
+    z: float                            # CUSUM / threshold (NaN unless ON; 0 while relearning a turn)
     q: float                            # |r̄| / σ (NaN when off)
     residual_mG: tuple                  # r̄, body frame (NaN when off)
     status: int
@@ -289,8 +289,9 @@ class FieldConsistency:
         sigma = self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG
         q = size / sigma
         if learning or turn or t < self.settle_until:
-            self.S = self.z = 0.0
-            return FieldStep(t, float("nan"), q, tuple(r), LEARNING if (learning or turn) else SETTLING, tuple(f))
+            self.S = self.z = 0.0        # relearning a turn, the test is on but blind: score 0, not NaN
+            z = 0.0 if (turn and not learning) else float("nan")
+            return FieldStep(t, z, q, tuple(r), LEARNING if (learning or turn) else SETTLING, tuple(f))
         first_turn = self.turn_until is None and abs(self.yaw_rate_rad_s) > math.radians(s.first_turn_hold_deg_s)
         unknown_motor = self.excitation < s.motor_excitation and abs(self._dx) > s.motor_hold_signal
         if not (first_turn or unknown_motor):
