@@ -233,7 +233,7 @@ def test_three_compasses_orientation_write_reboot_and_heading_check(station, pag
             assert abs(fv.params[name] - value) <= 1e-4 * max(1.0, abs(value)), name
         station_page = browser.new_page()
         station_page.goto(station.url + "/index.html")
-        shown(station_page, "#v-cal:has-text('in use')", 10_000)
+        shown(station_page, "#v-cal:has-text('autopilot-corrected')", 10_000)   # the vehicle corrects it now
         station_page.close()
 
         press(page, "#reboot")
@@ -361,6 +361,7 @@ def test_write_failures_shown_then_px4_write(station, page, api, shots):
     port = connect(api)
     with FakeVehicle(hold, port, speed=1.0, autopilot="px4") as fv:
         shown(page, "#status:has-text('px4')", WAIT_MS)
+        wait_api(api, lambda w: (w["result"] or {}).get("status") == "ok", timeout_s=30)   # kept for this link
         press(page, "#accept")
         shown(page, "#param-write .good", WAIT_MS)
         page.screenshot(path=str(shots / "21_px4_written.png"))

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimators.detection import DetectionSettings, cross_track_m, field_inclination_deg, ned_from_lla
-from estimators.field_consistency import FieldConsistencySettings, field_consistency
+from estimators.field_consistency import field_consistency
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import run_heading_chain
 from estimators.rotations import wrap_angle_rad

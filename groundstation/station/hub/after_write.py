@@ -69,11 +69,12 @@ class AfterWrite:
         hub, w = self._hub, self._w
 
         def progress(confirmed: list[str]) -> None:
-            w.param_write = dict(w.param_write or {}, confirmed=confirmed)
+            if w.param_write is not None:         # (a reset meanwhile leaves nothing to update)
+                w.param_write = dict(w.param_write, confirmed=confirmed)
 
         confirmed, failed, echoed = hub.vehicle.write_params(link, params, progress)
         with self._c._lock:
-            pw = w.param_write or {}
+            pw = w.param_write or {"autopilot": hub.vehicle.autopilot or "ardupilot", "total": len(params)}
             failures = [{"name": n, "sent": params[n], "echoed": echoed.get(n),
                          "text": (f"{n}: the vehicle kept {echoed[n]:.6g} instead of {params[n]:.6g}" if n in echoed
                                   else f"{n}: no answer from the vehicle")} for n in failed]

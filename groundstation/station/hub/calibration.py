@@ -157,6 +157,13 @@ class CalibrationControl:
         link is gone)."""
         self.wizard.reset()
 
+    def unwritten_result(self) -> bool:
+        """A good result not on a vehicle yet (not accepted, or its write failed, had no link or is
+        still being tried on a link that is going away)."""
+        w = self.wizard
+        ok = w.result is not None and w.result.get("status") == "ok"
+        return ok and w.state in ("result", "accepted") and (w.param_write or {}).get("state") != "written"
+
     def reset(self) -> None:
         with self._lock:
             w = self.wizard

@@ -61,6 +61,7 @@ class Session(SessionViews):
         self.log_calibration: dict | None = None
         self._log_mission: list | None = None
         self._review_generation = 0
+        self._wizard_for_link = None         # the connecting link a calibration was started for
 
     # ------------------------------------------------------------------ listeners / events
     def add_listener(self, fn: Callable[[], None]) -> None:
@@ -229,7 +230,11 @@ class Session(SessionViews):
     def switch_to_live(self, url: str, link, recording, samples: list[Sample]) -> None:
         self.sources.stop()
         with self._lock:
-            self._new_source(start_unix_s=None, autopilot=None, params={}, mission=None)
+            # a calibration started while this link was connecting is meant for its vehicle
+            # and a result not yet on a vehicle stays for the new link (reconnect, then write it)
+            keep_wizard = ((self._wizard_for_link is not None and self._wizard_for_link is link)
+                           or self.calibration.unwritten_result())
+            self._new_source(start_unix_s=None, autopilot=None, params={}, mission=None, keep_wizard=keep_wizard)
             self.sources.start_live(url, link, recording)
             self.event(f"listening on {url}" + (", recording from the first packet" if recording else ""))
             if samples:
@@ -260,12 +265,17 @@ class Session(SessionViews):
             self.changed()
 
     def _new_source(self, start_unix_s: float | None, autopilot: str | None, params: dict,
-                    mission: list | None) -> None:
-        """Everything of the previous source goes (lock held)."""
+                    mission: list | None, keep_wizard: bool = False) -> None:
+        """Everything of the previous source goes (lock held); ``keep_wizard``: a calibration the
+        operator started for this source while it was connecting stays."""
         self.events.clear()
         self.flight.new_source(start_unix_s)
         self.vehicle.reset(autopilot, params)
-        self.calibration.new_source()
+        if not keep_wizard:
+            self.calibration.new_source()
+        elif self.calibration.unwritten_result():
+            self.event("the calibration result is kept for this link: accept writes it to the vehicle")
+        self._wizard_for_link = None
         self.log_calibration = None
         self._log_mission = mission
         self._review_generation += 1
@@ -388,7 +398,10 @@ class Session(SessionViews):
 
     # ------------------------------------------------------------------ calibration (hub/calibration.py)
     def wizard_start(self, mode: str = "guided") -> None:
-        self.calibration.start(mode)
+        with self._lock:
+            pending = self.sources.pending
+            self._wizard_for_link = pending[1] if pending is not None else None
+            self.calibration.start(mode)
 
     def wizard_reset(self) -> None:
         self.calibration.reset()

@@ -50,15 +50,15 @@ def _after_write(w) -> str | None:
             return f"The vehicle did not reboot ({rb['message']}): power-cycle it, then run the heading check."
     if pw is None:
         return None
-    if pw["state"] == "writing":
+    if pw.get("state") == "writing":
         return "Writing the parameters to the vehicle…"
-    if pw["state"] == "written":
+    if pw.get("state") == "written":
         return ("Written and confirmed: the vehicle now uses the new calibration. Reboot it (button below) so every "
                 "compass driver reloads it, then check the heading.")
-    if pw["state"] == "failed":
+    if pw.get("state") == "failed":
         return (f"The write failed ({len(pw['failed'])} of {pw['total']} parameters did not stick). Check the link and "
                 "press Retry the write, or export the parameters and load them with another ground station.")
-    if pw["state"] == "not_connected":
+    if pw.get("state") == "not_connected":
         return "Accepted for this station only (no live link): export the parameters and load them into the vehicle."
     return None
 
