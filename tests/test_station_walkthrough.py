@@ -63,7 +63,7 @@ def test_walkthrough(shared_station, new_page, artifacts):
     # 4. the calibration page; back to the station: a connect while the replay runs waits for
     #    the vehicle's first packet; stopped, the station listens for the vehicle
     click(page, "header a[href='calibrate.html']")
-    has(page, "#instruction", "Press Start")
+    has(page, "#instruction", "press Start")
     page.go_back()
     has(page, "#recordings tr[data-name]")
     port = free_udp_port()
@@ -78,7 +78,7 @@ def test_walkthrough(shared_station, new_page, artifacts):
 
     # 5. the guided calibration on the live vehicle (simulated, sent as MAVLink at x6)
     open_page(page, st, "/calibrate.html")
-    has(page, "#instruction", "Press Start")
+    has(page, "#instruction", "press Start")
     click(page, "#start")
     has(page, "#steps li[data-step='x'].current")
     sim = simulate("calibration", 0)
