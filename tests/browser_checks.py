@@ -12,7 +12,7 @@ import httpx
 import numpy as np
 import pytest
 
-from conftest import CHROMIUM, CHROMIUM_ARGS, SHARED_DATA, free_tcp_port
+from conftest import CHROMIUM, CHROMIUM_ARGS, SHARED_DATA, free_tcp_port, wait_until  # noqa: F401  (re-exported)
 
 ROOT = Path(__file__).resolve().parent.parent
 REAL_LOG = SHARED_DATA / "dronekit" / "flight_replay_flight.tlog"
@@ -54,14 +54,6 @@ def console_errors(page) -> list[str]:
     page.on("pageerror", lambda e: errors.append(str(e)))
     return errors
 
-
-def wait_until(cond, timeout: float = 20.0, step: float = 0.05) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(step)
-    return False
 
 
 def api(station, method: str, path: str, **kw):

@@ -3,6 +3,8 @@ a headless Debian chromium through Playwright, and a small synthetic rotation da
 known calibration truth."""
 from __future__ import annotations
 
+import time
+
 import math
 import socket
 from pathlib import Path
@@ -145,3 +147,13 @@ def page(playwright_instance, station):
 def artifacts() -> Path:
     ARTIFACTS.mkdir(exist_ok=True)
     return ARTIFACTS
+
+
+def wait_until(cond, timeout: float = 20.0, step: float = 0.05) -> bool:
+    """Poll ``cond`` every ``step`` s until it is true (True) or ``timeout`` s pass (False)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(step)
+    return False

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from conftest import free_tcp_port, free_udp_port, rotation_dance_messages
+from conftest import free_tcp_port, free_udp_port, rotation_dance_messages, wait_until
 from groundstation.io.errors import IngestError
 from groundstation.io.forward import Forwarder, MavlinkFramer, parse_forward_url
 from groundstation.io.link import LinkOptions
@@ -21,13 +21,8 @@ from groundstation.station.hub.session import ConflictError, Session
 GCS_COMMAND = 31010          # MAV_CMD_USER_1: a command only the fake ground station sends
 
 
-def wait_for(cond, timeout=10.0, step=0.02) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(step)
-    return False
+def wait_for(cond, timeout=10.0) -> bool:
+    return wait_until(cond, timeout, 0.02)
 
 
 def gcs_heartbeat(enc) -> bytes:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from conftest import free_udp_port
+from conftest import free_udp_port, wait_until
 from groundstation.io.link import LinkOptions
 from groundstation.io.logs import read_log
 from groundstation.jobs.record import COL
@@ -22,13 +22,8 @@ SPEED = 2.0        # faster streams compress the flight's time and the step no l
 SIM_S = 60.0
 
 
-def wait_for(cond, timeout=30.0, step=0.05) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(step)
-    return False
+def wait_for(cond, timeout=30.0) -> bool:
+    return wait_until(cond, timeout, 0.05)
 
 
 class CapturingSession(Session):

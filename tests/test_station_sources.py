@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from conftest import SHARED_DATA, free_tcp_port, free_udp_port
+from conftest import SHARED_DATA, free_tcp_port, free_udp_port, wait_until
 from groundstation.jobs.record import COL
 from groundstation.sim.fake_vehicle import FakeVehicle
 from groundstation.sim.scenarios import simulate
@@ -26,13 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 DEMO = ROOT / "recordings" / "demo.tlog"
 
 
-def wait_for(cond, timeout=20.0, step=0.05) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(step)
-    return False
+wait_for = wait_until
 
 
 @pytest.fixture
