@@ -13,7 +13,7 @@ from estimators.rotations import wrap_angle_rad
 from groundstation.jobs.inputs import GPS_TIMEOUT_S, hold_last, rounded
 from groundstation.samples import FlightLog
 
-__all__ = ["gps_outages", "navigation", "ins_runs", "OUTAGE_MIN_S"]
+__all__ = ["gps_outages", "ins_runs", "OUTAGE_MIN_S"]
 
 OUTAGE_MIN_S = 2.0          # a longer gap between good GPS fixes (fix_type >= 3) is an outage
 INS_LEAD_S = 60.0           # the INS/GPS filter runs from this long before each outage ...
@@ -38,12 +38,6 @@ def gps_outages(t_gps_fix: np.ndarray, t_imu: np.ndarray) -> list[tuple[float, f
         if len(inside) and np.diff(np.r_[start, inside, stop]).max() <= OUTAGE_MIN_S:
             out.append((start, end))
     return out
-
-
-def navigation(log: FlightLog, mag_cal: np.ndarray, declination_deg: float, imu_rate_hz: float,
-               settings: DetectionSettings) -> dict:
-    """``ins_runs`` without the filter outputs: analyze's ``navigation`` object."""
-    return ins_runs(log, mag_cal, declination_deg, imu_rate_hz, settings)[0]
 
 
 def ins_runs(log: FlightLog, mag_cal: np.ndarray, declination_deg: float, imu_rate_hz: float,
