@@ -26,7 +26,7 @@ from estimators.ins_gps import MODE_NAMES
 
 from groundstation.jobs.compass_report import compass_summaries
 from groundstation.jobs.inputs import detection_inputs, heading_deg, rounded
-from groundstation.jobs.motor_heading import motor_compensated_chain
+from groundstation.jobs.motor_heading import best_heading_chain
 from groundstation.jobs.navigation import ins_runs
 from groundstation.jobs.record import COL, AlarmTracker, record_rows
 from groundstation.samples import FlightLog
@@ -82,7 +82,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
     hdg = lambda a: np.where(valid, heading_deg(a), np.nan)  # noqa: E731
     declination = ef.declination_deg if ef else 0.0
     nav, runs = ins_runs(log, x["mag_cal"], declination, x["imu_rate_hz"], settings)
-    best_chain, motor = motor_compensated_chain(log, x)
+    best_chain, motor = best_heading_chain(log, x)
     best = best_attitude(t, best_chain, valid, runs, declination)
     v_fwd, v_lat = split_velocity(gps[:, 5], gps[:, 6], np.radians(best["heading_true_deg"]))
     columns = {

@@ -26,7 +26,8 @@ from estimators.detection import DetectionSettings, InterferenceDetector
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import HeadingChain
 
-from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, GPS_COLUMNS, GPS_TIMEOUT_S, RATE_WINDOW, FieldPolicy,
+from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, DETECTOR_CHAIN, GPS_COLUMNS, GPS_TIMEOUT_S, RATE_WINDOW,
+                                       FieldPolicy,
                                        Held, StepState, field_policy, gps_rows, imu_rate_hz, mission_legs,
                                        step_inputs)
 from groundstation.jobs.navigation import OUTAGE_MIN_S
@@ -57,7 +58,7 @@ class LiveAnalyzer:
         self.start_unix_s = start_unix_s
         self.calibration = calibration
         self.legs = mission_legs(mission)
-        self.chain = HeadingChain()
+        self.chain = HeadingChain(settings=DETECTOR_CHAIN)
         self.detector = InterferenceDetector(self.settings)
         self.earth_field = None
         self.params: dict[str, float] = {}
