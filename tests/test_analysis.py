@@ -85,7 +85,7 @@ def test_clean_flight_no_combined_alarm(tmp, cal):
     assert cols["alarm"].sum() == 0
     # heading and velocity split track the truth.  The motors-off calibration dance cannot see the
     # motor-current field (12-32 A here): it turned the heading by 7.1° (median) until analyze
-    # learnt the field per ampere from the flight and took it out (measured seed 7: 1.44° median)
+    # learnt the field per ampere from the flight and took it out (measured seed 7: 1.45° median)
     motor = report["motor_field"]
     assert motor["status"] == "ok" and motor["removed_from_heading"], motor
     f_true = np.array(sim.truth["mag"]["motor_mG_per_A"])
