@@ -134,7 +134,7 @@ def test_forwarding_passes_every_packet_both_ways(tmp_path):
     fv.record_send_times = True
     gcs.thread.start()
     try:
-        assert wait_for(lambda: forwarder.outputs[1].snapshot()["clients"] == 1, 3)
+        assert wait_for(lambda: forwarder.refresh() and forwarder.snapshot()["outputs"][1]["clients"] == 1, 5)
         fv.start()
         assert wait_for(lambda: hub.snapshot()["source"]["link"] == "up", 3)    # the vehicle has a peer now
         enc = new_encoder(255, 191)
@@ -156,6 +156,7 @@ def test_forwarding_passes_every_packet_both_ways(tmp_path):
         sent = sum(fv.delivered.values())
         commands = [args for cmd, args in fv.commands if cmd == GCS_COMMAND]
         tcp_commands = [args for cmd, args in fv.commands if cmd == GCS_COMMAND + 1]
+        assert forwarder.refresh()
         snapshot = hub.snapshot()["vehicles"]["forwarding"]
         station_rx = hub.snapshot()["rx_count"]
     finally:
