@@ -174,22 +174,6 @@ def test_forwarding_passes_every_packet_both_ways(tmp_path):
     assert [q for q, _ in sends] == [q for q, _ in gcs.arrivals][:len(sends)]
 
 
-def test_forward_latency_benchmark_quick():
-    """benchmarks/forward_latency.py --quick: the station in its own process; counts must match both
-    ways; the added latency is measured (its target depends on machine load: see the report)."""
-    import re
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parent.parent
-    out = subprocess.run([sys.executable, "benchmarks/forward_latency.py", "--quick"], cwd=root,
-                         capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert re.search(r"^  met     every packet both ways, in order$", out.stdout, re.M), out.stdout
-    assert re.search(r"added latency p99 < 5 ms \(measured [\d.]+ ms\)", out.stdout), out.stdout
-
-
 def test_forward_urls_are_checked():
     assert parse_forward_url("udpout:127.0.0.1:14550").kind == "udpout"
     for bad in ("udpin:127.0.0.1:14550", "tcpin:0.0.0.0:5760", "/bin/sh", "file:/etc/passwd", "tcp:127.0.0.1:5"):

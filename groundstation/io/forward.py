@@ -110,6 +110,7 @@ class Forwarder:
         self.listen_any = listen_any
         self.proc: subprocess.Popen | None = None
         self.pid: int | None = None
+        self.short_slice = False         # Linux granted the process a short time slice (io.relay)
         self.error: str | None = None
         self._stats: dict = {}
         self._stats_seen = 0
@@ -163,6 +164,7 @@ class Forwarder:
                     self._replies[int(msg["id"])] = msg
                 elif op == "ready":
                     self._ready, self.pid = True, int(msg["pid"])
+                    self.short_slice = bool(msg.get("short_slice"))
                 elif op == "error":
                     self.error = str(msg.get("error"))
                 self._cond.notify_all()
@@ -262,4 +264,5 @@ class Forwarder:
                                            for u in self.urls]
         return {"outputs": outputs, "to_vehicle": stats.get("to_vehicle", 0),
                 "to_vehicle_dropped": stats.get("to_vehicle_dropped", 0), "links": stats.get("links", {}),
-                "process": {"pid": self.pid, "running": self.running, "error": self.error}}
+                "process": {"pid": self.pid, "running": self.running, "error": self.error,
+                            "short_slice": self.short_slice}}
