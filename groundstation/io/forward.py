@@ -151,28 +151,30 @@ class Forwarder:
         return self
 
     def _read_loop(self) -> None:
-        for line in self.proc.stdout:
+        for line in self.proc.stdout:          # read all of it always: a full pipe would stop the process
             try:
-                msg = json.loads(line)
-            except ValueError:
+                self._received(json.loads(line))
+            except (ValueError, KeyError, TypeError, AttributeError):
                 continue
-            with self._cond:
-                op = msg.get("op")
-                if op == "stats":
-                    self._stats, self._stats_seen = msg, self._stats_seen + 1
-                elif op in ("opened", "failed"):
-                    self._replies[int(msg["id"])] = msg
-                elif op == "ready":
-                    self._ready, self.pid = True, int(msg["pid"])
-                    self.short_slice = bool(msg.get("short_slice"))
-                elif op == "error":
-                    self.error = str(msg.get("error"))
-                self._cond.notify_all()
         code = self.proc.wait()
         with self._cond:
             self._exited = True
             if self.error is None and not self._closing:
                 self.error = f"the forwarding process stopped (exit code {code})"
+            self._cond.notify_all()
+
+    def _received(self, msg: dict) -> None:
+        with self._cond:
+            op = msg.get("op")
+            if op == "stats":
+                self._stats, self._stats_seen = msg, self._stats_seen + 1
+            elif op in ("opened", "failed"):
+                self._replies[int(msg["id"])] = msg
+            elif op == "ready":
+                self._ready, self.pid = True, int(msg["pid"])
+                self.short_slice = bool(msg.get("short_slice"))
+            elif op == "error":
+                self.error = str(msg.get("error"))
             self._cond.notify_all()
 
     def _send(self, cmd: dict) -> bool:

@@ -134,14 +134,22 @@ class LiveLink:
     # ------------------------------------------------------------------ reading
     @staticmethod
     def _lock_writes(conn) -> None:
-        """One writer at a time (the worker and parameter writes both send)."""
-        raw_write, lock = conn.write, threading.Lock()
+        """One sender at a time (the worker and parameter writes both send), packing and writing
+        together: a message's sequence number and signature timestamp are taken when it is packed,
+        and a vehicle that checks signatures refuses a timestamp older than the last it accepted,
+        so two threads must not pack in one order and write in the other."""
+        raw_write, raw_send, lock = conn.write, conn.mav.send, threading.RLock()
 
         def write(buf):
             with lock:
                 return raw_write(buf)
 
+        def send(mavmsg, *args, **kwargs):
+            with lock:
+                return raw_send(mavmsg, *args, **kwargs)
+
         conn.write = write
+        conn.mav.send = send
 
     def _read_loop(self) -> None:
         while not self._reader_stop.is_set():

@@ -4,8 +4,9 @@ Run as ``python -m groundstation.io.relay`` by ``groundstation.io.forward.Forwar
 hand).  It relays MAVLink packets between the vehicle link, the other ground stations (outputs
 ``udpout:HOST:PORT`` / ``tcpin:HOST:PORT``) and the station, which gets its copy over a loopback
 UDP socket and sends its own packets back the same way.  Being its own process, it never waits
-for the station's interpreter lock (estimators, viser, uvicorn), so forwarding adds well under a
-millisecond however busy the station is.
+for the station's interpreter lock (estimators, viser, uvicorn): how busy the station is no
+longer matters, only whether the machine has a core free when a packet comes
+(``ask_short_time_slice``; benchmarks/forward_latency.py measures both).
 
 Nothing is decoded: ``MavlinkFramer`` cuts streams into packets by their header (payload length,
 signature flag) only.  Packets go on unchanged, signed ones included (a changed byte would break
@@ -88,7 +89,7 @@ class VehicleLink:
             raise
         self.station.setblocking(False)
         self.framer = MavlinkFramer()
-        self.from_vehicle = self.to_station_dropped = self.from_station = 0
+        self.from_vehicle = self.to_station_dropped = self.from_station = self.errors = 0
 
     @property
     def port(self) -> int:
@@ -102,7 +103,8 @@ class VehicleLink:
         one at its end is garbage, not the start of the next datagram's)."""
         try:
             data = self.conn.recv(65536)
-        except OSError:
+        except (OSError, ValueError):         # a serial port unplugged, a TCP peer gone: pymavlink retries
+            self.errors += 1
             return []
         if not data:
             return []
@@ -119,8 +121,13 @@ class VehicleLink:
         except OSError:          # the station's buffer is full (held up a long time) or it closed
             self.to_station_dropped += 1
 
-    def to_vehicle(self, packet: bytes) -> None:
-        self.conn.write(packet)
+    def to_vehicle(self, packet: bytes) -> bool:
+        try:
+            self.conn.write(packet)
+            return True
+        except (OSError, ValueError):
+            self.errors += 1
+            return False
 
     def from_station_readable(self) -> None:
         """The station's own packets (heartbeats, requests, signed writes) to the vehicle, as sent."""
@@ -140,7 +147,8 @@ class VehicleLink:
 
     def snapshot(self) -> dict:
         return {"from_vehicle": self.from_vehicle, "to_station_dropped": self.to_station_dropped,
-                "from_station": self.from_station, "skipped_bytes": self.framer.skipped_bytes}
+                "from_station": self.from_station, "skipped_bytes": self.framer.skipped_bytes,
+                "errors": self.errors}
 
 
 class Relay:
@@ -228,10 +236,9 @@ class Relay:
         if self.forwarding is None:
             self.to_vehicle_dropped += 1
             return
-        try:
-            self.forwarding.to_vehicle(packet)
+        if self.forwarding.to_vehicle(packet):
             self.to_vehicle += 1
-        except OSError:
+        else:
             self.to_vehicle_dropped += 1
 
     def _commands(self) -> None:
