@@ -156,7 +156,7 @@ def test_forward_latency_benchmark_quick_with_the_station_busy():
                          capture_output=True, text=True, timeout=180)
     assert out.returncode == 0, out.stderr[-2000:]
     assert re.search(r"^  met     every packet both ways, in order", out.stdout, re.M), out.stdout
-    row = re.search(r"^  hog .*\|\s+(-?[\d.]+)\s+(-?[\d.]+)\s+[\d.]+ \|\s+(-?[\d.]+)\s+(-?[\d.]+)\s+[\d.]+ \|",
+    row = re.search(r"^  MagStation \(hog\) .*\|\s+(-?[\d.]+)\s+(-?[\d.]+)\s+[\d.]+ \|\s+(-?[\d.]+)\s+(-?[\d.]+)\s+[\d.]+ \|",
                     out.stdout, re.M)
     assert row, out.stdout
     fwd_p50, fwd_p99, station_p50, _ = (float(v) for v in row.groups())
