@@ -327,11 +327,12 @@ def main() -> int:
     if hasattr(signal, "SIGINT"):           # Ctrl-C in the station's terminal: the station stops us
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     out_lock = threading.Lock()
+    protocol, sys.stdout = sys.stdout, sys.stderr     # what a library prints stays out of the answers
 
     def emit(message: dict) -> None:
         with out_lock:
-            sys.stdout.write(json.dumps(message) + "\n")
-            sys.stdout.flush()
+            protocol.write(json.dumps(message) + "\n")
+            protocol.flush()
 
     try:
         config = json.loads(sys.stdin.readline() or "{}")
