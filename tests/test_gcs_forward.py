@@ -148,10 +148,11 @@ def test_signed_write_through_the_forwarding_process_and_signed_packets_pass_unc
 def test_forward_latency_benchmark_quick_with_the_station_busy():
     """benchmarks/forward_latency.py --quick, station process "hog" (estimating the stream, replaying
     a log and holding the interpreter lock in ~40 ms calls): every packet both ways, and the
-    forwarding is not held up.  An in-process forwarder waits for the lock like the station's own
-    copy does (its median here is tens to hundreds of ms), so the median bound of 5 ms fails if
-    forwarding goes back through the station's process; p99 < 25 ms leaves room for a loaded
-    2-core machine (the benchmark reports the figure against the 5 ms target)."""
+    forwarding is not held up by the station.  An in-process forwarder waits for the lock as the
+    station's own copy does (its median here: 0.2-4 s, the station falls behind), so it fails both
+    bounds: median < 5 ms, and p99 below half the station copy's median.  The p99 is not held to
+    the 5 ms target here: on a 2-core machine at load 7-9 any forwarder's p99 reached tens of ms
+    (MAVProxy's too); the benchmark reports it against the target."""
     out = subprocess.run([sys.executable, "benchmarks/forward_latency.py", "--quick", "--modes", "hog"], cwd=ROOT,
                          capture_output=True, text=True, timeout=180)
     assert out.returncode == 0, out.stderr[-2000:]
@@ -161,4 +162,4 @@ def test_forward_latency_benchmark_quick_with_the_station_busy():
     assert row, out.stdout
     fwd_p50, fwd_p99, station_p50, _ = (float(v) for v in row.groups())
     assert station_p50 > 20.0, out.stdout           # the station's process really was busy
-    assert fwd_p50 < 5.0 and fwd_p99 < 25.0, out.stdout
+    assert fwd_p50 < 5.0 and fwd_p99 < station_p50 / 2, out.stdout
