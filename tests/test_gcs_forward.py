@@ -86,6 +86,19 @@ def test_the_process_stops_with_the_station_and_never_outlives_it():
         station.wait(5)
 
 
+def test_a_forwarding_process_that_dies_is_reported_in_one_line():
+    fw = Forwarder([f"udpout:127.0.0.1:{free_udp_port()}"]).start()
+    try:
+        os.kill(fw.pid, signal.SIGKILL)
+        assert wait_until(lambda: not fw.running, 5.0, 0.05)
+        process = fw.snapshot()["process"]
+        assert process["running"] is False and process["error"] == "the forwarding process stopped (exit code -9)"
+        with pytest.raises(IngestError, match=r"^the forwarding process stopped \(exit code -9\)$"):
+            fw.open_vehicle(f"udpin:127.0.0.1:{free_udp_port()}")
+    finally:
+        fw.close()
+
+
 def test_a_link_that_cannot_open_is_one_line_and_the_process_keeps_running(tmp_path):
     with Forwarder([f"udpout:127.0.0.1:{free_udp_port()}"]) as fw:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as busy:
