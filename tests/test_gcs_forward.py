@@ -87,15 +87,30 @@ def test_the_process_stops_with_the_station_and_never_outlives_it():
 
 
 def test_a_forwarding_process_that_dies_is_reported_in_one_line():
+    from groundstation.io.link import LiveLink
+    from groundstation.io.mavlink import mavlink2 as m, new_encoder
+    from groundstation.samples import StatusSample
+
     fw = Forwarder([f"udpout:127.0.0.1:{free_udp_port()}"]).start()
+    port = free_udp_port()
+    link = LiveLink(f"udpin:127.0.0.1:{port}", options=LinkOptions(passive=True), forwarder=fw)
+    got: list = []
     try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as vehicle:
+            vehicle.sendto(bytes(m.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3).pack(new_encoder(1, 1))),
+                           ("127.0.0.1", port))
+            assert wait_until(lambda: got.extend(link.poll()) or link.connected, 5.0, 0.02)
         os.kill(fw.pid, signal.SIGKILL)
+        assert wait_until(lambda: got.extend(link.poll()) or not link.connected, 5.0, 0.02)
+        lost = [s.text for s in got if isinstance(s, StatusSample) and s.kind == "link"][-1]
+        assert lost == "link lost: the forwarding process stopped (exit code -9)", got
         assert wait_until(lambda: not fw.running, 5.0, 0.05)
         process = fw.snapshot()["process"]
         assert process["running"] is False and process["error"] == "the forwarding process stopped (exit code -9)"
         with pytest.raises(IngestError, match=r"^the forwarding process stopped \(exit code -9\)$"):
             fw.open_vehicle(f"udpin:127.0.0.1:{free_udp_port()}")
     finally:
+        link.close()
         fw.close()
 
 

@@ -282,6 +282,10 @@ class LiveLink:
     def _housekeeping(self, now: float, out: list[Sample]) -> None:
         from pymavlink import mavutil
 
+        relay = self._relay
+        if self.connected and relay is not None and not relay.running:     # it owned the link
+            self.connected = False
+            out.append(StatusSample(self.t_s(now), "link", f"link lost: {relay.error or 'forwarding stopped'}"))
         if self.connected and self.last_rx_unix is not None and now - self.last_rx_unix > self.LOST_AFTER_S:
             self.connected = False
             self._streams_requested_at = None
