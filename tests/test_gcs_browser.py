@@ -1,4 +1,5 @@
-"""The page's source panel on a live link shared by two vehicles, in a passive station (chromium)."""
+"""The page's source panel on a live link shared by two vehicles, in a passive station that forwards
+the link to another ground station (chromium)."""
 from __future__ import annotations
 
 import time
@@ -6,7 +7,7 @@ import time
 import httpx
 import pytest
 
-from conftest import CHROMIUM, CHROMIUM_ARGS, free_udp_port
+from conftest import CHROMIUM, CHROMIUM_ARGS, free_udp_port, wait_until
 from groundstation.sim.fake_vehicle import FakeVehicle
 from groundstation.sim.scenarios import simulate
 
@@ -14,9 +15,13 @@ from groundstation.sim.scenarios import simulate
 @pytest.fixture
 def passive_station(tmp_path):
     from groundstation.station.app import Station
-    st = Station(port=0, viser_port=None, recordings_dir=tmp_path, passive=True).start()
+    st = Station(port=0, viser_port=None, recordings_dir=tmp_path, passive=True,
+                 forward=(f"udpout:127.0.0.1:{free_udp_port()}",)).start()
+    forwarding = st.session.sources.forwarder
+    assert forwarding.running
     yield st
     st.close()
+    assert wait_until(lambda: forwarding.proc.poll() is not None, 5.0, 0.05)     # stopped with the station
 
 
 def test_page_lists_vehicles_follows_one_and_says_it_only_listens(playwright_instance, passive_station):
@@ -33,6 +38,9 @@ def test_page_lists_vehicles_follows_one_and_says_it_only_listens(playwright_ins
         note = page.locator("#passive-note")
         assert note.is_visible() and "sends nothing" in note.inner_text() and ".param" in note.inner_text()
         followed = httpx.get(st.url + "/api/vehicles").json()["selected"]
+        cells = page.locator(f"#vehicles tr[data-sysid='{followed}'] td").all_inner_texts()
+        assert cells[1:4] == ["vehicle", "quadrotor", "ardupilot"] and cells[6].endswith("s ago"), cells
+        page.wait_for_selector("#link-extra:has-text('forwarding to udpout:127.0.0.1:')")
         other = 3 - followed
         page.wait_for_selector(f"#vehicles tr[data-sysid='{followed}'] td:has-text('●')")
         assert not page.locator(f"#vehicles tr[data-sysid='{followed}'] button").is_visible()

@@ -134,7 +134,7 @@ def test_forwarding_passes_every_packet_both_ways(tmp_path):
     fv.record_send_times = True
     gcs.thread.start()
     try:
-        assert wait_for(lambda: forwarder.outputs[1].snapshot()["clients"] == 1, 3)
+        assert wait_for(lambda: forwarder.refresh() and forwarder.snapshot()["outputs"][1]["clients"] == 1, 5)
         fv.start()
         assert wait_for(lambda: hub.snapshot()["source"]["link"] == "up", 3)    # the vehicle has a peer now
         enc = new_encoder(255, 191)
@@ -156,6 +156,7 @@ def test_forwarding_passes_every_packet_both_ways(tmp_path):
         sent = sum(fv.delivered.values())
         commands = [args for cmd, args in fv.commands if cmd == GCS_COMMAND]
         tcp_commands = [args for cmd, args in fv.commands if cmd == GCS_COMMAND + 1]
+        assert forwarder.refresh()
         snapshot = hub.snapshot()["vehicles"]["forwarding"]
         station_rx = hub.snapshot()["rx_count"]
     finally:
@@ -171,22 +172,6 @@ def test_forwarding_passes_every_packet_both_ways(tmp_path):
     assert snapshot["to_vehicle"] == 80 and snapshot["outputs"][0]["to_gcs"] == sent
     sends = fv.send_log                         # and in the order the vehicle sent them
     assert [q for q, _ in sends] == [q for q, _ in gcs.arrivals][:len(sends)]
-
-
-def test_forward_latency_benchmark_quick():
-    """benchmarks/forward_latency.py --quick: the station in its own process; counts must match both
-    ways; the added latency is measured (its target depends on machine load: see the report)."""
-    import re
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parent.parent
-    out = subprocess.run([sys.executable, "benchmarks/forward_latency.py", "--quick"], cwd=root,
-                         capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert re.search(r"^  met     every packet both ways, in order$", out.stdout, re.M), out.stdout
-    assert re.search(r"added latency p99 < 5 ms \(measured [\d.]+ ms\)", out.stdout), out.stdout
 
 
 def test_forward_urls_are_checked():

@@ -180,6 +180,12 @@ def test_vehicles_api_lists_and_selects_behind_the_guard(tmp_path, sims):
         assert wait_for(lambda: [s["kind"] for s in client.get("/api/vehicles").json()["systems"]] == ["vehicle"] * 2, 10)
         got = client.get("/api/vehicles").json()
         assert got["selected"] in (1, 2) and got["passive"] is False
+        for system in got["systems"]:          # what the page's table shows, per system heard
+            assert (system["type"], system["autopilot"]) == ("quadrotor", "ardupilot"), system
+            assert 0 <= system["last_seen_s"] < 2.0 and system["rate_hz"] > 5, system
+            assert system["packets"] > 0 and 0 <= system["loss_pct"] < 5, system
+        pushed = hub.snapshot()["vehicles"]                       # what /ws pushes to the page
+        assert [s["sysid"] for s in pushed["systems"]] == [1, 2] and pushed["selected"] == got["selected"]
         assert client.post("/api/vehicles/select", json={"sysid": 7}).status_code == 404
         cross_site = client.post("/api/vehicles/select", json={"sysid": 2},
                                  headers={"Origin": "http://evil.example"})

@@ -1,29 +1,35 @@
 """MAVLink forwarding: the station owns the vehicle link and passes it on to other ground stations.
 
-``Forwarder`` opens the outputs (``udpout:HOST:PORT`` sends to a ground station listening there,
-``tcpin:127.0.0.1:PORT`` lets ground stations connect), sends every packet the vehicle link
-receives to all of them (``to_outputs``, called by the link's reader thread as each packet
-arrives) and passes what they send back to the vehicle (its own thread, through the writer the
-live link attaches).  Packets are passed as received, bytes unchanged (signed packets stay
-signed, unknown message ids pass): ``MavlinkFramer`` only cuts a byte stream into whole packets
-by their header (length, signature flag), it does not check CRCs or decode.
+``Forwarder`` starts the forwarding process (``groundstation.io.relay``), which opens the outputs
+(``udpout:HOST:PORT`` sends to a ground station listening there, ``tcpin:127.0.0.1:PORT`` lets
+ground stations connect) and, for each live link the station opens through it
+(``open_vehicle``), the vehicle link itself.  It sends every packet from the vehicle to all
+outputs and its copy to the station (loopback UDP), and passes what the outputs and the station
+send to the vehicle.  In its own process the forwarding never waits for the station's
+interpreter lock.  Packets are passed as received, bytes unchanged (signed packets stay signed,
+unknown message ids pass): ``MavlinkFramer`` only cuts a byte stream into whole packets by their
+header (length, signature flag), it does not check CRCs or decode.
 """
 from __future__ import annotations
 
-import select
-import socket
+import atexit
+import itertools
+import json
+import os
+import subprocess
 import sys
 import threading
-from typing import Callable
+from pathlib import Path
 
 from .errors import IngestError
-from .endpoints import Endpoint, parse_connection_string
+from .endpoints import Endpoint, open_endpoint, parse_connection_string
 
 __all__ = ["Forwarder", "MavlinkFramer", "parse_forward_url", "FORWARD_KINDS"]
 
 FORWARD_KINDS = ("udpout", "tcpin")
-MAX_TCP_CLIENTS = 8
-FORWARD_SWITCH_INTERVAL_S = 0.001
+START_TIMEOUT_S = 20.0          # a cold interpreter importing pymavlink on a loaded machine
+OPEN_TIMEOUT_S = 20.0           # a tcp: link retries a few times
+STOP_TIMEOUT_S = 3.0
 STX_V1, STX_V2 = 0xFE, 0xFD
 SIGNATURE_LEN = 13
 
@@ -73,205 +79,192 @@ class MavlinkFramer:
         return out
 
 
-class _UdpOutput:
-    """Sends to one ground station's UDP port; its answers (from that address only) come back."""
-
-    def __init__(self, endpoint: Endpoint) -> None:
-        self.name = endpoint.text
-        self.address = (socket.gethostbyname(endpoint.host), endpoint.port)
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1" if self.address[0].startswith("127.") else "0.0.0.0", 0))
-        self.sock.setblocking(False)
-        self.sent = self.received = self.dropped = 0
-
-    def sockets(self) -> list[socket.socket]:
-        return [self.sock]
-
-    def send(self, packet: bytes) -> None:
-        try:
-            self.sock.sendto(packet, self.address)
-            self.sent += 1
-        except OSError:          # nobody listening yet (ICMP refused), buffer full
-            self.dropped += 1
-
-    def readable(self, sock: socket.socket) -> list[bytes]:
-        try:
-            data, source = sock.recvfrom(65535)
-        except OSError:
-            return []
-        if source != self.address:
-            return []        # only the ground station we send to may talk to the vehicle
-        packets = MavlinkFramer().feed(data)
-        self.received += len(packets)
-        return packets
-
-    def close(self) -> None:
-        self.sock.close()
-
-    def snapshot(self) -> dict:
-        return {"url": self.name, "clients": 1, "to_gcs": self.sent, "from_gcs": self.received,
-                "dropped": self.dropped}
 
 
-class _TcpInOutput:
-    """A TCP port ground stations connect to (up to MAX_TCP_CLIENTS at once)."""
-
-    def __init__(self, endpoint: Endpoint) -> None:
-        self.name = endpoint.text
-        self.server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self.server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            self.server.bind((endpoint.host, endpoint.port))
-        except OSError as err:
-            self.server.close()
-            raise IngestError(f"cannot open forwarding output {endpoint.text}: {err.strerror or err}") from err
-        self.server.listen(MAX_TCP_CLIENTS)
-        self.server.setblocking(False)
-        self.clients: dict[socket.socket, MavlinkFramer] = {}
-        self._lock = threading.Lock()
-        self.sent = self.received = self.dropped = 0
-
-    def sockets(self) -> list[socket.socket]:
-        with self._lock:
-            return [self.server, *self.clients]
-
-    def send(self, packet: bytes) -> None:
-        with self._lock:
-            clients = list(self.clients)
-        for client in clients:
-            try:
-                if client.send(packet) == len(packet):
-                    self.sent += 1
-                    continue
-            except BlockingIOError:
-                pass
-            except OSError:
-                self._drop(client)
-                continue
-            self.dropped += 1        # a slow client loses packets; the vehicle link never waits
-
-    def readable(self, sock: socket.socket) -> list[bytes]:
-        if sock is self.server:
-            self._accept()
-            return []
-        try:
-            data = sock.recv(65536)
-        except BlockingIOError:
-            return []
-        except OSError:
-            data = b""
-        if not data:
-            self._drop(sock)
-            return []
-        packets = self.clients.get(sock, MavlinkFramer()).feed(data)
-        self.received += len(packets)
-        return packets
-
-    def _accept(self) -> None:
-        try:
-            client, _ = self.server.accept()
-        except OSError:
-            return
-        with self._lock:
-            if len(self.clients) >= MAX_TCP_CLIENTS:
-                client.close()
-                return
-            client.setblocking(False)
-            client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            self.clients[client] = MavlinkFramer()
-
-    def _drop(self, client: socket.socket) -> None:
-        with self._lock:
-            self.clients.pop(client, None)
-        client.close()
-
-    def close(self) -> None:
-        with self._lock:
-            for client in self.clients:
-                client.close()
-            self.clients.clear()
-        self.server.close()
-
-    def snapshot(self) -> dict:
-        return {"url": self.name, "clients": len(self.clients), "to_gcs": self.sent, "from_gcs": self.received,
-                "dropped": self.dropped}
+def _child_env() -> dict:
+    """The station's environment, with this copy of ``groundstation`` first on the path."""
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    return env
 
 
 class Forwarder:
-    """The forwarding outputs and their thread.
+    """The forwarding process, seen from the station.
+
+    ``start`` runs it (``python -m groundstation.io.relay``) and opens the outputs; ``open_vehicle``
+    opens a vehicle link in it and returns the station's side (a pymavlink connection over
+    loopback UDP, used as the link itself would be); ``forward`` chooses the link passed to the
+    outputs; ``close`` stops the process (it also ends by itself when the station dies).
 
     Args:
-        urls: forwarding outputs (checked with ``parse_forward_url``).
+        urls: forwarding outputs (checked here with ``parse_forward_url``).
         listen_any: allow ``tcpin`` on non-loopback addresses (the operator's remote mode).
     Raises:
-        IngestError: a refused string or an output that cannot open (port busy).
+        IngestError: a refused string (constructor); an output that cannot open, or a process
+            that does not start (``start``); all one line.
     """
 
     def __init__(self, urls, *, listen_any: bool = False) -> None:
-        endpoints = [parse_forward_url(u, listen_any=listen_any) for u in urls]
-        self.outputs: list = []
+        self.urls = tuple(parse_forward_url(u, listen_any=listen_any).text for u in urls)
+        self.listen_any = listen_any
+        self.proc: subprocess.Popen | None = None
+        self.pid: int | None = None
+        self.short_slice = False         # Linux granted the process a short time slice (io.relay)
+        self.error: str | None = None
+        self._stats: dict = {}
+        self._stats_seen = 0
+        self._replies: dict[int, dict] = {}
+        self._ready = self._exited = self._closing = False
+        self._cond = threading.Condition()
+        self._write_lock = threading.Lock()
+        self._ids = itertools.count(1)
+        self._reader: threading.Thread | None = None
+
+    def __enter__(self) -> "Forwarder":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ process
+    def start(self, timeout_s: float = START_TIMEOUT_S) -> "Forwarder":
+        """Run the forwarding process and open its outputs (returns when they are open)."""
+        if self.proc is not None:
+            return self
         try:
-            for e in endpoints:
-                self.outputs.append(_UdpOutput(e) if e.kind == "udpout" else _TcpInOutput(e))
-        except BaseException:
+            self.proc = subprocess.Popen([sys.executable, "-m", "groundstation.io.relay"], stdin=subprocess.PIPE,
+                                         stdout=subprocess.PIPE, text=True, bufsize=1, env=_child_env())
+        except OSError as err:
+            raise IngestError(f"cannot start the forwarding process: {err.strerror or err}") from err
+        self._reader = threading.Thread(target=self._read_loop, daemon=True, name="forwarder-reader")
+        self._reader.start()
+        self._send({"outputs": list(self.urls), "listen_any": self.listen_any})
+        with self._cond:
+            self._cond.wait_for(lambda: self._ready or self._exited, timeout_s)
+            error = None if self._ready else (self.error or "the forwarding process did not start "
+                                              f"within {timeout_s:.0f} s")
+        if error is not None:
             self.close()
-            raise
-        self._writer: Callable[[bytes], None] | None = None
-        self.to_vehicle = self.to_vehicle_dropped = 0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    def attach(self, writer: Callable[[bytes], None] | None) -> None:
-        """Where packets from the outputs go (the live link's raw writer); None: dropped (no vehicle)."""
-        self._writer = writer
-
-    def start(self) -> "Forwarder":
-        """Start the outputs' thread.  Also shortens the interpreter's thread switch interval
-        (process-wide, ``sys.setswitchinterval``) to FORWARD_SWITCH_INTERVAL_S: every socket
-        read releases the interpreter lock, and with the estimators' thread busy the reader would
-        wait the default 5 ms to get it back, for each packet."""
-        if self.outputs and sys.getswitchinterval() > FORWARD_SWITCH_INTERVAL_S:
-            sys.setswitchinterval(FORWARD_SWITCH_INTERVAL_S)
-        if self._thread is None and self.outputs:
-            self._thread = threading.Thread(target=self._run, daemon=True, name="forwarder")
-            self._thread.start()
+            raise IngestError(error)
+        atexit.register(self.close)
         return self
 
-    def to_outputs(self, packet: bytes) -> None:
-        """A packet from the vehicle link to every output (called as it arrives)."""
-        for out in self.outputs:
-            out.send(packet)
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            owners = {s: out for out in self.outputs for s in out.sockets()}
+    def _read_loop(self) -> None:
+        for line in self.proc.stdout:          # read all of it always: a full pipe would stop the process
             try:
-                ready, _, _ = select.select(list(owners), [], [], 0.1)
-            except (OSError, ValueError):       # a socket closed under us: look again
-                self._stop.wait(0.01)
+                self._received(json.loads(line))
+            except (ValueError, KeyError, TypeError, AttributeError):
                 continue
-            for sock in ready:
-                for packet in owners[sock].readable(sock):
-                    self._to_vehicle(packet)
+        code = self.proc.wait()
+        with self._cond:
+            self._exited = True
+            if self.error is None and not self._closing:
+                self.error = f"the forwarding process stopped (exit code {code})"
+            self._cond.notify_all()
 
-    def _to_vehicle(self, packet: bytes) -> None:
-        writer = self._writer
-        if writer is None:
-            self.to_vehicle_dropped += 1
-            return
+    def _received(self, msg: dict) -> None:
+        with self._cond:
+            op = msg.get("op")
+            if op == "stats":
+                self._stats, self._stats_seen = msg, self._stats_seen + 1
+            elif op in ("opened", "failed"):
+                self._replies[int(msg["id"])] = msg
+            elif op == "ready":
+                self._ready, self.pid = True, int(msg["pid"])
+                self.short_slice = bool(msg.get("short_slice"))
+            elif op == "error":
+                self.error = str(msg.get("error"))
+            self._cond.notify_all()
+
+    def _send(self, cmd: dict) -> bool:
+        proc = self.proc
+        if proc is None or self._exited:
+            return False
         try:
-            writer(packet)
-            self.to_vehicle += 1
-        except OSError:
-            self.to_vehicle_dropped += 1
+            with self._write_lock:
+                proc.stdin.write(json.dumps(cmd) + "\n")
+                proc.stdin.flush()
+            return True
+        except (OSError, ValueError):       # the process is gone (its reader says why)
+            return False
+
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self._ready and not self._exited
 
     def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2)
-        for out in self.outputs:
-            out.close()
+        """Stop the process (outputs and vehicle links close with it); waits STOP_TIMEOUT_S, then kills."""
+        proc = self.proc
+        if proc is None:
+            return
+        atexit.unregister(self.close)
+        self._closing = True
+        self._send({"op": "quit"})
+        try:
+            proc.stdin.close()
+        except OSError:
+            pass
+        try:
+            proc.wait(STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(STOP_TIMEOUT_S)
+        if self._reader is not None and self._reader is not threading.current_thread():
+            self._reader.join(STOP_TIMEOUT_S)
+        proc.stdout.close()
+
+    # ------------------------------------------------------------------ vehicle links
+    def open_vehicle(self, url: str, *, listen_any: bool = True, timeout_s: float = OPEN_TIMEOUT_S):
+        """Open a vehicle link in the forwarding process.
+
+        Returns:
+            (link id, the station's side: a pymavlink connection whose reads are the vehicle's
+            packets and whose writes go to the vehicle).
+        Raises:
+            IngestError: the link cannot open (one line), or the process is not running.
+        """
+        if not self.running:
+            raise IngestError(self.error or "the forwarding process is not running")
+        conn = open_endpoint(Endpoint("udpin", "udpin:127.0.0.1:0", host="127.0.0.1", port=0))
+        link_id = next(self._ids)
+        self._send({"op": "open", "id": link_id, "url": url, "listen_any": listen_any,
+                    "station_port": conn.port.getsockname()[1]})
+        with self._cond:
+            self._cond.wait_for(lambda: link_id in self._replies or self._exited, timeout_s)
+            reply = self._replies.pop(link_id, None)
+        if reply is None or reply["op"] != "opened":
+            conn.close()
+            self.close_vehicle(link_id)
+            raise IngestError(reply["error"] if reply else self.error or f"cannot open link '{url}': "
+                              "the forwarding process did not answer")
+        conn.last_address = ("127.0.0.1", int(reply["port"]))    # writes go to the process from the start
+        return link_id, conn
+
+    def forward(self, link_id: int | None) -> None:
+        """Pass this link's packets to the outputs and theirs to it (None: no link)."""
+        self._send({"op": "forward", "id": link_id})
+
+    def close_vehicle(self, link_id: int) -> None:
+        self._send({"op": "close", "id": link_id})
+
+    # ------------------------------------------------------------------ counts
+    def refresh(self, timeout_s: float = 2.0) -> bool:
+        """Ask for fresh counts and wait for them (they also come by themselves 4 times a second)."""
+        with self._cond:
+            seen = self._stats_seen
+        if not self._send({"op": "stats"}):
+            return False
+        with self._cond:
+            return self._cond.wait_for(lambda: self._stats_seen > seen or self._exited, timeout_s) and not self._exited
 
     def snapshot(self) -> dict:
-        return {"outputs": [o.snapshot() for o in self.outputs], "to_vehicle": self.to_vehicle,
-                "to_vehicle_dropped": self.to_vehicle_dropped}
+        """Outputs (url, clients, to_gcs, from_gcs, dropped), packets passed to the vehicle, the process."""
+        with self._cond:
+            stats = dict(self._stats)
+        outputs = stats.get("outputs") or [{"url": u, "clients": 0, "to_gcs": 0, "from_gcs": 0, "dropped": 0}
+                                           for u in self.urls]
+        return {"outputs": outputs, "to_vehicle": stats.get("to_vehicle", 0),
+                "to_vehicle_dropped": stats.get("to_vehicle_dropped", 0), "links": stats.get("links", {}),
+                "process": {"pid": self.pid, "running": self.running, "error": self.error,
+                            "short_slice": self.short_slice}}

@@ -72,8 +72,11 @@ class LiveLink:
     """A live MAVLink link through a pymavlink connection string.
 
     ``udpin:127.0.0.1:14550``, ``tcp:HOST:PORT``, ``/dev/ttyUSB0,57600`` (checked by
-    ``parse_connection_string``; refused strings raise IngestError).  A reader thread takes every
-    packet off the link as it arrives (and passes it to the forwarding outputs, ``attach_forwarder``);
+    ``parse_connection_string``; refused strings raise IngestError).  With a ``forwarder``
+    (``groundstation.io.forward.Forwarder``) the link is opened in the forwarding process, which
+    passes its packets to the other ground stations without waiting for this one
+    (``attach_forwarder``) and this link reads and writes through it.  A reader thread takes every
+    packet off the link as it arrives;
     ``poll`` records each (raw bytes, through ``recorder``), lists its system (``roster``) and
     decodes the packets of the followed vehicle only (``options.sysid``, else the first autopilot
     heard; ``select`` changes it).  Unless passive, it sends a GCS heartbeat every second, asks
@@ -85,11 +88,15 @@ class LiveLink:
     LOST_AFTER_S = 3.0
 
     def __init__(self, url: str, recorder=None, *, listen_any: bool = True,
-                 options: LinkOptions | None = None) -> None:
+                 options: LinkOptions | None = None, forwarder=None) -> None:
         endpoint = parse_connection_string(url, listen_any=listen_any)
         self.options = options or LinkOptions()
         self.url = endpoint.text
-        self.mav = open_endpoint(endpoint)
+        self._relay = forwarder
+        if forwarder is not None:
+            self._relay_id, self.mav = forwarder.open_vehicle(endpoint.text, listen_any=listen_any)
+        else:
+            self._relay_id, self.mav = None, open_endpoint(endpoint)
         _drop_partial_packets_between_datagrams(self.mav)
         self._lock_writes(self.mav)
         self.signing = None
@@ -127,14 +134,22 @@ class LiveLink:
     # ------------------------------------------------------------------ reading
     @staticmethod
     def _lock_writes(conn) -> None:
-        """One writer at a time (the worker, parameter writes and the forwarder all send)."""
-        raw_write, lock = conn.write, threading.Lock()
+        """One sender at a time (the worker and parameter writes both send), packing and writing
+        together: a message's sequence number and signature timestamp are taken when it is packed,
+        and a vehicle that checks signatures refuses a timestamp older than the last it accepted,
+        so two threads must not pack in one order and write in the other."""
+        raw_write, raw_send, lock = conn.write, conn.mav.send, threading.RLock()
 
         def write(buf):
             with lock:
                 return raw_write(buf)
 
+        def send(mavmsg, *args, **kwargs):
+            with lock:
+                return raw_send(mavmsg, *args, **kwargs)
+
         conn.write = write
+        conn.mav.send = send
 
     def _read_loop(self) -> None:
         while not self._reader_stop.is_set():
@@ -163,26 +178,27 @@ class LiveLink:
             if msg.get_type() == "BAD_DATA":
                 self.bad_packets += 1
                 continue
-            packet = bytes(msg.get_msgbuf())
-            forwarder = self.forwarder
-            if forwarder is not None:
-                forwarder.to_outputs(packet)
-            got.append((msg, packet, time.time()))
+            got.append((msg, bytes(msg.get_msgbuf()), time.time()))
         return got
 
     def wait(self, timeout_s: float) -> None:
         """Until packets are waiting for ``poll`` (or ``timeout_s``)."""
         self._rx_ready.wait(timeout_s)
 
-    def write_raw(self, packet: bytes) -> None:
-        """Send bytes as they are (packets of forwarded ground stations)."""
-        self.mav.write(packet)
-
     def attach_forwarder(self, forwarder) -> None:
-        """Pass every packet received to ``forwarder`` and its outputs' packets to this link."""
+        """Pass this link's packets to the forwarding outputs and theirs to this link (the
+        ``forwarder`` it was opened through; None stops).
+
+        Raises:
+            ValueError: the link was not opened through ``forwarder``.
+        """
+        if forwarder is not None and forwarder is not self._relay:
+            raise ValueError("a link forwards through the Forwarder it was opened with (LiveLink(forwarder=...))")
+        if forwarder is None and self.forwarder is not None:
+            self.forwarder.forward(None)
         self.forwarder = forwarder
         if forwarder is not None:
-            forwarder.attach(self.write_raw)
+            forwarder.forward(self._relay_id)
 
     def select(self, sysid: int) -> None:
         """Follow another vehicle from the next ``poll`` on (which says so with a "vehicle" status first)."""
@@ -266,6 +282,10 @@ class LiveLink:
     def _housekeeping(self, now: float, out: list[Sample]) -> None:
         from pymavlink import mavutil
 
+        relay = self._relay
+        if self.connected and relay is not None and not relay.running:     # it owned the link
+            self.connected = False
+            out.append(StatusSample(self.t_s(now), "link", f"link lost: {relay.error or 'forwarding stopped'}"))
         if self.connected and self.last_rx_unix is not None and now - self.last_rx_unix > self.LOST_AFTER_S:
             self.connected = False
             self._streams_requested_at = None
@@ -312,9 +332,9 @@ class LiveLink:
         self._reader_stop.set()
         if self._reader is not threading.current_thread():
             self._reader.join(timeout=2)
-        if self.forwarder is not None:
-            self.forwarder.attach(None)
-            self.forwarder = None
+        self.forwarder = None
+        if self._relay is not None:
+            self._relay.close_vehicle(self._relay_id)       # stops its forwarding too
         try:
             self.mav.close()
         except Exception:

@@ -131,7 +131,7 @@ class SourceControl:
             probe_tcp(url)
         recording = LazyRecording(self.folder.new_session_path) if self.record_live else None
         try:
-            link = LiveLink(url, recorder=recording, options=self.link_options)
+            link = LiveLink(url, recorder=recording, options=self.link_options, forwarder=self.forwarder)
         except IngestError as err:
             raise SessionError(str(err)) from err
         return url, link, recording
