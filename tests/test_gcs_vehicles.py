@@ -186,6 +186,8 @@ def test_vehicles_api_lists_and_selects_behind_the_guard(tmp_path, sims):
             assert system["packets"] > 0 and 0 <= system["loss_pct"] < 5, system
         pushed = hub.snapshot()["vehicles"]                       # what /ws pushes to the page
         assert [s["sysid"] for s in pushed["systems"]] == [1, 2] and pushed["selected"] == got["selected"]
+        state = client.get("/api/state").json()["vehicles"]       # and the state's schema keeps it
+        assert [s["sysid"] for s in state["systems"]] == [1, 2] and state["selected"] == got["selected"]
         assert client.post("/api/vehicles/select", json={"sysid": 7}).status_code == 404
         cross_site = client.post("/api/vehicles/select", json={"sysid": 2},
                                  headers={"Origin": "http://evil.example"})

@@ -67,7 +67,8 @@ function renderLink(s) {
   if (v.signing && v.signing.on) extra.push("signing on (key " + v.signing.key_id + "): " + v.signing.good +
     " signed, " + v.signing.unsigned + " unsigned and " + v.signing.bad_signature + " badly signed refused");
   if (v.forwarding) extra.push("forwarding to " + v.forwarding.outputs.map((o) => o.url + " (" + o.to_gcs +
-    " out, " + o.from_gcs + " in)").join(", "));
+    " out, " + o.from_gcs + " in)").join(", ") + (v.forwarding.process && v.forwarding.process.error ?
+    " — forwarding process stopped: " + v.forwarding.process.error : ""));
   const changed = Object.keys(v.params_changed_elsewhere || {});
   if (changed.length) extra.push("changed by another ground station: " + changed.join(", "));
   $("link-extra").textContent = extra.join(" · ");

@@ -224,6 +224,8 @@ class State(BaseModel):
     downloads: Downloads
     wizard: Wizard
     events: list[Event]
+    vehicles: dict | None = Field(None, description="live links: every system heard, the one followed, passive "
+                                  "mode, signing counts and forwarding (as GET /api/vehicles)")
 
 
 class Alarm(BaseModel):
