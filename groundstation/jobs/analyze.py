@@ -20,22 +20,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.detection import DetectionResult, DetectionSettings, alarm_intervals, detect
+from estimators.detection import DetectionResult, DetectionSettings, alarm_intervals, detect, ned_from_lla
+from estimators.detection_explain import explain_alarm
 from estimators.heading import split_velocity
 from estimators.ins_gps import MODE_NAMES
 
 from groundstation.jobs.compass_report import compass_summaries
+from groundstation.jobs.flight_plot import vector_test_status
 from groundstation.jobs.inputs import detection_inputs, heading_deg, rounded
 from groundstation.jobs.navigation import ins_runs
 from groundstation.jobs.record import COL, AlarmTracker, record_rows
 from groundstation.samples import FlightLog
 
-__all__ = ["analyze_log", "analyze_flight", "FlightAnalysis", "detector_score"]
+__all__ = ["analyze_log", "analyze_flight", "FlightAnalysis", "detector_score", "explanation_text"]
 
 
-def detector_score(z_heading, z_path, z_field) -> np.ndarray:
+def detector_score(z_heading, z_path, z_field, z_vector=np.nan) -> np.ndarray:
     """The largest test score of each step (NaN where no test has one)."""
-    return np.fmax(np.fmax(np.asarray(z_heading, float), np.asarray(z_path, float)), np.asarray(z_field, float))
+    best = np.fmax(np.fmax(np.asarray(z_heading, float), np.asarray(z_path, float)), np.asarray(z_field, float))
+    return np.fmax(best, np.asarray(z_vector, float))
 
 
 @dataclass
@@ -52,7 +55,54 @@ class FlightAnalysis:
         r = self.rows
         tracker.update(r[:, COL["t_s"]], r[:, COL["alarm"]] > 0.5,
                        r[:, [COL["ev_heading"], COL["ev_path"], COL["ev_field"]]] > 0.5, r[:, COL["score"]])
+        for alarm in tracker.alarms:
+            alarm["explanation"] = self.explain(alarm["start_s"], alarm["end_s"])
+            alarm["explanation_text"] = explanation_text(alarm["explanation"], self.x.get("motor_signal", "none"))
         return tracker.alarms
+
+    def explain(self, start_s: float, end_s: float | None) -> dict:
+        """The disturbance, growth, tests and likely kind of the alarm (estimators.detection_explain)."""
+        x, det = self.x, self.det
+        t = x["t"]
+        i0 = int(min(np.searchsorted(t, start_s - 1e-6), len(t) - 1))
+        i1 = len(t) - 1 if end_s is None else int(min(np.searchsorted(t, end_s + 1e-6), len(t) - 1))
+        lat, lon = x["gps_held"][:, 3], x["gps_held"][:, 4]
+        ok = np.flatnonzero(np.isfinite(lat) & np.isfinite(lon))
+        north, east = (ned_from_lla(lat, lon, lat[ok[0]], lon[ok[0]]) if len(ok)
+                       else (np.full(len(t), np.nan), np.full(len(t), np.nan)))
+        scores = {"heading_difference": det.z_heading, "path_deviation": det.z_path,
+                  "field_strength_inclination": det.z_field, "field_vector": det.z_vector}
+        return explain_alarm(t, x["vector"].residual_mG, x["motor_held"], north, east, lat, lon, scores, i0, i1)
+
+
+def motor_field_report(x: dict) -> dict | None:
+    """The motor field per unit of the motor signal as learned in flight: its last value and its
+    trend (the value at each quarter of the flight)."""
+    if x.get("motor_signal", "none") == "none":
+        return None
+    f = x["vector"].motor_mG_per_unit
+    if not (x["vector"].status == 0).any():
+        return None
+    unit = "mG/A" if x["motor_signal"] == "current_A" else "mG/%"
+    quarters = [[round(float(v), 2) for v in f[min(len(f) - 1, k * len(f) // 4)]] for k in (1, 2, 3, 4)]
+    return {"signal": x["motor_signal"], "unit": unit, "estimate": quarters[-1], "trend": quarters}
+
+
+def explanation_text(e: dict, signal: str = "current_A") -> str:
+    """An alarm's explanation in words, for people."""
+    parts = [f"likely {e['kind']}"]
+    if e.get("position"):
+        parts[0] += f" at {e['position']['lat']:.6f}, {e['position']['lon']:.6f}"
+    if e.get("disturbance_size_mG") is not None:
+        v = e["disturbance_mG"]
+        parts.append(f"disturbance {e['disturbance_size_mG']:.0f} mG (body x {v[0]:+.0f}, y {v[1]:+.0f}, z {v[2]:+.0f})")
+    if e.get("growth_mG_s") is not None:
+        parts.append(f"growing {e['growth_mG_s']:+.1f} mG/s before the alarm")
+    if e["kind"] == "moving with current" and e.get("current_correlation") is not None:
+        parts.append(f"follows the {'current' if signal == 'current_A' else 'throttle'} (r = {e['current_correlation']:.2f})")
+    if e.get("tests"):
+        parts.append("tests: " + ", ".join(k.replace("_", " ") for k in e["tests"]))
+    return "; ".join(parts)
 
 
 def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: list | None = None,
@@ -62,9 +112,10 @@ def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: lis
     x = detection_inputs(log, calibration, mission, settings)
     ef = x["ef"]
     det = detect(x["t"], x["e"], x["d"], x["trusted"], x["strength"], x["incl"], x["heading"], x["yaw_rate"],
-                 ef.field_strength_mG if ef else np.nan, ef.inclination_deg if ef else np.nan, settings)
+                 ef.field_strength_mG if ef else np.nan, ef.inclination_deg if ef else np.nan, settings,
+                 z_vector=x["z_vector"])
     rows = record_rows(x["t"], x["chain"], x, ef.declination_deg if ef else 0.0, det.combined, det.trigger,
-                       detector_score(det.z_heading, det.z_path, det.z_field))
+                       detector_score(det.z_heading, det.z_path, det.z_field, det.z_vector))
     return FlightAnalysis(x, det, rows, settings)
 
 
@@ -120,6 +171,8 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "path_test": path_test,
         "heading_test": x["heading_test"],
         "field_test": x["field_test"],
+        "field_vector_test": vector_test_status(x["vector"].status),
+        "motor_field": motor_field_report(x),
         "imu_rate_hz": rounded(x["imu_rate_hz"], 1),
         "max_cross_track_m": rounded(np.nanmax(d_gps)) if len(d_gps) and np.isfinite(d_gps).any() else None,
         "compasses": compasses,
