@@ -6,9 +6,11 @@ The likely kind, by the first rule that holds:
 * "moving with current" (motor, payload): over the alarm and the ``lead_s`` before it, |r̄|
   follows the motor signal (Pearson r ≥ ``current_corr``) and the signal varies by at least
   ``current_min_span`` (A, or throttle %);
-* "fixed in place" (an environmental anomaly): the vehicle moved at least ``place_min_m`` during the
-  alarm and |r̄| rose and fell again inside it (peak at least ``place_peak_ratio`` times both ends):
-  a field tied to a place the vehicle passed; its position is that of the peak;
+* "fixed in place" (an environmental anomaly): the vehicle moved between ``place_min_m`` and
+  ``place_max_m`` during the alarm and |r̄| rose and fell again inside it (peak at least
+  ``place_peak_ratio`` times both ends, near the peak (≥ 0.8 of it) less than ``place_flat_max`` of
+  the alarm's time): a field tied to a place the vehicle passed (a dipole's field falls with the
+  cube of the distance: a peak, not a plateau, over tens of metres); its position is that of the peak;
 * "rising with time" (a ramp, a step): otherwise.
 Growth rate: the least-squares slope of |r̄| over the ``lead_s`` up to the alarm's start [mG/s].
 Units: mG, s, m, degrees of latitude/longitude.
@@ -31,6 +33,8 @@ class ExplainSettings:
     current_min_span: float = 2.0    # A (or throttle %)
     place_min_m: float = 20.0
     place_peak_ratio: float = 1.5
+    place_max_m: float = 150.0
+    place_flat_max: float = 0.5
 
 
 def _slope(t: np.ndarray, y: np.ndarray) -> float:
@@ -78,7 +82,9 @@ def explain_alarm(t_s, residual_mG, motor_signal, north_m, east_m, lat_deg, lon_
     n, e = np.asarray(north_m, dtype=float), np.asarray(east_m, dtype=float)
     moved = np.hypot(n[i1] - n[i0], e[i1] - e[i0])
     ends = np.fmax(size[i0], size[i1])
-    if np.isfinite(moved) and moved >= s.place_min_m and np.isfinite(size[k]) and size[k] >= s.place_peak_ratio * ends:
+    near_peak = float(np.mean(size[span] >= 0.8 * size[k])) if np.isfinite(size[k]) else 1.0
+    if (np.isfinite(moved) and s.place_min_m <= moved <= s.place_max_m and np.isfinite(size[k])
+            and size[k] >= s.place_peak_ratio * ends and near_peak < s.place_flat_max):
         out["kind"] = KINDS[1]
         la, lo = float(np.asarray(lat_deg, float)[k]), float(np.asarray(lon_deg, float)[k])
         out["position"] = {"lat": round(la, 7), "lon": round(lo, 7)} if np.isfinite(la) and np.isfinite(lo) else None

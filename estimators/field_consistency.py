@@ -6,18 +6,21 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   GPS-aided attitude when fresh, else our AHRS, which tilts by degrees in a sustained acceleration)
   and a heading ψ_f that follows the gyro: ψ_f is propagated by the bias-corrected gyro's yaw rate
   ψ̇ = (q sin φ + r cos φ) / cos θ (ZYX Euler kinematics) and pulled to the tilt-compensated
-  magnetic heading of m − b − f·Δx with the time constant ``heading_track_s`` (not at all while the test suspects a
-  disturbance).  The AHRS heading follows the magnetometer (k_m ≈ 0.2/s), so it would turn with a
+  magnetic heading of m − b − f·Δx with the time constant ``heading_track_s`` (not at all
+  while the test suspects a disturbance).  The AHRS heading follows the magnetometer (k_m ≈ 0.2/s), so it would turn with a
   disturbance and hide most of it; ψ_f does not within seconds.
 * h: the Earth field in the magnetic navigation frame (the AHRS heading is magnetic), WMM as the
   prior (H, 0, Z) (without one, the first field), learned in flight; b: a body-fixed residual
   offset (calibration error, motor field at the reference signal);
 * f: the motor field per unit of the motor signal x (current [A], or throttle in % without a
   current sensor), on x − x_ref (x_ref: the signal low-passed with ``motor_ref_s``), as ArduPilot's compassmot /
-  PX4's mag_compensation fit it offline (estimators.motor_field); its residual is clipped at
-  ``motor_clip_sigma`` σ and it does not learn in turns, so what the model cannot explain (a turn,
-  a disturbance) does not teach it a wrong field per ampere.
-  h, b and f are learned by (normalised) LMS on the residual (gradients C e, e and Δx e), fast
+  PX4's mag_compensation fit it offline (estimators.motor_field).  f is learned from the signal's
+  changes (estimators.motor_field.MotorFieldTracker: the change of m − Cᵀh over ``motor_lag_s``
+  against the change of x, weighted least squares, Huber-clipped at ``motor_clip_sigma`` σ), not
+  in turns, not before ``motor_learn_after_s``, not while the test suspects a disturbance, so the
+  body offset settling or a slow disturbance does not teach it a wrong field per ampere; until
+  ``motor_excitation`` of signal change is seen, the CUSUM holds while x is far from x_ref.
+  h and b are learned by (normalised) LMS on the residual (gradients C e and e), fast
   during the first ``learn_s`` of data, then slowly.  While the vehicle flies one heading, h (a
   heading offset) and b are not separable; b learns ``field_learn_ratio`` times faster, and the
   first turn of more than ``turn_deg`` is learned again for ``turn_learn_s`` with equal gains: on a
@@ -25,10 +28,15 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   split that removes a wrong one (the residual of a wrong split flips sign with the heading).
 * d: the disturbance.  The residual e = m − C ᵀh − b − f(x − x_ref) is low-passed (``smooth_s``),
   r̄; its size in noise units q = |r̄| / σ (σ: RMS of |r̄| over the last quarter of the learning
-  time, then following it with ``noise_track_s`` while the test is quiet; at least ``noise_floor_mG``) feeds a one-sided CUSUM (Page, Biometrika 41, 1954):
+  time, then following it with ``noise_track_s`` while the test is quiet; at least
+  ``noise_floor_mG``) feeds a one-sided CUSUM (Page, Biometrika 41, 1954):
   S ← max(0, S + Δt (q − κ)), alarm at S ≥ ``cusum_threshold_s``; score z = S / threshold (z ≥ 1:
-  the test's alarm).  A disturbance in any direction counts, long before it turns the heading by 5°.
-  Learning pauses while z ≥ ``freeze_z`` so a slow ramp is not learned away.
+  the test's alarm); S is capped at ``cusum_cap`` thresholds so the score falls within about a
+  second of the residual.  A disturbance in any direction counts, long before it turns the heading
+  by 5°.  Learning (h, b, f and the pull of ψ_f) pauses while z ≥ ``freeze_z`` (at most
+  ``freeze_max_s``) so a slow ramp is not learned away; when the residual of a large alarm falls
+  back to the noise apart from a heading error of ψ_f (``_reanchor``) the disturbance has ended:
+  the model learns again for ``relearn_s`` and the score restarts from 0.
 
 Switch-off (status per step, reason in words): no field (no calibrated field, field test off),
 IMU rate below ``min_rate_hz`` (telemetry), attitude not valid or too steep, learning, settling
@@ -45,6 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimators.motor_field import MotorFieldTracker
 from estimators.rotations import dcm_body_to_ned_float
 
 __all__ = ["FieldConsistencySettings", "FieldConsistency", "FieldStep", "FieldConsistencyResult",
@@ -66,21 +75,28 @@ class FieldConsistencySettings:
     turn_deg: float = 45.0              # the first turn this far from the learning heading ...
     turn_learn_s: float = 10.0
     first_turn_hold_deg_s: float = 20.0
-    motor_excitation: float = 2000.0    # Σ Δx² Δt [A² s] before f is trusted; until then the CUSUM ...
-    motor_hold_signal: float = 3.0      # ... holds while the signal is this far from its reference  # until the first turn is learned, the CUSUM holds in faster turns          # ... is learned again this long, h as fast as b
-    motor_learn_s: float = 10.0         # NLMS time constant of the motor field per unit signal
-    motor_clip_sigma: float = 3.0       # f learns from residuals clipped at this many σ (Huber) ...
+    motor_excitation: float = 200.0     # Σ z² Δt [A² s] of signal changes before f is trusted; until then ...
+    motor_hold_signal: float = 3.0      # ... the CUSUM holds while the signal is this far from its reference
+    motor_learn_after_s: float = 5.0    # f learns from then on (ψ_f has settled)
+    motor_lag_s: float = 1.0            # f from the field's change over this lag against the signal's
+    motor_memory_s: float = 300.0       # ... weighted least squares forgetting with this time constant
+    motor_clip_sigma: float = 3.0       # f learns from changes clipped at this many σ (Huber) ...
     motor_max_turn_deg_s: float = 10.0  # ... and not while turning faster than this
     motor_ref_s: float = 30.0           # the reference signal x_ref follows the signal this slowly
-    motor_signal_floor: float = 1.0     # NLMS regularisation of the signal deviation (A; throttle %)
     heading_track_s: float = 30.0       # ψ_f follows the magnetic heading with this time constant
     heading_learn_s: float = 5.0        # ... while learning
-    freeze_max_s: float = 20.0          # learning resumes after this long frozen (a lasting change is learned)
+    freeze_max_s: float = 120.0         # learning resumes after this long frozen (a lasting change is learned)
+    reanchor_peak: float = 8.0          # after an alarm whose residual reached this many σ, ...
+    reanchor_margin: float = 1.0        # ... the residual below (κ + this) σ ...
+    reanchor_heading_deg: float = 10.0  # (a heading error of ψ_f up to this much is not counted) ...
+    reanchor_s: float = 1.5             # ... for this long ends the episode: ...
+    relearn_s: float = 5.0              # ... the model learns again this long (as in a turn)
     smooth_s: float = 0.5               # low-pass of the residual vector
     noise_floor_mG: float = 4.0         # σ is at least this
     noise_track_s: float = 60.0         # σ² follows the residual's mean square this slowly after learning
     cusum_drift: float = 3.0            # κ: residual below κσ never accumulates
     cusum_threshold_s: float = 1.0      # alarm when S (σ-units × s above κ) reaches this
+    cusum_cap: float = 3.0              # S is capped at this many thresholds (it ends soon after the residual)
     freeze_z: float = 0.2               # learning pauses at this score
     min_rate_hz: float = 10.0           # slower IMU data (telemetry): off
     max_gap_s: float = 0.5              # a longer IMU step: heading re-started, settle before testing
@@ -123,16 +139,16 @@ class FieldConsistency:
     def _reset(self) -> None:
         self.h = None
         self.b = [0.0, 0.0, 0.0]
-        self.f = [0.0, 0.0, 0.0]
+        self.motor = MotorFieldTracker(self.s.motor_lag_s, self.s.motor_memory_s)
+        self.f = self.motor.f                        # the same list: the tracker updates it
         self.x_ref: float | None = None
         self.psi_learned: float | None = None      # heading at the end of learning
         self.turn_until: float | None = None        # the first turn is learned again until then
         self.learned_s = 0.0
         self.yaw_bias_rad_s = 0.0
         self.yaw_rate_rad_s = 0.0
-        self.excitation = 0.0                        # Σ Δx² Δt the motor field has learned from
         self._dx = 0.0
-        self.heading_pull_on_alarm = True
+        self.heading_pull_on_alarm = False
         self._frozen_since: float | None = None
         self._noise_sum = 0.0
         self._noise_n = 0
@@ -147,7 +163,10 @@ class FieldConsistency:
         self.S = 0.0
         self.z = 0.0
         self._frozen_since = None
+        self._peak_q, self._low_since = 0.0, None
+        self.relearn_until = -math.inf
         self.settle_until = settle_until
+        self.motor.clear_history()
 
     # ------------------------------------------------------------------ one step
     def update(self, t_s: float, mag_body_mG, roll_rad: float, pitch_rad: float, attitude_ok: bool,
@@ -204,7 +223,8 @@ class FieldConsistency:
         self.yaw_rate_rad_s = rate
         pred = self.psi + (rate - self.yaw_bias_rad_s) * dt
         if self.heading_pull_on_alarm or self._learning_allowed():
-            tau = self.s.heading_learn_s if self.learned_s < self.s.learn_s else self.s.heading_track_s
+            fast = self.learned_s < self.s.learn_s or (self._t is not None and self._t < self.relearn_until)
+            tau = self.s.heading_learn_s if fast else self.s.heading_track_s
             innovation = _wrap(yaw - pred)
             pred += 2.0 * min(dt / tau, 0.5) * innovation          # PI loop, ζ = 1, ω_n = 1/τ
             self.yaw_bias_rad_s -= dt / (tau * tau) * innovation
@@ -242,7 +262,8 @@ class FieldConsistency:
             return False
         if self.psi_learned is None:
             self.psi_learned = self.psi
-        if self.turn_until is None and abs(_wrap(self.psi - self.psi_learned)) > math.radians(self.s.turn_deg):
+        if (self.turn_until is None and self.z < self.s.freeze_z
+                and abs(_wrap(self.psi - self.psi_learned)) > math.radians(self.s.turn_deg)):
             self.turn_until = t + self.s.turn_learn_s
         return self.turn_until is not None and t < self.turn_until
 
@@ -253,15 +274,23 @@ class FieldConsistency:
         g_h = g if turn else 1.0 - math.exp(-dt / (tau_b * s.field_learn_ratio))
         en = [c[0] * e[0] + c[1] * e[1] + c[2] * e[2], c[3] * e[0] + c[4] * e[1] + c[5] * e[2],
               c[6] * e[0] + c[7] * e[1] + c[8] * e[2]]
-        steady = not turn and abs(self.yaw_rate_rad_s) < math.radians(s.motor_max_turn_deg_s)
-        gm = (1.0 - math.exp(-dt / s.motor_learn_s)) * dx / (dx * dx + s.motor_signal_floor ** 2) if steady else 0.0
-        self.excitation += dx * dx * dt if steady else 0.0
-        clip = s.motor_clip_sigma * (self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG)
-        h, b, f = self.h, self.b, self.f
+        h, b = self.h, self.b
         for k in range(3):
             h[k] += 0.5 * g_h * en[k]
             b[k] += 0.5 * g * e[k]
-            f[k] += gm * min(max(e[k], -clip), clip)
+
+    def _learn_motor(self, t: float, dt: float, u: list, x: float, turn: bool, allowed: bool) -> None:
+        """f from the signal's changes (estimators.motor_field.MotorFieldTracker), outside turns,
+        after ``motor_learn_after_s``; b keeps carrying f x_ref when f changes."""
+        s = self.s
+        learn = (allowed and not turn and abs(self.yaw_rate_rad_s) < math.radians(s.motor_max_turn_deg_s)
+                 and self.learned_s >= s.motor_learn_after_s)
+        clip = s.motor_clip_sigma * (self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG)
+        old = list(self.f)
+        self.motor.update(t, u, float(x), dt, learn, clip)
+        if self.x_ref is not None:
+            for k in range(3):
+                self.b[k] += (self.f[k] - old[k]) * self.x_ref
 
     def _test(self, t: float, dt: float, c: tuple, m: tuple, x: float) -> FieldStep:
         s = self.s
@@ -272,9 +301,11 @@ class FieldConsistency:
         pred = [c[0] * h[0] + c[3] * h[1] + c[6] * h[2], c[1] * h[0] + c[4] * h[1] + c[7] * h[2],
                 c[2] * h[0] + c[5] * h[1] + c[8] * h[2]]
         e = [m[k] - pred[k] - b[k] - f[k] * dx for k in range(3)]
-        turn = self._relearning_turn(t, learning)
-        if turn or self._learning_allowed():
+        turn = self._relearning_turn(t, learning) or t < self.relearn_until
+        allowed = self._learning_allowed()
+        if turn or allowed:
             self._learn(dt, c, e, dx, learning, turn)
+        self._learn_motor(t, dt, [m[k] - pred[k] for k in range(3)], x, turn, allowed)
         a = 1.0 - math.exp(-dt / s.smooth_s) if self.r is not None else 1.0
         r = self.r = e if self.r is None else [self.r[k] + a * (e[k] - self.r[k]) for k in range(3)]
         size = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
@@ -282,7 +313,7 @@ class FieldConsistency:
             self._noise_sum += size * size
             self._noise_n += 1
             self._noise_ms = self._noise_sum / self._noise_n
-        elif not learning and self._noise_n and self.z < s.freeze_z:     # follows the noise, slowly
+        elif not (learning or turn) and self._noise_n and self.z < s.freeze_z:     # follows the noise, slowly
             self._noise_ms += (1.0 - math.exp(-dt / s.noise_track_s)) * (size * size - self._noise_ms)
         if self._noise_n:
             self.noise_mG = max(s.noise_floor_mG, math.sqrt(self._noise_ms))
@@ -293,13 +324,46 @@ class FieldConsistency:
             z = 0.0 if (turn and not learning) else float("nan")
             return FieldStep(t, z, q, tuple(r), LEARNING if (learning or turn) else SETTLING, tuple(f))
         first_turn = self.turn_until is None and abs(self.yaw_rate_rad_s) > math.radians(s.first_turn_hold_deg_s)
-        unknown_motor = self.excitation < s.motor_excitation and abs(self._dx) > s.motor_hold_signal
+        unknown_motor = self.motor.excitation < s.motor_excitation and abs(self._dx) > s.motor_hold_signal
         if not (first_turn or unknown_motor):
-            self.S = max(0.0, self.S + dt * (q - s.cusum_drift))      # (held in turns until one is learned)
+            self.S = min(max(0.0, self.S + dt * (q - s.cusum_drift)), s.cusum_cap * s.cusum_threshold_s)
         self.z = self.S / s.cusum_threshold_s
         frozen = self.z >= s.freeze_z
         self._frozen_since = (self._frozen_since if self._frozen_since is not None else t) if frozen else None
+        self._reanchor(t, self._non_heading_q(c, r, sigma), frozen)
         return FieldStep(t, self.z, q, tuple(r), ON, tuple(f))
+
+    def _non_heading_q(self, c: tuple, r: list, sigma: float) -> float:
+        """|r̄| without the part a heading error of ψ_f explains, in σ (∞ beyond ``reanchor_heading_deg``):
+        a heading error δ turns the predicted field about the vertical, a residual δ (−h_E, h_N, 0)."""
+        h = self.h
+        rn = [c[0] * r[0] + c[1] * r[1] + c[2] * r[2], c[3] * r[0] + c[4] * r[1] + c[5] * r[2],
+              c[6] * r[0] + c[7] * r[1] + c[8] * r[2]]
+        hh = math.hypot(h[0], h[1])
+        if not hh > 0:
+            return math.sqrt(rn[0] ** 2 + rn[1] ** 2 + rn[2] ** 2) / sigma
+        along = (-h[1] * rn[0] + h[0] * rn[1]) / hh
+        if abs(along) > math.radians(self.s.reanchor_heading_deg) * hh:
+            return math.inf
+        return math.sqrt(max(rn[0] ** 2 + rn[1] ** 2 + rn[2] ** 2 - along * along, 0.0)) / sigma
+
+    def _reanchor(self, t: float, q: float, frozen: bool) -> None:
+        """The end of a disturbance: after an alarm whose residual reached ``reanchor_peak`` σ, the
+        residual back below (κ + ``reanchor_margin``) σ for ``reanchor_s``, apart from a heading
+        error (ψ_f drifted on the gyro alone meanwhile), is what is left of the model: learn again
+        for ``relearn_s`` as in a turn, ψ_f as fast as while learning (score 0), so the alarm ends
+        with the disturbance instead of when the drift is learned."""
+        s = self.s
+        if not frozen:
+            self._peak_q, self._low_since = 0.0, None
+            return
+        self._peak_q = max(self._peak_q, q) if self.z >= 1.0 else self._peak_q
+        low = q < s.cusum_drift + s.reanchor_margin
+        self._low_since = (self._low_since if self._low_since is not None else t) if low else None
+        if self._peak_q >= s.reanchor_peak and low and t - self._low_since >= s.reanchor_s:
+            self.relearn_until = t + s.relearn_s
+            self.S = self.z = 0.0
+            self._frozen_since, self._peak_q, self._low_since = None, 0.0, None
 
 
 @dataclass
