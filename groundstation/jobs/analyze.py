@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.detection import DetectionResult, DetectionSettings, alarm_intervals, detect, ned_from_lla
-from estimators.detection_explain import explain_alarm
+from estimators.detection import DetectionResult, DetectionSettings, alarm_intervals, detect
 from estimators.heading import split_velocity
 from estimators.ins_gps import MODE_NAMES
 
+from groundstation.jobs.alarm_explain import STEP_KEYS, explain_span, explanation_text
 from groundstation.jobs.compass_report import compass_summaries
 from groundstation.jobs.flight_plot import vector_test_status
 from groundstation.jobs.inputs import detection_inputs, heading_deg, rounded
@@ -60,19 +60,16 @@ class FlightAnalysis:
             alarm["explanation_text"] = explanation_text(alarm["explanation"], self.x.get("motor_signal", "none"))
         return tracker.alarms
 
-    def explain(self, start_s: float, end_s: float | None) -> dict:
-        """The disturbance, growth, tests and likely kind of the alarm (estimators.detection_explain)."""
+    def explain(self, start_s: float, end_s: float | None) -> dict | None:
+        """The disturbance, growth, tests and likely kind of the alarm (``jobs.alarm_explain``)."""
+        return explain_span(self.explain_steps(), start_s, end_s)
+
+    def explain_steps(self) -> dict:
+        """Per-step explanation inputs (``jobs.alarm_explain.STEP_KEYS``) of the whole log."""
         x, det = self.x, self.det
-        t = x["t"]
-        i0 = int(min(np.searchsorted(t, start_s - 1e-6), len(t) - 1))
-        i1 = len(t) - 1 if end_s is None else int(min(np.searchsorted(t, end_s + 1e-6), len(t) - 1))
-        lat, lon = x["gps_held"][:, 3], x["gps_held"][:, 4]
-        ok = np.flatnonzero(np.isfinite(lat) & np.isfinite(lon))
-        north, east = (ned_from_lla(lat, lon, lat[ok[0]], lon[ok[0]]) if len(ok)
-                       else (np.full(len(t), np.nan), np.full(len(t), np.nan)))
-        scores = {"heading_difference": det.z_heading, "path_deviation": det.z_path,
-                  "field_strength_inclination": det.z_field, "field_vector": det.z_vector}
-        return explain_alarm(t, x["vector"].residual_mG, x["motor_held"], north, east, lat, lon, scores, i0, i1)
+        r = x["vector"].residual_mG
+        return dict(zip(STEP_KEYS, (x["t"], r[:, 0], r[:, 1], r[:, 2], x["motor_held"], x["gps_held"][:, 3],
+                                    x["gps_held"][:, 4], det.z_heading, det.z_path, det.z_field, det.z_vector)))
 
 
 def motor_field_report(x: dict) -> dict | None:
@@ -86,23 +83,6 @@ def motor_field_report(x: dict) -> dict | None:
     unit = "mG/A" if x["motor_signal"] == "current_A" else "mG/%"
     quarters = [[round(float(v), 2) for v in f[min(len(f) - 1, k * len(f) // 4)]] for k in (1, 2, 3, 4)]
     return {"signal": x["motor_signal"], "unit": unit, "estimate": quarters[-1], "trend": quarters}
-
-
-def explanation_text(e: dict, signal: str = "current_A") -> str:
-    """An alarm's explanation in words, for people."""
-    parts = [f"likely {e['kind']}"]
-    if e.get("position"):
-        parts[0] += f" at {e['position']['lat']:.6f}, {e['position']['lon']:.6f}"
-    if e.get("disturbance_size_mG") is not None:
-        v = e["disturbance_mG"]
-        parts.append(f"disturbance {e['disturbance_size_mG']:.0f} mG (body x {v[0]:+.0f}, y {v[1]:+.0f}, z {v[2]:+.0f})")
-    if e.get("growth_mG_s") is not None:
-        parts.append(f"growing {e['growth_mG_s']:+.1f} mG/s before the alarm")
-    if e["kind"] == "moving with current" and e.get("current_correlation") is not None:
-        parts.append(f"follows the {'current' if signal == 'current_A' else 'throttle'} (r = {e['current_correlation']:.2f})")
-    if e.get("tests"):
-        parts.append("tests: " + ", ".join(k.replace("_", " ") for k in e["tests"]))
-    return "; ".join(parts)
 
 
 def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: list | None = None,

@@ -27,6 +27,7 @@ from estimators.field_consistency import FieldConsistency
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import HeadingChain
 
+from groundstation.jobs.alarm_explain import SCORE_NAMES, ExplainHistory
 from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, GPS_COLUMNS, GPS_TIMEOUT_S, MOTOR_TIMEOUT_S, RATE_WINDOW,
                                        FieldPolicy, Held, StepState, earth_prior_mG, field_policy, gps_rows,
                                        imu_rate_hz, mission_legs, step_inputs, vector_test_inputs)
@@ -73,6 +74,7 @@ class LiveAnalyzer:
         self._throttle = Held(1, MOTOR_TIMEOUT_S)
         self._current_range = [np.inf, -np.inf]
         self.vector: FieldConsistency | None = None      # made at the first GPS fix (WMM prior) or IMU step
+        self.explain_history = ExplainHistory()          # per-step inputs of the alarm explanations
         self._imu_t: deque = deque(maxlen=RATE_WINDOW + 1)
         self._steps = StepState()
         self.last_row: np.ndarray | None = None
@@ -104,6 +106,7 @@ class LiveAnalyzer:
         if self.earth_field is not None:
             new.vector = FieldConsistency(self.settings.vector, earth_prior_mG(self.earth_field))
         new.chain.declination_deg = self.chain.declination_deg
+        new.explain_history = self.explain_history        # the alarms so far stay explained
         return new
 
     def set_mission(self, mission: list | None) -> None:
@@ -208,8 +211,10 @@ class LiveAnalyzer:
         self._imu_t.extend(t.tolist())
         x = step_inputs(t, chain, mag, att[:, :2], gps, rate, gyro, self.policy, self.settings, self._steps)
         chain.gyro_bias_rad_s = np.vstack(cols[12])
-        z_vector = self._vector_steps(t, chain, mag, att, gyro, np.asarray(cols[13], dtype=float), rate, x)
+        motor = np.asarray(cols[13], dtype=float)
+        z_vector, residual = self._vector_steps(t, chain, mag, att, gyro, motor, rate, x)
         k = len(t)
+        zs = np.full((k, 4), np.nan)
         combined = np.zeros(k, bool)
         trigger = np.zeros((k, 3), bool)
         score = np.full(k, np.nan)
@@ -220,7 +225,11 @@ class LiveAnalyzer:
             combined[i] = step.combined
             trigger[i] = [name in step.evidence for name in EVIDENCE]
             score[i] = np.fmax(np.fmax(np.fmax(step.z_heading, step.z_path), step.z_field), step.z_vector)
+            zs[i] = (step.z_heading, step.z_path, step.z_field, step.z_vector)
             self.last_step = step
+        self.explain_history.append(t_s=t, rx=residual[:, 0], ry=residual[:, 1], rz=residual[:, 2], motor=motor,
+                                   lat_deg=gps[:, 3], lon_deg=gps[:, 4],
+                                   **{name: zs[:, j] for j, name in enumerate(SCORE_NAMES)})
         self.alarm_active = bool(combined[-1])
         self.alarm_kinds = list(self.detector.alarm_kinds) if self.alarm_active else []
         rows = record_rows(t, chain, dict(x, gps_held=gps, att_held=att), np.asarray(cols[11], dtype=float),
@@ -229,17 +238,25 @@ class LiveAnalyzer:
         return rows
 
 
-    def _vector_steps(self, t, chain, mag, att, gyro, motor, rate, x) -> np.ndarray:
-        """The field-vector test on these steps (``field_consistency``'s per-sample form)."""
+    def _vector_steps(self, t, chain, mag, att, gyro, motor, rate, x) -> tuple[np.ndarray, np.ndarray]:
+        """The field-vector test on these steps (``field_consistency``'s per-sample form): its
+        score and residual [mG, body] per step."""
         if self.vector is None:
             self.vector = FieldConsistency(self.settings.vector, None)
         roll, pitch, ok, gyro_c = vector_test_inputs(chain, att[:, :2], gyro, x["steep"])
         field_on = self.policy.field_on
         z = np.full(len(t), np.nan)
+        residual = np.full((len(t), 3), np.nan)
         for i in range(len(t)):
-            z[i] = self.vector.update(float(t[i]), mag[i], float(roll[i]), float(pitch[i]), bool(ok[i]), gyro_c[i],
-                                      float(motor[i]), float(rate[i]), field_on).z
-        return z
+            step = self.vector.update(float(t[i]), mag[i], float(roll[i]), float(pitch[i]), bool(ok[i]), gyro_c[i],
+                                      float(motor[i]), float(rate[i]), field_on)
+            z[i], residual[i] = step.z, step.residual_mG
+        return z, residual
+
+    @property
+    def motor_signal(self) -> str:
+        """The motor field's signal so far (``motor_signal_table``'s names)."""
+        return "current_A" if self._current_range[1] - self._current_range[0] > 0.5 else "throttle_pct"
 
 
 class GpsOutageWatch:
