@@ -64,6 +64,15 @@ def latency_s(alarms: list, onset_s: float) -> float | None:
     return min(starts) - onset_s if starts else None
 
 
+def end_delay_s(alarms: list, onset_s: float, end_s: float | None) -> float | None:
+    """Last combined alarm's end after the disturbance's end [s] (inf: still on at the end of the
+    flight; None: no alarm or no end)."""
+    after = [b for a, b in alarms if b is None or b >= onset_s - 0.5]
+    if end_s is None or not after:
+        return None
+    return np.inf if after[-1] is None else after[-1] - end_s
+
+
 def _flight(scenario: str, seed: int, tmp: Path, **over):
     sim = simulate(scenario, seed, **over)
     return read_log(sim.write(tmp / f"{scenario}-{seed}.tlog")), sim.truth
@@ -71,8 +80,8 @@ def _flight(scenario: str, seed: int, tmp: Path, **over):
 
 def run(seeds: list[int], outage_seeds: list[int], clean_s: float, ramps, real: bool) -> dict:
     """Latencies and false alarms per variant: {variant: {"lat": {case: [...]}, "fa": {group: n}}}."""
-    out = {v: {"lat": {k: [] for k, _ in ramps}, "fa": {"clean-motor": 0, "outage": 0, "real": 0},
-               "pre_onset": 0} for v in VARIANTS}
+    out = {v: {"lat": {k: [] for k, _ in ramps}, "end": {k: [] for k, _ in ramps},
+               "fa": {"clean-motor": 0, "outage": 0, "real": 0}, "pre_onset": 0} for v in VARIANTS}
     counts = {"clean-motor": 0, "outage": 0, "real": 0}
     with tempfile.TemporaryDirectory() as tmpd:
         tmp = Path(tmpd)
@@ -82,10 +91,11 @@ def run(seeds: list[int], outage_seeds: list[int], clean_s: float, ramps, real: 
             for key, scen in ramps:
                 log, truth = _flight(scen, seed, tmp)
                 x = detection_inputs(log, cal)
-                onset = truth["interference"]["onset_s"]
+                onset, end = truth["interference"]["onset_s"], truth["interference"].get("end_s")
                 for v, st in VARIANTS.items():
                     alarms = combined_alarms(x, st)
                     out[v]["lat"][key].append(latency_s(alarms, onset))
+                    out[v]["end"][key].append(end_delay_s(alarms, onset, end))
                     out[v]["pre_onset"] += sum(1 for a, b in alarms if b is not None and b < onset - 0.5)
             groups = [("clean-motor", "mission-motor", {"duration_s": clean_s})]
             if seed in outage_seeds:
@@ -132,7 +142,8 @@ def verdicts(res: dict) -> dict:
 def print_table(res: dict, n_seeds: int) -> None:
     c = res["counts"]
     print(f"Interference detection: {n_seeds} seeds per scenario; first combined alarm after onset [s] "
-          "(median / worst / missed)")
+          "(median / worst / missed); last alarm's end after the disturbance's end [s] (median / worst / "
+          "still on at the end of the flight)")
     for v, r in res["variants"].items():
         print(f"\n{v}")
         for case, lat in r["lat"].items():
@@ -143,7 +154,11 @@ def print_table(res: dict, n_seeds: int) -> None:
                 met = missed == 0 and med <= target and worst <= 1.5 * med
                 verdict = (f"target median <= {target:g} s, worst <= 1.5x median: "
                            f"{'met' if met else 'NOT met'}")
-            print(f"  {case:5s} {med:6.2f} {worst:6.2f} {missed:3d}   {verdict}")
+            ends = [e for e in r["end"].get(case, []) if e is not None]
+            fin = [e for e in ends if np.isfinite(e)]
+            end_txt = (f"end {np.median(fin):6.2f} {max(fin):6.2f} {len(ends) - len(fin):3d}" if fin
+                       else f"end    nan    nan {len(ends):3d}")
+            print(f"  {case:5s} {med:6.2f} {worst:6.2f} {missed:3d}   {end_txt}   {verdict}")
         fa = r["fa"]
         print(f"  false alarms: clean motor-current {fa['clean-motor']} / {c['clean-motor']} flights, "
               f"GPS outage {fa['outage']} / {c['outage']}, real logs {fa['real']} / {c['real']} "

@@ -80,4 +80,6 @@ def test_detection_benchmark_quick(tmp_path):
     rows = re.findall(r"^  fast\s+([\d.]+)\s+([\d.]+)\s+0 ", out, re.M)
     assert len(rows) == 4 and all(float(med) <= 1.5 for med, _ in rows), out
     assert len(re.findall(r"clean motor-current 0 / 1 flights", out)) >= 2, out
+    ends = re.findall(r"^  fast .* end\s+([\d.-]+)\s+([\d.-]+)\s+0 ", out, re.M)
+    assert len(ends) == 4 and float(ends[-1][1]) <= 5.0, out     # the default's alarm ends with the disturbance
     assert png.exists() and png.stat().st_size > 1000

@@ -153,3 +153,30 @@ def test_alarm_explanations_name_each_kind():
     assert ramp["tests"] == ["field_vector"]
     v = np.array(ramp["disturbance_mG"]) / ramp["disturbance_size_mG"]
     assert v @ np.array([0.3, 0.9, 0.3]) / np.linalg.norm([0.3, 0.9, 0.3]) > 0.99   # its direction, body frame
+
+
+def test_an_alarm_ends_within_seconds_of_its_disturbance():
+    """A 150 mG step held 25 s through a 180° turn, then removed: the test alarms at once and its
+    score is back under 1 within 3 s of the removal (the CUSUM is capped and nothing was learned
+    during the alarm), and stays there."""
+    step = lambda t: np.where((t >= 50.0) & (t < 75.0), 150.0, 0.0)[:, None] * np.array([0.0, 1.0, 0.0])  # noqa: E731
+    r = _run(*_flight(disturbance=step))
+    z = np.nan_to_num(r.z)
+    assert (z[(r.t_s > 50.5) & (r.t_s < 75.0)] >= 1.0).all()
+    assert (z[(r.t_s > 78.0)] < 1.0).all()
+    assert np.nanmax(np.where(r.t_s < 50.0, r.z, np.nan)) < 1.0
+
+
+def test_motor_field_tracker_learns_the_field_per_ampere_from_changes_alone():
+    """u = f·x + an offset drifting 0.5 mG/s + noise, the current stepping by 10 A every 10 s:
+    the slope of the changes is f, whatever the drift (which an LMS on u would take into f)."""
+    from estimators.motor_field import MotorFieldTracker
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 120.0, 0.02)
+    x = 20.0 + np.where(np.mod(t, 20.0) < 10.0, 10.0, 0.0) + rng.normal(0, 0.2, len(t))
+    u = x[:, None] * F_BODY + 0.5 * t[:, None] * np.array([1.0, -1.0, 0.5]) + rng.normal(0, 2.0, (len(t), 3))
+    tr = MotorFieldTracker()
+    for i in range(len(t)):
+        tr.update(t[i], u[i], x[i], 0.02, True, 12.0)
+    np.testing.assert_allclose(tr.f, F_BODY, atol=0.1)
+    assert tr.excitation > 200.0
