@@ -7,15 +7,15 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   and a heading ψ_f that follows the gyro: ψ_f is propagated by the bias-corrected gyro's yaw rate
   ψ̇ = (q sin φ + r cos φ) / cos θ (ZYX Euler kinematics) and pulled to the tilt-compensated
   magnetic heading of m − b − f·Δx with the time constant ``heading_track_s`` (not at all
-  while the test suspects a disturbance).  The AHRS heading follows the magnetometer (k_m ≈ 0.2/s), so it would turn with a
-  disturbance and hide most of it; ψ_f does not within seconds.
+  while the test suspects a disturbance).  The AHRS heading follows the magnetometer
+  (k_m ≈ 0.2/s), so it would turn with a disturbance and hide most of it; ψ_f does not.
 * h: the Earth field in the magnetic navigation frame (the AHRS heading is magnetic), WMM as the
   prior (H, 0, Z) (without one, the first field), learned in flight; b: a body-fixed residual
   offset (calibration error, motor field at the reference signal);
 * f: the motor field per unit of the motor signal x (current [A], or throttle in % without a
-  current sensor), on x − x_ref (x_ref: the signal low-passed with ``motor_ref_s``), as ArduPilot's compassmot /
-  PX4's mag_compensation fit it offline (estimators.motor_field).  f is learned from the signal's
-  changes (estimators.motor_field.MotorFieldTracker: the change of m − Cᵀh over ``motor_lag_s``
+  current sensor), on x − x_ref (x_ref: the signal low-passed with ``motor_ref_s``), as
+  ArduPilot's compassmot / PX4's mag_compensation fit it offline (estimators.motor_field).
+  f is learned from the signal's changes (estimators.motor_field.MotorFieldTracker: the change of m − Cᵀh over ``motor_lag_s``
   against the change of x, weighted least squares, Huber-clipped at ``motor_clip_sigma`` σ), not
   in turns, not before ``motor_learn_after_s``, not while the test suspects a disturbance, so the
   body offset settling or a slow disturbance does not teach it a wrong field per ampere; until
@@ -148,7 +148,6 @@ class FieldConsistency:
         self.yaw_bias_rad_s = 0.0
         self.yaw_rate_rad_s = 0.0
         self._dx = 0.0
-        self.heading_pull_on_alarm = False
         self._frozen_since: float | None = None
         self._noise_sum = 0.0
         self._noise_n = 0
@@ -208,8 +207,10 @@ class FieldConsistency:
 
     def _track_heading(self, dt: float, roll: float, pitch: float, m: tuple, gyro) -> None:
         """ψ_f: gyro yaw rate, pulled to the tilt-compensated magnetic heading (seed 000 eqs. 11-13)
-        of the Earth part of the field (m − b − f·Δx, so a body-fixed offset does not turn it) by a PI loop (gains 2/τ, 1/τ²: critically damped, the integral estimates what is left of
-        the yaw-rate bias); gyro only while the test suspects a disturbance."""
+        of the Earth part of the field (m − b − f·Δx, so a body-fixed offset does not turn it) by a
+        PI loop (gains 2/τ, 1/τ²: critically damped, the integral estimates what is left of the
+        yaw-rate bias); gyro only while the test suspects a disturbance, as fast as while learning
+        for ``relearn_s`` after one (``_reanchor``)."""
         c = dcm_body_to_ned_float(roll, pitch, 0.0)         # tilt only: the field levelled
         yaw = -math.atan2(c[3] * m[0] + c[4] * m[1] + c[5] * m[2], c[0] * m[0] + c[1] * m[1] + c[2] * m[2])
         if self.psi is None:
@@ -222,7 +223,7 @@ class FieldConsistency:
             rate = 0.0
         self.yaw_rate_rad_s = rate
         pred = self.psi + (rate - self.yaw_bias_rad_s) * dt
-        if self.heading_pull_on_alarm or self._learning_allowed():
+        if self._learning_allowed():
             fast = self.learned_s < self.s.learn_s or (self._t is not None and self._t < self.relearn_until)
             tau = self.s.heading_learn_s if fast else self.s.heading_track_s
             innovation = _wrap(yaw - pred)

@@ -53,11 +53,13 @@ def explanation_text(e: dict | None, signal: str = "current_A") -> str:
         parts[0] += f" at {e['position']['lat']:.6f}, {e['position']['lon']:.6f}"
     if e.get("disturbance_size_mG") is not None:
         v = e["disturbance_mG"]
-        parts.append(f"disturbance {e['disturbance_size_mG']:.0f} mG (body x {v[0]:+.0f}, y {v[1]:+.0f}, z {v[2]:+.0f})")
+        parts.append(f"disturbance {e['disturbance_size_mG']:.0f} mG "
+                     f"(body x {v[0]:+.0f}, y {v[1]:+.0f}, z {v[2]:+.0f})")
     if e.get("growth_mG_s") is not None:
         parts.append(f"growing {e['growth_mG_s']:+.1f} mG/s before the alarm")
     if e["kind"] == "moving with current" and e.get("current_correlation") is not None:
-        parts.append(f"follows the {'current' if signal == 'current_A' else 'throttle'} (r = {e['current_correlation']:.2f})")
+        what = "current" if signal == "current_A" else "throttle"
+        parts.append(f"follows the {what} (r = {e['current_correlation']:.2f})")
     if e.get("tests"):
         parts.append("tests: " + ", ".join(k.replace("_", " ") for k in e["tests"]))
     return "; ".join(parts)
