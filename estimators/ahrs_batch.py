@@ -283,7 +283,9 @@ def _block_loop(p1: dict, counts: dict, sup: Supervisor, x_start: tuple) -> tupl
         vg = ACCEPT if re_g else sup.var_g
         vm = ACCEPT if re_m else sup.var_m
         starts.append(x1 + x2 + xm)
-        decisions.append((vg, vm, sup.at_rest, sup.bias, sup.field_disturbed))
+        # pass 2 holds the steps before a (re)initialisation with the supervisor's variant, as the
+        # per-sample form does; the block end is the same either way (the reinit overwrites)
+        decisions.append((sup.var_g, sup.var_m, sup.at_rest, sup.bias, sup.field_disturbed))
         u0, u1, u2 = x1
         q0, q1, q2 = p00 * u0 + p01 * u1 + p02 * u2, p10 * u0 + p11 * u1 + p12 * u2, p20 * u0 + p21 * u1 + p22 * u2
         e1 = [al1 * q0 + c10, al1 * q1 + c11, al1 * q2 + c12]

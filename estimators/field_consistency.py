@@ -15,7 +15,7 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
 * f: the motor field per unit of the motor signal x (current [A], or throttle in % without a
   current sensor), on x − x_ref (x_ref: the signal low-passed with ``motor_ref_s``), as
   ArduPilot's compassmot / PX4's mag_compensation fit it offline (estimators.motor_field).
-  f is learned from the signal's changes (estimators.motor_field.MotorFieldTracker: the change of m − Cᵀh over ``motor_lag_s``
+  f is learned from the signal's changes (estimators.motor_field_tracker.MotorFieldTracker: the change of m − Cᵀh over ``motor_lag_s``
   against the change of x, weighted least squares, Huber-clipped at ``motor_clip_sigma`` σ), not
   in turns, not before ``motor_learn_after_s``, not while the test suspects a disturbance, so the
   body offset settling or a slow disturbance does not teach it a wrong field per ampere; until
@@ -53,7 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.motor_field import MotorFieldTracker
+from estimators.motor_field_tracker import MotorFieldTracker
 from estimators.rotations import dcm_body_to_ned_float
 
 __all__ = ["FieldConsistencySettings", "FieldConsistency", "FieldStep", "FieldConsistencyResult",
@@ -281,7 +281,7 @@ class FieldConsistency:
             b[k] += 0.5 * g * e[k]
 
     def _learn_motor(self, t: float, dt: float, u: list, x: float, turn: bool, allowed: bool) -> None:
-        """f from the signal's changes (estimators.motor_field.MotorFieldTracker), outside turns,
+        """f from the signal's changes (estimators.motor_field_tracker.MotorFieldTracker), outside turns,
         after ``motor_learn_after_s``; b keeps carrying f x_ref when f changes."""
         s = self.s
         learn = (allowed and not turn and abs(self.yaw_rate_rad_s) < math.radians(s.motor_max_turn_deg_s)

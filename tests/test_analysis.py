@@ -83,13 +83,20 @@ def test_clean_flight_no_combined_alarm(tmp, cal):
     assert not [a for a in report["alarms"] if a["kind"] == "combined"]
     assert report["max_cross_track_m"] < 1.0
     assert cols["alarm"].sum() == 0
-    # heading and velocity split track the truth (to within the compass deviation of the motor-current
-    # field, which the motors-off calibration dance cannot see: several degrees, opposite on the way back)
+    # heading and velocity split track the truth.  The motors-off calibration dance cannot see the
+    # motor-current field (12-32 A here): it turned the heading by 7.1° (median) until analyze
+    # learnt the field per ampere from the flight and took it out (measured seed 7: 1.45° median)
+    motor = report["motor_field"]
+    assert motor["status"] == "ok" and motor["removed_from_heading"], motor
+    f_true = np.array(sim.truth["mag"]["motor_mG_per_A"])
+    assert np.linalg.norm(np.array(motor["mG_per_A"]) - f_true) < 0.3 * np.linalg.norm(f_true)
     r = sim.result
     hdg = np.interp(cols["t_s"], r.t_s, np.unwrap(r.yaw_rad))
     err = np.degrees(np.angle(np.exp(1j * (np.radians(cols["heading_true_deg"]) - hdg))))
     ok = np.isfinite(err) & (cols["t_s"] > 20)
-    assert np.median(np.abs(err[ok])) < 10.0
+    assert np.median(np.abs(err[ok])) < 2.5
+    mag_only = np.degrees(np.angle(np.exp(1j * (np.radians(cols["mag_heading_deg"] + report["declination_deg"]) - hdg))))
+    assert np.median(np.abs(mag_only[ok])) > 4.0          # the detector's heading keeps the field as measured
     fwd = np.nanmedian(cols["v_forward_mps"][(cols["t_s"] > 40) & (cols["t_s"] < 80)])
     assert fwd == pytest.approx(6.0, abs=0.5)
 

@@ -170,7 +170,7 @@ def test_an_alarm_ends_within_seconds_of_its_disturbance():
 def test_motor_field_tracker_learns_the_field_per_ampere_from_changes_alone():
     """u = f·x + an offset drifting 0.5 mG/s + noise, the current stepping by 10 A every 10 s:
     the slope of the changes is f, whatever the drift (which an LMS on u would take into f)."""
-    from estimators.motor_field import MotorFieldTracker
+    from estimators.motor_field_tracker import MotorFieldTracker
     rng = np.random.default_rng(4)
     t = np.arange(0.0, 120.0, 0.02)
     x = 20.0 + np.where(np.mod(t, 20.0) < 10.0, 10.0, 0.0) + rng.normal(0, 0.2, len(t))

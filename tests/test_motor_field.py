@@ -60,3 +60,27 @@ def test_simulated_ardupilot_flight_within_10_percent():
         f = np.asarray(sim.truth["compasses"][k]["motor_mG_per_A"])
         assert m.status == "ok", m.message
         assert np.linalg.norm(m.motor_mG_per_unit - f) / np.linalg.norm(f) < 0.10, (k, m.motor_mG_per_unit, f)
+
+
+def _calibrated(d: dict) -> np.ndarray:
+    """The flight's field calibrated with the motors off: h + f·I (offsets and matrix removed)."""
+    return (d["raw"] - d["b"]) @ np.linalg.inv(d["A"]).T
+
+
+def test_current_field_of_a_calibrated_field_yaw_free():
+    """fit_current_field uses only the tilt (no heading): f within 5 % on five legs; the levelled
+    field steadier after removing f·I; a flight without a motor field is not 'compensated'."""
+    from estimators.motor_field import fit_current_field
+    d = level_flight(seed=8, f=(-1.4, -1.0, 2.4))
+    r = fit_current_field(_calibrated(d), d["current"], d["roll"], d["pitch"])
+    assert r.status == "ok", r.message
+    assert np.linalg.norm(r.motor_mG_per_A - d["f"]) / np.linalg.norm(d["f"]) < 0.05
+    assert r.field_down_mG == pytest.approx(H_NED[2], abs=3.0)
+    assert r.field_horizontal_mG == pytest.approx(np.hypot(H_NED[0], H_NED[1]), abs=3.0)
+    clean = level_flight(seed=8, f=(0.0, 0.0, 0.0))
+    r0 = fit_current_field(_calibrated(clean), clean["current"], clean["roll"], clean["pitch"])
+    assert r0.status == "not_supported" and np.all(np.isnan(r0.motor_mG_per_A)), r0.message
+    steady = fit_current_field(_calibrated(d), np.full(len(d["t"]), 18.0), d["roll"], d["pitch"])
+    assert steady.status == "insufficient_signal_variation"
+    nan = fit_current_field(np.full((10, 3), np.nan), np.ones(10), np.zeros(10), np.zeros(10))
+    assert nan.status == "no_motor_signal"

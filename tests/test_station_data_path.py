@@ -100,16 +100,8 @@ def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
     decisions = ("t_s", "cross_track_m", "heading_on", "field_on", "steep", "alarm", "ev_heading", "ev_path",
                  "ev_field")
     estimates = ("roll_deg", "pitch_deg", "field_mG", "inclination_deg", "score")
-    for name in decisions + (estimates if path == DEMO else ()):
+    for name in decisions + estimates:
         np.testing.assert_allclose(live_rows[:, COL[name]], batch_rows[:, COL[name]], atol=1e-6, err_msg=name)
-    if path == REAL:
-        # known defect (closing note): on this 2.8 Hz log with gaps above the AHRS's max_gap_s,
-        # the per-sample and batch AHRS part on 11 of 2856 rows (a field re-initialisation inside
-        # a block is decided per block in batch), until the next gap re-initialises both; the
-        # detector's score follows them (its decisions above do not)
-        for name in ("roll_deg", "pitch_deg", "field_mG", "inclination_deg"):
-            close = np.isclose(live_rows[:, COL[name]], batch_rows[:, COL[name]], atol=1e-6, equal_nan=True)
-            assert np.mean(close) >= 0.99, (name, np.mean(close))
     if path == DEMO:      # the interference episode of the demo and nothing before it; it ends with it
         onset_s, end_s = _demo_interference_s()
         assert len(analyzed) == 1 and onset_s < analyzed[0]["start_s"] < onset_s + 5.0

@@ -28,6 +28,7 @@ from groundstation.jobs.alarm_explain import STEP_KEYS, explain_span, explanatio
 from groundstation.jobs.compass_report import compass_summaries
 from groundstation.jobs.flight_plot import vector_test_status
 from groundstation.jobs.inputs import detection_inputs, heading_deg, rounded
+from groundstation.jobs.motor_heading import best_heading_chain
 from groundstation.jobs.navigation import ins_runs
 from groundstation.jobs.record import COL, AlarmTracker, record_rows
 from groundstation.samples import FlightLog
@@ -109,12 +110,12 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
     d_gps, legs, rtk, path_test, cal = (x[k] for k in ("d_gps", "legs", "rtk", "path_test", "cal"))
     strength = x["strength"]
     gps = x["gps_held"]
-    hdg_true = np.where(valid, chain.heading_true_rad, np.nan)
-    v_fwd, v_lat = split_velocity(gps[:, 5], gps[:, 6], hdg_true)
     hdg = lambda a: np.where(valid, heading_deg(a), np.nan)  # noqa: E731
     declination = ef.declination_deg if ef else 0.0
     nav, runs = ins_runs(log, x["mag_cal"], declination, x["imu_rate_hz"], settings)
-    best = best_attitude(t, chain, valid, runs, declination)
+    best_chain, motor = best_heading_chain(log, x)
+    best = best_attitude(t, best_chain, valid, runs, declination)
+    v_fwd, v_lat = split_velocity(gps[:, 5], gps[:, 6], np.radians(best["heading_true_deg"]))
     columns = {
         "t_s": t,
         "roll_deg": best["roll_deg"], "pitch_deg": best["pitch_deg"],
@@ -122,7 +123,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "heading_true_deg": best["heading_true_deg"],
         "v_forward_mps": v_fwd, "v_lateral_mps": v_lat,
         "cross_track_m": d, "alarm": det.combined.astype(int),
-        **bias_and_rejection(chain, valid), "ins_mode": best["ins_mode"],
+        **bias_and_rejection(best_chain, valid), "ins_mode": best["ins_mode"],
     }
 
     alarms = alarm_list(t, det, d, settings) + fa.combined_alarms()
@@ -152,7 +153,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "heading_test": x["heading_test"],
         "field_test": x["field_test"],
         "field_vector_test": vector_test_status(x["vector"].status),
-        "motor_field": motor_field_report(x),
+        "motor_field_learned": motor_field_report(x),
         "imu_rate_hz": rounded(x["imu_rate_hz"], 1),
         "max_cross_track_m": rounded(np.nanmax(d_gps)) if len(d_gps) and np.isfinite(d_gps).any() else None,
         "compasses": compasses,
@@ -161,6 +162,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "first_alarm_s": combined[0]["start_s"] if combined else None,
         "interference_detected": bool(combined),
         "navigation": nav,
+        "motor_field": motor,
         "detection": {
             "heading_sigma_deg": rounded(det.heading_sigma_deg), "heading_threshold_deg": rounded(settings.sigma_k * det.heading_sigma_deg),
             "learn_s": settings.learn_s, "path_threshold_m": settings.path_threshold_m,

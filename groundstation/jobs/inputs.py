@@ -26,7 +26,8 @@ import numpy as np
 from estimators.detection import DetectionSettings, cross_track_m, field_inclination_deg, ned_from_lla
 from estimators.field_consistency import field_consistency
 from estimators.geomag import decimal_year_from_unix, earth_field
-from estimators.heading import run_heading_chain
+from estimators.ahrs import AhrsSettings
+from estimators.heading import HeadingChainSettings, run_heading_chain
 from estimators.rotations import wrap_angle_rad
 
 from groundstation.io.params import ardupilot_never_calibrated, unapply_onboard_calibration
@@ -53,6 +54,12 @@ def heading_deg(heading_rad) -> np.ndarray:
     return np.where(d >= 360.0, 0.0, d)
 
 
+# The heading chain the detector compares the magnetometer heading with: the AHRS setting its
+# 5-sigma heading-difference thresholds were set with, a heading that follows the magnetometer
+# within ~5 s, so a heading-dependent deviation (motor field, calibration residue) that changes
+# in a turn settles in the turn's settling time.  The best attitude (analyze's CSV) is the
+# default AHRS, which follows the magnetometer 3x slower (estimators.ahrs.AhrsSettings).
+DETECTOR_CHAIN = HeadingChainSettings(ahrs=AhrsSettings(field_gain_per_s=0.2, mag_recovery_s=5.0, block_s=0.05))
 MAX_OFFSET_MG = 1e5          # 100 G: far beyond any magnetometer's range
 MAX_MATRIX_CONDITION = 1e3   # a fitted soft-iron matrix is near a rotation times ~1 (ratio <= 2.5)
 MATRIX_SCALE_RANGE = (1e-2, 1e2)
@@ -447,7 +454,7 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
     else:
         mag_cal = np.c_[mag[:, :1], policy.apply(mag[:, 1:4])]
     ef, pos = field_reference(log)
-    chain = run_heading_chain(imu, mag_cal, ef.declination_deg if ef else 0.0)
+    chain = run_heading_chain(imu, mag_cal, ef.declination_deg if ef else 0.0, DETECTOR_CHAIN)
     t = chain.t_s
     n = len(t)
     att = np.asarray(log.attitude, dtype=float).reshape(-1, 4)

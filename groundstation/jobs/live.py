@@ -28,9 +28,9 @@ from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import HeadingChain
 
 from groundstation.jobs.alarm_explain import SCORE_NAMES, ExplainHistory
-from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, GPS_COLUMNS, GPS_TIMEOUT_S, MOTOR_TIMEOUT_S, RATE_WINDOW,
-                                       FieldPolicy, Held, StepState, earth_prior_mG, field_policy, gps_rows,
-                                       imu_rate_hz, mission_legs, step_inputs, vector_test_inputs)
+from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, DETECTOR_CHAIN, GPS_COLUMNS, GPS_TIMEOUT_S, MOTOR_TIMEOUT_S,
+                                       RATE_WINDOW, FieldPolicy, Held, StepState, earth_prior_mG, field_policy,
+                                       gps_rows, imu_rate_hz, mission_legs, step_inputs, vector_test_inputs)
 from groundstation.jobs.navigation import OUTAGE_MIN_S
 from groundstation.jobs.record import EVIDENCE, RECORD_COLUMNS, record_rows
 from groundstation.samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, MagSample, ParamSample,
@@ -59,7 +59,7 @@ class LiveAnalyzer:
         self.start_unix_s = start_unix_s
         self.calibration = calibration
         self.legs = mission_legs(mission)
-        self.chain = HeadingChain()
+        self.chain = HeadingChain(settings=DETECTOR_CHAIN)
         self.detector = InterferenceDetector(self.settings)
         self.earth_field = None
         self.params: dict[str, float] = {}

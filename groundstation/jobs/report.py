@@ -57,6 +57,10 @@ def format_report(report: dict) -> str:
         lines.append(f"GPS outage {o['start_s']}–{o['end_s'] if o['end_s'] is not None else 'end'} s "
                      f"({o['duration_s']} s): " + (f"INS/GPS mode {o['ins_mode']}; heading vs autopilot: {cmp or 'n/a'}"
                                                    if o["ins_mode"] else f"INS/GPS {nav.get('ins_gps')}"))
+    motor = report.get("motor_field") or {}
+    if motor.get("status") not in (None, "no_motor_signal"):
+        lines.append(("heading: motor-current field removed: " if motor.get("removed_from_heading")
+                      else "heading: motor-current field not removed: ") + str(motor.get("message")))
     comb = [a for a in report.get("alarms", []) if a["kind"] == "combined"]
     others = [a for a in report.get("alarms", []) if a["kind"] != "combined"]
     lines.append(f"interference detected: {'YES' if report.get('interference_detected') else 'no'}"

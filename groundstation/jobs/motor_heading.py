@@ -1,0 +1,61 @@
+"""The best heading of a whole log: the default AHRS on the field with the motor-current field
+taken out (analyze's CSV attitude, issue 12).
+
+The detector's heading chain (``jobs.inputs.DETECTOR_CHAIN``) follows the magnetometer quickly,
+as its thresholds need; the best estimate is the default AHRS (``estimators.ahrs.AhrsSettings``),
+run again here.  A calibration from the rotation dance is made with the motors off, so in flight
+the field of the motor and battery wires, proportional to the current, turns the compass heading
+by several degrees (7° median on the simulated missions at 12-32 A).  When the log carries the
+battery current and it varies, ``estimators.motor_field.fit_current_field`` finds the field per
+ampere from the tilt of the detector's chain (tilt does not depend on the compass) and the best
+chain runs on the field with f·I removed.  The magnetometer-only heading the detector uses
+(``mag_heading_deg``) stays on the field as measured: the detector has its own motor model.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from estimators.heading import HeadingChainResult, run_heading_chain
+from estimators.motor_field import CurrentFieldFit, fit_current_field
+
+from groundstation.jobs.inputs import hold_last, rounded
+from groundstation.samples import FlightLog
+
+__all__ = ["CURRENT_TIMEOUT_S", "best_heading_chain"]
+
+CURRENT_TIMEOUT_S = 5.0     # a current sample older than this does not describe the field
+
+
+def _report(fit: CurrentFieldFit | None, used: bool, message: str = "") -> dict:
+    if fit is None:
+        return {"status": "no_motor_signal", "message": message, "removed_from_heading": False}
+    vec = lambda v: [rounded(a, 3) for a in np.asarray(v, float)]  # noqa: E731
+    return {"status": fit.status, "message": fit.message, "removed_from_heading": used,
+            "mG_per_A": vec(fit.motor_mG_per_A), "sd_mG_per_A": vec(fit.motor_sd_mG_per_A), "samples": fit.n_used}
+
+
+def _current_field(log: FlightLog, x: dict) -> tuple[CurrentFieldFit | None, np.ndarray, str]:
+    """(fit or None, current at the magnetometer samples [A], why None)."""
+    chain, mag_cal = x["chain"], x["mag_cal"]
+    battery = np.asarray(log.battery, dtype=float).reshape(-1, 2)
+    if not len(battery) or not len(mag_cal) or not len(chain.t_s) or x["policy"].correction == "none":
+        return None, np.zeros(0), "no battery current in the log" if not len(battery) else "no field"
+    current = hold_last(battery[:, 0], battery[:, 1:2], mag_cal[:, 0], CURRENT_TIMEOUT_S)[:, 0]
+    t = chain.t_s
+    k = np.clip(np.searchsorted(t, mag_cal[:, 0], side="right") - 1, 0, len(t) - 1)
+    ok = np.asarray(chain.valid, bool)[k] & (mag_cal[:, 0] >= t[0])
+    return fit_current_field(mag_cal[ok, 1:4], current[ok], chain.roll_rad[k[ok]], chain.pitch_rad[k[ok]]), current, ""
+
+
+def best_heading_chain(log: FlightLog, x: dict) -> tuple[HeadingChainResult, dict]:
+    """(the default AHRS on the field, with the motor-current field removed when it is found;
+    report["motor_field"]).  ``x``: detection_inputs of the log (its mag_cal, chain and WMM)."""
+    fit, current, why = _current_field(log, x)
+    field = x["mag_cal"].copy()
+    used = fit is not None and fit.status == "ok"
+    if used:
+        have = np.isfinite(current)
+        field[have, 1:4] -= np.outer(current[have], fit.motor_mG_per_A)
+    ef = x["ef"]
+    best = run_heading_chain(np.asarray(log.imu, dtype=float).reshape(-1, 7), field, ef.declination_deg if ef else 0.0)
+    return best, _report(fit, used, why)
