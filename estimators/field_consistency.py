@@ -74,7 +74,8 @@ class FieldConsistencySettings:
     field_learn_ratio: float = 10.0     # the Earth field h learns this many times slower than b
     turn_deg: float = 45.0              # the first turn this far from the learning heading ...
     turn_learn_s: float = 10.0
-    first_turn_hold_deg_s: float = 20.0
+    first_turn_hold_deg_s: float = 20.0  # the CUSUM holds in turns faster than this ...
+    post_turn_s: float = 1.0            # ... and this long after them, then ψ_f drops a heading error
     motor_excitation: float = 200.0     # Σ z² Δt [A² s] of signal changes before f is trusted; until then ...
     motor_hold_signal: float = 3.0      # ... the CUSUM holds while the signal is this far from its reference
     motor_learn_after_s: float = 5.0    # f learns from then on (ψ_f has settled)
@@ -87,7 +88,7 @@ class FieldConsistencySettings:
     heading_learn_s: float = 5.0        # ... while learning
     freeze_max_s: float = 120.0         # learning resumes after this long frozen (a lasting change is learned)
     reanchor_peak: float = 8.0          # after an alarm whose residual reached this many σ, ...
-    reanchor_margin: float = 1.0        # ... the residual below (κ + this) σ ...
+    reanchor_margin: float = 2.5        # ... the residual below (κ + this) σ ...
     reanchor_heading_deg: float = 10.0  # (a heading error of ψ_f up to this much is not counted) ...
     reanchor_s: float = 1.5             # ... for this long ends the episode: ...
     relearn_s: float = 5.0              # ... the model learns again this long (as in a turn)
@@ -164,6 +165,7 @@ class FieldConsistency:
         self._frozen_since = None
         self._peak_q, self._low_since = 0.0, None
         self.relearn_until = -math.inf
+        self._turn_hold_until = -math.inf
         self.settle_until = settle_until
         self.motor.clear_history()
 
@@ -324,29 +326,48 @@ class FieldConsistency:
             self.S = self.z = 0.0        # relearning a turn, the test is on but blind: score 0, not NaN
             z = 0.0 if (turn and not learning) else float("nan")
             return FieldStep(t, z, q, tuple(r), LEARNING if (learning or turn) else SETTLING, tuple(f))
-        first_turn = self.turn_until is None and abs(self.yaw_rate_rad_s) > math.radians(s.first_turn_hold_deg_s)
+        q_other, eps = self._non_heading_q(c, r, sigma)
+        first_turn = self._fast_turn(t, q_other, eps)
         unknown_motor = self.motor.excitation < s.motor_excitation and abs(self._dx) > s.motor_hold_signal
         if not (first_turn or unknown_motor):
             self.S = min(max(0.0, self.S + dt * (q - s.cusum_drift)), s.cusum_cap * s.cusum_threshold_s)
         self.z = self.S / s.cusum_threshold_s
         frozen = self.z >= s.freeze_z
         self._frozen_since = (self._frozen_since if self._frozen_since is not None else t) if frozen else None
-        self._reanchor(t, self._non_heading_q(c, r, sigma), frozen)
+        self._reanchor(t, q_other, frozen)
         return FieldStep(t, self.z, q, tuple(r), ON, tuple(f))
 
-    def _non_heading_q(self, c: tuple, r: list, sigma: float) -> float:
-        """|r̄| without the part a heading error of ψ_f explains, in σ (∞ beyond ``reanchor_heading_deg``):
-        a heading error δ turns the predicted field about the vertical, a residual δ (−h_E, h_N, 0)."""
+    def _fast_turn(self, t: float, q_other: float, eps: float) -> bool:
+        """True while the CUSUM holds for a fast turn (over ``first_turn_hold_deg_s``) and
+        ``post_turn_s`` after it.  A fast turn leaves ψ_f a few degrees off (the gyro's scale and
+        timing over 100°+): when the hold ends, a residual that is a heading error ε alone (the rest
+        under (κ + ``reanchor_margin``) σ, |ε| ≤ ``reanchor_heading_deg``) is taken out of ψ_f."""
+        s = self.s
+        if abs(self.yaw_rate_rad_s) > math.radians(s.first_turn_hold_deg_s):
+            self._turn_hold_until = t + s.post_turn_s
+            return True
+        if t < self._turn_hold_until:
+            return True
+        if self._turn_hold_until > -math.inf:
+            self._turn_hold_until = -math.inf
+            if q_other < s.cusum_drift + s.reanchor_margin and math.isfinite(eps):
+                self.psi = _wrap(self.psi - eps)
+        return False
+
+    def _non_heading_q(self, c: tuple, r: list, sigma: float) -> tuple[float, float]:
+        """(|r̄| without the part a heading error ε of ψ_f explains, in σ; ε [rad]) (∞ and NaN
+        beyond ``reanchor_heading_deg``): with ψ_f = ψ + ε the predicted field is turned about the
+        vertical, a residual ε (−h_E, h_N, 0) in the navigation frame."""
         h = self.h
         rn = [c[0] * r[0] + c[1] * r[1] + c[2] * r[2], c[3] * r[0] + c[4] * r[1] + c[5] * r[2],
               c[6] * r[0] + c[7] * r[1] + c[8] * r[2]]
         hh = math.hypot(h[0], h[1])
         if not hh > 0:
-            return math.sqrt(rn[0] ** 2 + rn[1] ** 2 + rn[2] ** 2) / sigma
+            return math.sqrt(rn[0] ** 2 + rn[1] ** 2 + rn[2] ** 2) / sigma, float("nan")
         along = (-h[1] * rn[0] + h[0] * rn[1]) / hh
         if abs(along) > math.radians(self.s.reanchor_heading_deg) * hh:
-            return math.inf
-        return math.sqrt(max(rn[0] ** 2 + rn[1] ** 2 + rn[2] ** 2 - along * along, 0.0)) / sigma
+            return math.inf, float("nan")
+        return math.sqrt(max(rn[0] ** 2 + rn[1] ** 2 + rn[2] ** 2 - along * along, 0.0)) / sigma, along / hh
 
     def _reanchor(self, t: float, q: float, frozen: bool) -> None:
         """The end of a disturbance: after an alarm whose residual reached ``reanchor_peak`` σ, the
