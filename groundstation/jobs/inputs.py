@@ -58,8 +58,12 @@ def heading_deg(heading_rad) -> np.ndarray:
 # 5-sigma heading-difference thresholds were set with, a heading that follows the magnetometer
 # within ~5 s, so a heading-dependent deviation (motor field, calibration residue) that changes
 # in a turn settles in the turn's settling time.  The best attitude (analyze's CSV) is the
-# default AHRS, which follows the magnetometer 3x slower (estimators.ahrs.AhrsSettings).
-DETECTOR_CHAIN = HeadingChainSettings(ahrs=AhrsSettings(field_gain_per_s=0.2, mag_recovery_s=5.0, block_s=0.05))
+# default AHRS, which follows the magnetometer 3x slower (estimators.ahrs.AhrsSettings).  Its
+# heading-axis gyro bias learns in 300 s as before: the field-vector test propagates its heading
+# with this bias through an alarm, and a 60 s bias follows a disturbance of a minute enough to
+# leave the heading degrees off when it ends (alarms on to the end of the flight).
+DETECTOR_CHAIN = HeadingChainSettings(ahrs=AhrsSettings(field_gain_per_s=0.2, mag_recovery_s=5.0, block_s=0.05,
+                                                      bias_heading_time_s=300.0))
 MAX_OFFSET_MG = 1e5          # 100 G: far beyond any magnetometer's range
 MAX_MATRIX_CONDITION = 1e3   # a fitted soft-iron matrix is near a rotation times ~1 (ratio <= 2.5)
 MATRIX_SCALE_RANGE = (1e-2, 1e2)
