@@ -25,6 +25,12 @@ Tests, each reduced to a score z (z ≥ 1 = the test's own alarm threshold):
                → keeps test 2's early response on slow ramps, but a gust that pushes the
                  track off the line with a healthy compass does not alarm;
      field:    z_F ≥ strong held for ``field_hold_s``, or z_F ≥ 1 held and (z_H ≥ ½ or z_P ≥ ½).
+     vector:   z_V ≥ ``vector_alone``, or z_V ≥ 1 and (z_H ≥ ½ or z_P ≥ ½ held): the field-vector
+               consistency test (estimators.field_consistency, a CUSUM that already integrates,
+               so no hold), reported as field evidence.
+   Gate: where the field-vector test is on (finite z_V), the heading, path and sector-field rules
+   fire only while z_V ≥ ``vector_gate``: a compass heading that moves with the motor current
+   (explained by the learned field per ampere) is not evidence of interference.
    The alarm stays on ``release_s`` after the last trigger.  Every step names its evidence.
 5. A gap in the data longer than ``segment_gap_s`` starts a new segment that learns everything
    again (a calibration dance and a flight in one log).
@@ -41,6 +47,8 @@ from dataclasses import dataclass, field
 import math
 
 import numpy as np
+
+from estimators.field_consistency import FieldConsistencySettings
 
 __all__ = ["ned_from_lla", "lla_from_ned", "DetectionSettings", "DetectionResult", "detect", "InterferenceDetector", "DetectorStep",
            "cross_track_m", "field_inclination_deg", "alarm_intervals", "EVIDENCE"]
@@ -99,6 +107,11 @@ class DetectionSettings:
     segment_gap_s: float = 2.0            # a longer gap in the data starts a new segment (re-learn)
     max_tilt_deg: float = 45.0            # callers blank steeper attitudes (hand-held dance, tumbling)
     min_imu_rate_hz: float = 10.0         # callers skip the heading test on slower IMU data (telemetry)
+    vector: FieldConsistencySettings = field(default_factory=FieldConsistencySettings)  # field-vector test
+    vector_alone: float = 1.0             # field-vector score that alarms on its own (inf: only corroborated)
+    use_vector: bool = True               # False: the seed-002 tests and the sector field check only
+    vector_gate: float = 0.3              # where the field-vector test is on, the other tests count only
+                                          # while its score is at least this (inf: no gate)
 
 
 @dataclass
@@ -118,6 +131,7 @@ class DetectionResult:
     sector_offsets: dict          # sector -> (t learned, strength offset mG, σ, inclination offset deg, σ)
     z_strength: np.ndarray        # running-mean strength deviation / its threshold
     z_inclination: np.ndarray
+    z_vector: np.ndarray = field(default_factory=lambda: np.zeros(0))   # field-vector CUSUM score (NaN: off)
 
     def evidence_at(self, i: int) -> list[str]:
         return [EVIDENCE[k] for k in range(3) if self.trigger[i, k]]
@@ -226,7 +240,7 @@ def _gt(a: np.ndarray, thr: float) -> np.ndarray:
 # ----------------------------------------------------------------------------- batch
 def detect(t_s, heading_diff_rad, cross_track, path_trusted, strength_mG, inclination_deg,
            heading_rad, yaw_rate_rad_s, strength_ref_mG: float = np.nan, inclination_ref_deg: float = np.nan,
-           settings: DetectionSettings | None = None) -> DetectionResult:
+           settings: DetectionSettings | None = None, z_vector=None) -> DetectionResult:
     """Batch detection over a flight (vectorised).  All inputs length N on one time base.
 
     heading_diff_rad: ψ_m − ψ̂ wrapped to ±π, NaN where the heading chain is not valid.
@@ -238,8 +252,9 @@ def detect(t_s, heading_diff_rad, cross_track, path_trusted, strength_mG, inclin
     (e.g. a calibration dance and a flight in one log).  Scalars of the result are the last segment's.
     """
     s = settings or DetectionSettings()
+    zv = np.full(len(np.asarray(t_s)), np.nan) if z_vector is None else np.asarray(z_vector, dtype=float)
     args = [np.asarray(a) for a in (t_s, heading_diff_rad, cross_track, path_trusted, strength_mG,
-                                     inclination_deg, heading_rad, yaw_rate_rad_s)]
+                                     inclination_deg, heading_rad, yaw_rate_rad_s, zv)]
     t = args[0].astype(float)
     cuts = np.flatnonzero(np.diff(t) > s.segment_gap_s) + 1 if len(t) > 1 else np.zeros(0, int)
     if not len(cuts):
@@ -251,11 +266,11 @@ def detect(t_s, heading_diff_rad, cross_track, path_trusted, strength_mG, inclin
     return DetectionResult(cat("t_s"), cat("z_heading"), cat("z_path"), cat("z_field"), cat("heading_alarm"),
                            cat("path_alarm"), cat("field_alarm"), cat("combined"), cat("trigger"),
                            last.heading_sigma_deg, last.heading_mean_deg, last.sector_offsets,
-                           cat("z_strength"), cat("z_inclination"))
+                           cat("z_strength"), cat("z_inclination"), cat("z_vector"))
 
 
 def _detect_segment(t_s, heading_diff_rad, cross_track, path_trusted, strength_mG, inclination_deg,
-                    heading_rad, yaw_rate_rad_s, strength_ref_mG, inclination_ref_deg, s) -> DetectionResult:
+                    heading_rad, yaw_rate_rad_s, z_vector, strength_ref_mG, inclination_ref_deg, s) -> DetectionResult:
     t = np.asarray(t_s, dtype=float)
     e = np.asarray(heading_diff_rad, dtype=float)
     d = np.asarray(cross_track, dtype=float)
@@ -295,13 +310,16 @@ def _detect_segment(t_s, heading_diff_rad, cross_track, path_trusted, strength_m
     h_sus, f_sus = held(_gt(z_hq, 1.0), hs), held(_gt(z_f, 1.0), s.field_hold_s)
     hh, ph, fh = (held(_gt(z, s.corroborate), cs) for z in (z_hq, z_p, z_f))
     p1 = _gt(z_p, 1.0)
-    trig = np.stack([held(_gt(z_hq, s.strong), hs) | (h_sus & (ph | fh)),
-                     p1 & (hh | fh),
-                     held(_gt(z_f, s.strong), s.field_hold_s) | (f_sus & (hh | ph))], axis=1)
+    zv = np.where(armed, np.asarray(z_vector, dtype=float), np.nan) if s.use_vector else np.full(n, np.nan)
+    vec = _gt(zv, s.vector_alone) | (_gt(zv, 1.0) & (hh | ph))
+    gate = ~np.isfinite(zv) | (np.nan_to_num(zv) >= s.vector_gate)
+    trig = np.stack([gate & (held(_gt(z_hq, s.strong), hs) | (h_sus & (ph | fh))),
+                     gate & p1 & (hh | fh),
+                     (gate & (held(_gt(z_f, s.strong), s.field_hold_s) | (f_sus & (hh | ph)))) | vec], axis=1)
     any_trig = trig.any(axis=1)
     combined = _since_last(t, any_trig) <= s.release_s
     return DetectionResult(t, z_h, z_p, z_f, _gt(z_h, 1.0), p1, f_sus, combined, trig, float(sig_e),
-                           float(mean_e), learned, zs, zi)
+                           float(mean_e), learned, zs, zi, zv)
 
 
 # ----------------------------------------------------------------------------- per sample
@@ -313,6 +331,7 @@ class DetectorStep:
     z_field: float
     combined: bool
     evidence: list[str] = field(default_factory=list)
+    z_vector: float = float("nan")
 
 
 class InterferenceDetector:
@@ -350,7 +369,7 @@ class InterferenceDetector:
 
     def update(self, t_s: float, heading_diff_rad: float, cross_track: float, path_trusted: bool,
                strength_mG: float, inclination_deg: float, heading_rad: float = np.nan,
-               yaw_rate_rad_s: float = 0.0) -> DetectorStep:
+               yaw_rate_rad_s: float = 0.0, z_vector: float = np.nan) -> DetectorStep:
         s = self.s
         t = float(t_s)
         if self._t_prev is not None and t - self._t_prev > s.segment_gap_s:
@@ -413,8 +432,11 @@ class InterferenceDetector:
         h_sus, f_sus = held("h", hs), held("f", s.field_hold_s)
         hh, ph, fh = held("hh", cs), held("ph", cs), held("fh", cs)
         p1 = ge(z_p, 1.0)
-        trig = [held("hs", hs) or (h_sus and (ph or fh)), p1 and (hh or fh),
-                held("fs", s.field_hold_s) or (f_sus and (hh or ph))]
+        z_v = float(z_vector) if (armed and s.use_vector) else float("nan")
+        vec = ge(z_v, s.vector_alone) or (ge(z_v, 1.0) and (hh or ph))
+        gate = not np.isfinite(z_v) or z_v >= s.vector_gate
+        trig = [gate and (held("hs", hs) or (h_sus and (ph or fh))), gate and p1 and (hh or fh),
+                (gate and (held("fs", s.field_hold_s) or (f_sus and (hh or ph)))) or vec]
         if any(trig):
             self._last_trigger = t
             self.alarm_kinds = [EVIDENCE[j] for j in range(3) if trig[j]]
@@ -426,7 +448,7 @@ class InterferenceDetector:
             self.alarm_kinds = []
         self.alarm_active = bool(combined)
         return DetectorStep(t, float(z_h), float(z_p), float(z_f), bool(combined),
-                            [EVIDENCE[j] for j in range(3) if trig[j]])
+                            [EVIDENCE[j] for j in range(3) if trig[j]], z_v)
 
 
 # ----------------------------------------------------------------------------- reporting

@@ -154,3 +154,13 @@ def earth_frame_errors_rad(q_est, q_ref) -> tuple[np.ndarray, np.ndarray]:
         heading = 2.0 * np.arctan(np.abs(e[..., 3] / e[..., 0]))
         incl = 2.0 * np.arccos(np.clip(np.sqrt(e[..., 0] ** 2 + e[..., 3] ** 2), 0.0, 1.0))
     return heading, incl
+
+
+def dcm_body_to_ned_float(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, ...]:
+    """``dcm_body_to_ned`` for one attitude in plain floats (the per-sample paths): the nine
+    elements of C_b^n row by row (c11, c12, c13, c21, ..., c33)."""
+    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    return (cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy,
+            cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy,
+            -sp, sr * cp, cr * cp)

@@ -165,7 +165,22 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         _write_json(args.json, report)
     if args.csv:
         write_csv(args.csv, columns)
+    if args.plot:
+        _plot(args.plot, log, calibration, mission, report)
     return 0
+
+
+def _plot(path: str, log, calibration, mission, report: dict) -> None:
+    from groundstation.jobs.analyze import analyze_flight
+    from groundstation.jobs.flight_plot import PlotUnavailable, plot_flight
+    try:
+        plot_flight(analyze_flight(log, calibration, mission), [a for a in report["alarms"] if a["kind"] == "combined"],
+                    path, title=str(report.get("file") or ""))
+    except PlotUnavailable as e:
+        raise CliError(str(e)) from None
+    except OSError as e:
+        raise CliError(f"cannot write {path}: {e.strerror or e}") from None
+    print(f"wrote {path}")
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -269,6 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mission", metavar="FILE", help=".waypoints, .plan or a log with a mission")
     p.add_argument("--json", metavar="OUT")
     p.add_argument("--csv", metavar="OUT")
+    p.add_argument("--plot", metavar="FILE.png", help="heading difference, field residual, current and alarms")
     p.set_defaults(func=cmd_analyze)
 
     p = sub.add_parser("simulate", help="write a simulated flight as a .tlog (+ truth JSON), or a fleet")

@@ -1,8 +1,8 @@
-"""Smoke runs of the heading, AHRS, ingest and live benchmarks (the full runs live in benchmarks/).
+"""Smoke runs of the heading, AHRS, ingest, live and detection benchmarks (the full runs live in benchmarks/).
 
 Accuracy targets are asserted; speed and latency figures depend on machine load, so these tests
 only check that the benchmark ran and measured something sane.  (The calibration and detection
-benchmarks have their smoke runs in test_calibration.py and test_detection.py.)
+benchmark has its smoke run in test_calibration.py.)
 """
 import re
 import subprocess
@@ -68,3 +68,18 @@ def test_live_benchmark_quick():
     assert row, out
     packets, p50_ms, p99_ms = int(row.group(1)), float(row.group(2)), float(row.group(3))
     assert packets > 100 and 0.0 < p50_ms <= p99_ms
+
+
+def test_detection_benchmark_quick(tmp_path):
+    """benchmarks/detection.py --quick: one seed's fast ramp and one clean motor-current flight,
+    every variant on the same flights; the default meets the fast-ramp target with no false alarm,
+    and the latency-vs-false-alarm chart is written."""
+    png = tmp_path / "det.png"
+    out = _run("benchmarks/detection.py", "--quick", "--png", str(png))
+    assert "+ field vector alone, gating the others (default): all targets met" in out, out
+    rows = re.findall(r"^  fast\s+([\d.]+)\s+([\d.]+)\s+0 ", out, re.M)
+    assert len(rows) == 4 and all(float(med) <= 1.5 for med, _ in rows), out
+    assert len(re.findall(r"clean motor-current 0 / 1 flights", out)) >= 2, out
+    ends = re.findall(r"^  fast .* end\s+([\d.-]+)\s+([\d.-]+)\s+0 ", out, re.M)
+    assert len(ends) == 4 and float(ends[-1][1]) <= 5.0, out     # the default's alarm ends with the disturbance
+    assert png.exists() and png.stat().st_size > 1000

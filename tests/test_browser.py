@@ -267,7 +267,7 @@ def test_plots_wrap_headings_and_keep_signs(shared_station, new_page, artifacts)
 def test_controls_and_housekeeping(shared_station, new_page, tmp_path):
     """Defect 10: replay controls hidden on a live link; a failed connect leaves the replay
     running and shows one line; no session file without packets; a .ulg replay downloads the
-    .ulg; alarm evidence in words; the demo's 5 s gap between parts is no GPS outage."""
+    .ulg; alarm evidence and explanation in words; the demo's 5 s gap between parts is no GPS outage."""
     st = shared_station
     page = new_page()
     replay(st, "demo.tlog", speed=4.0, paused=False)
@@ -285,6 +285,8 @@ def test_controls_and_housekeeping(shared_station, new_page, tmp_path):
     text = page.locator("body").inner_text()
     assert "heading_difference" not in text and "path_deviation" not in text and "field_anomaly" not in text
     assert "compass heading departs" in page.locator("#alarms").inner_text()
+    # the alarm's explanation in words: its likely kind, the disturbance vector and the tests
+    assert re.search(r"likely rising with time; disturbance \d+ mG \(body x", page.locator("#alarms").inner_text())
     assert "GPS fix lost" not in page.locator("#events").inner_text()
     assert page.locator("#timeline .marker.gap").count() >= 1
     api(st, "POST", "/api/source/stop")

@@ -195,3 +195,22 @@ def test_scene_decimates_50k_points_and_orients_vehicle(recordings_dir):
         np.testing.assert_allclose(np.linalg.norm(corrected, axis=1), 1.0, atol=2e-3)   # float16
     finally:
         scene.close()
+
+
+def test_alarm_list_carries_the_explanation(client, recordings_dir):
+    """GET /api/alarms on the demo after its interference episode: the alarm's explanation (the
+    disturbance vector in the body frame, growth, tests, likely kind) in numbers and in words."""
+    import shutil
+    from pathlib import Path
+    shutil.copy(Path(__file__).resolve().parent.parent / "recordings" / "demo.tlog", recordings_dir / "demo.tlog")
+    assert client.post("/api/replay/start", json={"recording": "demo.tlog", "speed": 1}).status_code == 200
+    deadline = time.monotonic() + 60
+    while client.get("/api/state").json()["analysing"] and time.monotonic() < deadline:
+        time.sleep(0.1)
+    client.post("/api/replay/pause", json={"paused": True})
+    client.post("/api/replay/seek", json={"t_s": 230.0})
+    [alarm] = client.get("/api/alarms").json()
+    e = alarm["explanation"]
+    assert alarm["end_s"] is not None and e["kind"] == "rising with time" and len(e["disturbance_mG"]) == 3
+    assert e["disturbance_size_mG"] > 150.0 and "field_vector" in e["tests"]
+    assert alarm["explanation_text"].startswith("likely rising with time; disturbance ")

@@ -8,6 +8,7 @@ ATTITUDE stamped seconds behind RAW_IMU).
 """
 from __future__ import annotations
 
+import json
 import time
 from collections import Counter
 from pathlib import Path
@@ -63,6 +64,13 @@ def _live(path: Path, tmp_path: Path, calibration: dict | None, line: dict | Non
     return session.alarm_list(), session.flight.rows().copy()
 
 
+def _demo_interference_s() -> tuple[float, float]:
+    """(onset, end) of the demo's simulated disturbance on the log's time axis [s]."""
+    mission = json.loads(DEMO.with_suffix(".truth.json").read_text())["parts"][1]
+    return (mission["log_offset_s"] + mission["interference"]["onset_s"],
+            mission["log_offset_s"] + mission["interference"]["end_s"])
+
+
 def _same_alarms(a: list[dict], b: list[dict], tol_s: float = 0.5) -> None:
     assert len(a) == len(b), (a, b)
     for x, y in zip(a, b):
@@ -84,16 +92,29 @@ def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
     _same_alarms(live, analyzed)
     # row by row, the live record is the batch record (the declination of the true headings is
     # the WMM at the first fix live and at the median position in batch: compare the rest)
-    batch_rows = analyze_flight(read_log(path), calibration, [tuple(line["a"]), tuple(line["b"])] if line else None).rows
+    batch = analyze_flight(read_log(path), calibration, [tuple(line["a"]), tuple(line["b"])] if line else None)
+    batch_rows = batch.rows
+    if path == DEMO:      # the field-vector test ran (its score is in "score", compared below)
+        assert (batch.x["vector"].status == 0).mean() > 0.5
     assert live_rows.shape == batch_rows.shape
     decisions = ("t_s", "cross_track_m", "heading_on", "field_on", "steep", "alarm", "ev_heading", "ev_path",
                  "ev_field")
     estimates = ("roll_deg", "pitch_deg", "field_mG", "inclination_deg", "score")
     for name in decisions + estimates:
         np.testing.assert_allclose(live_rows[:, COL[name]], batch_rows[:, COL[name]], atol=1e-6, err_msg=name)
-    if path == DEMO:      # the interference episode of the demo (onset 150 s) and nothing before it
-        assert len(analyzed) == 1 and 145 < analyzed[0]["start_s"] < 160
+    if path == DEMO:      # the interference episode of the demo and nothing before it; it ends with it
+        onset_s, end_s = _demo_interference_s()
+        assert len(analyzed) == 1 and onset_s < analyzed[0]["start_s"] < onset_s + 5.0
+        assert end_s < analyzed[0]["end_s"] < end_s + 5.0, (analyzed[0], end_s)
         assert calibration is not None and line is not None
+        # the explanation reaches the station: replayed and live alarms carry analyze's
+        e = analyzed[0]["explanation"]
+        assert e["kind"] == "rising with time" and e["disturbance_size_mG"] > 150.0
+        assert "field_vector" in e["tests"] and analyzed[0]["explanation_text"].startswith("likely rising with time")
+        for shown in (replayed[0], live[0]):
+            assert shown["explanation"]["kind"] == e["kind"] and shown["explanation"]["tests"] == e["tests"]
+            np.testing.assert_allclose(shown["explanation"]["disturbance_mG"], e["disturbance_mG"], atol=0.1)
+            assert shown["explanation_text"] == analyzed[0]["explanation_text"]
     else:                 # a normal flight: analyze says no interference, and so do the page and the link
         assert analyzed == [] and report["heading_test"].startswith("off: IMU rate")
 

@@ -169,7 +169,7 @@ async function refreshAlarms() {
     const list = await api("GET", "/api/alarms");
     $("alarms").innerHTML = "<tr><th>start</th><th>end</th><th>evidence</th></tr>" + list.map((a) =>
       `<tr data-t="${a.start_s}"><td>${fmt(a.start_s, 1)} s</td><td>${a.end_s === null ? "active" : fmt(a.end_s, 1) + " s"}</td>` +
-      `<td>${escapeHtml(a.evidence_text)}</td></tr>`).join("");
+      `<td>${escapeHtml(a.evidence_text)}${a.explanation_text ? "<br><small>" + escapeHtml(a.explanation_text) + "</small>" : ""}</td></tr>`).join("");
   } catch (e) { /* next time */ }
 }
 

@@ -24,19 +24,22 @@ from estimators.detection import DetectionResult, DetectionSettings, alarm_inter
 from estimators.heading import split_velocity
 from estimators.ins_gps import MODE_NAMES
 
+from groundstation.jobs.alarm_explain import STEP_KEYS, explain_span, explanation_text
 from groundstation.jobs.compass_report import compass_summaries
+from groundstation.jobs.flight_plot import vector_test_status
 from groundstation.jobs.inputs import detection_inputs, heading_deg, rounded
 from groundstation.jobs.motor_heading import best_heading_chain
 from groundstation.jobs.navigation import ins_runs
 from groundstation.jobs.record import COL, AlarmTracker, record_rows
 from groundstation.samples import FlightLog
 
-__all__ = ["analyze_log", "analyze_flight", "FlightAnalysis", "detector_score"]
+__all__ = ["analyze_log", "analyze_flight", "FlightAnalysis", "detector_score", "explanation_text"]
 
 
-def detector_score(z_heading, z_path, z_field) -> np.ndarray:
+def detector_score(z_heading, z_path, z_field, z_vector=np.nan) -> np.ndarray:
     """The largest test score of each step (NaN where no test has one)."""
-    return np.fmax(np.fmax(np.asarray(z_heading, float), np.asarray(z_path, float)), np.asarray(z_field, float))
+    best = np.fmax(np.fmax(np.asarray(z_heading, float), np.asarray(z_path, float)), np.asarray(z_field, float))
+    return np.fmax(best, np.asarray(z_vector, float))
 
 
 @dataclass
@@ -53,7 +56,34 @@ class FlightAnalysis:
         r = self.rows
         tracker.update(r[:, COL["t_s"]], r[:, COL["alarm"]] > 0.5,
                        r[:, [COL["ev_heading"], COL["ev_path"], COL["ev_field"]]] > 0.5, r[:, COL["score"]])
+        for alarm in tracker.alarms:
+            alarm["explanation"] = self.explain(alarm["start_s"], alarm["end_s"])
+            alarm["explanation_text"] = explanation_text(alarm["explanation"], self.x.get("motor_signal", "none"))
         return tracker.alarms
+
+    def explain(self, start_s: float, end_s: float | None) -> dict | None:
+        """The disturbance, growth, tests and likely kind of the alarm (``jobs.alarm_explain``)."""
+        return explain_span(self.explain_steps(), start_s, end_s)
+
+    def explain_steps(self) -> dict:
+        """Per-step explanation inputs (``jobs.alarm_explain.STEP_KEYS``) of the whole log."""
+        x, det = self.x, self.det
+        r = x["vector"].residual_mG
+        return dict(zip(STEP_KEYS, (x["t"], r[:, 0], r[:, 1], r[:, 2], x["motor_held"], x["gps_held"][:, 3],
+                                    x["gps_held"][:, 4], det.z_heading, det.z_path, det.z_field, det.z_vector)))
+
+
+def motor_field_report(x: dict) -> dict | None:
+    """The motor field per unit of the motor signal as learned in flight: its last value and its
+    trend (the value at each quarter of the flight)."""
+    if x.get("motor_signal", "none") == "none":
+        return None
+    f = x["vector"].motor_mG_per_unit
+    if not (x["vector"].status == 0).any():
+        return None
+    unit = "mG/A" if x["motor_signal"] == "current_A" else "mG/%"
+    quarters = [[round(float(v), 2) for v in f[min(len(f) - 1, k * len(f) // 4)]] for k in (1, 2, 3, 4)]
+    return {"signal": x["motor_signal"], "unit": unit, "estimate": quarters[-1], "trend": quarters}
 
 
 def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: list | None = None,
@@ -63,9 +93,10 @@ def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: lis
     x = detection_inputs(log, calibration, mission, settings)
     ef = x["ef"]
     det = detect(x["t"], x["e"], x["d"], x["trusted"], x["strength"], x["incl"], x["heading"], x["yaw_rate"],
-                 ef.field_strength_mG if ef else np.nan, ef.inclination_deg if ef else np.nan, settings)
+                 ef.field_strength_mG if ef else np.nan, ef.inclination_deg if ef else np.nan, settings,
+                 z_vector=x["z_vector"])
     rows = record_rows(x["t"], x["chain"], x, ef.declination_deg if ef else 0.0, det.combined, det.trigger,
-                       detector_score(det.z_heading, det.z_path, det.z_field))
+                       detector_score(det.z_heading, det.z_path, det.z_field, det.z_vector))
     return FlightAnalysis(x, det, rows, settings)
 
 
@@ -121,6 +152,8 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "path_test": path_test,
         "heading_test": x["heading_test"],
         "field_test": x["field_test"],
+        "field_vector_test": vector_test_status(x["vector"].status),
+        "motor_field_learned": motor_field_report(x),
         "imu_rate_hz": rounded(x["imu_rate_hz"], 1),
         "max_cross_track_m": rounded(np.nanmax(d_gps)) if len(d_gps) and np.isfinite(d_gps).any() else None,
         "compasses": compasses,

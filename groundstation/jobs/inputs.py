@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimators.detection import DetectionSettings, cross_track_m, field_inclination_deg, ned_from_lla
+from estimators.field_consistency import field_consistency
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.ahrs import AhrsSettings
 from estimators.heading import HeadingChainSettings, run_heading_chain
@@ -36,7 +37,9 @@ from groundstation.samples import CompassTable, FlightLog, finite_or_none
 __all__ = ["detection_inputs", "calibration_arrays", "check_calibration", "primary_raw", "mission_legs",
            "cross_track_legs", "hold_last", "Held", "field_reference", "field_policy", "FieldPolicy", "gps_rows",
            "GPS_COLUMNS", "imu_rate_hz", "step_inputs", "StepState", "too_steep", "rotation_rate", "rounded",
-           "heading_deg", "GPS_TIMEOUT_S", "ATTITUDE_TIMEOUT_S", "RATE_WINDOW"]
+           "heading_deg", "GPS_TIMEOUT_S", "ATTITUDE_TIMEOUT_S", "RATE_WINDOW", "vector_test_inputs", "earth_prior_mG",
+           "motor_signal_table", "MOTOR_TIMEOUT_S"]
+MOTOR_TIMEOUT_S = 1.0        # a current (or throttle) value older than this is not used
 
 GPS_TIMEOUT_S = 1.0          # a GPS or magnetometer value older than this is not used
 ATTITUDE_TIMEOUT_S = 0.5     # the autopilot's roll/pitch, for the field inclination and the steep gate
@@ -55,8 +58,12 @@ def heading_deg(heading_rad) -> np.ndarray:
 # 5-sigma heading-difference thresholds were set with, a heading that follows the magnetometer
 # within ~5 s, so a heading-dependent deviation (motor field, calibration residue) that changes
 # in a turn settles in the turn's settling time.  The best attitude (analyze's CSV) is the
-# default AHRS, which follows the magnetometer 3x slower (estimators.ahrs.AhrsSettings).
-DETECTOR_CHAIN = HeadingChainSettings(ahrs=AhrsSettings(field_gain_per_s=0.2, mag_recovery_s=5.0, block_s=0.05))
+# default AHRS, which follows the magnetometer 3x slower (estimators.ahrs.AhrsSettings).  Its
+# heading-axis gyro bias learns in 300 s as before: the field-vector test propagates its heading
+# with this bias through an alarm, and a 60 s bias follows a disturbance of a minute enough to
+# leave the heading degrees off when it ends (alarms on to the end of the flight).
+DETECTOR_CHAIN = HeadingChainSettings(ahrs=AhrsSettings(field_gain_per_s=0.2, mag_recovery_s=5.0, block_s=0.05,
+                                                      bias_heading_time_s=300.0))
 MAX_OFFSET_MG = 1e5          # 100 G: far beyond any magnetometer's range
 MAX_MATRIX_CONDITION = 1e3   # a fitted soft-iron matrix is near a rotation times ~1 (ratio <= 2.5)
 MATRIX_SCALE_RANGE = (1e-2, 1e2)
@@ -364,6 +371,53 @@ def step_inputs(t, chain, mag_held, att_rp, gps_held, rate_hz, gyro, policy: Fie
                 rate_hz=np.asarray(rate_hz, dtype=float))
 
 
+# ----------------------------------------------------------------------------- the field-vector test
+def earth_prior_mG(ef) -> tuple[float, float, float] | None:
+    """The WMM field in the magnetic navigation frame (H, 0, Z) [mG], the field test's prior,
+    rounded to 1 mG (far below its uncertainty; the live twin's WMM date and position may differ a
+    little from the log's)."""
+    if ef is None:
+        return None
+    incl = np.radians(ef.inclination_deg)
+    return (round(float(ef.field_strength_mG * np.cos(incl))), 0.0, round(float(ef.field_strength_mG * np.sin(incl))))
+
+
+def first_fix_prior(log: FlightLog) -> tuple[tuple[float, float, float] | None, float]:
+    """(prior, time) from the WMM at the first GPS fix, the live twin's rule (LiveAnalyzer._start)."""
+    g = np.asarray(log.gps, dtype=float).reshape(-1, 8)
+    ok = np.flatnonzero(np.isfinite(g[:, 1]) & np.isfinite(g[:, 2]) & np.isfinite(g[:, 3]))
+    if not len(ok):
+        return None, np.inf
+    row = g[ok[0]]
+    start = log.start_unix_s if log.start_unix_s else time.time() - row[0]
+    try:
+        return earth_prior_mG(earth_field(row[1], row[2], row[3], decimal_year_from_unix(start + row[0]))), float(row[0])
+    except ValueError:
+        return None, np.inf
+
+
+def motor_signal_table(log: FlightLog) -> tuple[np.ndarray, str]:
+    """[t, signal] of the motor field's signal: battery current [A] when the log has one that
+    varies, else throttle in %, else empty; and its name."""
+    bat = np.asarray(log.battery, dtype=float).reshape(-1, 2)
+    if len(bat) and np.nanmax(bat[:, 1]) - np.nanmin(bat[:, 1]) > 0.5:
+        return bat, "current_A"
+    thr = np.asarray(getattr(log, "throttle", np.zeros((0, 2))), dtype=float).reshape(-1, 2)
+    if len(thr):
+        return np.c_[thr[:, 0], 100.0 * thr[:, 1]], "throttle_pct"
+    return np.zeros((0, 2)), "none"
+
+
+def vector_test_inputs(chain, att_rp: np.ndarray, gyro: np.ndarray, steep: np.ndarray):
+    """(roll, pitch, attitude_ok, gyro bias-corrected) for the field-vector test: the autopilot's
+    roll and pitch when fresh (GPS-aided, it does not tilt in a long acceleration), else the
+    chain's; the chain's gyro bias removed."""
+    roll = np.where(np.isfinite(att_rp[:, 0]), att_rp[:, 0], chain.roll_rad)
+    pitch = np.where(np.isfinite(att_rp[:, 1]), att_rp[:, 1], chain.pitch_rad)
+    ok = np.asarray(chain.valid, dtype=bool) & ~np.asarray(steep, dtype=bool)
+    return roll, pitch, ok, np.asarray(gyro, dtype=float) - np.asarray(chain.gyro_bias_rad_s, dtype=float)
+
+
 def _tests(log_imu_rate: float, n: int, settings: DetectionSettings, legs, g, rtk: bool,
            policy: FieldPolicy) -> tuple[str, str]:
     """(heading_test, path_test) lines of the report."""
@@ -416,6 +470,12 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
     rate = imu_rate_hz(t)
     x = step_inputs(t, chain, hold_last(mag_cal[:, 0], mag_cal[:, 1:4], t, GPS_TIMEOUT_S), att_held[:, :2],
                     gps_held, rate, imu[:, 1:4], policy, settings, StepState())
+    motor, motor_name = motor_signal_table(log)
+    motor_held = hold_last(motor[:, 0], motor[:, 1], t, MOTOR_TIMEOUT_S)
+    roll_v, pitch_v, ok_v, gyro_v = vector_test_inputs(chain, att_held[:, :2], imu[:, 1:4], x["steep"])
+    vector = field_consistency(t, hold_last(mag_cal[:, 0], mag_cal[:, 1:4], t, GPS_TIMEOUT_S), roll_v, pitch_v,
+                               ok_v, gyro_v, motor_held, rate, policy.field_on, settings.vector,
+                               *first_fix_prior(log))
     med_dt = float(np.median(np.diff(t))) if n > 10 else 0.0
     log_rate = 1.0 / med_dt if med_dt > 0 else 0.0
     rtk = bool(len(g) and np.mean(g[:, 7] >= settings.rtk_min_fix) > 0.5)
@@ -423,4 +483,5 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
     return dict(x, t=t, ef=ef, pos=pos, chain=chain, valid=chain.valid, g=g, gps=gps, gps_held=gps_held,
                 att_held=att_held, d_gps=gps[:, 0] if legs else np.zeros(0), legs=legs, rtk=rtk, policy=policy,
                 path_test=path_test, heading_test=heading_test, field_test=policy.field_test,
-                imu_rate_hz=log_rate, mag_cal=mag_cal, cal=policy.cal)
+                imu_rate_hz=log_rate, mag_cal=mag_cal, cal=policy.cal, vector=vector, z_vector=vector.z,
+                motor_held=motor_held, motor_signal=motor_name)

@@ -23,17 +23,18 @@ from types import SimpleNamespace
 import numpy as np
 
 from estimators.detection import DetectionSettings, InterferenceDetector
+from estimators.field_consistency import FieldConsistency
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import HeadingChain
 
-from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, DETECTOR_CHAIN, GPS_COLUMNS, GPS_TIMEOUT_S, RATE_WINDOW,
-                                       FieldPolicy,
-                                       Held, StepState, field_policy, gps_rows, imu_rate_hz, mission_legs,
-                                       step_inputs)
+from groundstation.jobs.alarm_explain import SCORE_NAMES, ExplainHistory
+from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, DETECTOR_CHAIN, GPS_COLUMNS, GPS_TIMEOUT_S, MOTOR_TIMEOUT_S,
+                                       RATE_WINDOW, FieldPolicy, Held, StepState, earth_prior_mG, field_policy,
+                                       gps_rows, imu_rate_hz, mission_legs, step_inputs, vector_test_inputs)
 from groundstation.jobs.navigation import OUTAGE_MIN_S
 from groundstation.jobs.record import EVIDENCE, RECORD_COLUMNS, record_rows
-from groundstation.samples import (AttitudeSample, GpsSample, ImuSample, MagSample, ParamSample, Sample,
-                                   StatusSample)
+from groundstation.samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, MagSample, ParamSample,
+                                   Sample, StatusSample, ThrottleSample)
 
 __all__ = ["LiveAnalyzer", "GpsOutageWatch", "ReorderBuffer", "MAX_REORDER_S"]
 
@@ -69,6 +70,11 @@ class LiveAnalyzer:
         self._mag = Held(3, GPS_TIMEOUT_S)
         self._att = Held(3, ATTITUDE_TIMEOUT_S)
         self._gps = Held(len(GPS_COLUMNS), GPS_TIMEOUT_S)
+        self._current = Held(1, MOTOR_TIMEOUT_S)
+        self._throttle = Held(1, MOTOR_TIMEOUT_S)
+        self._current_range = [np.inf, -np.inf]
+        self.vector: FieldConsistency | None = None      # made at the first GPS fix (WMM prior) or IMU step
+        self.explain_history = ExplainHistory()          # per-step inputs of the alarm explanations
         self._imu_t: deque = deque(maxlen=RATE_WINDOW + 1)
         self._steps = StepState()
         self.last_row: np.ndarray | None = None
@@ -97,7 +103,10 @@ class LiveAnalyzer:
         new.legs = self.legs
         new.params, new.autopilot, new._primary = dict(self.params), self.autopilot, dict(self._primary)
         new.earth_field = self.earth_field
+        if self.earth_field is not None:
+            new.vector = FieldConsistency(self.settings.vector, earth_prior_mG(self.earth_field))
         new.chain.declination_deg = self.chain.declination_deg
+        new.explain_history = self.explain_history        # the alarms so far stay explained
         return new
 
     def set_mission(self, mission: list | None) -> None:
@@ -122,6 +131,9 @@ class LiveAnalyzer:
             return
         self.chain.declination_deg = ef.declination_deg
         self.earth_field = ef
+        if self.vector is None:
+            self.vector = FieldConsistency(self.settings.vector, None)
+        self.vector.set_prior(earth_prior_mG(ef))
 
     # ------------------------------------------------------------------ samples
     def on_sample(self, s: Sample) -> np.ndarray | None:
@@ -158,6 +170,12 @@ class LiveAnalyzer:
             self._gps.update(s.t_s, gps_rows(row, self.legs, self.settings)[0])
         elif isinstance(s, AttitudeSample):
             self._att.update(s.t_s, (s.roll_rad, s.pitch_rad, s.yaw_rad))
+        elif isinstance(s, BatterySample):
+            self._current.update(s.t_s, (s.current_A,))
+            if np.isfinite(s.current_A):
+                self._current_range = [min(self._current_range[0], s.current_A), max(self._current_range[1], s.current_A)]
+        elif isinstance(s, ThrottleSample):
+            self._throttle.update(s.t_s, (100.0 * s.throttle,))
         elif isinstance(s, ParamSample):
             self.params[s.name] = s.value
             self._policy = None
@@ -171,7 +189,15 @@ class LiveAnalyzer:
         st = self.chain.update_imu(s.t_s, gyro, np.asarray(s.accel_mps2, dtype=float))
         t = st.t_s
         return (t, st.roll_rad, st.pitch_rad, st.yaw_rad, st.mag_heading_rad, st.heading_true_rad, bool(st.valid),
-                gyro, self._mag.at(t)[0], self._att.at(t)[0], self._gps.at(t)[0], self.chain.declination_deg)
+                gyro, self._mag.at(t)[0], self._att.at(t)[0], self._gps.at(t)[0], self.chain.declination_deg,
+                np.asarray(st.gyro_bias_rad_s, dtype=float), self._motor_at(t))
+
+    def _motor_at(self, t: float) -> float:
+        """The motor signal (``motor_signal_table``'s rule on what has arrived: a current that
+        varies, else throttle %)."""
+        if self._current_range[1] - self._current_range[0] > 0.5:
+            return float(self._current.at(t)[0, 0])
+        return float(self._throttle.at(t)[0, 0])
 
     def _detect(self, steps: list[tuple]) -> np.ndarray:
         cols = list(zip(*steps))
@@ -184,24 +210,53 @@ class LiveAnalyzer:
         rate = imu_rate_hz(np.concatenate([history, t]), start=len(history))
         self._imu_t.extend(t.tolist())
         x = step_inputs(t, chain, mag, att[:, :2], gps, rate, gyro, self.policy, self.settings, self._steps)
+        chain.gyro_bias_rad_s = np.vstack(cols[12])
+        motor = np.asarray(cols[13], dtype=float)
+        z_vector, residual = self._vector_steps(t, chain, mag, att, gyro, motor, rate, x)
         k = len(t)
+        zs = np.full((k, 4), np.nan)
         combined = np.zeros(k, bool)
         trigger = np.zeros((k, 3), bool)
         score = np.full(k, np.nan)
         args = zip(t.tolist(), x["e"].tolist(), x["d"].tolist(), x["trusted"].tolist(), x["strength"].tolist(),
-                   x["incl"].tolist(), x["heading"].tolist(), x["yaw_rate"].tolist())
+                   x["incl"].tolist(), x["heading"].tolist(), x["yaw_rate"].tolist(), z_vector.tolist())
         for i, a in enumerate(args):
             step = self.detector.update(*a)
             combined[i] = step.combined
             trigger[i] = [name in step.evidence for name in EVIDENCE]
-            score[i] = np.fmax(np.fmax(step.z_heading, step.z_path), step.z_field)
+            score[i] = np.fmax(np.fmax(np.fmax(step.z_heading, step.z_path), step.z_field), step.z_vector)
+            zs[i] = (step.z_heading, step.z_path, step.z_field, step.z_vector)
             self.last_step = step
+        self.explain_history.append(t_s=t, rx=residual[:, 0], ry=residual[:, 1], rz=residual[:, 2], motor=motor,
+                                   lat_deg=gps[:, 3], lon_deg=gps[:, 4],
+                                   **{name: zs[:, j] for j, name in enumerate(SCORE_NAMES)})
         self.alarm_active = bool(combined[-1])
         self.alarm_kinds = list(self.detector.alarm_kinds) if self.alarm_active else []
         rows = record_rows(t, chain, dict(x, gps_held=gps, att_held=att), np.asarray(cols[11], dtype=float),
                            combined, trigger, score)
         self.last_row = rows[-1]
         return rows
+
+
+    def _vector_steps(self, t, chain, mag, att, gyro, motor, rate, x) -> tuple[np.ndarray, np.ndarray]:
+        """The field-vector test on these steps (``field_consistency``'s per-sample form): its
+        score and residual [mG, body] per step."""
+        if self.vector is None:
+            self.vector = FieldConsistency(self.settings.vector, None)
+        roll, pitch, ok, gyro_c = vector_test_inputs(chain, att[:, :2], gyro, x["steep"])
+        field_on = self.policy.field_on
+        z = np.full(len(t), np.nan)
+        residual = np.full((len(t), 3), np.nan)
+        for i in range(len(t)):
+            step = self.vector.update(float(t[i]), mag[i], float(roll[i]), float(pitch[i]), bool(ok[i]), gyro_c[i],
+                                      float(motor[i]), float(rate[i]), field_on)
+            z[i], residual[i] = step.z, step.residual_mG
+        return z, residual
+
+    @property
+    def motor_signal(self) -> str:
+        """The motor field's signal so far (``motor_signal_table``'s names)."""
+        return "current_A" if self._current_range[1] - self._current_range[0] > 0.5 else "throttle_pct"
 
 
 class GpsOutageWatch:

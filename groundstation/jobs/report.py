@@ -68,6 +68,8 @@ def format_report(report: dict) -> str:
     for a in comb:
         lines.append(f"  ALARM {a['start_s']}–{a['end_s'] if a['end_s'] is not None else 'end'} s, "
                      f"evidence: {', '.join(a.get('evidence', []))}, peak score {a['peak']}")
+        if a.get("explanation_text"):
+            lines.append(f"    {a['explanation_text']}")
     if others:
         lines.append("single-test alarms: " + ", ".join(
             f"{a['kind']}@{a['start_s']}s" for a in others[:12]) + (" ..." if len(others) > 12 else ""))

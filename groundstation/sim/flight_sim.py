@@ -153,6 +153,8 @@ class SimConfig:
     accel_noise_mps2: float = 0.15
     rtk: bool = True
     gps_outage: tuple[float, float] | None = None
+    payload_current_A: float = 0.0        # a payload switched on and off: extra current (square wave) ...
+    payload_period_s: float = 20.0        # ... with this period, from the end of the hover
     # mission
     leg_bearing_deg: float = 30.0
     leg_length_m: float = 400.0
@@ -380,6 +382,18 @@ def _run_static(cfg: SimConfig, rng) -> SimResult:
                      np.full(n, np.nan), None, events)
 
 
+def _add_payload_current(cfg: SimConfig, t: np.ndarray, current_A: np.ndarray, mag_raw_mG: np.ndarray) -> None:
+    """A payload's current (on for half of each ``payload_period_s`` after the hover) joins the
+    motor current in the same wires: its field, c·ΔI in the body frame, goes through the sensor
+    model A like the motor field (in place).  The autopilot's heading filter does not see it."""
+    if cfg.payload_current_A == 0.0:
+        return
+    on = (t >= cfg.hover_s) & (np.mod(t - cfg.hover_s, cfg.payload_period_s) < 0.5 * cfg.payload_period_s)
+    extra = np.where(on, cfg.payload_current_A, 0.0)
+    current_A += extra
+    mag_raw_mG += (extra[:, None] * np.asarray(cfg.mag.motor_mG_per_A)[None, :]) @ cfg.mag.matrix.T
+
+
 def _mission_profile(cfg: SimConfig):
     """Legs A->B->A->... at cfg.speed until the duration; returns a function t -> (s_target, v_ff, leg)."""
     v, amax = cfg.speed_mps, 1.0
@@ -451,6 +465,7 @@ def _run_mission(cfg: SimConfig, rng) -> SimResult:
               "u": (float(u[0]), float(u[1]))}
     loop = MissionLoop(cfg, inputs, n).run()
     out, out_att = loop.out, loop.out_att
+    _add_payload_current(cfg, t, loop.current, out["mag"])
     pos, vel = out["pos"], out["vel"]
     d = np.abs(pos[:, 0] * u[1] - pos[:, 1] * u[0])          # distance from the line through A = origin
     gpos = pos[gps_idx] + gerr

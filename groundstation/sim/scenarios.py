@@ -29,7 +29,7 @@ from groundstation.paths import RECORDINGS_DIR
 __all__ = ["SCENARIOS", "Simulation", "simulate", "make_recordings", "truth_path"]
 
 SCENARIOS = ("calibration", "static-headings", "mission-clean", "mission-slow", "mission-fast",
-             "mission-step", "mission-bump", "gps-outage", "demo")
+             "mission-step", "mission-bump", "mission-motor", "gps-outage", "demo")
 
 ORIGIN = (30.26, 120.12, 20.0)              # near Hangzhou: lat, lon, ground alt AMSL [m]
 START_UNIX_S = float(calendar.timegm((2026, 6, 15, 2, 0, 0)))   # 2026-06-15 02:00 UTC
@@ -106,6 +106,8 @@ def _config(scenario: str, seed: int, overrides: dict) -> fs.SimConfig:
         elif scenario == "mission-bump":      # seed 002 sec. 4: slowly rising then falling, horizontal
             base.update(duration_s=200.0, interference=fs.Interference(
                 "bump", onset, axis=(0.7071, 0.7071, 0.0), amplitude_mG=250.0, duration_s=60.0))
+        elif scenario == "mission-motor":     # clean, with a payload switching 10 A every 10 s
+            base.update(payload_current_A=10.0, payload_period_s=20.0)
         elif scenario == "gps-outage":
             base.update(gps_outage=(100.0, 180.0), gyro_bias_rad_s=np.radians([0.5, 0.5, 0.5]))
         elif scenario != "mission-clean":
@@ -192,7 +194,9 @@ def _truth(scenario: str, cfg: fs.SimConfig, res: fs.SimResult) -> dict:
                 "calibration_matrix": np.linalg.inv(cfg.mag.matrix).tolist(),
                 "misalignment_deg": np.asarray(cfg.mag.misalignment_deg).tolist(),
                 "noise_mG": cfg.mag.noise_mG,
-                "motor_mG_per_A": np.asarray(cfg.mag.motor_mG_per_A).tolist()},
+                "motor_mG_per_A": np.asarray(cfg.mag.motor_mG_per_A).tolist(),
+                "current_range_A": [float(np.min(res.motor_current_A)), float(np.max(res.motor_current_A))],
+                "payload_current_A": cfg.payload_current_A},
         "gyro_bias_rad_s": np.asarray(cfg.gyro_bias_rad_s).tolist(),
         "rtk": bool(cfg.rtk), "fix_type": 6 if cfg.rtk else 3,
         "gps_outage_s": list(cfg.gps_outage) if cfg.gps_outage else None,

@@ -228,6 +228,18 @@ class State(BaseModel):
                                   "mode, signing counts and forwarding (as GET /api/vehicles)")
 
 
+class AlarmExplanation(BaseModel):
+    """What an alarm looks like (groundstation.jobs.alarm_explain / estimators.detection_explain)."""
+    disturbance_mG: list[float] | None = Field(None, description="estimated disturbance, body frame FRD [mG], "
+                                                                  "where it was largest")
+    disturbance_size_mG: float | None = None
+    growth_mG_s: float | None = Field(None, description="growth of its size before the alarm [mG/s]")
+    tests: list[str] = Field([], description="tests whose score reached their threshold")
+    kind: str = Field(description="moving with current | fixed in place | rising with time")
+    position: dict[str, float] | None = Field(None, description="{lat, lon} [deg] of an anomaly fixed in place")
+    current_correlation: float | None = Field(None, description="Pearson r of its size with the motor signal")
+
+
 class Alarm(BaseModel):
     kind: str
     evidence: list[str] = Field(description="every test that fired during the alarm")
@@ -237,6 +249,8 @@ class Alarm(BaseModel):
     end_s: float | None = Field(description="None while the alarm is on")
     peak: float | None
     unit: str = ""
+    explanation: AlarmExplanation | None = None
+    explanation_text: str = Field("", description="the explanation in words")
 
 
 class RecordingInfo(BaseModel):

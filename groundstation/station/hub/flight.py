@@ -18,6 +18,7 @@ from typing import Callable
 
 import numpy as np
 
+from groundstation.jobs.alarm_explain import explain_span, explanation_text
 from groundstation.jobs.live import GpsOutageWatch, LiveAnalyzer, ReorderBuffer
 from groundstation.jobs.record import COL, RECORD_COLUMNS, AlarmTracker, evidence_text
 from groundstation.samples import GpsSample, Sample
@@ -58,6 +59,7 @@ class FlightState:
         self._analysed_at = -math.inf
         self.watch = GpsOutageWatch()
         self.tracker = AlarmTracker()
+        self._explanations: dict = {}
         self.t_s = 0.0
         self.n_shown = 0                   # review: rows up to the cursor
         self.gps_shown = 0
@@ -157,6 +159,7 @@ class FlightState:
         n = int(np.searchsorted(t, t_s, side="right"))
         if seek or n < self.n_shown:
             self.tracker = AlarmTracker()
+            self._explanations = {}
             self.n_shown = 0
             self._events_done = sum(1 for e in r.events if e[0] <= t_s)
             self._track(r.rows[:n], quiet=True)
@@ -181,7 +184,8 @@ class FlightState:
             self._event("INTERFERENCE ALARM: " + (evidence_text(a["evidence_at_start"]) or "combined"), "alarm",
                         t_s=a["start_s"])
         if was_on and len(tr.alarms) == before and not tr.active:
-            self._event("alarm cleared", t_s=tr.alarms[-1]["end_s"])
+            text = self._explained(tr.alarms[-1])["explanation_text"]
+            self._event("alarm cleared" + (f" ({text})" if text else ""), t_s=tr.alarms[-1]["end_s"])
 
     def alarm_snapshot(self) -> dict:
         tr = self.tracker
@@ -191,8 +195,27 @@ class FlightState:
                 "since_s": a["start_s"] if a else None}
 
     def alarm_list(self) -> list[dict]:
-        """The alarms so far, each with its evidence in words."""
-        return [dict(a, evidence_text=evidence_text(a["evidence"])) for a in self.tracker.alarms]
+        """The alarms so far, each with its evidence and its explanation (disturbance vector, growth,
+        tests, likely kind, place: ``groundstation.jobs.alarm_explain``) in numbers and in words."""
+        return [dict(a, evidence_text=evidence_text(a["evidence"]), **self._explained(a)) for a in self.tracker.alarms]
+
+    def _explained(self, alarm: dict) -> dict:
+        """{explanation, explanation_text} of one alarm: the replay's whole-log steps up to the
+        cursor, or the live link's history; a closed alarm's is kept."""
+        key = (alarm["start_s"], alarm["end_s"])
+        if key in self._explanations:
+            return self._explanations[key]
+        r = self.review
+        if r is not None:
+            steps, signal = r.explain_steps, r.motor_signal
+            end = alarm["end_s"] if alarm["end_s"] is not None else self.t_s
+        else:
+            steps, signal, end = self.analyzer.explain_history.steps(), self.analyzer.motor_signal, alarm["end_s"]
+        e = explain_span(steps, alarm["start_s"], end) if steps is not None else None
+        out = {"explanation": e, "explanation_text": explanation_text(e, signal)}
+        if alarm["end_s"] is not None:
+            self._explanations[key] = out
+        return out
 
     # ------------------------------------------------------------------ reading
     def rows(self) -> np.ndarray:

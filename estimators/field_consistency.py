@@ -1,0 +1,429 @@
+"""Field-vector consistency test: the measured body field against the one the attitude predicts.
+
+Model (body FRD, mG), for each IMU step with a calibrated field m:
+    m = C(φ, θ, ψ_f)ᵀ h + b + f·(x − x_ref) + d + noise
+* C = C_b^n (estimators.rotations) from roll φ and pitch θ (the caller's best: the autopilot's
+  GPS-aided attitude when fresh, else our AHRS, which tilts by degrees in a sustained acceleration)
+  and a heading ψ_f that follows the gyro: ψ_f is propagated by the bias-corrected gyro's yaw rate
+  ψ̇ = (q sin φ + r cos φ) / cos θ (ZYX Euler kinematics) and pulled to the tilt-compensated
+  magnetic heading of m − b − f·Δx with the time constant ``heading_track_s`` (not at all
+  while the test suspects a disturbance).  The AHRS heading follows the magnetometer
+  (k_m ≈ 0.2/s), so it would turn with a disturbance and hide most of it; ψ_f does not.
+* h: the Earth field in the magnetic navigation frame (the AHRS heading is magnetic), WMM as the
+  prior (H, 0, Z) (without one, the first field), learned in flight; b: a body-fixed residual
+  offset (calibration error, motor field at the reference signal);
+* f: the motor field per unit of the motor signal x (current [A], or throttle in % without a
+  current sensor), on x − x_ref (x_ref: the signal low-passed with ``motor_ref_s``), as
+  ArduPilot's compassmot / PX4's mag_compensation fit it offline (estimators.motor_field).
+  f is learned from the signal's changes (estimators.motor_field_tracker.MotorFieldTracker: the change of m − Cᵀh over ``motor_lag_s``
+  against the change of x, weighted least squares, Huber-clipped at ``motor_clip_sigma`` σ), not
+  in turns, not before ``motor_learn_after_s``, not while the test suspects a disturbance, so the
+  body offset settling or a slow disturbance does not teach it a wrong field per ampere; until
+  ``motor_excitation`` of signal change is seen, the CUSUM holds while x is far from x_ref.
+  h and b are learned by (normalised) LMS on the residual (gradients C e and e), fast
+  during the first ``learn_s`` of data, then slowly.  While the vehicle flies one heading, h (a
+  heading offset) and b are not separable; b learns ``field_learn_ratio`` times faster, and the
+  first turn of more than ``turn_deg`` is learned again for ``turn_learn_s`` with equal gains: on a
+  turn round, equal-gain LMS puts exactly half of the new residual in b and half in h, which is the
+  split that removes a wrong one (the residual of a wrong split flips sign with the heading).
+* d: the disturbance.  The residual e = m − C ᵀh − b − f(x − x_ref) is low-passed (``smooth_s``),
+  r̄; its size in noise units q = |r̄| / σ (σ: RMS of |r̄| over the last quarter of the learning
+  time, then following it with ``noise_track_s`` while the test is quiet; at least
+  ``noise_floor_mG``) feeds a one-sided CUSUM (Page, Biometrika 41, 1954):
+  S ← max(0, S + Δt (q − κ)), alarm at S ≥ ``cusum_threshold_s``; score z = S / threshold (z ≥ 1:
+  the test's alarm); S is capped at ``cusum_cap`` thresholds so the score falls within about a
+  second of the residual.  A disturbance in any direction counts, long before it turns the heading
+  by 5°.  Learning (h, b, f and the pull of ψ_f) pauses while z ≥ ``freeze_z`` (at most
+  ``freeze_max_s``) so a slow ramp is not learned away; when the residual of a large alarm falls
+  back to the noise apart from a heading error of ψ_f (``_reanchor``) the disturbance has ended:
+  the model learns again for ``relearn_s`` and the score restarts from 0.
+
+Switch-off (status per step, reason in words): no field (no calibrated field, field test off),
+IMU rate below ``min_rate_hz`` (telemetry), attitude not valid or too steep, learning, settling
+after an IMU gap over ``max_gap_s``.  A gap over ``segment_gap_s`` or time going backwards (a
+replay seek, a reset) starts again from scratch.  A GPS outage changes nothing here.
+
+``FieldConsistency.update`` (per sample, live) and ``field_consistency`` (batch: the same steps in
+a loop, plain floats) give identical numbers.  Units: mG, rad, rad/s, s, A.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimators.motor_field_tracker import MotorFieldTracker
+from estimators.rotations import dcm_body_to_ned_float
+
+__all__ = ["FieldConsistencySettings", "FieldConsistency", "FieldStep", "FieldConsistencyResult",
+           "field_consistency", "STATUS", "ON", "LEARNING", "OFF_NO_FIELD", "OFF_LOW_RATE", "OFF_ATTITUDE",
+           "SETTLING", "status_text"]
+
+ON, LEARNING, OFF_NO_FIELD, OFF_LOW_RATE, OFF_ATTITUDE, SETTLING = range(6)
+STATUS = ("on", "learning", "off: no calibrated field", "off: IMU rate below the minimum",
+          "off: attitude not valid or too steep", "settling after a telemetry gap")
+
+
+@dataclass(frozen=True)
+class FieldConsistencySettings:
+    """One default for every vehicle; units in the names."""
+    learn_s: float = 20.0               # data time before the test is armed (field, offset, noise learned)
+    offset_learn_fast_s: float = 2.0    # LMS time constant of the body offset b while learning
+    offset_learn_s: float = 60.0        # ... and afterwards
+    field_learn_ratio: float = 10.0     # the Earth field h learns this many times slower than b
+    turn_deg: float = 45.0              # the first turn this far from the learning heading ...
+    turn_learn_s: float = 10.0
+    first_turn_hold_deg_s: float = 20.0  # the CUSUM holds in turns faster than this ...
+    post_turn_s: float = 1.0            # ... and this long after them, then ψ_f drops a heading error
+    motor_excitation: float = 200.0     # Σ z² Δt [A² s] of signal changes before f is trusted; until then ...
+    motor_hold_signal: float = 3.0      # ... the CUSUM holds while the signal is this far from its reference
+    motor_learn_after_s: float = 5.0    # f learns from then on (ψ_f has settled)
+    motor_lag_s: float = 1.0            # f from the field's change over this lag against the signal's
+    motor_memory_s: float = 300.0       # ... weighted least squares forgetting with this time constant
+    motor_clip_sigma: float = 3.0       # f learns from changes clipped at this many σ (Huber) ...
+    motor_max_turn_deg_s: float = 10.0  # ... and not while turning faster than this
+    motor_ref_s: float = 30.0           # the reference signal x_ref follows the signal this slowly
+    heading_track_s: float = 30.0       # ψ_f follows the magnetic heading with this time constant
+    heading_learn_s: float = 5.0        # ... while learning
+    freeze_max_s: float = 120.0         # learning resumes after this long frozen (a lasting change is learned)
+    reanchor_peak: float = 8.0          # after an alarm whose residual reached this many σ, ...
+    reanchor_margin: float = 2.5        # ... the residual below (κ + this) σ ...
+    reanchor_heading_deg: float = 10.0  # (a heading error of ψ_f up to this much is not counted) ...
+    reanchor_s: float = 1.5             # ... for this long ends the episode: ...
+    relearn_s: float = 5.0              # ... the model learns again this long (as in a turn)
+    smooth_s: float = 0.5               # low-pass of the residual vector
+    noise_floor_mG: float = 4.0         # σ is at least this
+    noise_track_s: float = 60.0         # σ² follows the residual's mean square this slowly after learning
+    cusum_drift: float = 3.0            # κ: residual below κσ never accumulates
+    cusum_threshold_s: float = 1.0      # alarm when S (σ-units × s above κ) reaches this
+    cusum_cap: float = 3.0              # S is capped at this many thresholds (it ends soon after the residual)
+    freeze_z: float = 0.2               # learning pauses at this score
+    min_rate_hz: float = 10.0           # slower IMU data (telemetry): off
+    max_gap_s: float = 0.5              # a longer IMU step: heading re-started, settle before testing
+    settle_s: float = 2.0
+    segment_gap_s: float = 2.0          # a longer gap (or time going back) starts from scratch
+
+
+def status_text(code: int) -> str:
+    return STATUS[int(code)] if 0 <= int(code) < len(STATUS) else "unknown"
+
+
+@dataclass
+class FieldStep:
+    t_s: float
+    z: float                            # CUSUM / threshold (NaN unless ON; 0 while relearning a turn)
+    q: float                            # |r̄| / σ (NaN when off)
+    residual_mG: tuple                  # r̄, body frame (NaN when off)
+    status: int
+    motor_mG_per_unit: tuple            # f
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+class FieldConsistency:
+    """Per-sample field-vector consistency test (see module docstring)."""
+
+    def __init__(self, settings: FieldConsistencySettings | None = None,
+                 earth_field_mG: tuple[float, float, float] | None = None) -> None:
+        self.s = settings or FieldConsistencySettings()
+        self.prior = tuple(float(v) for v in earth_field_mG) if earth_field_mG is not None else None
+        self._reset()
+
+    def set_prior(self, earth_field_mG) -> None:
+        """The WMM prior, known from now on (live: at the first GPS fix); used if the Earth field
+        is not yet initialised (at the first tested step)."""
+        self.prior = tuple(float(v) for v in earth_field_mG) if earth_field_mG is not None else None
+
+    def _reset(self) -> None:
+        self.h = None
+        self.b = [0.0, 0.0, 0.0]
+        self.motor = MotorFieldTracker(self.s.motor_lag_s, self.s.motor_memory_s)
+        self.f = self.motor.f                        # the same list: the tracker updates it
+        self.x_ref: float | None = None
+        self.psi_learned: float | None = None      # heading at the end of learning
+        self.turn_until: float | None = None        # the first turn is learned again until then
+        self.learned_s = 0.0
+        self.yaw_bias_rad_s = 0.0
+        self.yaw_rate_rad_s = 0.0
+        self._dx = 0.0
+        self._frozen_since: float | None = None
+        self._noise_sum = 0.0
+        self._noise_n = 0
+        self._noise_ms = 0.0
+        self.noise_mG = float("nan")
+        self._t: float | None = None
+        self._restart(-math.inf)
+
+    def _restart(self, settle_until: float) -> None:
+        self.psi: float | None = None
+        self.r = None
+        self.S = 0.0
+        self.z = 0.0
+        self._frozen_since = None
+        self._peak_q, self._low_since = 0.0, None
+        self.relearn_until = -math.inf
+        self._turn_hold_until = -math.inf
+        self.settle_until = settle_until
+        self.motor.clear_history()
+
+    # ------------------------------------------------------------------ one step
+    def update(self, t_s: float, mag_body_mG, roll_rad: float, pitch_rad: float, attitude_ok: bool,
+               gyro_rad_s, motor_signal: float, rate_hz: float, field_ok: bool) -> FieldStep:
+        """One IMU step: mag_body_mG the calibrated field held at t (NaN: none), roll and pitch,
+        attitude_ok (valid and not steep), gyro bias-corrected [rad/s], motor signal (NaN: unknown),
+        the IMU rate and whether the field may be tested at all."""
+        s = self.s
+        t = float(t_s)
+        if self._t is not None and (t < self._t or t - self._t > s.segment_gap_s):
+            self._reset()
+        dt = 0.0 if self._t is None else t - self._t
+        self._t = t
+        if dt > s.max_gap_s:
+            self._restart(t + s.settle_s)
+        mx, my, mz = (float(v) for v in mag_body_mG)
+        have_field = field_ok and math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz)
+        if attitude_ok and have_field:
+            x = float(motor_signal)
+            dx = x - self.x_ref if math.isfinite(x) and self.x_ref is not None else 0.0
+            b, f = self.b, self.f
+            m_earth = (mx - b[0] - f[0] * dx, my - b[1] - f[1] * dx, mz - b[2] - f[2] * dx)
+            self._track_heading(dt, roll_rad, pitch_rad, m_earth, gyro_rad_s)
+        else:
+            self.psi = None
+        if not have_field:
+            return self._off(t, OFF_NO_FIELD)
+        if not rate_hz >= s.min_rate_hz:
+            return self._off(t, OFF_LOW_RATE)
+        if self.psi is None:
+            return self._off(t, OFF_ATTITUDE)
+        c = dcm_body_to_ned_float(roll_rad, pitch_rad, self.psi)
+        if self.h is None and self.prior is not None and all(map(math.isfinite, self.prior)):
+            self.h = list(self.prior)
+        elif self.h is None:                                 # no prior: the first field is the Earth field
+            self.h = [c[0] * mx + c[1] * my + c[2] * mz, c[3] * mx + c[4] * my + c[5] * mz,
+                      c[6] * mx + c[7] * my + c[8] * mz]
+        return self._test(t, dt, c, (mx, my, mz), motor_signal)
+
+    def _track_heading(self, dt: float, roll: float, pitch: float, m: tuple, gyro) -> None:
+        """ψ_f: gyro yaw rate, pulled to the tilt-compensated magnetic heading (seed 000 eqs. 11-13)
+        of the Earth part of the field (m − b − f·Δx, so a body-fixed offset does not turn it) by a
+        PI loop (gains 2/τ, 1/τ²: critically damped, the integral estimates what is left of the
+        yaw-rate bias); gyro only while the test suspects a disturbance, as fast as while learning
+        for ``relearn_s`` after one (``_reanchor``)."""
+        c = dcm_body_to_ned_float(roll, pitch, 0.0)         # tilt only: the field levelled
+        yaw = -math.atan2(c[3] * m[0] + c[4] * m[1] + c[5] * m[2], c[0] * m[0] + c[1] * m[1] + c[2] * m[2])
+        if self.psi is None:
+            self.psi = float(yaw)
+            return
+        q, r = float(gyro[1]), float(gyro[2])
+        cos_p = math.cos(pitch)
+        rate = (q * math.sin(roll) + r * math.cos(roll)) / cos_p if abs(cos_p) > 1e-3 else 0.0
+        if not math.isfinite(rate):
+            rate = 0.0
+        self.yaw_rate_rad_s = rate
+        pred = self.psi + (rate - self.yaw_bias_rad_s) * dt
+        if self._learning_allowed():
+            fast = self.learned_s < self.s.learn_s or (self._t is not None and self._t < self.relearn_until)
+            tau = self.s.heading_learn_s if fast else self.s.heading_track_s
+            innovation = _wrap(yaw - pred)
+            pred += 2.0 * min(dt / tau, 0.5) * innovation          # PI loop, ζ = 1, ω_n = 1/τ
+            self.yaw_bias_rad_s -= dt / (tau * tau) * innovation
+        self.psi = _wrap(pred)
+
+    def _learning_allowed(self) -> bool:
+        """Learning pauses while the score is at ``freeze_z`` or more, for ``freeze_max_s`` at most."""
+        if self.z < self.s.freeze_z or self._frozen_since is None:
+            return True
+        return self._t - self._frozen_since > self.s.freeze_max_s
+
+    def _off(self, t: float, status: int) -> FieldStep:
+        self.r = None
+        self.S = self.z = 0.0
+        self._frozen_since = None
+        nan = float("nan")
+        return FieldStep(t, nan, nan, (nan, nan, nan), status, tuple(self.f))
+
+    def _motor(self, x: float, dt: float) -> float:
+        """x − x_ref (0 without a signal); x_ref follows the signal with ``motor_ref_s``, so Δx has
+        no lasting mean and f learns from the signal's changes only (b keeps the rest)."""
+        if not math.isfinite(x):
+            return 0.0
+        if self.x_ref is None:
+            self.x_ref = x
+        step = (1.0 - math.exp(-dt / self.s.motor_ref_s)) * (x - self.x_ref)
+        self.x_ref += step
+        for k in range(3):                   # b + f (x − x_ref) unchanged: b carries f x_ref
+            self.b[k] += self.f[k] * step
+        return x - self.x_ref
+
+    def _relearning_turn(self, t: float, learning: bool) -> bool:
+        """True while the first big turn after learning is being learned again."""
+        if learning or self.psi is None:
+            return False
+        if self.psi_learned is None:
+            self.psi_learned = self.psi
+        if (self.turn_until is None and self.z < self.s.freeze_z
+                and abs(_wrap(self.psi - self.psi_learned)) > math.radians(self.s.turn_deg)):
+            self.turn_until = t + self.s.turn_learn_s
+        return self.turn_until is not None and t < self.turn_until
+
+    def _learn(self, dt: float, c: tuple, e: list, dx: float, learning: bool, turn: bool) -> None:
+        s = self.s
+        tau_b = s.offset_learn_fast_s if (learning or turn) else s.offset_learn_s
+        g = 1.0 - math.exp(-dt / tau_b)
+        g_h = g if turn else 1.0 - math.exp(-dt / (tau_b * s.field_learn_ratio))
+        en = [c[0] * e[0] + c[1] * e[1] + c[2] * e[2], c[3] * e[0] + c[4] * e[1] + c[5] * e[2],
+              c[6] * e[0] + c[7] * e[1] + c[8] * e[2]]
+        h, b = self.h, self.b
+        for k in range(3):
+            h[k] += 0.5 * g_h * en[k]
+            b[k] += 0.5 * g * e[k]
+
+    def _learn_motor(self, t: float, dt: float, u: list, x: float, turn: bool, allowed: bool) -> None:
+        """f from the signal's changes (estimators.motor_field_tracker.MotorFieldTracker), outside turns,
+        after ``motor_learn_after_s``; b keeps carrying f x_ref when f changes."""
+        s = self.s
+        learn = (allowed and not turn and abs(self.yaw_rate_rad_s) < math.radians(s.motor_max_turn_deg_s)
+                 and self.learned_s >= s.motor_learn_after_s)
+        clip = s.motor_clip_sigma * (self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG)
+        old = list(self.f)
+        self.motor.update(t, u, float(x), dt, learn, clip)
+        if self.x_ref is not None:
+            for k in range(3):
+                self.b[k] += (self.f[k] - old[k]) * self.x_ref
+
+    def _test(self, t: float, dt: float, c: tuple, m: tuple, x: float) -> FieldStep:
+        s = self.s
+        learning = self.learned_s < s.learn_s
+        self.learned_s += min(dt, s.max_gap_s)
+        h, b, f = self.h, self.b, self.f
+        dx = self._dx = self._motor(x, dt)
+        pred = [c[0] * h[0] + c[3] * h[1] + c[6] * h[2], c[1] * h[0] + c[4] * h[1] + c[7] * h[2],
+                c[2] * h[0] + c[5] * h[1] + c[8] * h[2]]
+        e = [m[k] - pred[k] - b[k] - f[k] * dx for k in range(3)]
+        turn = self._relearning_turn(t, learning) or t < self.relearn_until
+        allowed = self._learning_allowed()
+        if turn or allowed:
+            self._learn(dt, c, e, dx, learning, turn)
+        self._learn_motor(t, dt, [m[k] - pred[k] for k in range(3)], x, turn, allowed)
+        a = 1.0 - math.exp(-dt / s.smooth_s) if self.r is not None else 1.0
+        r = self.r = e if self.r is None else [self.r[k] + a * (e[k] - self.r[k]) for k in range(3)]
+        size = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
+        if learning and self.learned_s >= 0.75 * s.learn_s:
+            self._noise_sum += size * size
+            self._noise_n += 1
+            self._noise_ms = self._noise_sum / self._noise_n
+        elif not (learning or turn) and self._noise_n and self.z < s.freeze_z:     # follows the noise, slowly
+            self._noise_ms += (1.0 - math.exp(-dt / s.noise_track_s)) * (size * size - self._noise_ms)
+        if self._noise_n:
+            self.noise_mG = max(s.noise_floor_mG, math.sqrt(self._noise_ms))
+        sigma = self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG
+        q = size / sigma
+        if learning or turn or t < self.settle_until:
+            self.S = self.z = 0.0        # relearning a turn, the test is on but blind: score 0, not NaN
+            z = 0.0 if (turn and not learning) else float("nan")
+            return FieldStep(t, z, q, tuple(r), LEARNING if (learning or turn) else SETTLING, tuple(f))
+        q_other, eps = self._non_heading_q(c, r, sigma)
+        first_turn = self._fast_turn(t, q_other, eps)
+        unknown_motor = self.motor.excitation < s.motor_excitation and abs(self._dx) > s.motor_hold_signal
+        if not (first_turn or unknown_motor):
+            self.S = min(max(0.0, self.S + dt * (q - s.cusum_drift)), s.cusum_cap * s.cusum_threshold_s)
+        self.z = self.S / s.cusum_threshold_s
+        frozen = self.z >= s.freeze_z
+        self._frozen_since = (self._frozen_since if self._frozen_since is not None else t) if frozen else None
+        self._reanchor(t, q_other, frozen)
+        return FieldStep(t, self.z, q, tuple(r), ON, tuple(f))
+
+    def _fast_turn(self, t: float, q_other: float, eps: float) -> bool:
+        """True while the CUSUM holds for a fast turn (over ``first_turn_hold_deg_s``) and
+        ``post_turn_s`` after it.  A fast turn leaves ψ_f a few degrees off (the gyro's scale and
+        timing over 100°+): when the hold ends, a residual that is a heading error ε alone (the rest
+        under (κ + ``reanchor_margin``) σ, |ε| ≤ ``reanchor_heading_deg``) is taken out of ψ_f."""
+        s = self.s
+        if abs(self.yaw_rate_rad_s) > math.radians(s.first_turn_hold_deg_s):
+            self._turn_hold_until = t + s.post_turn_s
+            return True
+        if t < self._turn_hold_until:
+            return True
+        if self._turn_hold_until > -math.inf:
+            self._turn_hold_until = -math.inf
+            if q_other < s.cusum_drift + s.reanchor_margin and math.isfinite(eps):
+                self.psi = _wrap(self.psi - eps)
+        return False
+
+    def _non_heading_q(self, c: tuple, r: list, sigma: float) -> tuple[float, float]:
+        """(|r̄| without the part a heading error ε of ψ_f explains, in σ; ε [rad]) (∞ and NaN
+        beyond ``reanchor_heading_deg``): with ψ_f = ψ + ε the predicted field is turned about the
+        vertical, a residual ε (−h_E, h_N, 0) in the navigation frame."""
+        h = self.h
+        rn = [c[0] * r[0] + c[1] * r[1] + c[2] * r[2], c[3] * r[0] + c[4] * r[1] + c[5] * r[2],
+              c[6] * r[0] + c[7] * r[1] + c[8] * r[2]]
+        hh = math.hypot(h[0], h[1])
+        if not hh > 0:
+            return math.sqrt(rn[0] ** 2 + rn[1] ** 2 + rn[2] ** 2) / sigma, float("nan")
+        along = (-h[1] * rn[0] + h[0] * rn[1]) / hh
+        if abs(along) > math.radians(self.s.reanchor_heading_deg) * hh:
+            return math.inf, float("nan")
+        return math.sqrt(max(rn[0] ** 2 + rn[1] ** 2 + rn[2] ** 2 - along * along, 0.0)) / sigma, along / hh
+
+    def _reanchor(self, t: float, q: float, frozen: bool) -> None:
+        """The end of a disturbance: after an alarm whose residual reached ``reanchor_peak`` σ, the
+        residual back below (κ + ``reanchor_margin``) σ for ``reanchor_s``, apart from a heading
+        error (ψ_f drifted on the gyro alone meanwhile), is what is left of the model: learn again
+        for ``relearn_s`` as in a turn, ψ_f as fast as while learning (score 0), so the alarm ends
+        with the disturbance instead of when the drift is learned."""
+        s = self.s
+        if not frozen:
+            self._peak_q, self._low_since = 0.0, None
+            return
+        self._peak_q = max(self._peak_q, q) if self.z >= 1.0 else self._peak_q
+        low = q < s.cusum_drift + s.reanchor_margin
+        self._low_since = (self._low_since if self._low_since is not None else t) if low else None
+        if self._peak_q >= s.reanchor_peak and low and t - self._low_since >= s.reanchor_s:
+            self.relearn_until = t + s.relearn_s
+            self.S = self.z = 0.0
+            self._frozen_since, self._peak_q, self._low_since = None, 0.0, None
+
+
+@dataclass
+class FieldConsistencyResult:
+    """Per-step arrays (length N) of ``field_consistency``."""
+    t_s: np.ndarray
+    z: np.ndarray                  # CUSUM score (≥ 1: alarm); NaN unless on
+    q: np.ndarray                  # |r̄| / σ
+    residual_mG: np.ndarray        # (N, 3) r̄, body frame
+    status: np.ndarray             # (N,) int, STATUS codes
+    motor_mG_per_unit: np.ndarray  # (N, 3) f as learned up to each step (its trend)
+    noise_mG: float
+    earth_field_mG: tuple          # h at the end (magnetic NED)
+    offset_mG: tuple               # b at the end (body)
+
+
+def field_consistency(t_s, mag_body_mG, roll_rad, pitch_rad, attitude_ok, gyro_rad_s, motor_signal,
+                      rate_hz, field_ok, settings: FieldConsistencySettings | None = None,
+                      earth_field_mG=None, prior_from_s: float = -math.inf) -> FieldConsistencyResult:
+    """Batch form: ``FieldConsistency.update`` over arrays of length N (identical numbers); the
+    prior ``earth_field_mG`` is known from ``prior_from_s`` on (live: the first GPS fix)."""
+    fc = FieldConsistency(settings, None)
+    t = np.asarray(t_s, dtype=float)
+    n = len(t)
+    cols = [np.broadcast_to(np.asarray(a, dtype=float), (n,)).tolist()
+            for a in (roll_rad, pitch_rad, motor_signal, rate_hz)]
+    ok = np.broadcast_to(np.asarray(attitude_ok, dtype=bool), (n,)).tolist()
+    fok = np.broadcast_to(np.asarray(field_ok, dtype=bool), (n,)).tolist()
+    mag = np.asarray(mag_body_mG, dtype=float).reshape(n, 3).tolist()
+    gyro = np.asarray(gyro_rad_s, dtype=float).reshape(n, 3).tolist()
+    z, q, st = np.full(n, np.nan), np.full(n, np.nan), np.zeros(n, int)
+    res, mot = np.full((n, 3), np.nan), np.zeros((n, 3))
+    tl = t.tolist()
+    for i in range(n):
+        if fc.prior is None and earth_field_mG is not None and tl[i] >= prior_from_s:
+            fc.set_prior(earth_field_mG)
+        step = fc.update(tl[i], mag[i], cols[0][i], cols[1][i], ok[i], gyro[i], cols[2][i], cols[3][i], fok[i])
+        z[i], q[i], st[i] = step.z, step.q, step.status
+        res[i] = step.residual_mG
+        mot[i] = step.motor_mG_per_unit
+    return FieldConsistencyResult(t, z, q, res, st, mot, fc.noise_mG, tuple(fc.h or (np.nan,) * 3), tuple(fc.b))
