@@ -191,6 +191,7 @@ def write_png(res: dict, path: str) -> None:
     ax.set_title("Interference detection: latency vs false alarms")
     ax.legend(fontsize=7)
     fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     print(f"wrote {path}")
@@ -201,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--outage-seeds", type=int, default=5)
-    ap.add_argument("--png", default="detection_benchmark.png")
+    ap.add_argument("--png", default="benchmarks/results/detection_benchmark.png",
+                    help="the latency-versus-false-alarm chart (default: benchmarks/results/, not tracked)")
     ap.add_argument("--quick", action="store_true", help="1 seed, fast ramp, one 90 s clean flight, no real logs")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
