@@ -304,12 +304,15 @@ def test_large_vehicle_fixed_yaw_with_gps_course_and_entered_heading(station, pa
     set_checked(page, "#modes input[value='fixed_yaw']", True)
     press(page, "#start")
     shown(page, "#fixed-card:not([hidden])", 5000)
-    with FakeVehicle(msgs, port, speed=3.0) as fv:
+    fv = FakeVehicle(msgs, port, speed=3.0)
+    fv.hold_before = sent_after(msgs, 15.0)         # standing at the start of the line until the walk starts
+    with fv:
         shown(page, "#status:has-text('link up')", WAIT_MS)
-        while fv.sent < sent_after(msgs, 15.0):     # standing at the start of the line
+        while fv.sent < fv.hold_before:
             time.sleep(0.05)
         press(page, "#fy-walk")
         shown(page, "#fy-walk-text:has-text('walking')", WAIT_MS)
+        fv.release()
         wait_api(api, lambda w: w["heading_check"]["distance_m"] > 12.0)
         page.screenshot(path=str(shots / "16_large_vehicle_walking.png"))
         press(page, "#fy-walk-stop")

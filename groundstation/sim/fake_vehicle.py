@@ -96,6 +96,8 @@ class FakeVehicle:
         self._state_lock = threading.RLock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self.hold_before: int | None = None    # the stream waits before this message until release()
+        self._released = threading.Event()
 
     @staticmethod
     def _prepare(messages: Iterable, speed: float) -> list:
@@ -115,6 +117,11 @@ class FakeVehicle:
         for t in self._threads:
             t.join(timeout=2)
         self._sock.close()
+
+    def release(self) -> None:
+        """Let a stream held at ``hold_before`` go on (its timing restarts from there)."""
+        self.hold_before = None
+        self._released.set()
 
     def set_link(self, up: bool) -> None:
         """Drop (False) or restore (True) the radio link: nothing is sent or heard while down."""
@@ -201,6 +208,12 @@ class FakeVehicle:
         t0, wall0 = queue[start][0], time.monotonic()
         for i in range(start, len(queue)):
             unix, msg = queue[i]
+            if self.hold_before is not None and self.sent >= self.hold_before:
+                while not self._released.wait(0.05):          # a test holds the vehicle still here
+                    if self._stop.is_set():
+                        return None
+                self._released.clear()
+                t0, wall0 = unix, time.monotonic()
             due = wall0 + (unix - t0) / self.speed
             while True:
                 if self._reboot_request.is_set():
