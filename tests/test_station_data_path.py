@@ -71,6 +71,10 @@ def _demo_interference_s() -> tuple[float, float]:
             mission["log_offset_s"] + mission["interference"]["end_s"])
 
 
+def report_motor_removed(report: dict) -> bool:
+    return bool((report.get("motor_field") or {}).get("removed_from_heading"))
+
+
 def _same_alarms(a: list[dict], b: list[dict], tol_s: float = 0.5) -> None:
     assert len(a) == len(b), (a, b)
     for x, y in zip(a, b):
@@ -84,7 +88,7 @@ def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
         pytest.skip("real log not available")
     session, replayed = _replay_to_end(path, tmp_path)
     calibration, line = session.flight.calibration, session.flight.line
-    report, _ = session.analysis()                     # GET /api/analysis: analyze_log, same settings
+    report, columns = session.analysis()               # GET /api/analysis: analyze_log, same settings
     session.close()
     analyzed = [a for a in report["alarms"] if a["kind"] == "combined"]
     live, live_rows = _live(path, tmp_path, calibration, line)
@@ -102,6 +106,13 @@ def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
     estimates = ("roll_deg", "pitch_deg", "field_mG", "inclination_deg", "score")
     for name in decisions + estimates:
         np.testing.assert_allclose(live_rows[:, COL[name]], batch_rows[:, COL[name]], atol=1e-6, err_msg=name)
+    # the page shows the default AHRS, analyze's best estimate wherever neither the INS/GPS filter
+    # nor a motor-current field changes it (issue 12), not the detector's faster heading reference
+    assert not report_motor_removed(report)
+    plain = columns["ins_mode"] == ""
+    np.testing.assert_allclose(live_rows[plain, COL["roll_deg"]], columns["roll_deg"][plain], atol=1e-6)
+    detector_roll = np.where(batch.x["chain"].valid, np.degrees(batch.x["chain"].roll_rad), np.nan)
+    assert np.nanmax(np.abs(live_rows[:, COL["roll_deg"]] - detector_roll)) > 0.05
     if path == DEMO:      # the interference episode of the demo and nothing before it; it ends with it
         onset_s, end_s = _demo_interference_s()
         assert len(analyzed) == 1 and onset_s < analyzed[0]["start_s"] < onset_s + 5.0

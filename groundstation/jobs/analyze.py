@@ -21,14 +21,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimators.detection import DetectionResult, DetectionSettings, alarm_intervals, detect
-from estimators.heading import split_velocity
+from estimators.heading import HeadingChainResult, split_velocity
 from estimators.ins_gps import MODE_NAMES
 
 from groundstation.jobs.alarm_explain import STEP_KEYS, explain_span, explanation_text
 from groundstation.jobs.compass_report import compass_summaries
 from groundstation.jobs.flight_plot import vector_test_status
 from groundstation.jobs.inputs import detection_inputs, heading_deg, rounded
-from groundstation.jobs.motor_heading import best_heading_chain
+from groundstation.jobs.motor_heading import attitude_chain, best_heading_chain
 from groundstation.jobs.navigation import ins_runs
 from groundstation.jobs.record import COL, AlarmTracker, record_rows
 from groundstation.samples import FlightLog
@@ -50,6 +50,7 @@ class FlightAnalysis:
     det: DetectionResult
     rows: np.ndarray
     settings: DetectionSettings
+    attitude: HeadingChainResult | None = None     # the default AHRS on the field as measured: shown
 
     def combined_alarms(self) -> list[dict]:
         tracker = AlarmTracker()
@@ -95,9 +96,10 @@ def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: lis
     det = detect(x["t"], x["e"], x["d"], x["trusted"], x["strength"], x["incl"], x["heading"], x["yaw_rate"],
                  ef.field_strength_mG if ef else np.nan, ef.inclination_deg if ef else np.nan, settings,
                  z_vector=x["z_vector"])
+    shown = attitude_chain(log, x["mag_cal"], ef.declination_deg if ef else 0.0)
     rows = record_rows(x["t"], x["chain"], x, ef.declination_deg if ef else 0.0, det.combined, det.trigger,
-                       detector_score(det.z_heading, det.z_path, det.z_field, det.z_vector))
-    return FlightAnalysis(x, det, rows, settings)
+                       detector_score(det.z_heading, det.z_path, det.z_field, det.z_vector), attitude=shown)
+    return FlightAnalysis(x, det, rows, settings, shown)
 
 
 def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list | None = None,
@@ -113,7 +115,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
     hdg = lambda a: np.where(valid, heading_deg(a), np.nan)  # noqa: E731
     declination = ef.declination_deg if ef else 0.0
     nav, runs = ins_runs(log, x["mag_cal"], declination, x["imu_rate_hz"], settings)
-    best_chain, motor = best_heading_chain(log, x)
+    best_chain, motor = best_heading_chain(log, x, fa.attitude)
     best = best_attitude(t, best_chain, valid, runs, declination)
     v_fwd, v_lat = split_velocity(gps[:, 5], gps[:, 6], np.radians(best["heading_true_deg"]))
     columns = {

@@ -59,7 +59,8 @@ class LiveAnalyzer:
         self.start_unix_s = start_unix_s
         self.calibration = calibration
         self.legs = mission_legs(mission)
-        self.chain = HeadingChain(settings=DETECTOR_CHAIN)
+        self.chain = HeadingChain(settings=DETECTOR_CHAIN)       # the detector's heading reference
+        self.shown = HeadingChain()                              # the default AHRS: the attitude shown
         self.detector = InterferenceDetector(self.settings)
         self.earth_field = None
         self.params: dict[str, float] = {}
@@ -105,7 +106,7 @@ class LiveAnalyzer:
         new.earth_field = self.earth_field
         if self.earth_field is not None:
             new.vector = FieldConsistency(self.settings.vector, earth_prior_mG(self.earth_field))
-        new.chain.declination_deg = self.chain.declination_deg
+        new.chain.declination_deg = new.shown.declination_deg = self.chain.declination_deg
         new.explain_history = self.explain_history        # the alarms so far stay explained
         return new
 
@@ -129,7 +130,7 @@ class LiveAnalyzer:
             ef = earth_field(s.lat_deg, s.lon_deg, s.alt_m, decimal_year_from_unix(start + s.t_s))
         except ValueError:
             return
-        self.chain.declination_deg = ef.declination_deg
+        self.chain.declination_deg = self.shown.declination_deg = ef.declination_deg
         self.earth_field = ef
         if self.vector is None:
             self.vector = FieldConsistency(self.settings.vector, None)
@@ -163,6 +164,7 @@ class LiveAnalyzer:
             if np.all(np.isfinite(m)):
                 self._mag.update(s.t_s, m)
                 self.chain.update_mag(s.t_s, m)
+                self.shown.update_mag(s.t_s, m)
         elif isinstance(s, GpsSample):
             if self.earth_field is None:
                 self._start(s)
@@ -186,11 +188,14 @@ class LiveAnalyzer:
     def _chain_step(self, s: ImuSample) -> tuple:
         """The heading chain's step and what is held at its time."""
         gyro = np.asarray(s.gyro_rad_s, dtype=float)
-        st = self.chain.update_imu(s.t_s, gyro, np.asarray(s.accel_mps2, dtype=float))
+        accel = np.asarray(s.accel_mps2, dtype=float)
+        st = self.chain.update_imu(s.t_s, gyro, accel)
+        sh = self.shown.update_imu(s.t_s, gyro, accel)
         t = st.t_s
         return (t, st.roll_rad, st.pitch_rad, st.yaw_rad, st.mag_heading_rad, st.heading_true_rad, bool(st.valid),
                 gyro, self._mag.at(t)[0], self._att.at(t)[0], self._gps.at(t)[0], self.chain.declination_deg,
-                np.asarray(st.gyro_bias_rad_s, dtype=float), self._motor_at(t))
+                np.asarray(st.gyro_bias_rad_s, dtype=float), self._motor_at(t),
+                sh.roll_rad, sh.pitch_rad, sh.heading_true_rad, bool(sh.valid))
 
     def _motor_at(self, t: float) -> float:
         """The motor signal (``motor_signal_table``'s rule on what has arrived: a current that
@@ -232,8 +237,10 @@ class LiveAnalyzer:
                                    **{name: zs[:, j] for j, name in enumerate(SCORE_NAMES)})
         self.alarm_active = bool(combined[-1])
         self.alarm_kinds = list(self.detector.alarm_kinds) if self.alarm_active else []
+        shown = SimpleNamespace(roll_rad=np.asarray(cols[14]), pitch_rad=np.asarray(cols[15]),
+                                heading_true_rad=np.asarray(cols[16]), valid=np.asarray(cols[17], dtype=bool))
         rows = record_rows(t, chain, dict(x, gps_held=gps, att_held=att), np.asarray(cols[11], dtype=float),
-                           combined, trigger, score)
+                           combined, trigger, score, attitude=shown)
         self.last_row = rows[-1]
         return rows
 

@@ -21,7 +21,7 @@ from estimators.motor_field import CurrentFieldFit, fit_current_field
 from groundstation.jobs.inputs import hold_last, rounded
 from groundstation.samples import FlightLog
 
-__all__ = ["CURRENT_TIMEOUT_S", "best_heading_chain"]
+__all__ = ["CURRENT_TIMEOUT_S", "attitude_chain", "best_heading_chain"]
 
 CURRENT_TIMEOUT_S = 5.0     # a current sample older than this does not describe the field
 
@@ -47,15 +47,20 @@ def _current_field(log: FlightLog, x: dict) -> tuple[CurrentFieldFit | None, np.
     return fit_current_field(mag_cal[ok, 1:4], current[ok], chain.roll_rad[k[ok]], chain.pitch_rad[k[ok]]), current, ""
 
 
-def best_heading_chain(log: FlightLog, x: dict) -> tuple[HeadingChainResult, dict]:
-    """(the default AHRS on the field, with the motor-current field removed when it is found;
-    report["motor_field"]).  ``x``: detection_inputs of the log (its mag_cal, chain and WMM)."""
+def attitude_chain(log: FlightLog, field: np.ndarray, declination_deg: float) -> HeadingChainResult:
+    """The default AHRS (``estimators.ahrs.AhrsSettings``) on the log's IMU and a field (M, 4)."""
+    return run_heading_chain(np.asarray(log.imu, dtype=float).reshape(-1, 7), field, declination_deg)
+
+
+def best_heading_chain(log: FlightLog, x: dict, shown: HeadingChainResult) -> tuple[HeadingChainResult, dict]:
+    """(the default AHRS on the field with the motor-current field removed when it is found, else
+    ``shown``, the default AHRS on the field as measured; report["motor_field"]).  ``x``:
+    detection_inputs of the log (its mag_cal, chain and WMM)."""
     fit, current, why = _current_field(log, x)
+    if fit is None or fit.status != "ok":
+        return shown, _report(fit, False, why)
     field = x["mag_cal"].copy()
-    used = fit is not None and fit.status == "ok"
-    if used:
-        have = np.isfinite(current)
-        field[have, 1:4] -= np.outer(current[have], fit.motor_mG_per_A)
+    have = np.isfinite(current)
+    field[have, 1:4] -= np.outer(current[have], fit.motor_mG_per_A)
     ef = x["ef"]
-    best = run_heading_chain(np.asarray(log.imu, dtype=float).reshape(-1, 7), field, ef.declination_deg if ef else 0.0)
-    return best, _report(fit, used, why)
+    return attitude_chain(log, field, ef.declination_deg if ef else 0.0), _report(fit, True, why)

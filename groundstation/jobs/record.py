@@ -45,19 +45,21 @@ def evidence_text(kinds) -> str:
     return "; ".join(EVIDENCE_TEXT.get(k, str(k)) for k in kinds)
 
 
-def record_rows(t, chain, x: dict, declination_deg, combined, trigger, score) -> np.ndarray:
+def record_rows(t, chain, x: dict, declination_deg, combined, trigger, score, attitude=None) -> np.ndarray:
     """Rows of RECORD_COLUMNS for some IMU steps.
 
-    t (n,); chain: roll_rad, pitch_rad, heading_true_rad, mag_heading_rad, valid (n,) of the
-    heading chain; x: ``step_inputs`` output plus gps_held (n, GPS_COLUMNS) and att_held (n, 3)
+    t (n,); chain: mag_heading_rad, valid (n,) of the detector's heading chain; attitude:
+    roll_rad, pitch_rad, heading_true_rad, valid (n,) of the attitude shown (the default AHRS;
+    None: the detector's chain); x: ``step_inputs`` output plus gps_held (n, GPS_COLUMNS) and att_held (n, 3)
     (the autopilot's roll, pitch, yaw); declination_deg: scalar or (n,); combined (n,) bool, trigger
     (n, 3) bool and score (n,): the detector's decision, evidence and largest test score.
     """
     t = np.asarray(t, dtype=float)
     rows = np.full((len(t), len(RECORD_COLUMNS)), np.nan)
-    valid = np.asarray(chain.valid, dtype=bool)
+    att = chain if attitude is None else attitude
+    valid = np.asarray(chain.valid, dtype=bool) & np.asarray(att.valid, dtype=bool)
     deg = lambda a: np.where(valid, np.degrees(a), np.nan)  # noqa: E731
-    head_rad = np.where(valid, chain.heading_true_rad, np.nan)
+    head_rad = np.where(valid, att.heading_true_rad, np.nan)
     g = x["gps_held"]
     ap = x["att_held"]
     vn, ve = g[:, 5], g[:, 6]
@@ -66,8 +68,8 @@ def record_rows(t, chain, x: dict, declination_deg, combined, trigger, score) ->
     with np.errstate(invalid="ignore"):
         moving = speed >= COURSE_MIN_SPEED_MPS
     values = {
-        "t_s": t, "roll_deg": deg(chain.roll_rad), "pitch_deg": deg(chain.pitch_rad),
-        "heading_deg": np.where(valid, heading_deg(chain.heading_true_rad), np.nan),
+        "t_s": t, "roll_deg": deg(att.roll_rad), "pitch_deg": deg(att.pitch_rad),
+        "heading_deg": np.where(valid, heading_deg(att.heading_true_rad), np.nan),
         "mag_heading_deg": np.where(valid, heading_deg(chain.mag_heading_rad + np.radians(declination_deg)), np.nan),
         "ap_roll_deg": np.degrees(ap[:, 0]), "ap_pitch_deg": np.degrees(ap[:, 1]),
         "ap_heading_deg": np.where(np.isfinite(ap[:, 2]), heading_deg(ap[:, 2]), np.nan),
