@@ -20,7 +20,7 @@ from groundstation.io import fleet_db
 from groundstation.jobs.airframes import load_airframes, resolve_airframe
 from groundstation.jobs.compass_history import DriftSettings, analyse_fleet, record_calibration, refresh_alerts
 from groundstation.jobs.fleet import discover_logs, run_job_with_timeout
-from groundstation.jobs.review_row import review_log
+from groundstation.jobs.review_row import ROW_VERSION, review_log
 from groundstation.sim.fleet import FleetSettings, Site, plan_fleet, write_flight
 from groundstation.station.routers import fleet as fleet_router
 
@@ -92,7 +92,7 @@ def test_review_row_fields(one_flight):
     assert abs(r["duration_s"] - truth["duration_s"]) < 0.1 and r["mag_rate_hz"] == pytest.approx(50.0, abs=0.5)
     assert r["date"].startswith("2026-01-0") and abs(r["lat_deg"] - 30.26) < 0.01
     assert abs(r["strength_resid_mG"]) < 60 and r["wmm_strength_mG"] == pytest.approx(489, abs=3)
-    assert len(r["log_hash"]) == 64 and r["review_s"] > 0 and r["row_version"] == 2
+    assert len(r["log_hash"]) == 64 and r["review_s"] > 0 and r["row_version"] == ROW_VERSION
     assert r["fit_model"] == "yaw_free" and r["compass_source"] and r["fit_heading_coverage"] > 0.9
 
 
