@@ -50,6 +50,31 @@ def load_avg() -> str:
     return " ".join(f"{v:.2f}" for v in os.getloadavg())
 
 
+def idle_fraction(seconds: float = 2.0) -> float | None:
+    """Share of the machine's CPU time that was idle over the next ``seconds`` (/proc/stat; None elsewhere)."""
+    def sample():
+        with open("/proc/stat") as f:
+            v = [float(x) for x in f.readline().split()[1:]]
+        return v[3] + v[4], sum(v)          # idle + iowait, total
+    try:
+        i0, t0 = sample()
+        time.sleep(seconds)
+        i1, t1 = sample()
+    except (OSError, ValueError, IndexError):
+        return None
+    return (i1 - i0) / (t1 - t0) if t1 > t0 else None
+
+
+def wait_quiet(min_idle: float, max_wait_s: float) -> float | None:
+    """Wait (up to ``max_wait_s``) until the machine is at least ``min_idle`` idle; returns the idle share
+    last seen.  The machine is shared: a timed run that starts while others compute measures them."""
+    deadline = time.monotonic() + max_wait_s
+    idle = idle_fraction()
+    while idle is not None and idle < min_idle and time.monotonic() < deadline:
+        idle = idle_fraction()
+    return idle
+
+
 def ensure_fleet(directory: Path, vehicles: int, flights: int, seed: int) -> tuple[dict, float | None]:
     truth_file = directory / TRUTH_NAME
     if truth_file.is_file():
@@ -67,16 +92,19 @@ def ensure_fleet(directory: Path, vehicles: int, flights: int, seed: int) -> tup
     return truth, time.perf_counter() - t0
 
 
-def timed_review(logs: list[Path], workers: int, db: Path, mapping, warm_log: Path | None) -> tuple[object, dict]:
+def timed_review(logs: list[Path], workers: int, db: Path, mapping, warm_log: Path | None,
+                 quiet: tuple[float, float] = (0.0, 0.0)) -> tuple[object, dict]:
     """One review of ``logs`` on a fresh LocalCluster of ``workers`` processes, timed after every worker
-    has imported the job and reviewed ``warm_log`` (imports and first-call costs left out of both runs)."""
+    has imported the job and reviewed ``warm_log`` (imports and first-call costs left out of both runs)
+    and, with ``quiet`` = (idle share, max wait s), once the machine is that idle."""
     with fleet_client(workers=workers) as (client, dashboard):
         if warm_log is not None:
             client.run(review_log, str(warm_log))
+        idle = wait_quiet(*quiet)
         before = load_avg()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         summary = run_review(client, logs, db, airframes=mapping)
-        wall = time.perf_counter() - t0
+        wall, client_cpu = time.perf_counter() - t0, time.process_time() - c0
         after = load_avg()
     with closing(fleet_db.connect(db, read_only=True)) as con:
         rows = fleet_db.flight_rows(con)
@@ -85,21 +113,25 @@ def timed_review(logs: list[Path], workers: int, db: Path, mapping, warm_log: Pa
         if r.get("worker") and r.get("worker_peak_rss_MB") is not None:
             per_worker[r["worker"]] = max(per_worker.get(r["worker"], 0.0), r["worker_peak_rss_MB"])
     flight_min = summary.flight_seconds / 60.0
-    return summary, {"workers": workers, "wall_s": wall, "logs_per_s": summary.progress.done / wall,
+    return summary, {"workers": workers, "wall_s": wall, "idle_before": idle,
+                     "client_cpu_ms_per_log": 1000.0 * client_cpu / max(summary.progress.done, 1),
+                     "logs_per_s": summary.progress.done / wall,
                      "load_before": before, "load_after": after, "rss_MB": per_worker, "rows": rows,
                      "worker_s_per_flight_min": workers * wall / flight_min if flight_min else float("nan"),
                      "cpu_s_per_flight_min": summary.log_cpu_seconds / flight_min if flight_min else float("nan"),
-                     "cpu_share": summary.log_cpu_seconds / summary.log_seconds if summary.log_seconds else float("nan")}
+                     "cpu_share": summary.log_cpu_seconds / summary.log_seconds if summary.log_seconds
+                     else float("nan")}
 
 
-def throughput(logs: list[Path], warm_log: Path | None, mapping, repeats: int, tmp: Path) -> list[tuple[dict, dict]]:
+def throughput(logs: list[Path], warm_log: Path | None, mapping, repeats: int, tmp: Path,
+               quiet: tuple[float, float]) -> list[tuple[dict, dict]]:
     """``repeats`` pairs of (1 worker, 2 workers) runs on the same logs, the order alternating
     (1, 2), (2, 1), ... so that a change of the machine's load hits both sides alike."""
     pairs = []
     for k in range(repeats):
         runs = {}
         for w in ((1, 2) if k % 2 == 0 else (2, 1)):
-            runs[w] = timed_review(logs, w, tmp / f"tp-{k}-{w}.sqlite", mapping, warm_log)[1]
+            runs[w] = timed_review(logs, w, tmp / f"tp-{k}-{w}.sqlite", mapping, warm_log, quiet)[1]
             print(f"repeat {k + 1}, {w} worker(s): {runs[w]['logs_per_s']:.3f} logs/s, load {runs[w]['load_before']}"
                   f" -> {runs[w]['load_after']}", file=sys.stderr)
         pairs.append((runs[1], runs[2]))
@@ -149,7 +181,8 @@ def score_rows(score: dict, full: tuple) -> list[tuple[str, str, str, str]]:
         ("anomaly sites found / false", f"{s['found']}/{s['planted']} / {len(s['false'])}", "all / 0",
          verdict(s["found"] == s["planted"] and not s["false"])),
         ("interference events found", f"{i['found']}/{i['planted']} (median delay {i['median_delay_s']:.1f} s)"
-         if i["median_delay_s"] is not None else f"{i['found']}/{i['planted']}", "all", verdict(i["found"] == i["planted"])),
+         if i["median_delay_s"] is not None else f"{i['found']}/{i['planted']}", "all",
+         verdict(i["found"] == i["planted"])),
         ("clean flights with an alarm", f"{i['false_alarm_flights']}/{i['clean_flights']}", "(reported)", ""),
         ("damaged files reported, run not stopped", f"{c['reported']}/{c['planted']}, {sf.progress.done} logs done",
          "all", verdict(c["reported"] == c["planted"] and sf.progress.left == 0)),
@@ -159,6 +192,10 @@ def score_rows(score: dict, full: tuple) -> list[tuple[str, str, str, str]]:
          "(reported)", ""),
         ("motor field per A error, median", f"{100 * f['motor_rel_error_median']:.1f} %", "(reported)", ""),
     ]
+
+
+def _pct(x: float | None) -> str:
+    return "?" if x is None else f"{100 * x:.0f} %"
 
 
 def throughput_rows(pairs: list[tuple[dict, dict]], serial: dict, timed_logs: int) -> list[tuple[str, str, str, str]]:
@@ -173,7 +210,8 @@ def throughput_rows(pairs: list[tuple[dict, dict]], serial: dict, timed_logs: in
         for m in (one, two):
             rows.append((f"repeat {k + 1}: {m['workers']} worker(s), {timed_logs} logs",
                          f"{m['logs_per_s']:.3f} logs/s ({m['wall_s']:.0f} s; workers got {100 * m['cpu_share']:.0f} % "
-                         f"CPU; load {m['load_before']} -> {m['load_after']})", "", ""))
+                         f"CPU; machine {_pct(m['idle_before'])} idle before; load {m['load_before']} -> "
+                         f"{m['load_after']})", "", ""))
         rows.append((f"repeat {k + 1}: 2 workers / 1 worker", f"{speedups[-1]:.2f}x", "", ""))
     med = float(np.median(speedups))
     one_all = [p[0] for p in pairs]
@@ -188,6 +226,9 @@ def throughput_rows(pairs: list[tuple[dict, dict]], serial: dict, timed_logs: in
         ("per-log CPU, 1 / 2 workers (CPU seconds per flight-minute)",
          f"{np.median([m['cpu_s_per_flight_min'] for m in one_all]):.3f} / "
          f"{np.median([m['cpu_s_per_flight_min'] for m in two_all]):.3f} s", "(reported)", ""),
+        ("client + scheduler + nannies (this process), CPU per log, 1 / 2 workers",
+         f"{np.median([m['client_cpu_ms_per_log'] for m in one_all]):.0f} / "
+         f"{np.median([m['client_cpu_ms_per_log'] for m in two_all]):.0f} ms", "(reported)", ""),
         ("serial peer cost", f"{serial['s_per_flight_min']:.3f} s per flight-minute", "(reported)", ""),
         ("peak memory per worker (1 / 2 workers)", f"{max(one_all[0]['rss_MB'].values()):.0f} / "
          f"{', '.join(f'{v:.0f}' for v in two_all[0]['rss_MB'].values())} MB (max over runs {max(rss):.0f})",
@@ -212,6 +253,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--throughput-logs", type=int, default=60, help="logs timed with 1 and with 2 workers")
     ap.add_argument("--repeats", type=int, default=3, help="pairs of 1- and 2-worker runs")
     ap.add_argument("--no-score", action="store_true", help="skip the scored review of the whole fleet")
+    ap.add_argument("--quiet-idle", type=float, default=0.0,
+                    help="start each timed run once the machine is this idle (0..1; shared machines)")
+    ap.add_argument("--quiet-wait-s", type=float, default=300.0, help="... waiting at most this long")
     a = ap.parse_args(argv)
     fleet = a.fleet or Path(tempfile.gettempdir()) / f"magstation-fleet-{a.vehicles}x{a.flights}-s{a.seed}"
     truth, generated_s = ensure_fleet(fleet, a.vehicles, a.flights, a.seed)
@@ -221,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
     subset, warm_log = flights[: a.throughput_logs], flights[-1] if len(flights) > a.throughput_logs else None
     serial = serial_peer(flights[: a.serial_logs], truth)
     with tempfile.TemporaryDirectory() as tmp:
-        pairs = throughput(subset, warm_log, mapping, a.repeats, Path(tmp))
+        pairs = throughput(subset, warm_log, mapping, a.repeats, Path(tmp), (a.quiet_idle, a.quiet_wait_s))
         lines = [f"fleet: {len(truth['flights'])} flights + {len(truth['corrupt'])} damaged files"
                  + (f", generated in {generated_s:.0f} s" if generated_s else " (reused)"), ""]
         lines += table(throughput_rows(pairs, serial, len(subset)), "throughput (machine: "

@@ -41,7 +41,7 @@ from groundstation.jobs.inputs import field_reference, rounded
 from groundstation.samples import FlightLog
 
 __all__ = ["ReviewSettings", "REVIEW_CALIBRATE", "review_log", "file_hash", "vehicle_identity", "compass_row",
-           "ROW_VERSION"]
+           "alarm_fields", "ROW_VERSION"]
 
 ROW_VERSION = 3
 _UID_TEXT = re.compile(r"^\S+\s+([0-9A-Fa-f]{8}\s+[0-9A-Fa-f]{8}\s+[0-9A-Fa-f]{8})\s*$")
