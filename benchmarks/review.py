@@ -2,7 +2,7 @@
 throughput with 1 and 2 Dask workers measured in the same run.
 
     .venv/bin/python benchmarks/review.py                       # 20 vehicles × 50 flights (the target)
-    .venv/bin/python benchmarks/review.py --no-score            # throughput only (3 × (1, 2 workers) on 60 logs)
+    .venv/bin/python benchmarks/review.py --no-score            # throughput only (5 × (1, 2 workers) on 40 logs)
     .venv/bin/python benchmarks/review.py --vehicles 3 --flights 10 --max-logs 4 --serial-logs 1 \
         --throughput-logs 2 --repeats 1                         # smoke
 
@@ -11,11 +11,12 @@ The fleet (``groundstation.sim.fleet``) is generated once into ``--fleet DIR`` a
    calibrate` loops today), its in-flight fit (``jobs.calibrate``'s WMM fit with the review's
    settings) scored against the truth on flights without interference away from the anomaly site;
 2. throughput: ``--repeats`` pairs of reviews of the same first ``--throughput-logs`` flights with
-   1 and with 2 workers, the order alternating; each run a fresh LocalCluster and history, timed
-   after every worker has imported the job and reviewed one log outside the timed set (the same
-   warm-up on both sides); per run the rate, the share of CPU the jobs got (thread CPU time / wall
-   time: below 100 % when other processes compete for the cores) and the load average;
-3. unless ``--no-score``: the whole fleet with 2 workers, scored against the truth
+   1 and with 2 workers, back to back, the order alternating (1 2 | 2 1 | ...); a LocalCluster of
+   each size is started once, every worker imports the job and reviews one log outside the timed
+   set (the same warm-up on both sides), each run writes a fresh history; per run the rate, the
+   share of CPU the jobs got (thread CPU time / wall time: below 100 % when other processes compete
+   for the cores), how idle the machine was just before and the load average;
+3. unless ``--no-score``: the whole fleet on the 2-worker cluster, scored against the truth
    (``groundstation.sim.fleet_score``).
 Prints the tables: our figure, the target, the verdict; the machine is shared, so speed figures
 depend on what else runs: the load average is printed beside each timed run.
@@ -92,20 +93,22 @@ def ensure_fleet(directory: Path, vehicles: int, flights: int, seed: int) -> tup
     return truth, time.perf_counter() - t0
 
 
-def timed_review(logs: list[Path], workers: int, db: Path, mapping, warm_log: Path | None,
-                 quiet: tuple[float, float] = (0.0, 0.0)) -> tuple[object, dict]:
-    """One review of ``logs`` on a fresh LocalCluster of ``workers`` processes, timed after every worker
-    has imported the job and reviewed ``warm_log`` (imports and first-call costs left out of both runs)
-    and, with ``quiet`` = (idle share, max wait s), once the machine is that idle."""
-    with fleet_client(workers=workers) as (client, dashboard):
-        if warm_log is not None:
-            client.run(review_log, str(warm_log))
-        idle = wait_quiet(*quiet)
-        before = load_avg()
-        t0, c0 = time.perf_counter(), time.process_time()
-        summary = run_review(client, logs, db, airframes=mapping)
-        wall, client_cpu = time.perf_counter() - t0, time.process_time() - c0
-        after = load_avg()
+def _warm(client, warm_log: Path | None) -> None:
+    """Every worker imports the job and reviews one log outside the timed set (first-call costs)."""
+    if warm_log is not None:
+        client.run(review_log, str(warm_log))
+
+
+def timed_run(client, workers: int, logs: list[Path], db: Path, mapping,
+              quiet: tuple[float, float] = (0.0, 0.0)) -> tuple[object, dict]:
+    """One review of ``logs`` into a fresh history ``db`` on a warmed cluster, timed; with ``quiet`` =
+    (idle share, max wait s) started once the machine is that idle."""
+    idle = wait_quiet(*quiet)
+    before = load_avg()
+    t0, c0 = time.perf_counter(), time.process_time()
+    summary = run_review(client, logs, db, airframes=mapping)
+    wall, client_cpu = time.perf_counter() - t0, time.process_time() - c0
+    after = load_avg()
     with closing(fleet_db.connect(db, read_only=True)) as con:
         rows = fleet_db.flight_rows(con)
     per_worker: dict[str, float] = {}
@@ -123,17 +126,18 @@ def timed_review(logs: list[Path], workers: int, db: Path, mapping, warm_log: Pa
                      else float("nan")}
 
 
-def throughput(logs: list[Path], warm_log: Path | None, mapping, repeats: int, tmp: Path,
+def throughput(clients: dict, logs: list[Path], mapping, repeats: int, tmp: Path,
                quiet: tuple[float, float]) -> list[tuple[dict, dict]]:
-    """``repeats`` pairs of (1 worker, 2 workers) runs on the same logs, the order alternating
-    (1, 2), (2, 1), ... so that a change of the machine's load hits both sides alike."""
+    """``repeats`` pairs of (1 worker, 2 workers) runs on the same logs, on two warmed clusters that
+    stay up (the idle one costs < 2 % of a core), back to back in the order 1 2 | 2 1 | 1 2 ...,
+    so that a change of the shared machine's load hits both sides alike."""
     pairs = []
     for k in range(repeats):
         runs = {}
         for w in ((1, 2) if k % 2 == 0 else (2, 1)):
-            runs[w] = timed_review(logs, w, tmp / f"tp-{k}-{w}.sqlite", mapping, warm_log, quiet)[1]
-            print(f"repeat {k + 1}, {w} worker(s): {runs[w]['logs_per_s']:.3f} logs/s, load {runs[w]['load_before']}"
-                  f" -> {runs[w]['load_after']}", file=sys.stderr)
+            runs[w] = timed_run(clients[w], w, logs, tmp / f"tp-{k}-{w}.sqlite", mapping, quiet)[1]
+            print(f"repeat {k + 1}, {w} worker(s): {runs[w]['logs_per_s']:.3f} logs/s, load "
+                  f"{runs[w]['load_before']} -> {runs[w]['load_after']}", file=sys.stderr)
         pairs.append((runs[1], runs[2]))
     return pairs
 
@@ -186,8 +190,8 @@ def score_rows(score: dict, full: tuple) -> list[tuple[str, str, str, str]]:
         ("clean flights with an alarm", f"{i['false_alarm_flights']}/{i['clean_flights']}", "(reported)", ""),
         ("damaged files reported, run not stopped", f"{c['reported']}/{c['planted']}, {sf.progress.done} logs done",
          "all", verdict(c["reported"] == c["planted"] and sf.progress.left == 0)),
-        ("whole fleet, 2 workers", f"{mf['logs_per_s']:.2f} logs/s ({mf['wall_s']:.0f} s, load {mf['load_before']}"
-         f" -> {mf['load_after']})", "", ""),
+        ("whole fleet, 2 workers", f"{mf['logs_per_s']:.2f} logs/s ({mf['wall_s']:.0f} s; workers got "
+         f"{100 * mf['cpu_share']:.0f} % CPU; load {mf['load_before']} -> {mf['load_after']})", "", ""),
         ("fitted offsets error median / p90", f"{f['offset_error_median_mG']:.1f} / {f['offset_error_p90_mG']:.1f} mG",
          "(reported)", ""),
         ("motor field per A error, median", f"{100 * f['motor_rel_error_median']:.1f} %", "(reported)", ""),
@@ -250,8 +254,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fleet", type=Path, help="fleet folder (default: a temp folder per size, reused)")
     ap.add_argument("--serial-logs", type=int, default=20, help="logs in the no-Dask peer loop")
     ap.add_argument("--max-logs", type=int, help="review only the first N logs (smoke runs; findings then incomplete)")
-    ap.add_argument("--throughput-logs", type=int, default=60, help="logs timed with 1 and with 2 workers")
-    ap.add_argument("--repeats", type=int, default=3, help="pairs of 1- and 2-worker runs")
+    ap.add_argument("--throughput-logs", type=int, default=40, help="logs timed with 1 and with 2 workers")
+    ap.add_argument("--repeats", type=int, default=5, help="pairs of 1- and 2-worker runs")
     ap.add_argument("--no-score", action="store_true", help="skip the scored review of the whole fleet")
     ap.add_argument("--quiet-idle", type=float, default=0.0,
                     help="start each timed run once the machine is this idle (0..1; shared machines)")
@@ -264,15 +268,18 @@ def main(argv: list[str] | None = None) -> int:
     flights = [p for p in logs if p.name.startswith("flight-")]
     subset, warm_log = flights[: a.throughput_logs], flights[-1] if len(flights) > a.throughput_logs else None
     serial = serial_peer(flights[: a.serial_logs], truth)
-    with tempfile.TemporaryDirectory() as tmp:
-        pairs = throughput(subset, warm_log, mapping, a.repeats, Path(tmp), (a.quiet_idle, a.quiet_wait_s))
+    with tempfile.TemporaryDirectory() as tmp, fleet_client(workers=1) as (one, _), \
+            fleet_client(workers=2) as (two, _):
+        _warm(one, warm_log)
+        _warm(two, warm_log)
+        pairs = throughput({1: one, 2: two}, subset, mapping, a.repeats, Path(tmp), (a.quiet_idle, a.quiet_wait_s))
         lines = [f"fleet: {len(truth['flights'])} flights + {len(truth['corrupt'])} damaged files"
                  + (f", generated in {generated_s:.0f} s" if generated_s else " (reused)"), ""]
         lines += table(throughput_rows(pairs, serial, len(subset)), "throughput (machine: "
                        f"{os.cpu_count()} cores, shared; load average 1/5/15 min beside each run)")
         score = None
         if not a.no_score:
-            full = timed_review(logs, 2, Path(tmp) / "full.sqlite", mapping, warm_log)
+            full = timed_run(two, 2, logs, Path(tmp) / "full.sqlite", mapping)
             with closing(fleet_db.connect(Path(tmp) / "full.sqlite", read_only=True)) as con:
                 alerts = fleet_db.alert_rows(con)
             score = score_review(truth, full[1]["rows"], alerts)
