@@ -79,7 +79,8 @@ def _print_summary(summary, out: Path) -> None:
     print(f"reviewed {p.done} logs ({p.failed} failed), skipped {p.skipped} already in the history, "
           f"{p.elapsed_s:.1f} s on {summary.workers} workers ({p.rate_per_s:.2f} logs/s)")
     if minutes > 0:
-        print(f"per-log cost {summary.log_seconds / minutes:.3f} s per flight-minute; "
+        print(f"per-log cost {summary.log_seconds / minutes:.3f} s per flight-minute on the workers "
+              f"({summary.log_cpu_seconds / minutes:.3f} s of CPU); "
               f"peak worker memory {summary.peak_worker_rss_MB or 0:.0f} MB")
     for f in summary.failures[:20]:
         print(f"  {f['status']}: {f['error']}")

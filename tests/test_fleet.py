@@ -20,8 +20,9 @@ from groundstation.io import fleet_db
 from groundstation.jobs.airframes import load_airframes, resolve_airframe
 from groundstation.jobs.compass_history import DriftSettings, analyse_fleet, record_calibration, refresh_alerts
 from groundstation.jobs.fleet import discover_logs, run_job_with_timeout
-from groundstation.jobs.review_row import review_log
+from groundstation.jobs.review_row import ROW_VERSION, alarm_fields, review_log
 from groundstation.sim.fleet import FleetSettings, Site, plan_fleet, write_flight
+from groundstation.sim.fleet_score import score_review
 from groundstation.station.routers import fleet as fleet_router
 
 from conftest import SHARED_DATA
@@ -92,7 +93,7 @@ def test_review_row_fields(one_flight):
     assert abs(r["duration_s"] - truth["duration_s"]) < 0.1 and r["mag_rate_hz"] == pytest.approx(50.0, abs=0.5)
     assert r["date"].startswith("2026-01-0") and abs(r["lat_deg"] - 30.26) < 0.01
     assert abs(r["strength_resid_mG"]) < 60 and r["wmm_strength_mG"] == pytest.approx(489, abs=3)
-    assert len(r["log_hash"]) == 64 and r["review_s"] > 0 and r["row_version"] == 2
+    assert len(r["log_hash"]) == 64 and r["review_s"] > 0 and r["row_version"] == ROW_VERSION
     assert r["fit_model"] == "yaw_free" and r["compass_source"] and r["fit_heading_coverage"] > 0.9
 
 
@@ -114,6 +115,35 @@ def test_review_row_skips_known_hash(one_flight):
     (first,) = review_log(path)
     (again,) = review_log(path, skip_hashes={first["log_hash"]})
     assert again == {"log_hash": first["log_hash"], "path": str(path), "status": "skipped"}
+
+
+def test_every_combined_alarm_is_kept_and_an_event_after_an_earlier_alarm_is_found():
+    """An earlier alarm of the flight (37.8 s) must not hide the interference event's own (54.5 s):
+    the row keeps every combined alarm, the scorer looks at all of them (AF-07/flight-039 of the
+    20 × 50 fleet was missed when only the first alarm was kept)."""
+    report = {"first_alarm_s": 37.76, "alarms": [
+        {"kind": "path_deviation", "start_s": 34.72, "end_s": 37.9},
+        {"kind": "combined", "start_s": 37.76, "end_s": 39.9, "evidence": ["path_deviation"]},
+        {"kind": "combined", "start_s": 54.54, "end_s": None, "evidence": ["heading_difference", "field_anomaly"]}]}
+    fields = alarm_fields(report)
+    assert fields["alarm_count"] == 2 and fields["first_alarm_s"] == 37.76
+    assert json.loads(fields["alarm_intervals_s"]) == [[37.76, 39.9, "path_deviation"],
+                                                       [54.54, None, "heading_difference+field_anomaly"]]
+    row = dict(fleet_db.empty_row(), path="/fleet/AF-07/flight-039.tlog", status="ok", **fields)
+    truth = {"vehicles": [], "sites": [], "corrupt": [], "flights": [
+        {"file": "AF-07/flight-039.tlog", "site": "river", "interference": {"onset_s": 52.58, "end_s": 68.58}}]}
+    found = score_review(truth, [row], [])["interference"]
+    assert (found["found"], found["median_delay_s"]) == (1, pytest.approx(1.96))
+    first_only = dict(row, alarm_intervals_s=None)                 # a row of the older job: first alarm only
+    assert score_review(truth, [first_only], [])["interference"]["missed"] == ["AF-07/flight-039.tlog"]
+
+
+def test_rows_of_an_older_job_version_are_reviewed_again(tmp_path):
+    with closing(fleet_db.connect(tmp_path / "h.sqlite")) as con:
+        fleet_db.upsert_rows(con, [dict(fleet_db.empty_row(), log_hash=h, compass=0, status="ok", path=h, row_version=v)
+                                   for h, v in (("old", ROW_VERSION - 1), ("new", ROW_VERSION), ("none", None))])
+        assert set(fleet_db.known_hashes(con, only_ok=True)) == {"old", "new", "none"}
+        assert set(fleet_db.known_hashes(con, only_ok=True, min_row_version=ROW_VERSION)) == {"new"}
 
 
 @pytest.mark.skipif(not (SHARED_DATA / "px4-pyulog" / "sample.ulg").exists(), reason="shared data missing")

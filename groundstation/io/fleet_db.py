@@ -57,12 +57,14 @@ ROW_COLUMNS: tuple[tuple[str, str], ...] = tuple([
     ("wmm_strength_mG", "REAL"), ("wmm_inclination_deg", "REAL"), ("wmm_declination_deg", "REAL"),
     ("strength_resid_mG", "REAL"), ("inclination_resid_deg", "REAL"),
     ("alarm_count", "INTEGER"), ("alarm_kinds", "TEXT"), ("first_alarm_s", "REAL"), ("alarm_evidence", "TEXT"),
+    ("alarm_intervals_s", "TEXT"),
     ("heading_vs_autopilot_rms_deg", "REAL"), ("heading_vs_autopilot_max_deg", "REAL"), ("compass_spread_deg", "REAL"),
     ("max_cross_track_m", "REAL"), ("rtk", "INTEGER"),
     ("mag_rate_hz", "REAL"), ("imu_rate_hz", "REAL"), ("att_rate_hz", "REAL"), ("gps_rate_hz", "REAL"),
     ("max_gap_s", "REAL"), ("corrupt_packets", "INTEGER"), ("warnings", "TEXT"),
     ("ellipsoid_status", "TEXT"), *_vec("ellipsoid_ofs", "mG"),
-    ("review_s", "REAL"), ("worker_peak_rss_MB", "REAL"), ("worker", "TEXT"), ("reviewed_unix_s", "REAL"),
+    ("review_s", "REAL"), ("review_cpu_s", "REAL"), ("worker_peak_rss_MB", "REAL"), ("worker", "TEXT"),
+    ("reviewed_unix_s", "REAL"),
     ("row_version", "INTEGER"),
 ])
 ROW_NAMES = tuple(n for n, _ in ROW_COLUMNS)
@@ -118,6 +120,7 @@ def _create(con: sqlite3.Connection) -> None:
     cols = ", ".join(f'"{n}" {t}' for n, t in ROW_COLUMNS)
     con.execute(f"CREATE TABLE IF NOT EXISTS flights ({cols}, PRIMARY KEY (log_hash, compass))")
     con.execute("CREATE INDEX IF NOT EXISTS flights_airframe ON flights (airframe, start_unix_s)")
+    con.execute("CREATE INDEX IF NOT EXISTS flights_path ON flights (path)")   # upsert drops a path's failure rows
     con.execute(f"CREATE TABLE IF NOT EXISTS calibrations ({', '.join(f'{n} {t}' for n, t in CALIBRATION_COLUMNS)})")
     for table, spec in (("alerts", ALERT_COLUMNS), ("sites", SITE_COLUMNS)):   # derived: rebuilt when the spec changed
         have = [r[1] for r in con.execute(f"PRAGMA table_info({table})")]
@@ -167,10 +170,15 @@ def upsert_rows(con: sqlite3.Connection, rows: Iterable[dict]) -> int:
     return len(data)
 
 
-def known_hashes(con: sqlite3.Connection, only_ok: bool = False) -> dict[str, tuple[str, int]]:
-    """log hash -> (path, file bytes) of every reviewed log (``only_ok``: those that did not fail)."""
-    where = " WHERE status NOT IN ('error', 'timeout')" if only_ok else ""
-    return {r[0]: (r[1], r[2]) for r in con.execute(f"SELECT log_hash, path, file_bytes FROM flights{where}")}
+def known_hashes(con: sqlite3.Connection, only_ok: bool = False,
+                 min_row_version: int | None = None) -> dict[str, tuple[str, int]]:
+    """log hash -> (path, file bytes) of every reviewed log (``only_ok``: those that did not fail;
+    ``min_row_version``: rows written by that version of the per-log job or a later one)."""
+    where = ["status NOT IN ('error', 'timeout')"] if only_ok else []
+    if min_row_version is not None:
+        where.append(f"COALESCE(row_version, 0) >= {int(min_row_version)}")
+    sql = "SELECT log_hash, path, file_bytes FROM flights" + (" WHERE " + " AND ".join(where) if where else "")
+    return {r[0]: (r[1], r[2]) for r in con.execute(sql)}
 
 
 def flight_rows(con: sqlite3.Connection, airframe: str | None = None, limit: int | None = None,

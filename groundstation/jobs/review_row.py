@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import hashlib
+import json
 import os
 import re
 import time
@@ -40,9 +41,9 @@ from groundstation.jobs.inputs import field_reference, rounded
 from groundstation.samples import FlightLog
 
 __all__ = ["ReviewSettings", "REVIEW_CALIBRATE", "review_log", "file_hash", "vehicle_identity", "compass_row",
-           "ROW_VERSION"]
+           "alarm_fields", "ROW_VERSION"]
 
-ROW_VERSION = 2
+ROW_VERSION = 3
 _UID_TEXT = re.compile(r"^\S+\s+([0-9A-Fa-f]{8}\s+[0-9A-Fa-f]{8}\s+[0-9A-Fa-f]{8})\s*$")
 
 # The calibrate job as the review runs it: the in-flight WMM fit estimates the offsets (and the motor
@@ -76,7 +77,7 @@ def review_log(path: str | os.PathLike, settings: ReviewSettings = ReviewSetting
                skip_hashes: frozenset[str] | set[str] = frozenset()) -> list[dict]:
     """Review one log: a list of rows (one per compass; one row with ``status`` "error" when the log
     cannot be read, "skipped" when its hash is in ``skip_hashes``).  Never raises."""
-    t0 = time.perf_counter()
+    t0 = (time.perf_counter(), time.thread_time())
     path = Path(path)
     row = empty_row()
     row.update(path=str(path), file_name=path.name, compass=0, row_version=ROW_VERSION, reviewed_unix_s=time.time())
@@ -100,9 +101,11 @@ def review_log(path: str | os.PathLike, settings: ReviewSettings = ReviewSetting
     return [_finish(r, t0) for r in rows]
 
 
-def _finish(row: dict, t0: float) -> dict:
-    """Runtime fields added; numpy scalars made plain Python (SQLite, pickling, Parquet)."""
-    row["review_s"] = round(time.perf_counter() - t0, 4)
+def _finish(row: dict, t0: tuple[float, float]) -> dict:
+    """Runtime fields added (wall time and this thread's CPU time since ``t0``: their ratio shows
+    how much CPU the worker got); numpy scalars made plain Python (SQLite, pickling, Parquet)."""
+    row["review_s"] = round(time.perf_counter() - t0[0], 4)
+    row["review_cpu_s"] = round(time.thread_time() - t0[1], 4)
     row["worker_peak_rss_MB"] = _peak_rss_MB()
     return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in row.items()}
 
@@ -167,13 +170,17 @@ def _log_rows(log: FlightLog, path: Path, row: dict, settings: ReviewSettings) -
 
 
 def alarm_fields(report: dict) -> dict:
-    """Combined alarms (count, first time, evidence) and the kinds of test that fired."""
+    """Combined alarms (count, first time, every interval, evidence) and the kinds of test that fired.
+    ``alarm_intervals_s`` is JSON ``[[start_s, end_s or null, "evidence+..."], ...]``: the first alarm
+    alone would hide an interference event that follows an earlier alarm of the same flight."""
     alarms = report.get("alarms") or []
     combined = [a for a in alarms if a["kind"] == "combined"]
     kinds = sorted({a["kind"] for a in alarms if a["kind"] != "combined"})
     evidence = sorted({e for a in combined for e in a.get("evidence", [])})
+    intervals = [[a.get("start_s"), a.get("end_s"), "+".join(a.get("evidence", []))] for a in combined]
     return {"alarm_count": len(combined), "alarm_kinds": ",".join(kinds) or None,
-            "first_alarm_s": report.get("first_alarm_s"), "alarm_evidence": ",".join(evidence) or None}
+            "first_alarm_s": report.get("first_alarm_s"), "alarm_evidence": ",".join(evidence) or None,
+            "alarm_intervals_s": json.dumps(intervals) if intervals else None}
 
 
 # ------------------------------------------------------------------------------ per compass

@@ -5,11 +5,12 @@ alerts; airframes are matched by name (the mapping file's) or by their ``serial:
 Found means: every drifting airframe has an ``offset_drift`` alert and no steady airframe has one;
 the payload airframe a ``payload_change`` alert within ``payload_tolerance_flights`` of the true
 flight; every anomaly site an ``anomaly_site`` alert within ``site_tolerance_km``; every planted
-interference event a combined alarm in its log starting between 2 s before the onset and 10 s after
-the end; every damaged file a row that says so ("error", or read with warnings).
+interference event a combined alarm in its log (any of them: ``alarm_intervals_s``) starting between
+2 s before the onset and 10 s after the end; every damaged file a row that says so ("error", or read with warnings).
 """
 from __future__ import annotations
 
+import json
 import math
 from pathlib import PurePath
 
@@ -78,6 +79,14 @@ def _sites(truth: dict, alerts: list[dict], tolerance_km: float) -> dict:
             "false": [a["site"] for a in found_sites if not any(near(a, s) for s in planted)]}
 
 
+def _alarm_starts(row: dict) -> list[float]:
+    """Start times of every combined alarm of the row (``alarm_intervals_s``; rows written before
+    that column: the first alarm only)."""
+    if row.get("alarm_intervals_s"):
+        return [float(a[0]) for a in json.loads(row["alarm_intervals_s"]) if a[0] is not None]
+    return [float(row["first_alarm_s"])] if row.get("alarm_count") and row.get("first_alarm_s") is not None else []
+
+
 def _interference(truth: dict, by_file: dict) -> dict:
     planted, found, missed, delays = 0, 0, [], []
     false_flights, clean = 0, 0
@@ -87,10 +96,10 @@ def _interference(truth: dict, by_file: dict) -> dict:
         if f["interference"]:
             planted += 1
             i = f["interference"]
-            first = (row or {}).get("first_alarm_s")
-            if alarms and first is not None and i["onset_s"] - 2.0 <= first <= i["end_s"] + 10.0:
+            starts = [t for t in _alarm_starts(row or {}) if i["onset_s"] - 2.0 <= t <= i["end_s"] + 10.0]
+            if starts:
                 found += 1
-                delays.append(first - i["onset_s"])
+                delays.append(starts[0] - i["onset_s"])
             else:
                 missed.append(f["file"])
         elif row is not None:
