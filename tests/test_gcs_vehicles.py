@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import time
 
+from collections import Counter
+
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -161,7 +163,8 @@ def test_two_vehicles_each_followed_in_turn_equals_each_alone(tmp_path, sims):
     assert any("following vehicle 2" in e["text"] for e in second["snapshot"]["events"])
     # from the switch on vehicle 2's samples, none of vehicle 1
     alone2, got2 = sensor_values(out["alone2"]["samples"]), sensor_values(second["samples"])
-    assert len(got2) > 0.8 * len(alone2) and got2 == alone2[-len(got2):]
+    # (as multisets: a datagram lost by either hub on a loaded machine must not shift the rest)
+    assert len(got2) > 0.8 * len(alone2) and not Counter(got2) - Counter(alone2)
     h = second["rows"][:, COL["heading_deg"]]
     h2 = headings(out["alone2"]["rows"], len(h))
     ok = np.isfinite(h) & np.isfinite(h2)
