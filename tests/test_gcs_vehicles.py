@@ -3,7 +3,6 @@ no sample of the other enters the estimates, and its outputs equal those of the 
 from __future__ import annotations
 
 import time
-
 from collections import Counter
 
 import numpy as np
