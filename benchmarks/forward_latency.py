@@ -100,7 +100,7 @@ tlog = hub.sources.recording_path
 hub.close()
 print(json.dumps({"rx": snap["rx_count"], "to_vehicle": snap["vehicles"]["forwarding"]["to_vehicle"],
                   "cpu_pct": 100 * (cpu1 - cpu0) / (wall1 - wall0), "relay_cpu_pct": 100 * (relay1 - relay0) / (wall1 - wall0),
-                  "tlog": str(tlog)}), flush=True)
+                  "tlog": str(tlog) if tlog else None}), flush=True)
 """
 
 
@@ -257,7 +257,8 @@ def run(seconds: float, mode: str, mavproxy: Path | None = None) -> dict:
     n = min(len(fwd), len(ref))
     in_order = [p for p, _ in fwd[:n]] == [p for p, _ in ref[:n]]
     added_ms = np.array([(f[1] - r[1]) * 1e3 for f, r in zip(fwd[:n], ref[:n])])
-    station_seen = tlog_times(Path(stats["tlog"])) if stats["tlog"] else {}
+    # no recording yet: the station was too busy to open it within the run (its copy is shown "-")
+    station_seen = tlog_times(Path(stats["tlog"])) if stats["tlog"] and Path(stats["tlog"]).exists() else {}
     station_ms = np.array([(station_seen[p] - t) * 1e3 for p, t in ref if p in station_seen])
     commands = sum(1 for cmd, _ in fv.commands if cmd == GCS_COMMAND)
     return {"mode": mode, "sent": sum(fv.delivered.values()), "arrived": len(fwd), "direct": len(ref),

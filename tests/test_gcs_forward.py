@@ -185,9 +185,11 @@ def test_forward_latency_benchmark_quick_with_the_station_busy():
                          capture_output=True, text=True, timeout=180)
     assert out.returncode == 0, out.stderr[-2000:]
     assert re.search(r"^  met     every packet both ways, in order", out.stdout, re.M), out.stdout
-    row = re.search(r"^  MagStation \(hog\) .*\|\s+(-?[\d.]+)\s+(-?[\d.]+)\s+[\d.]+ \|\s+(-?[\d.]+)\s+(-?[\d.]+)\s+[\d.]+ \|",
+    row = re.search(r"^  MagStation \(hog\) .*\|\s+(-?[\d.]+)\s+(-?[\d.]+)\s+[\d.]+ \|\s+(-?[\d.]+|-)\s+(-?[\d.]+|-)\s+\S+ \|",
                     out.stdout, re.M)
     assert row, out.stdout
-    fwd_p50, fwd_p99, station_p50, _ = (float(v) for v in row.groups())
+    # "-": the busy station had not even opened its recording within the run (seen at load 2 in
+    # the full suite): its copy is later than any packet forwarded
+    fwd_p50, fwd_p99, station_p50, _ = (float("inf") if v == "-" else float(v) for v in row.groups())
     assert station_p50 > 20.0, out.stdout           # the station's process really was busy
     assert fwd_p50 < 5.0 and fwd_p99 < station_p50 / 2, out.stdout
