@@ -70,7 +70,7 @@ class FieldConsistencySettings:
     """One default for every vehicle; units in the names."""
     learn_s: float = 20.0               # data time before the test is armed (field, offset, noise learned)
     offset_learn_fast_s: float = 2.0    # LMS time constant of the body offset b while learning
-    offset_learn_s: float = 60.0        # ... and afterwards
+    offset_learn_s: float = 20.0        # ... and afterwards
     field_learn_ratio: float = 10.0     # the Earth field h learns this many times slower than b
     turn_deg: float = 45.0              # the first turn this far from the learning heading ...
     turn_learn_s: float = 10.0
