@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import DANCE_TRUTH, free_udp_port, rotation_dance_messages
+from conftest import DANCE_TRUTH, free_udp_port, rotation_dance_messages, wait_until
 from groundstation.sim.fake_vehicle import FakeVehicle, compress_time
 from groundstation.io.decode import MavlinkDecoder
 from groundstation.io.logs import read_log
@@ -19,13 +19,8 @@ from groundstation.io.link import validate_connection_string
 from groundstation.station.hub.session import Session, SessionError
 
 
-def wait_for(cond, timeout=10.0, step=0.05):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(step)
-    return False
+def wait_for(cond, timeout=10.0) -> bool:
+    return wait_until(cond, timeout, 0.05)
 
 
 def feed(session: Session, messages) -> None:
