@@ -41,10 +41,9 @@ def _current_field(log: FlightLog, x: dict) -> tuple[CurrentFieldFit | None, np.
     if not len(battery) or not len(mag_cal) or not len(chain.t_s) or x["policy"].correction == "none":
         return None, np.zeros(0), "no battery current in the log" if not len(battery) else "no field"
     current = hold_last(battery[:, 0], battery[:, 1:2], mag_cal[:, 0], CURRENT_TIMEOUT_S)[:, 0]
-    t = chain.t_s
-    k = np.clip(np.searchsorted(t, mag_cal[:, 0], side="right") - 1, 0, len(t) - 1)
-    ok = np.asarray(chain.valid, bool)[k] & (mag_cal[:, 0] >= t[0])
-    return fit_current_field(mag_cal[ok, 1:4], current[ok], chain.roll_rad[k[ok]], chain.pitch_rad[k[ok]]), current, ""
+    valid = np.asarray(chain.valid, bool)[:, None]
+    tilt = hold_last(chain.t_s, np.where(valid, np.c_[chain.roll_rad, chain.pitch_rad], np.nan), mag_cal[:, 0], np.inf)
+    return fit_current_field(mag_cal[:, 1:4], current, tilt[:, 0], tilt[:, 1]), current, ""
 
 
 def attitude_chain(log: FlightLog, field: np.ndarray, declination_deg: float) -> HeadingChainResult:
