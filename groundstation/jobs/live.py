@@ -200,7 +200,7 @@ class LiveAnalyzer:
     def _motor_at(self, t: float) -> float:
         """The motor signal (``motor_signal_table``'s rule on what has arrived: a current that
         varies, else throttle %)."""
-        if self._current_range[1] - self._current_range[0] > 0.5:
+        if self.motor_signal == "current_A":
             return float(self._current.at(t)[0, 0])
         return float(self._throttle.at(t)[0, 0])
 
