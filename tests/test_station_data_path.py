@@ -71,10 +71,6 @@ def _demo_interference_s() -> tuple[float, float]:
             mission["log_offset_s"] + mission["interference"]["end_s"])
 
 
-def report_motor_removed(report: dict) -> bool:
-    return bool((report.get("motor_field") or {}).get("removed_from_heading"))
-
-
 def _same_alarms(a: list[dict], b: list[dict], tol_s: float = 0.5) -> None:
     assert len(a) == len(b), (a, b)
     for x, y in zip(a, b):
@@ -108,7 +104,7 @@ def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
         np.testing.assert_allclose(live_rows[:, COL[name]], batch_rows[:, COL[name]], atol=1e-6, err_msg=name)
     # the page shows the default AHRS, analyze's best estimate wherever neither the INS/GPS filter
     # nor a motor-current field changes it (issue 12), not the detector's faster heading reference
-    assert not report_motor_removed(report)
+    assert not report["motor_field"]["removed_from_heading"]
     plain = columns["ins_mode"] == ""
     np.testing.assert_allclose(live_rows[plain, COL["roll_deg"]], columns["roll_deg"][plain], atol=1e-6)
     detector_roll = np.where(batch.x["chain"].valid, np.degrees(batch.x["chain"].roll_rad), np.nan)
