@@ -83,3 +83,15 @@ def test_detection_benchmark_quick(tmp_path):
     ends = re.findall(r"^  fast .* end\s+([\d.-]+)\s+([\d.-]+)\s+0 ", out, re.M)
     assert len(ends) == 4 and float(ends[-1][1]) <= 5.0, out     # the default's alarm ends with the disturbance
     assert png.exists() and png.stat().st_size > 1000
+
+
+def test_alarm_kinds_benchmark_quick():
+    """benchmarks/alarm_kinds.py --quick: seed 0's payload and anomaly flights, each alarm counted
+    against the kind the simulator planted (the full run: every scenario over 10 seeds)."""
+    out = _run("benchmarks/alarm_kinds.py", "--quick")
+    rows = dict(re.findall(r"^\| (mission-\w+) \| [^|]+ \| (\d+ \| \d+) \|", out, re.M))
+    assert set(rows) == {"mission-payload", "mission-anomaly"}, out
+    for alarms_right in rows.values():
+        alarms, right = map(int, alarms_right.split(" | "))
+        assert alarms >= 1 and right == alarms, out
+    assert "within 15 m: met" in out, out

@@ -16,7 +16,7 @@ def test_motor_mission_streams_a_current_varying_by_more_than_8_A_and_its_field(
     assert hi - lo >= 8.0 and sim.truth["mag"]["payload_current_A"] == 10.0
     assert sim.truth["interference"]["onset_s"] is None
     # the payload's field is on the sensor: the same flight without it differs by A (c ΔI)
-    plain = simulate("mission-motor", 3, duration_s=80.0, payload_current_A=0.0).result
+    plain = simulate("mission-motor", 3, duration_s=80.0, payload=None).result
     r = sim.result
     diff = r.mag_raw_mG - plain.mag_raw_mG
     extra = r.motor_current_A - plain.motor_current_A

@@ -10,15 +10,14 @@ from __future__ import annotations
 
 import json
 import time
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from conftest import SHARED_DATA
-from groundstation.io.decode import MavlinkDecoder
-from groundstation.io.logs import read_log, tlog_records
+from live_path import live_alarms_and_rows
+from groundstation.io.logs import read_log
 from groundstation.jobs.analyze import analyze_flight, analyze_log
 from groundstation.jobs.inputs import heading_deg
 from groundstation.jobs.live import ReorderBuffer
@@ -40,28 +39,6 @@ def _replay_to_end(path: Path, tmp_path: Path) -> tuple[Session, list[dict]]:
     session.replay_pause(True)
     session.replay_seek(session.replay.duration_s)
     return session, session.alarm_list()
-
-
-def _live(path: Path, tmp_path: Path, calibration: dict | None, line: dict | None) -> tuple[list[dict], np.ndarray]:
-    """The tlog's packets in file order through the live path (decoder as the link uses it):
-    the alarms and the flight record rows."""
-    session = Session(tmp_path / "live", record_live=False)
-    with session._lock:
-        session.flight.new_source(None)
-        session.flight.set_calibration(calibration)
-        session.flight.set_line(line)
-    dec = MavlinkDecoder()
-    t0 = None
-    batch = []
-    for unix, msg in tlog_records(path.read_bytes(), Counter()):
-        t0 = unix if t0 is None else t0
-        batch += dec.decode(msg, unix - t0)
-        if len(batch) > 200:
-            with session._lock:
-                session.process_batch(batch)     # the worker's call: samples wait in time order
-            batch = []
-    session.feed(batch)
-    return session.alarm_list(), session.flight.rows().copy()
 
 
 def _demo_interference_s() -> tuple[float, float]:
@@ -87,7 +64,7 @@ def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
     report, columns = session.analysis()               # GET /api/analysis: analyze_log, same settings
     session.close()
     analyzed = [a for a in report["alarms"] if a["kind"] == "combined"]
-    live, live_rows = _live(path, tmp_path, calibration, line)
+    live, live_rows = live_alarms_and_rows(path, tmp_path / "live", calibration, line)
     _same_alarms(replayed, analyzed)
     _same_alarms(live, analyzed)
     # row by row, the live record is the batch record (the declination of the true headings is

@@ -1,7 +1,7 @@
 """Alarm explanations from per-step arrays, the same for analyze, replay and a live link.
 
 ``explain_span(steps, start_s, end_s)`` runs ``estimators.detection_explain.explain_alarm`` on
-the steps of one alarm (and the ``lead_s`` before it): steps is a dict of equal-length arrays
+the steps of one alarm (and the ``shape_s`` before it): steps is a dict of equal-length arrays
 (``STEP_KEYS``: t_s, the field-vector test's residual r̄ [mG, body], the motor signal, the held
 GPS lat/lon [deg] and the four test scores).  North/east are metres from the first fix inside
 that window, so a live history that has dropped its oldest steps explains an alarm exactly as the
@@ -29,7 +29,7 @@ def explain_span(steps: dict, start_s: float, end_s: float | None,
     t = np.asarray(steps["t_s"], dtype=float)
     if not len(t) or t[-1] < start_s:
         return None
-    lo = int(np.searchsorted(t, start_s - s.lead_s - 1e-6))
+    lo = int(np.searchsorted(t, start_s - max(s.lead_s, s.shape_s) - 1e-6))
     hi = len(t) if end_s is None else int(min(np.searchsorted(t, end_s + 1e-6, side="right"), len(t)))
     w = {k: np.asarray(steps[k], dtype=float)[lo:hi] for k in STEP_KEYS}
     tw = w["t_s"]

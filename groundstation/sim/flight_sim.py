@@ -31,10 +31,12 @@ from estimators.detection import lla_from_ned, ned_from_lla  # noqa: F401  (re-e
 from estimators.heading import tilt_compensated_heading_rad
 from estimators.rotations import dcm_body_to_ned, euler_from_dcm, wrap_angle_rad
 
+from groundstation.sim.disturbances import (GroundAnomaly, Interference, PayloadLoad, anomaly_field_body_mG,
+                                             payload_current_A, payload_field_body_mG)
 from groundstation.sim.mission_loop import G, MissionLoop, wrap_pi as _wrap
 
 
-__all__ = ["Interference", "MagModel", "SimConfig", "SimResult", "run", "ned_from_lla", "lla_from_ned",
+__all__ = ["Interference", "PayloadLoad", "GroundAnomaly", "MagModel", "SimConfig", "SimResult", "run", "ned_from_lla", "lla_from_ned",
            "G"]
 
 
@@ -63,52 +65,6 @@ def _gauss_markov(rng: np.random.Generator, n: int, dt: float, sigma: float, tau
 
 
 # --------------------------------------------------------------------------- models
-@dataclass
-class Interference:
-    """External field added on the magnetometer's sensor axes [mG].
-
-    kind: "none" | "ramp" (rise at rate_mG_s for rise_s, hold hold_s, fall at the same rate)
-          | "bump" (smooth rise-then-fall, peak amplitude_mG over duration_s, seed 002 sim.)
-          | "step" (amplitude_mG from onset for duration_s).
-    axis: unit vector in the sensor frame (seed 002 flight tests: +Y).
-    """
-    kind: str = "none"
-    onset_s: float = 60.0
-    axis: tuple[float, float, float] = (0.0, 1.0, 0.0)
-    rate_mG_s: float = 0.0
-    rise_s: float = 20.0
-    hold_s: float = 10.0
-    amplitude_mG: float = 0.0
-    duration_s: float = 30.0
-
-    @property
-    def end_s(self) -> float | None:
-        if self.kind == "none":
-            return None
-        if self.kind == "ramp":
-            return self.onset_s + 2 * self.rise_s + self.hold_s
-        return self.onset_s + self.duration_s
-
-    def magnitude_mG(self, t_s: np.ndarray) -> np.ndarray:
-        t = np.asarray(t_s, dtype=float) - self.onset_s
-        if self.kind == "ramp":
-            peak = self.rate_mG_s * self.rise_s
-            up = np.clip(t, 0, self.rise_s) * self.rate_mG_s
-            down = np.clip(t - self.rise_s - self.hold_s, 0, self.rise_s) * self.rate_mG_s
-            return np.where(t > 0, np.minimum(up, peak) - down, 0.0)
-        if self.kind == "bump":
-            x = np.clip(t / self.duration_s, 0, 1)
-            return self.amplitude_mG * np.sin(np.pi * x) ** 2
-        if self.kind == "step":
-            return np.where((t >= 0) & (t < self.duration_s), self.amplitude_mG, 0.0)
-        return np.zeros_like(t)
-
-    def field_sensor_mG(self, t_s: np.ndarray) -> np.ndarray:
-        ax = np.asarray(self.axis, dtype=float)
-        ax = ax / np.linalg.norm(ax)
-        return self.magnitude_mG(t_s)[:, None] * ax[None, :]
-
-
 @dataclass
 class MagModel:
     """m_raw = A (m_body + c·I) + b + interference + noise (issue 3 model; seed 004)."""
@@ -153,8 +109,8 @@ class SimConfig:
     accel_noise_mps2: float = 0.15
     rtk: bool = True
     gps_outage: tuple[float, float] | None = None
-    payload_current_A: float = 0.0        # a payload switched on and off: extra current (square wave) ...
-    payload_period_s: float = 20.0        # ... with this period, from the end of the hover
+    payload: PayloadLoad | None = None    # a payload switched on and off (its current and field)
+    anomaly: GroundAnomaly | None = None  # a magnetised mass on the ground (a field tied to a place)
     # mission
     leg_bearing_deg: float = 30.0
     leg_length_m: float = 400.0
@@ -382,16 +338,22 @@ def _run_static(cfg: SimConfig, rng) -> SimResult:
                      np.full(n, np.nan), None, events)
 
 
-def _add_payload_current(cfg: SimConfig, t: np.ndarray, current_A: np.ndarray, mag_raw_mG: np.ndarray) -> None:
-    """A payload's current (on for half of each ``payload_period_s`` after the hover) joins the
-    motor current in the same wires: its field, c·ΔI in the body frame, goes through the sensor
-    model A like the motor field (in place).  The autopilot's heading filter does not see it."""
-    if cfg.payload_current_A == 0.0:
-        return
-    on = (t >= cfg.hover_s) & (np.mod(t - cfg.hover_s, cfg.payload_period_s) < 0.5 * cfg.payload_period_s)
-    extra = np.where(on, cfg.payload_current_A, 0.0)
-    current_A += extra
-    mag_raw_mG += (extra[:, None] * np.asarray(cfg.mag.motor_mG_per_A)[None, :]) @ cfg.mag.matrix.T
+def _add_after_loop(cfg: SimConfig, res_t: np.ndarray, current_A: np.ndarray, mag_raw_mG: np.ndarray,
+                    interf_mG: np.ndarray, pos_ned_m: np.ndarray, att_true: np.ndarray) -> None:
+    """The payload's current and field and the ground anomaly's field, in place (``disturbances``):
+    the body fields go through the sensor model A like the motor field.  A payload on its own lead
+    and the anomaly count as interference (``interf_mG``, sensor frame); a payload in the motor
+    wires does not (its field is the motor's c·ΔI)."""
+    extra_body = np.zeros_like(mag_raw_mG)
+    foreign_body = np.zeros_like(mag_raw_mG)
+    if cfg.payload is not None and cfg.payload.current_A:
+        current_A += payload_current_A(cfg.payload, res_t)
+        f = payload_field_body_mG(cfg.payload, res_t, cfg.mag.motor_mG_per_A)
+        (extra_body if cfg.payload.mG_per_A is None else foreign_body)[:] += f
+    if cfg.anomaly is not None:
+        foreign_body += anomaly_field_body_mG(cfg.anomaly, pos_ned_m, att_true[:, 0], att_true[:, 1], att_true[:, 2])
+    mag_raw_mG += (extra_body + foreign_body) @ cfg.mag.matrix.T
+    interf_mG += foreign_body @ cfg.mag.matrix.T
 
 
 def _mission_profile(cfg: SimConfig):
@@ -465,8 +427,9 @@ def _run_mission(cfg: SimConfig, rng) -> SimResult:
               "u": (float(u[0]), float(u[1]))}
     loop = MissionLoop(cfg, inputs, n).run()
     out, out_att = loop.out, loop.out_att
-    _add_payload_current(cfg, t, loop.current, out["mag"])
     pos, vel = out["pos"], out["vel"]
+    interf = interf.copy()
+    _add_after_loop(cfg, t, loop.current, out["mag"], interf, pos, out_att)
     d = np.abs(pos[:, 0] * u[1] - pos[:, 1] * u[0])          # distance from the line through A = origin
     gpos = pos[gps_idx] + gerr
     gvel = vel[gps_idx] + gverr

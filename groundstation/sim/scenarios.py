@@ -15,7 +15,7 @@ import argparse
 import calendar
 import json
 import math
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,13 +29,16 @@ from groundstation.paths import RECORDINGS_DIR
 __all__ = ["SCENARIOS", "Simulation", "simulate", "make_recordings", "truth_path"]
 
 SCENARIOS = ("calibration", "static-headings", "mission-clean", "mission-slow", "mission-fast",
-             "mission-step", "mission-bump", "mission-motor", "gps-outage", "demo")
+             "mission-step", "mission-bump", "mission-motor", "mission-payload", "mission-anomaly", "gps-outage",
+             "demo")
 
 ORIGIN = (30.26, 120.12, 20.0)              # near Hangzhou: lat, lon, ground alt AMSL [m]
 START_UNIX_S = float(calendar.timegm((2026, 6, 15, 2, 0, 0)))   # 2026-06-15 02:00 UTC
 BOOT_OFFSET_S = 12.0                        # the autopilot booted this long before the log starts
 
 _M = mavlink2
+PAYLOAD_LEAD_MG_PER_A = 6.0                 # a power lead past the compass: 72 mG at 12 A
+ANOMALY_MOMENT_AM2 = 4.0e5                  # a large steel mass: ~100 mG at 20 m (B ≈ 2m/r³ above it)
 
 
 def truth_path(tlog_path: str | Path) -> Path:
@@ -107,7 +110,13 @@ def _config(scenario: str, seed: int, overrides: dict) -> fs.SimConfig:
             base.update(duration_s=200.0, interference=fs.Interference(
                 "bump", onset, axis=(0.7071, 0.7071, 0.0), amplitude_mG=250.0, duration_s=60.0))
         elif scenario == "mission-motor":     # clean, with a payload switching 10 A every 10 s
-            base.update(payload_current_A=10.0, payload_period_s=20.0)
+            base.update(payload=fs.PayloadLoad(10.0, 20.0, from_s=fs.SimConfig.hover_s))
+        elif scenario == "mission-payload":   # from the onset, a payload on its own lead past the compass
+            lead = rng.normal(size=3)
+            lead_mG_per_A = tuple(float(v) for v in PAYLOAD_LEAD_MG_PER_A * lead / np.linalg.norm(lead))
+            base.update(duration_s=150.0, payload=fs.PayloadLoad(12.0, 16.0, from_s=onset, mG_per_A=lead_mG_per_A))
+        elif scenario == "mission-anomaly":   # a magnetised mass on the ground beside the middle of the leg
+            base.update(duration_s=200.0, anomaly=fs.GroundAnomaly(pos_ned_m=_beside_mid_leg(base, rng)))
         elif scenario == "gps-outage":
             base.update(gps_outage=(100.0, 180.0), gyro_bias_rad_s=np.radians([0.5, 0.5, 0.5]))
         elif scenario != "mission-clean":
@@ -129,7 +138,17 @@ def _config(scenario: str, seed: int, overrides: dict) -> fs.SimConfig:
     ef = earth_field(cfg.origin_lat_deg, cfg.origin_lon_deg, cfg.ground_alt_m + cfg.flight_alt_m, year)
     cfg.field_ned_mG = np.array(ef.field_ned_mG)
     cfg.declination_deg = ef.declination_deg
+    if cfg.anomaly is not None and not any(cfg.anomaly.moment_ned_Am2):    # induced: along the Earth field
+        moment = ANOMALY_MOMENT_AM2 * cfg.field_ned_mG / np.linalg.norm(cfg.field_ned_mG)
+        cfg.anomaly = replace(cfg.anomaly, moment_ned_Am2=tuple(float(v) for v in moment))
     return cfg
+
+
+def _beside_mid_leg(base: dict, rng: np.random.Generator) -> tuple[float, float, float]:
+    """On the ground under the middle of the mission leg, a few metres to one side [m, NED]."""
+    brg = math.radians(base.get("leg_bearing_deg", fs.SimConfig.leg_bearing_deg))
+    along, side = 0.5 * fs.SimConfig.leg_length_m, rng.uniform(-6.0, 6.0)
+    return (along * math.cos(brg) - side * math.sin(brg), along * math.sin(brg) + side * math.cos(brg), 0.0)
 
 
 def simulate(scenario: str, seed: int = 0, **overrides) -> Simulation:
@@ -196,7 +215,9 @@ def _truth(scenario: str, cfg: fs.SimConfig, res: fs.SimResult) -> dict:
                 "noise_mG": cfg.mag.noise_mG,
                 "motor_mG_per_A": np.asarray(cfg.mag.motor_mG_per_A).tolist(),
                 "current_range_A": [float(np.min(res.motor_current_A)), float(np.max(res.motor_current_A))],
-                "payload_current_A": cfg.payload_current_A},
+                "payload_current_A": cfg.payload.current_A if cfg.payload else 0.0},
+        "payload": asdict(cfg.payload) if cfg.payload else None,
+        "anomaly": _anomaly_truth(cfg, res),
         "gyro_bias_rad_s": np.asarray(cfg.gyro_bias_rad_s).tolist(),
         "rtk": bool(cfg.rtk), "fix_type": 6 if cfg.rtk else 3,
         "gps_outage_s": list(cfg.gps_outage) if cfg.gps_outage else None,
@@ -222,6 +243,22 @@ def _truth(scenario: str, cfg: fs.SimConfig, res: fs.SimResult) -> dict:
         dy = np.degrees(np.angle(np.exp(1j * (res.est_yaw_rad - res.yaw_rad))))
         t["max_autopilot_yaw_error_deg"] = float(np.max(np.abs(dy)))
     return t
+
+
+def _anomaly_truth(cfg: fs.SimConfig, res: fs.SimResult) -> dict | None:
+    """Where the ground anomaly is and when the vehicle passed nearest to it (within 30 m)."""
+    a = cfg.anomaly
+    if a is None:
+        return None
+    lat, lon = fs.lla_from_ned(np.array([a.pos_ned_m[0]]), np.array([a.pos_ned_m[1]]),
+                               cfg.origin_lat_deg, cfg.origin_lon_deg)
+    dist = np.hypot(res.pos_ned_m[:, 0] - a.pos_ned_m[0], res.pos_ned_m[:, 1] - a.pos_ned_m[1])
+    near = np.r_[False, dist < 30.0, False].astype(int)
+    starts, ends = np.flatnonzero(np.diff(near) == 1), np.flatnonzero(np.diff(near) == -1)
+    passes = [float(res.t_s[i + int(np.argmin(dist[i:j]))]) for i, j in zip(starts, ends)]
+    return {"lat_deg": float(lat[0]), "lon_deg": float(lon[0]), "pos_ned_m": list(a.pos_ned_m),
+            "moment_ned_Am2": list(a.moment_ned_Am2), "passes_s": [round(p, 2) for p in passes],
+            "closest_m": [round(float(np.min(dist[i:j])), 2) for i, j in zip(starts, ends)]}
 
 
 # ------------------------------------------------------------------------------ packing
