@@ -29,6 +29,7 @@ def make_recordings(directory: Path) -> Path:
     directory.mkdir(parents=True, exist_ok=True)
     shutil.copy(ROOT / "recordings" / "demo.tlog", directory / "demo.tlog")
     simulate("calibration", 0).write(directory / "dance.tlog")
+    simulate("demo", 1, mission="mission-anomaly").write(directory / "anomaly.tlog")
     if REAL_LOG.exists():
         shutil.copy(REAL_LOG, directory / "real.tlog")
     if ULOG.exists():

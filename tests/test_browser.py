@@ -264,6 +264,25 @@ def test_plots_wrap_headings_and_keep_signs(shared_station, new_page, artifacts)
       return n > 500; })()""")
 
 
+def test_a_magnetic_anomaly_is_marked_where_it_lies(shared_station, new_page, artifacts):
+    """Issue 17: a pass over a magnetised mass on the ground is explained in words as fixed in
+    place with its position, and the 3-D view marks the place on the route (amber)."""
+    st = shared_station
+    truth = json.loads((st.session.recordings.dir / "anomaly.truth.json").read_text())["parts"][1]["anomaly"]
+    replay(st, "anomaly.tlog")
+    api(st, "POST", "/api/replay/seek", json={"t_s": 284.0})
+    assert wait_until(lambda: st.scene.anomalies_shown >= 2, 60), st.scene.anomalies_shown
+    alarms = api(st, "GET", "/api/alarms")
+    places = [a["explanation"]["position"] for a in alarms if a["explanation"]["kind"] == "fixed in place"]
+    assert len(places) == 2 and all(abs(p["lat"] - truth["lat_deg"]) < 1e-4 for p in places), (places, truth)
+    page = new_page(1280, 720, view=True)
+    open_page(page, st)
+    page.wait_for_selector("#alarms tr[data-t]")
+    assert page.locator("#alarms").inner_text().count("likely fixed in place at 30.2615") == 2
+    png, px = view_pixels_until(page, {"violet": 150, "red": 50})
+    (artifacts / "anomaly_marked.png").write_bytes(png)
+
+
 def test_controls_and_housekeeping(shared_station, new_page, tmp_path):
     """Defect 10: replay controls hidden on a live link; a failed connect leaves the replay
     running and shows one line; no session file without packets; a .ulg replay downloads the

@@ -155,11 +155,12 @@ def simulate(scenario: str, seed: int = 0, **overrides) -> Simulation:
     """Run one scenario (see ``SCENARIOS``); ``overrides`` are ``SimConfig`` fields
     (e.g. duration_s=120, rtk=False, leg_bearing_deg=90, interference=dict(rate_mG_s=30)).
 
-    "demo" = the calibration dance followed (after a short gap) by mission-slow.
+    "demo" = the calibration dance followed (after a short gap) by mission-slow, or by the mission
+    scenario given as ``mission=`` (e.g. simulate("demo", 1, mission="mission-anomaly")).
     """
     if scenario == "demo":
         cal = simulate("calibration", seed)
-        mis = simulate("mission-slow", seed, **overrides)
+        mis = simulate(overrides.pop("mission", "mission-slow"), seed, **overrides)
         return _concat("demo", seed, [cal, mis], gap_s=5.0)
     cfg = _config(scenario, seed, dict(overrides))
     res = fs.run(cfg)

@@ -199,6 +199,16 @@ class FlightState:
         tests, likely kind, place: ``groundstation.jobs.alarm_explain``) in numbers and in words."""
         return [dict(a, evidence_text=evidence_text(a["evidence"]), **self._explained(a)) for a in self.tracker.alarms]
 
+    def anomaly_places(self) -> list[tuple[float, float]]:
+        """(lat, lon) [deg] of every ended alarm explained as "fixed in place" (a magnetic anomaly
+        on the ground, drawn on the route)."""
+        out = []
+        for a in self.tracker.alarms:
+            e = self._explained(a)["explanation"] if a["end_s"] is not None else None
+            if e and e["kind"] == "fixed in place" and e.get("position"):
+                out.append((e["position"]["lat"], e["position"]["lon"]))
+        return out
+
     def _explained(self, alarm: dict) -> dict:
         """{explanation, explanation_text} of one alarm: the replay's whole-log steps up to the
         cursor, or the live link's history; a closed alarm's is kept."""

@@ -77,6 +77,7 @@ class SessionViews:
                 "ap_att": (rad("ap_roll_deg"), rad("ap_pitch_deg"), rad("ap_heading_deg")),
                 **self.calibration.scene_data(),      # cloud, fit, calibrating, coverage
                 "route": _route_ne(route, origin),
+                "anomalies": _places_ne(flight.anomaly_places(), origin),
                 "line": flight.line,
                 "origin": origin,
                 "alarm": alarm["active"],
@@ -155,6 +156,14 @@ class SessionViews:
         with self._lock:
             live = self.sources.recording_path if self.sources.kind == "live" else None
         return self.recordings.info(recording_now=live)
+
+
+def _places_ne(places: list[tuple[float, float]], origin) -> np.ndarray:
+    """(lat, lon) places -> (n, 2) [north_m, east_m] about ``origin``."""
+    if not places or origin is None:
+        return np.zeros((0, 2))
+    lat, lon = np.array(places, dtype=float).T
+    return np.c_[ned_from_lla(lat, lon, origin[0], origin[1])]
 
 
 def _route_ne(route: np.ndarray, origin) -> np.ndarray:

@@ -10,7 +10,8 @@ activity changes, fitted to the browser's aspect ratio; ``camera_for_box``):
     the vehicle rides on the route at its last position.
 The vehicle (orange, dark red nose) follows the station's attitude estimate; a translucent grey
 ghost shows the autopilot's own when the two differ by more than 2 deg.  Route points are violet,
-red while an alarm was on; the preset line is cyan.  All updates of a frame go in one
+red while an alarm was on; the preset line is cyan; an amber marker stands where an ended alarm was
+explained as a magnetic anomaly fixed in place.  All updates of a frame go in one
 ``server.atomic()`` block at UPDATE_HZ; the cloud and route are decimated for display only.
 """
 from __future__ import annotations
@@ -54,6 +55,7 @@ NOSE_RED = (170, 20, 20)
 ROUTE_VIOLET = (120, 50, 190)
 ALARM_RED = (230, 0, 0)
 LINE_CYAN = (0, 190, 225)
+ANOMALY_AMBER = (255, 170, 0)
 
 __all__ = ["Scene", "CLOUD_DISPLAY_POINTS", "ROUTE_DISPLAY_POINTS"]
 
@@ -66,6 +68,7 @@ class Scene:
         self.red_segments = 0          # route points drawn red in the last frame (tests read it)
         self.cloud_points_shown = 0
         self.route_points_shown = 0
+        self.anomalies_shown = 0       # anomaly markers drawn (tests read it)
         self.frames = 0
         self.activity = "flight"
         self._framed: dict[int, str] = {}            # client id -> activity its camera shows
@@ -123,6 +126,10 @@ class Scene:
                                         point_shape="circle", visible=False)
         self.line = sc.add_line_segments("/preset_line", seg0, colors=LINE_CYAN, thickness=4.0,
                                          thickness_units="screen", visible=False)
+        self.anomalies = sc.add_point_cloud("/anomalies", empty, colors=ANOMALY_AMBER, point_size=0.3,
+                                            point_shape="diamond", visible=False)
+        self.anomaly_label = sc.add_label("/anomaly_label", "magnetic anomaly", position=(0, 0, 0),
+                                          anchor="bottom-center", visible=False)
         self.line_labels = [sc.add_label(f"/line_{k}", k, position=(0, 0, 0), anchor="bottom-center", visible=False)
                             for k in ("A", "B")]
 
@@ -174,14 +181,14 @@ class Scene:
             node.visible = calibrating
         self.vehicle_label.visible = calibrating
         if calibrating:
-            self.route.visible = self.line.visible = False
+            self.route.visible = self.line.visible = self.anomalies.visible = self.anomaly_label.visible = False
             for label in self.line_labels:
                 label.visible = False
             self.craft.position = tuple(CAL_VEHICLE_AT)
             self.craft.scale = 1.0
             north = 0.0
         else:
-            north = self._update_route(d["route"], d["line"], d["origin"])
+            north = self._update_route(d["route"], d["line"], d["origin"], d["anomalies"])
             self.craft.scale = FLIGHT_VEHICLE_SCALE
         self._update_attitude(d["att"], d["ap_att"], north)
 
@@ -232,14 +239,15 @@ class Scene:
         else:
             self.corrected.visible = self.ellipsoid.visible = False
 
-    def _update_route(self, route: np.ndarray, line: dict | None, origin) -> float:
-        """Route and line in the route area; the vehicle at the last fix.  Returns the frame's
-        north angle (the vehicle's yaw is drawn in it)."""
+    def _update_route(self, route: np.ndarray, line: dict | None, origin, anomalies_ne: np.ndarray) -> float:
+        """Route, line and anomaly markers in the route area; the vehicle at the last fix.
+        Returns the frame's north angle (the vehicle's yaw is drawn in it)."""
         key = (len(route), route[-1, 3] if len(route) else None,
-               None if line is None else (tuple(line["a"]), tuple(line["b"])), origin)
+               None if line is None else (tuple(line["a"]), tuple(line["b"])), origin, len(anomalies_ne))
         if key != self._route_key:
             self._route_key = key
             self._route_frame = self._draw_route(route, line, origin)
+            self._draw_anomalies(anomalies_ne, self._route_frame)
         frame = self._route_frame
         if frame is not None and len(route):
             self.craft.position = tuple(frame.to_viser(route[-1:, 1:3])[0] + [0, 0, 0.3])
@@ -281,6 +289,15 @@ class Scene:
             self.route.visible = False
             self.red_segments = self.route_points_shown = 0
         return frame
+
+    def _draw_anomalies(self, anomalies_ne: np.ndarray, frame: RouteFrame | None) -> None:
+        shown = frame is not None and len(anomalies_ne) > 0
+        if shown:
+            at = frame.to_viser(anomalies_ne) + [0.0, 0.0, 0.15]
+            self.anomalies.points = at.astype(np.float32)
+            self.anomaly_label.position = tuple(at[0] + [0.0, 0.0, 0.3])
+        self.anomalies.visible = self.anomaly_label.visible = shown
+        self.anomalies_shown = len(anomalies_ne) if shown else 0
 
     def close(self) -> None:
         self._stop.set()
