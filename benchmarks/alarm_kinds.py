@@ -21,7 +21,6 @@ autopilot's own "compass inconsistent"/"mag anomaly" flags).
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import tempfile
 import time
@@ -31,6 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from estimators.detection import ned_from_lla  # noqa: E402
 from groundstation.io.logs import read_log  # noqa: E402
 from groundstation.jobs.analyze import analyze_log  # noqa: E402
 from groundstation.jobs.calibrate import calibrate_log  # noqa: E402
@@ -40,10 +40,6 @@ PLANTED = {"mission-payload": "moving with current", "mission-anomaly": "fixed i
            "mission-slow": "rising with time", "mission-fast": "rising with time",
            "mission-step": "rising with time", "mission-bump": "rising with time"}
 PLACE_TOLERANCE_M = 15.0
-
-
-def _metres(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
-    return math.hypot((lat1 - lat2) * 111_320.0, (lon1 - lon2) * 111_320.0 * math.cos(math.radians(lat1)))
 
 
 def run(seeds: list[int], scenarios: list[str]) -> dict:
@@ -69,7 +65,7 @@ def run(seeds: list[int], scenarios: list[str]) -> dict:
                     where = a["explanation"].get("position")
                     if scenario == "mission-anomaly" and where:
                         an = sim.truth["anomaly"]
-                        r["place_m"].append(_metres(where["lat"], where["lon"], an["lat_deg"], an["lon_deg"]))
+                        r["place_m"].append(float(np.hypot(*ned_from_lla(where["lat"], where["lon"], an["lat_deg"], an["lon_deg"]))))
     return out
 
 

@@ -10,12 +10,11 @@ tlog packet by packet through the live path.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
 from live_path import live_alarms_and_rows
+from estimators.detection import ned_from_lla
 from estimators.detection_explain import explain_alarm
 from groundstation.io.logs import read_log
 from groundstation.jobs.analyze import analyze_log
@@ -39,10 +38,6 @@ def _analyzed(scenario: str, folder, calibration):
     path = sim.write(folder / f"{scenario}.tlog")
     report, _ = analyze_log(read_log(path), calibration, None)
     return path, sim.truth, [a for a in report["alarms"] if a["kind"] == "combined"]
-
-
-def _metres(lat1, lon1, lat2, lon2) -> float:
-    return math.hypot((lat1 - lat2) * 111_320.0, (lon1 - lon2) * 111_320.0 * math.cos(math.radians(lat1)))
 
 
 def _same_explanations(live: list[dict], analyzed: list[dict]) -> None:
@@ -75,7 +70,7 @@ def test_a_magnetised_mass_on_the_ground_is_fixed_in_place_where_it_lies(tmp_pat
         assert pass_s - 8.0 < a["start_s"] < pass_s and a["end_s"] < pass_s + 10.0, (a, pass_s)
         e = a["explanation"]
         assert e["kind"] == "fixed in place", e
-        where = _metres(e["position"]["lat"], e["position"]["lon"], anomaly["lat_deg"], anomaly["lon_deg"])
+        where = np.hypot(*ned_from_lla(e["position"]["lat"], e["position"]["lon"], anomaly["lat_deg"], anomaly["lon_deg"]))
         assert where < 15.0, (where, e)
         assert a["explanation_text"].startswith("likely fixed in place at ")
     live, _ = live_alarms_and_rows(path, tmp_path / "live", calibration, None)
