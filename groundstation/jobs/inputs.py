@@ -151,6 +151,13 @@ class FieldPolicy:
     def field_on(self) -> bool:
         return self.field_test == "on"
 
+    @property
+    def heading_usable(self) -> bool:
+        """The compass heading can be a test's evidence: never on the raw output of a sensor that
+        was never calibrated, whose heading error swings by tens of degrees with the heading (a
+        turn would look like interference)."""
+        return self.correction not in ("none", "raw")
+
     def apply(self, mag_mG: np.ndarray) -> np.ndarray:
         """Samples (n, 3) as the source sent them -> the field the estimators use (n, 3)."""
         m = np.asarray(mag_mG, dtype=float).reshape(-1, 3)
@@ -361,7 +368,7 @@ def step_inputs(t, chain, mag_held, att_rp, gps_held, rate_hz, gyro, policy: Fie
                                                  np.where(too_steep(roll, pitch, settings), t, -np.inf)]))
     state.last_steep_t = float(last[-1])
     steep = t - last[1:] <= settings.turn_settle_s
-    heading_on = (np.asarray(rate_hz) >= settings.min_imu_rate_hz) & (policy.correction != "none")
+    heading_on = (np.asarray(rate_hz) >= settings.min_imu_rate_hz) & policy.heading_usable
     e = np.where(valid & heading_on & ~steep, wrap_angle_rad(chain.mag_heading_rad - chain.yaw_rad), np.nan)
     use_field = ~steep & policy.field_on
     return dict(e=e, d=gps_held[:, 0], trusted=gps_held[:, 2] == 1.0,
@@ -423,6 +430,8 @@ def _tests(log_imu_rate: float, n: int, settings: DetectionSettings, legs, g, rt
     """(heading_test, path_test) lines of the report."""
     if policy.correction == "none":
         heading = "off: no magnetometer data in the log"
+    elif not policy.heading_usable:
+        heading = policy.field_test
     elif log_imu_rate < settings.min_imu_rate_hz:
         heading = f"off: IMU rate {log_imu_rate:.1f} Hz < {settings.min_imu_rate_hz:g} Hz" if n else "off: no IMU data"
     else:

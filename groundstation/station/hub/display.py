@@ -50,6 +50,8 @@ def tests_snapshot(row: np.ndarray | None, policy: FieldPolicy, line: dict | Non
     pause = _state("paused", f"steep attitude or fast rotation: the test waits {s.turn_settle_s:g} s after it")
     if policy.correction == "none":
         heading = _state("off", "no magnetometer data")
+    elif not policy.heading_usable:
+        heading = _state("off", policy.field_test.removeprefix("off: "))
     elif row is None:
         heading = _state("waiting", "no IMU data yet")
     elif row[COL["heading_on"]] < 0.5:
