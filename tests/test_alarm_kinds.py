@@ -113,7 +113,7 @@ def test_the_anomaly_field_is_the_dipole_field():
 def test_an_uncalibrated_compass_is_no_heading_evidence(tmp_path):
     """Without any calibration (the simulator's vehicle streams its raw sensor, COMPASS_OFS 0) the
     compass heading is wrong by tens of degrees in a way that changes with the heading, so every
-    turn moved the heading difference (before: a combined alarm at each leg end of this clean
+    turn moved the heading difference (before: combined alarms at the leg ends of this clean
     flight).  The heading test is off with the reason, like the field tests."""
     path = simulate("mission-clean", SEED, duration_s=150.0).write(tmp_path / "clean.tlog")
     report, _ = analyze_log(read_log(path), None, None)
