@@ -96,9 +96,11 @@ def initial_dcm_enu(acc: np.ndarray, mag: np.ndarray) -> np.ndarray:
 
 def run_fusion(trial: BroadTrial, gain: float = 0.5, acc_rejection_deg: float = 0.0,
                mag_rejection_deg: float = 0.0, rejection_timeout_s: float = 0.0,
-               gyro_bias: bool = False) -> np.ndarray:
+               gyro_bias: bool = False, mag_ignored_out: np.ndarray | None = None) -> np.ndarray:
     """x-io Fusion (imufusion) in its ENU convention on the sensor-frame data; gyro deg/s,
-    accelerometer g.  ``gyro_bias``: run the gyro through Fusion's at-rest ``Bias`` first."""
+    accelerometer g.  ``gyro_bias``: run the gyro through Fusion's at-rest ``Bias`` first.
+    ``mag_ignored_out`` (N,) bool, if given: Fusion's magnetic rejection at each sample
+    (``magnetometer_ignored``: its own magnetic-disturbance flag)."""
     import imufusion
     s = imufusion.AhrsSettings()
     s.sample_rate = trial.rate_hz
@@ -121,6 +123,8 @@ def run_fusion(trial: BroadTrial, gain: float = 0.5, acc_rejection_deg: float = 
         g = bias.update(gyro[i]) if bias is not None else gyro[i]
         ahrs.update(g, acc[i], mag[i])
         q[i] = ahrs.get_quaternion()
+        if mag_ignored_out is not None:
+            mag_ignored_out[i] = ahrs.get_internal_states().magnetometer_ignored
     return q
 
 
