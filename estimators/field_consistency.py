@@ -18,8 +18,9 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   ``tilt_lag_s`` as the predicted field turns in the body (estimators.motor_field_tracker.
   TiltTracker: least squares forgetting with ``tilt_memory_s``, held at 0 by ``tilt_reg_mG2_s``
   until the nose has turned enough, at most ``tilt_max_deg``), so a body offset does not teach it a
-  tilt; only while the nose turns (``tilt_min_turn_deg_s``), from ``tilt_learn_after_s`` on (the
-  offset learned), not while the test suspects a disturbance.
+  tilt (nor does the vertical Earth field that b holds, which a roll or pitch exposes: fitted beside
+  it); only while the nose turns (``tilt_min_turn_deg_s``), from ``tilt_learn_after_s`` on, not
+  while the test suspects a disturbance.
   The tilt about z is a heading offset, ψ_f's.  ψ_f is pulled to the heading of the untilted
   field R(δ)ᵀ(m − b − f·Δx).
 * h: the Earth field in the magnetic navigation frame (the AHRS heading is magnetic), WMM as the
@@ -94,7 +95,8 @@ class FieldConsistencySettings:
     tilt_lag_s: float = 2.0             # ... from the residual's change over this lag ...
     tilt_memory_s: float = 300.0        # ... least squares forgetting with this time constant ...
     tilt_reg_mG2_s: float = 1.0e4       # ... held at 0 with this weight [mG² s] until the nose turns ...
-    tilt_max_deg: float = 5.0           # ... at most this (per axis)
+    tilt_max_deg: float = 5.0           # ... at most this (per axis) ...
+    tilt_attitude_change_deg: float = 5.0  # ... from changes over which the vehicle tilted less than this
     motor_excitation: float = 200.0     # Σ z² Δt [A² s] of signal changes before f is trusted; until then ...
     motor_hold_signal: float = 3.0      # ... the CUSUM holds while the signal is this far from its reference
     motor_learn_after_s: float = 5.0    # f learns from then on (ψ_f has settled)
@@ -160,7 +162,7 @@ class FieldConsistency:
         self.h = None
         self.b = [0.0, 0.0, 0.0]
         self.tilt = TiltTracker(self.s.tilt_lag_s, self.s.tilt_memory_s, self.s.tilt_reg_mG2_s,
-                                math.radians(self.s.tilt_max_deg))
+                                math.radians(self.s.tilt_max_deg), math.radians(self.s.tilt_attitude_change_deg))
         self.motor = MotorFieldTracker(self.s.motor_lag_s, self.s.motor_memory_s)
         self.f = self.motor.f                        # the same list: the tracker updates it
         self.x_ref: float | None = None
@@ -354,7 +356,7 @@ class FieldConsistency:
         if turn or allowed:
             self._learn(dt, c, e, learning, turn)
         self._learn_motor(t, dt, [m[k] - pred[k] for k in range(3)], x, turn, allowed)
-        self.tilt.update(t, p, [m[k] - p[k] - b[k] - f[k] * dx for k in range(3)], dt,
+        self.tilt.update(t, p, [m[k] - p[k] - b[k] - f[k] * dx for k in range(3)], (c[6], c[7], c[8]), dt,
                          self._tilt_learns(turn or allowed), self._clip_mG())
         a = 1.0 - math.exp(-dt / s.smooth_s) if self.r is not None else 1.0
         r = self.r = e if self.r is None else [self.r[k] + a * (e[k] - self.r[k]) for k in range(3)]

@@ -65,54 +65,70 @@ class TiltTracker:
     The field the tilted sensor measures is R(δ) p ≈ p + δ × p (p = Cᵀh, the predicted Earth field in
     the body frame [mG]), so the part of the residual u = m − p − b − f·Δx that a tilt explains
     changes over a short lag L only when p does (the nose turning):
-        y = u(t) − u(t − L) = δ × Δp + noise = A δ,  Δp = p(t) − p(t − L),  A = −[Δp×] (x, y columns)
-    (a body offset cancels; a heading error of the attitude, a rotation about z, is the third
-    column, left out).  δ is the exponentially weighted least-squares solution of the 2 × 2 normal
-    equations (Σ w AᵀA + reg I) δ = Σ w Aᵀy, the weights forgetting with ``memory_s``, each y
-    Huber-clipped at ``clip_mG`` around A δ, δ at most ``max_rad`` per axis.  ``reg`` [mG² s] holds δ
-    at 0 until the heading has turned enough.  Units: rad, mG, s.
+        y = u(t) − u(t − L) = δ × Δp + η |p| Δd + noise,   Δp = p(t) − p(t − L),
+    a body offset cancels; a heading error of the attitude (a rotation about z) is left out.  The
+    second term is a nuisance: when level, the vertical Earth field and a body-z offset are one, so
+    b holds some of the vertical field (η |p|: its share [mG], d: the down direction in the body,
+    the third row of C), which a roll or pitch exposes as a change along Δd; fitted beside δ so it
+    is not taken for the sensor's tilt.  (δ_x, δ_y, η) is the exponentially weighted least-squares
+    solution of the 3 × 3 normal equations (Σ w AᵀA + reg I) θ = Σ w Aᵀy, A = [e_x × Δp, e_y × Δp,
+    |p| Δd], the weights forgetting with ``memory_s``, each y Huber-clipped at ``clip_mG`` around
+    A θ, δ at most ``max_rad`` per axis.  ``reg`` [mG² s] holds δ at 0 until the heading has turned
+    enough.  Changes over which the vehicle tilted by ``max_attitude_change_rad`` or more are left
+    out (the nose turning is the signal; a hard roll or pitch brings more than the nuisance: the
+    attitude's own error, the motor field at another thrust).  Units: rad, mG, s.
     """
 
     def __init__(self, lag_s: float = 2.0, memory_s: float = 300.0, reg: float = 1.0e4,
-                 max_rad: float = 0.087) -> None:
+                 max_rad: float = 0.087, max_attitude_change_rad: float = 0.087) -> None:
         self.lag_s, self.memory_s, self.reg, self.max_rad = lag_s, memory_s, reg, max_rad
+        self.max_attitude_change_rad = max_attitude_change_rad
         self.tilt_rad = [0.0, 0.0]
-        self._s = [0.0, 0.0, 0.0]          # Σ w AᵀA: xx, xy, yy
-        self._r = [0.0, 0.0]               # Σ w Aᵀy
+        self._theta = [0.0, 0.0, 0.0]
+        self._s = [[0.0] * 3 for _ in range(3)]     # Σ w AᵀA
+        self._r = [0.0, 0.0, 0.0]                   # Σ w Aᵀy
         self._hist: deque = deque()
 
     def clear_history(self) -> None:
         """Forget the recent samples (after a gap), keep what has been learned."""
         self._hist.clear()
 
-    def update(self, t_s: float, p_mG, u_mG, dt_s: float, learn: bool, clip_mG: float) -> None:
-        """One step: p = Cᵀh and u = m − p − b − f·Δx (no tilt term) [mG]; learns only when ``learn``."""
+    def update(self, t_s: float, p_mG, u_mG, down_body, dt_s: float, learn: bool, clip_mG: float) -> None:
+        """One step: p = Cᵀh and u = m − p − b − f·Δx (no tilt term) [mG], the down direction in the
+        body frame (unit, third row of C); learns only when ``learn``."""
         h = self._hist
-        h.append((t_s, float(p_mG[0]), float(p_mG[1]), float(p_mG[2]),
-                  float(u_mG[0]), float(u_mG[1]), float(u_mG[2])))
+        h.append((t_s, *(float(v) for v in p_mG), *(float(v) for v in u_mG), *(float(v) for v in down_body)))
         while len(h) > 2 and h[1][0] <= t_s - self.lag_s:
             h.popleft()
         if not learn or h[0][0] > t_s - self.lag_s:
             return
-        old = h[0]
-        dpx, dpy, dpz = (float(p_mG[k]) - old[k + 1] for k in range(3))
-        a_x = (0.0, -dpz, dpy)             # e_x × Δp: the residual change per radian of δ_x
-        a_y = (dpz, 0.0, -dpx)             # e_y × Δp
-        tx, ty = self.tilt_rad
+        old, new = h[0], h[-1]
+        if not math.dist(old[7:10], new[7:10]) < self.max_attitude_change_rad:
+            return
+        dp = [new[k + 1] - old[k + 1] for k in range(3)]
+        size = math.sqrt(new[1] ** 2 + new[2] ** 2 + new[3] ** 2)
+        cols = ((0.0, -dp[2], dp[1]), (dp[2], 0.0, -dp[0]),       # e_x × Δp, e_y × Δp
+                tuple(size * (new[k + 7] - old[k + 7]) for k in range(3)))
         w = math.exp(-dt_s / self.memory_s)
-        s, r = self._s, self._r
-        s[0] = w * s[0] + dt_s * (a_x[1] * a_x[1] + a_x[2] * a_x[2])
-        s[1] = w * s[1] + dt_s * (a_x[2] * a_y[2])
-        s[2] = w * s[2] + dt_s * (a_y[0] * a_y[0] + a_y[2] * a_y[2])
-        rx, ry = w * r[0], w * r[1]
+        s, r, th = self._s, self._r, self._theta
+        for i in range(3):
+            r[i] *= w
+            for j in range(3):
+                s[i][j] = w * s[i][j] + dt_s * sum(cols[i][k] * cols[j][k] for k in range(3))
         for k in range(3):
-            pred = a_x[k] * tx + a_y[k] * ty
-            y = pred + min(max(float(u_mG[k]) - old[k + 4] - pred, -clip_mG), clip_mG)
-            rx += dt_s * a_x[k] * y
-            ry += dt_s * a_y[k] * y
-        self._r = [rx, ry]
-        sxx, sxy, syy = s[0] + self.reg, s[1], s[2] + self.reg
-        det = sxx * syy - sxy * sxy
+            pred = sum(cols[i][k] * th[i] for i in range(3))
+            y = pred + min(max(new[k + 4] - old[k + 4] - pred, -clip_mG), clip_mG)
+            for i in range(3):
+                r[i] += dt_s * cols[i][k] * y
+        self._theta = _solve3([[s[i][j] + (self.reg if i == j else 0.0) for j in range(3)] for i in range(3)], r)
         lim = self.max_rad
-        self.tilt_rad = [min(max((syy * rx - sxy * ry) / det, -lim), lim),
-                         min(max((sxx * ry - sxy * rx) / det, -lim), lim)]
+        self.tilt_rad = [min(max(self._theta[0], -lim), lim), min(max(self._theta[1], -lim), lim)]
+
+
+def _solve3(a: list, b: list) -> list:
+    """x with a x = b for a symmetric positive definite 3 × 3 (Cramer's rule)."""
+    def det(m):
+        return (m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+                + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]))
+    d = det(a)
+    return [det([[b[i] if j == c else a[i][j] for j in range(3)] for i in range(3)]) / d for c in range(3)]
