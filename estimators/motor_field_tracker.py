@@ -67,31 +67,45 @@ class TiltTracker:
     changes over a short lag L only when p does (the nose turning):
         y = u(t) − u(t − L) = δ × Δp + η |p| Δd + noise,   Δp = p(t) − p(t − L),
     a body offset cancels; a heading error of the attitude (a rotation about z) is left out.  The
-    second term is a nuisance: when level, the vertical Earth field and a body-z offset are one, so
-    b holds some of the vertical field (η |p|: its share [mG], d: the down direction in the body,
-    the third row of C), which a roll or pitch exposes as a change along Δd; fitted beside δ so it
-    is not taken for the sensor's tilt.  (δ_x, δ_y, η) is the exponentially weighted least-squares
+    second term: when level, the vertical Earth field and a body-z offset are one, so b holds
+    some of the vertical field (η |p|: its share [mG], d: the down direction in the body, the third
+    row of C), which a roll or pitch exposes as a change along Δd; fitted beside δ so it is not
+    taken for the sensor's tilt (a wrong WMM vertical, e.g. a site anomaly, ends in b while the
+    vehicle hovers level).  (δ_x, δ_y, η) is the exponentially weighted least-squares
     solution of the 3 × 3 normal equations (Σ w AᵀA + reg I) θ = Σ w Aᵀy, A = [e_x × Δp, e_y × Δp,
     |p| Δd], the weights forgetting with ``memory_s``, each y Huber-clipped at ``clip_mG`` around
     A θ, δ at most ``max_rad`` per axis.  ``reg`` [mG² s] holds δ at 0 until the heading has turned
-    enough.  Changes over which the vehicle tilted by ``max_attitude_change_rad`` or more are left
-    out (the nose turning is the signal; a hard roll or pitch brings more than the nuisance: the
-    attitude's own error, the motor field at another thrust).  Units: rad, mG, s.
+    enough.  The vertical share is handed over with ``take_vertical_mG`` once the rolls and pitches
+    have told it apart (the caller moves it from b to h).  Units: rad, mG, s.
     """
 
     def __init__(self, lag_s: float = 2.0, memory_s: float = 300.0, reg: float = 1.0e4,
-                 max_rad: float = 0.087, max_attitude_change_rad: float = 0.087) -> None:
+                 max_rad: float = 0.087) -> None:
         self.lag_s, self.memory_s, self.reg, self.max_rad = lag_s, memory_s, reg, max_rad
-        self.max_attitude_change_rad = max_attitude_change_rad
         self.tilt_rad = [0.0, 0.0]
         self._theta = [0.0, 0.0, 0.0]
         self._s = [[0.0] * 3 for _ in range(3)]     # Σ w AᵀA
         self._r = [0.0, 0.0, 0.0]                   # Σ w Aᵀy
         self._hist: deque = deque()
+        self._size = 0.0
 
     def clear_history(self) -> None:
         """Forget the recent samples (after a gap), keep what has been learned."""
         self._hist.clear()
+
+    def take_vertical_mG(self, min_information: float) -> float:
+        """The vertical Earth field the body offset holds [mG] (η |p|), once the attitude changes have
+        told it apart (Σ w A₃ᵀA₃ ≥ ``min_information`` [mG² s]), else 0; taken: the caller moves it
+        from b to h, and η is learned again from 0."""
+        s = self._s
+        if s[2][2] < min_information:
+            return 0.0
+        eps = self._theta[2] * self._size
+        for k in range(3):
+            s[2][k] = s[k][2] = 0.0
+        self._r[2] = 0.0
+        self._theta[2] = 0.0
+        return eps
 
     def update(self, t_s: float, p_mG, u_mG, down_body, dt_s: float, learn: bool, clip_mG: float) -> None:
         """One step: p = Cᵀh and u = m − p − b − f·Δx (no tilt term) [mG], the down direction in the
@@ -103,8 +117,6 @@ class TiltTracker:
         if not learn or h[0][0] > t_s - self.lag_s:
             return
         old, new = h[0], h[-1]
-        if not math.dist(old[7:10], new[7:10]) < self.max_attitude_change_rad:
-            return
         dp = [new[k + 1] - old[k + 1] for k in range(3)]
         size = math.sqrt(new[1] ** 2 + new[2] ** 2 + new[3] ** 2)
         cols = ((0.0, -dp[2], dp[1]), (dp[2], 0.0, -dp[0]),       # e_x × Δp, e_y × Δp
@@ -120,6 +132,7 @@ class TiltTracker:
             y = pred + min(max(new[k + 4] - old[k + 4] - pred, -clip_mG), clip_mG)
             for i in range(3):
                 r[i] += dt_s * cols[i][k] * y
+        self._size = size
         self._theta = _solve3([[s[i][j] + (self.reg if i == j else 0.0) for j in range(3)] for i in range(3)], r)
         lim = self.max_rad
         self.tilt_rad = [min(max(self._theta[0], -lim), lim), min(max(self._theta[1], -lim), lim)]
