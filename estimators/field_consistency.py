@@ -18,10 +18,8 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   ``tilt_lag_s`` as the predicted field turns in the body (estimators.motor_field_tracker.
   TiltTracker: least squares forgetting with ``tilt_memory_s``, held at 0 by ``tilt_reg_mG2_s``
   until the nose has turned enough, at most ``tilt_max_deg``), so a body offset does not teach it a
-  tilt; the vertical Earth field that b holds (level, a body-z offset and the vertical field are
-  one), which a roll or pitch exposes, is fitted beside it and moved from b to h once
-  ``vertical_information_mG2_s`` of attitude change has told it apart; from
-  ``tilt_learn_after_s`` on, not while the test suspects a disturbance.
+  tilt; only while the nose turns (``tilt_min_turn_deg_s``), from ``tilt_learn_after_s`` on (the
+  offset learned), not while the test suspects a disturbance.
   The tilt about z is a heading offset, ψ_f's.  ψ_f is pulled to the heading of the untilted
   field R(δ)ᵀ(m − b − f·Δx).
 * h: the Earth field in the magnetic navigation frame (the AHRS heading is magnetic), WMM as the
@@ -92,11 +90,11 @@ class FieldConsistencySettings:
     first_turn_hold_deg_s: float = 20.0  # the CUSUM holds in turns faster than this ...
     post_turn_s: float = 1.0            # ... and this long after them, then ψ_f drops a heading error
     tilt_learn_after_s: float = 5.0     # the tilt δ learns from then on (the offset has settled) ...
+    tilt_min_turn_deg_s: float = 3.0    # ... while the nose turns at least this fast ...
     tilt_lag_s: float = 2.0             # ... from the residual's change over this lag ...
     tilt_memory_s: float = 300.0        # ... least squares forgetting with this time constant ...
     tilt_reg_mG2_s: float = 1.0e4       # ... held at 0 with this weight [mG² s] until the nose turns ...
     tilt_max_deg: float = 5.0           # ... at most this (per axis)
-    vertical_information_mG2_s: float = 2.0e4  # the vertical field b holds moves to h once rolls/pitches tell
     motor_excitation: float = 200.0     # Σ z² Δt [A² s] of signal changes before f is trusted; until then ...
     motor_hold_signal: float = 3.0      # ... the CUSUM holds while the signal is this far from its reference
     motor_learn_after_s: float = 5.0    # f learns from then on (ψ_f has settled)
@@ -316,6 +314,14 @@ class FieldConsistency:
             h[k] += 0.5 * g_h * en[k]
             b[k] += 0.5 * g * e[k]
 
+    def _tilt_learns(self, allowed: bool) -> bool:
+        """The tilt learns while the nose turns (``tilt_min_turn_deg_s``): the horizontal field turning
+        through the body is its signature; a roll or pitch wobble alone would correlate it with
+        whatever else changes (the current, the offset settling)."""
+        s = self.s
+        return (allowed and self.learned_s >= s.tilt_learn_after_s
+                and abs(self.yaw_rate_rad_s) >= math.radians(s.tilt_min_turn_deg_s))
+
     def _clip_mG(self) -> float:
         """The trackers learn from changes clipped at ``motor_clip_sigma`` σ (Huber)."""
         s = self.s
@@ -348,13 +354,8 @@ class FieldConsistency:
         if turn or allowed:
             self._learn(dt, c, e, learning, turn)
         self._learn_motor(t, dt, [m[k] - pred[k] for k in range(3)], x, turn, allowed)
-        self.tilt.update(t, p, [m[k] - p[k] - b[k] - f[k] * dx for k in range(3)], (c[6], c[7], c[8]), dt,
-                         (turn or allowed) and self.learned_s >= s.tilt_learn_after_s, self._clip_mG())
-        vertical = self.tilt.take_vertical_mG(s.vertical_information_mG2_s)
-        if vertical:                     # b held this much of the vertical Earth field: it is h's
-            h[2] += vertical
-            for k in range(3):
-                b[k] -= vertical * c[6 + k]
+        self.tilt.update(t, p, [m[k] - p[k] - b[k] - f[k] * dx for k in range(3)], dt,
+                         self._tilt_learns(turn or allowed), self._clip_mG())
         a = 1.0 - math.exp(-dt / s.smooth_s) if self.r is not None else 1.0
         r = self.r = e if self.r is None else [self.r[k] + a * (e[k] - self.r[k]) for k in range(3)]
         size = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
