@@ -1,7 +1,7 @@
 """Field-vector consistency test: the measured body field against the one the attitude predicts.
 
 Model (body FRD, mG), for each IMU step with a calibrated field m:
-    m = C(φ, θ, ψ_f)ᵀ h + b + f·(x − x_ref) + d + noise
+    m = R(δ) C(φ, θ, ψ_f)ᵀ h + b + f·(x − x_ref) + d + noise
 * C = C_b^n (estimators.rotations) from roll φ and pitch θ (the caller's best: the autopilot's
   GPS-aided attitude when fresh, else our AHRS, which tilts by degrees in a sustained acceleration)
   and a heading ψ_f that follows the gyro: ψ_f is propagated by the bias-corrected gyro's yaw rate
@@ -9,6 +9,19 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   magnetic heading of m − b − f·Δx with the time constant ``heading_track_s`` (not at all
   while the test suspects a disturbance).  The AHRS heading follows the magnetometer
   (k_m ≈ 0.2/s), so it would turn with a disturbance and hide most of it; ψ_f does not.
+* R(δ) ≈ I + [δ×]: the magnetometer's tilt δ = (δ_x, δ_y, 0) [rad] against the attitude's body
+  axes, a mounting misalignment that an ArduPilot calibration cannot hold (COMPASS_DIA/ODI is
+  symmetric: the rotation part of the fitted matrix is dropped, estimators.calibration.
+  polar_decomposition).  A tilt turns part of the horizontal field into the body z axis, a
+  residual δ × Cᵀh of up to |δ| H (2° at H = 330 mG: 12 mG, 4 σ) that follows the heading
+  round, so a body offset cannot take it.  δ is learned from how the residual changes over
+  ``tilt_lag_s`` as the predicted field turns in the body (estimators.motor_field_tracker.
+  TiltTracker: least squares forgetting with ``tilt_memory_s``, held at 0 by ``tilt_reg_mG2_s``
+  until the nose has turned enough, at most ``tilt_max_deg``), so a body offset does not teach it a
+  tilt; only while the nose turns (``tilt_min_turn_deg_s``), from ``tilt_learn_after_s`` on (the
+  offset learned), not while the test suspects a disturbance.
+  The tilt about z is a heading offset, ψ_f's.  ψ_f is pulled to the heading of the untilted
+  field R(δ)ᵀ(m − b − f·Δx).
 * h: the Earth field in the magnetic navigation frame (the AHRS heading is magnetic), WMM as the
   prior (H, 0, Z) (without one, the first field), learned in flight; b: a body-fixed residual
   offset (calibration error, motor field at the reference signal);
@@ -53,7 +66,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.motor_field_tracker import MotorFieldTracker
+from estimators.motor_field_tracker import MotorFieldTracker, TiltTracker
 from estimators.rotations import dcm_body_to_ned_float
 
 __all__ = ["FieldConsistencySettings", "FieldConsistency", "FieldStep", "FieldConsistencyResult",
@@ -76,6 +89,12 @@ class FieldConsistencySettings:
     turn_learn_s: float = 10.0
     first_turn_hold_deg_s: float = 20.0  # the CUSUM holds in turns faster than this ...
     post_turn_s: float = 1.0            # ... and this long after them, then ψ_f drops a heading error
+    tilt_learn_after_s: float = 5.0     # the tilt δ learns from then on (the offset has settled) ...
+    tilt_min_turn_deg_s: float = 3.0    # ... while the nose turns at least this fast ...
+    tilt_lag_s: float = 2.0             # ... from the residual's change over this lag ...
+    tilt_memory_s: float = 300.0        # ... least squares forgetting with this time constant ...
+    tilt_reg_mG2_s: float = 1.0e4       # ... held at 0 with this weight [mG² s] until the nose turns ...
+    tilt_max_deg: float = 5.0           # ... at most this (per axis)
     motor_excitation: float = 200.0     # Σ z² Δt [A² s] of signal changes before f is trusted; until then ...
     motor_hold_signal: float = 3.0      # ... the CUSUM holds while the signal is this far from its reference
     motor_learn_after_s: float = 5.0    # f learns from then on (ψ_f has settled)
@@ -140,6 +159,8 @@ class FieldConsistency:
     def _reset(self) -> None:
         self.h = None
         self.b = [0.0, 0.0, 0.0]
+        self.tilt = TiltTracker(self.s.tilt_lag_s, self.s.tilt_memory_s, self.s.tilt_reg_mG2_s,
+                                math.radians(self.s.tilt_max_deg))
         self.motor = MotorFieldTracker(self.s.motor_lag_s, self.s.motor_memory_s)
         self.f = self.motor.f                        # the same list: the tracker updates it
         self.x_ref: float | None = None
@@ -168,6 +189,7 @@ class FieldConsistency:
         self._turn_hold_until = -math.inf
         self.settle_until = settle_until
         self.motor.clear_history()
+        self.tilt.clear_history()
 
     # ------------------------------------------------------------------ one step
     def update(self, t_s: float, mag_body_mG, roll_rad: float, pitch_rad: float, attitude_ok: bool,
@@ -189,7 +211,7 @@ class FieldConsistency:
             x = float(motor_signal)
             dx = x - self.x_ref if math.isfinite(x) and self.x_ref is not None else 0.0
             b, f = self.b, self.f
-            m_earth = (mx - b[0] - f[0] * dx, my - b[1] - f[1] * dx, mz - b[2] - f[2] * dx)
+            m_earth = self._untilt((mx - b[0] - f[0] * dx, my - b[1] - f[1] * dx, mz - b[2] - f[2] * dx))
             self._track_heading(dt, roll_rad, pitch_rad, m_earth, gyro_rad_s)
         else:
             self.psi = None
@@ -206,6 +228,16 @@ class FieldConsistency:
             self.h = [c[0] * mx + c[1] * my + c[2] * mz, c[3] * mx + c[4] * my + c[5] * mz,
                       c[6] * mx + c[7] * my + c[8] * mz]
         return self._test(t, dt, c, (mx, my, mz), motor_signal)
+
+    def _untilt(self, v: tuple) -> tuple:
+        """R(δ)ᵀ v ≈ v − δ × v (δ_z = 0): a body vector in the attitude's axes."""
+        tx, ty = self.tilt.tilt_rad
+        return (v[0] - ty * v[2], v[1] + tx * v[2], v[2] - tx * v[1] + ty * v[0])
+
+    def _tilted(self, p: list) -> list:
+        """R(δ) p ≈ p + δ × p (δ_z = 0): the predicted field as the tilted magnetometer sees it."""
+        tx, ty = self.tilt.tilt_rad
+        return [p[0] + ty * p[2], p[1] - tx * p[2], p[2] + tx * p[1] - ty * p[0]]
 
     def _track_heading(self, dt: float, roll: float, pitch: float, m: tuple, gyro) -> None:
         """ψ_f: gyro yaw rate, pulled to the tilt-compensated magnetic heading (seed 000 eqs. 11-13)
@@ -270,7 +302,7 @@ class FieldConsistency:
             self.turn_until = t + self.s.turn_learn_s
         return self.turn_until is not None and t < self.turn_until
 
-    def _learn(self, dt: float, c: tuple, e: list, dx: float, learning: bool, turn: bool) -> None:
+    def _learn(self, dt: float, c: tuple, e: list, learning: bool, turn: bool) -> None:
         s = self.s
         tau_b = s.offset_learn_fast_s if (learning or turn) else s.offset_learn_s
         g = 1.0 - math.exp(-dt / tau_b)
@@ -282,15 +314,27 @@ class FieldConsistency:
             h[k] += 0.5 * g_h * en[k]
             b[k] += 0.5 * g * e[k]
 
+    def _tilt_learns(self, allowed: bool) -> bool:
+        """The tilt learns while the nose turns (``tilt_min_turn_deg_s``): the horizontal field turning
+        through the body is its signature; a roll or pitch wobble alone would correlate it with
+        whatever else changes (the current, the offset settling)."""
+        s = self.s
+        return (allowed and self.learned_s >= s.tilt_learn_after_s
+                and abs(self.yaw_rate_rad_s) >= math.radians(s.tilt_min_turn_deg_s))
+
+    def _clip_mG(self) -> float:
+        """The trackers learn from changes clipped at ``motor_clip_sigma`` σ (Huber)."""
+        s = self.s
+        return s.motor_clip_sigma * (self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG)
+
     def _learn_motor(self, t: float, dt: float, u: list, x: float, turn: bool, allowed: bool) -> None:
         """f from the signal's changes (estimators.motor_field_tracker.MotorFieldTracker), outside turns,
         after ``motor_learn_after_s``; b keeps carrying f x_ref when f changes."""
         s = self.s
         learn = (allowed and not turn and abs(self.yaw_rate_rad_s) < math.radians(s.motor_max_turn_deg_s)
                  and self.learned_s >= s.motor_learn_after_s)
-        clip = s.motor_clip_sigma * (self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG)
         old = list(self.f)
-        self.motor.update(t, u, float(x), dt, learn, clip)
+        self.motor.update(t, u, float(x), dt, learn, self._clip_mG())
         if self.x_ref is not None:
             for k in range(3):
                 self.b[k] += (self.f[k] - old[k]) * self.x_ref
@@ -301,14 +345,17 @@ class FieldConsistency:
         self.learned_s += min(dt, s.max_gap_s)
         h, b, f = self.h, self.b, self.f
         dx = self._dx = self._motor(x, dt)
-        pred = [c[0] * h[0] + c[3] * h[1] + c[6] * h[2], c[1] * h[0] + c[4] * h[1] + c[7] * h[2],
-                c[2] * h[0] + c[5] * h[1] + c[8] * h[2]]
+        p = [c[0] * h[0] + c[3] * h[1] + c[6] * h[2], c[1] * h[0] + c[4] * h[1] + c[7] * h[2],
+             c[2] * h[0] + c[5] * h[1] + c[8] * h[2]]
+        pred = self._tilted(p)
         e = [m[k] - pred[k] - b[k] - f[k] * dx for k in range(3)]
         turn = self._relearning_turn(t, learning) or t < self.relearn_until
         allowed = self._learning_allowed()
         if turn or allowed:
-            self._learn(dt, c, e, dx, learning, turn)
+            self._learn(dt, c, e, learning, turn)
         self._learn_motor(t, dt, [m[k] - pred[k] for k in range(3)], x, turn, allowed)
+        self.tilt.update(t, p, [m[k] - p[k] - b[k] - f[k] * dx for k in range(3)], dt,
+                         self._tilt_learns(turn or allowed), self._clip_mG())
         a = 1.0 - math.exp(-dt / s.smooth_s) if self.r is not None else 1.0
         r = self.r = e if self.r is None else [self.r[k] + a * (e[k] - self.r[k]) for k in range(3)]
         size = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
@@ -400,6 +447,7 @@ class FieldConsistencyResult:
     noise_mG: float
     earth_field_mG: tuple          # h at the end (magnetic NED)
     offset_mG: tuple               # b at the end (body)
+    tilt_deg: tuple = (float("nan"), float("nan"))   # δ_x, δ_y at the end: the magnetometer's tilt
 
 
 def field_consistency(t_s, mag_body_mG, roll_rad, pitch_rad, attitude_ok, gyro_rad_s, motor_signal,
@@ -426,4 +474,5 @@ def field_consistency(t_s, mag_body_mG, roll_rad, pitch_rad, attitude_ok, gyro_r
         z[i], q[i], st[i] = step.z, step.q, step.status
         res[i] = step.residual_mG
         mot[i] = step.motor_mG_per_unit
-    return FieldConsistencyResult(t, z, q, res, st, mot, fc.noise_mG, tuple(fc.h or (np.nan,) * 3), tuple(fc.b))
+    return FieldConsistencyResult(t, z, q, res, st, mot, fc.noise_mG, tuple(fc.h or (np.nan,) * 3), tuple(fc.b),
+                                  tuple(math.degrees(v) for v in fc.tilt.tilt_rad))

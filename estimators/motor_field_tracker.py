@@ -1,12 +1,15 @@
-"""Online motor field per unit of the motor signal, for the live field-vector test
-(estimators.field_consistency); the offline fits are estimators.motor_field.  Pure, plain floats.
+"""Online trackers of the live field-vector test (estimators.field_consistency), each learned from
+the changes of the residual over a short lag, so that a body offset (constant over the lag) never
+teaches them anything: the motor field per unit of the motor signal (``MotorFieldTracker``; the
+offline fits are estimators.motor_field) and the magnetometer's tilt against the attitude's axes
+(``TiltTracker``).  Pure, plain floats.
 """
 from __future__ import annotations
 
 import math
 from collections import deque
 
-__all__ = ["MotorFieldTracker"]
+__all__ = ["MotorFieldTracker", "TiltTracker"]
 
 
 class MotorFieldTracker:
@@ -54,3 +57,62 @@ class MotorFieldTracker:
             y = pred + min(max(float(u_mG[k]) - h[0][k + 1] - pred, -clip_mG), clip_mG)
             self._sxy[k] = w * self._sxy[k] + z * y * dt_s
             self.f[k] = self._sxy[k] / (self._sxx + self.reg)
+
+
+class TiltTracker:
+    """Online tilt δ = (δ_x, δ_y) [rad] of the magnetometer against the attitude's body axes.
+
+    The field the tilted sensor measures is R(δ) p ≈ p + δ × p (p = Cᵀh, the predicted Earth field in
+    the body frame [mG]), so the part of the residual u = m − p − b − f·Δx that a tilt explains
+    changes over a short lag L only when p does (the nose turning):
+        y = u(t) − u(t − L) = δ × Δp + noise = A δ,  Δp = p(t) − p(t − L),  A = −[Δp×] (x, y columns)
+    (a body offset cancels; a heading error of the attitude, a rotation about z, is the third
+    column, left out).  δ is the exponentially weighted least-squares solution of the 2 × 2 normal
+    equations (Σ w AᵀA + reg I) δ = Σ w Aᵀy, the weights forgetting with ``memory_s``, each y
+    Huber-clipped at ``clip_mG`` around A δ, δ at most ``max_rad`` per axis.  ``reg`` [mG² s] holds δ
+    at 0 until the heading has turned enough.  Units: rad, mG, s.
+    """
+
+    def __init__(self, lag_s: float = 2.0, memory_s: float = 300.0, reg: float = 1.0e4,
+                 max_rad: float = 0.087) -> None:
+        self.lag_s, self.memory_s, self.reg, self.max_rad = lag_s, memory_s, reg, max_rad
+        self.tilt_rad = [0.0, 0.0]
+        self._s = [0.0, 0.0, 0.0]          # Σ w AᵀA: xx, xy, yy
+        self._r = [0.0, 0.0]               # Σ w Aᵀy
+        self._hist: deque = deque()
+
+    def clear_history(self) -> None:
+        """Forget the recent samples (after a gap), keep what has been learned."""
+        self._hist.clear()
+
+    def update(self, t_s: float, p_mG, u_mG, dt_s: float, learn: bool, clip_mG: float) -> None:
+        """One step: p = Cᵀh and u = m − p − b − f·Δx (no tilt term) [mG]; learns only when ``learn``."""
+        h = self._hist
+        h.append((t_s, float(p_mG[0]), float(p_mG[1]), float(p_mG[2]),
+                  float(u_mG[0]), float(u_mG[1]), float(u_mG[2])))
+        while len(h) > 2 and h[1][0] <= t_s - self.lag_s:
+            h.popleft()
+        if not learn or h[0][0] > t_s - self.lag_s:
+            return
+        old = h[0]
+        dpx, dpy, dpz = (float(p_mG[k]) - old[k + 1] for k in range(3))
+        a_x = (0.0, -dpz, dpy)             # e_x × Δp: the residual change per radian of δ_x
+        a_y = (dpz, 0.0, -dpx)             # e_y × Δp
+        tx, ty = self.tilt_rad
+        w = math.exp(-dt_s / self.memory_s)
+        s, r = self._s, self._r
+        s[0] = w * s[0] + dt_s * (a_x[1] * a_x[1] + a_x[2] * a_x[2])
+        s[1] = w * s[1] + dt_s * (a_x[2] * a_y[2])
+        s[2] = w * s[2] + dt_s * (a_y[0] * a_y[0] + a_y[2] * a_y[2])
+        rx, ry = w * r[0], w * r[1]
+        for k in range(3):
+            pred = a_x[k] * tx + a_y[k] * ty
+            y = pred + min(max(float(u_mG[k]) - old[k + 4] - pred, -clip_mG), clip_mG)
+            rx += dt_s * a_x[k] * y
+            ry += dt_s * a_y[k] * y
+        self._r = [rx, ry]
+        sxx, sxy, syy = s[0] + self.reg, s[1], s[2] + self.reg
+        det = sxx * syy - sxy * sxy
+        lim = self.max_rad
+        self.tilt_rad = [min(max((syy * rx - sxy * ry) / det, -lim), lim),
+                         min(max((sxx * ry - sxy * rx) / det, -lim), lim)]
