@@ -15,7 +15,7 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   polar_decomposition).  A tilt turns part of the horizontal field into the body z axis, a
   residual δ × Cᵀh of up to |δ| H (2° at H = 330 mG: 12 mG, 4 σ) that follows the heading
   round, so a body offset cannot take it.  δ is learned from how the residual changes over
-  ``tilt_lag_s`` as the predicted field turns in the body (estimators.motor_field_tracker.
+  ``tilt_lag_s`` as the predicted field turns in the body (estimators.residual_trackers.
   TiltTracker: least squares forgetting with ``tilt_memory_s``, held at 0 by ``tilt_reg_mG2_s``
   until the nose has turned enough, at most ``tilt_max_deg``), so a body offset does not teach it a
   tilt; only while the nose turns (``tilt_min_turn_deg_s``), from ``tilt_learn_after_s`` on (the
@@ -28,7 +28,7 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
 * f: the motor field per unit of the motor signal x (current [A], or throttle in % without a
   current sensor), on x − x_ref (x_ref: the signal low-passed with ``motor_ref_s``), as
   ArduPilot's compassmot / PX4's mag_compensation fit it offline (estimators.motor_field).
-  f is learned from the signal's changes (estimators.motor_field_tracker.MotorFieldTracker: the change of m − Cᵀh over ``motor_lag_s``
+  f is learned from the signal's changes (estimators.residual_trackers.MotorFieldTracker: the change of m − Cᵀh over ``motor_lag_s``
   against the change of x, weighted least squares, Huber-clipped at ``motor_clip_sigma`` σ), not
   in turns, not before ``motor_learn_after_s``, not while the test suspects a disturbance, so the
   body offset settling or a slow disturbance does not teach it a wrong field per ampere; until
@@ -66,7 +66,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.motor_field_tracker import MotorFieldTracker, TiltTracker
+from estimators.residual_trackers import MotorFieldTracker, TiltTracker
 from estimators.rotations import dcm_body_to_ned_float
 
 __all__ = ["FieldConsistencySettings", "FieldConsistency", "FieldStep", "FieldConsistencyResult",
@@ -328,7 +328,7 @@ class FieldConsistency:
         return s.motor_clip_sigma * (self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG)
 
     def _learn_motor(self, t: float, dt: float, u: list, x: float, turn: bool, allowed: bool) -> None:
-        """f from the signal's changes (estimators.motor_field_tracker.MotorFieldTracker), outside turns,
+        """f from the signal's changes (estimators.residual_trackers.MotorFieldTracker), outside turns,
         after ``motor_learn_after_s``; b keeps carrying f x_ref when f changes."""
         s = self.s
         learn = (allowed and not turn and abs(self.yaw_rate_rad_s) < math.radians(s.motor_max_turn_deg_s)

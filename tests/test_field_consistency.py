@@ -167,10 +167,10 @@ def test_an_alarm_ends_within_seconds_of_its_disturbance():
     assert np.nanmax(np.where(r.t_s < 50.0, r.z, np.nan)) < 1.0
 
 
-def test_motor_field_tracker_learns_the_field_per_ampere_from_changes_alone():
+def test_residual_trackers_learns_the_field_per_ampere_from_changes_alone():
     """u = f·x + an offset drifting 0.5 mG/s + noise, the current stepping by 10 A every 10 s:
     the slope of the changes is f, whatever the drift (which an LMS on u would take into f)."""
-    from estimators.motor_field_tracker import MotorFieldTracker
+    from estimators.residual_trackers import MotorFieldTracker
     rng = np.random.default_rng(4)
     t = np.arange(0.0, 120.0, 0.02)
     x = 20.0 + np.where(np.mod(t, 20.0) < 10.0, 10.0, 0.0) + rng.normal(0, 0.2, len(t))
