@@ -119,3 +119,12 @@ def test_an_uncalibrated_compass_is_no_heading_evidence(tmp_path):
     report, _ = analyze_log(read_log(path), None, None)
     assert report["heading_test"].startswith("off: magnetometer not calibrated")
     assert not [a for a in report["alarms"] if a["kind"] in ("combined", "heading_difference")]
+    # the same vehicle calibrated on board streams ArduPilot's corrected field: the tests are on,
+    # the field is the Earth's (WMM strength within 3 %), and the clean flight stays clean
+    sim = simulate("mission-clean", SEED, duration_s=150.0, onboard_calibration=True)
+    log = read_log(sim.write(tmp_path / "onboard.tlog"))
+    report, _ = analyze_log(log, None, None)
+    assert report["heading_test"] == "on" and report["field_vector_test"].startswith("on"), report["field_vector_test"]
+    strength = np.median(np.linalg.norm(log.mag[:, 1:4], axis=1))
+    assert abs(strength / sim.truth["earth_field"]["field_strength_mG"] - 1.0) < 0.03
+    assert not [a for a in report["alarms"] if a["kind"] == "combined"]

@@ -24,6 +24,7 @@ from . import flight_sim as fs
 from estimators.geomag import decimal_year_from_unix, earth_field
 
 from groundstation.io.mavlink import TlogWriter, mavlink2
+from groundstation.io.params import apply_ardupilot, ardupilot_params_from_calibration
 from groundstation.paths import RECORDINGS_DIR
 
 __all__ = ["SCENARIOS", "Simulation", "simulate", "make_recordings", "truth_path"]
@@ -157,15 +158,22 @@ def simulate(scenario: str, seed: int = 0, **overrides) -> Simulation:
 
     "demo" = the calibration dance followed (after a short gap) by mission-slow, or by the mission
     scenario given as ``mission=`` (e.g. simulate("demo", 1, mission="mission-anomaly")).
+    ``onboard_calibration=True``: the vehicle was calibrated on board with its true hard and soft
+    iron (the symmetric part ArduPilot's OFS/DIA/ODI hold), streams the corrected field and reports
+    those parameters; by default it streams the raw sensor with an identity (never run) calibration.
     """
     if scenario == "demo":
         cal = simulate("calibration", seed)
         mis = simulate(overrides.pop("mission", "mission-slow"), seed, **overrides)
         return _concat("demo", seed, [cal, mis], gap_s=5.0)
-    cfg = _config(scenario, seed, dict(overrides))
+    overrides = dict(overrides)
+    onboard = overrides.pop("onboard_calibration", False)
+    cfg = _config(scenario, seed, overrides)
     res = fs.run(cfg)
     truth = _truth(scenario, cfg, res)
-    msgs = _pack(cfg, res, START_UNIX_S, BOOT_OFFSET_S, with_mission=cfg.kind == "mission")
+    params = _params(cfg if onboard else None)
+    truth["onboard_calibration"] = {k: v for k, v in params if k.startswith("COMPASS_")} if onboard else None
+    msgs = _pack(cfg, res, START_UNIX_S, BOOT_OFFSET_S, with_mission=cfg.kind == "mission", params=params)
     return Simulation(scenario, seed, msgs, truth, res)
 
 
@@ -267,9 +275,13 @@ def _i(x) -> np.ndarray:
     return np.rint(np.asarray(x, dtype=float)).astype(np.int64)
 
 
-def _params() -> list[tuple[str, float]]:
-    # The onboard compass calibration is identity: SCALED_IMU carries the raw sensor field.
+def _params(cfg: fs.SimConfig | None = None) -> list[tuple[str, float]]:
+    """The vehicle's compass parameters: identity (never calibrated: SCALED_IMU carries the raw
+    sensor field), or with ``cfg`` the onboard calibration of its true hard and soft iron."""
     p = [("COMPASS_USE", 1.0), ("COMPASS_ORIENT", 0.0), ("COMPASS_EXTERNAL", 1.0)]
+    if cfg is not None:
+        cal = ardupilot_params_from_calibration(cfg.mag.offsets_mG, np.linalg.inv(cfg.mag.matrix))
+        return p + sorted(cal.items()) + [("COMPASS_MOTCT", 0.0)]
     p += [(f"COMPASS_OFS_{a}", 0.0) for a in "XYZ"]
     p += [(f"COMPASS_DIA_{a}", 1.0) for a in "XYZ"]
     p += [(f"COMPASS_ODI_{a}", 0.0) for a in "XYZ"]
@@ -278,14 +290,16 @@ def _params() -> list[tuple[str, float]]:
 
 
 def _pack(cfg: fs.SimConfig, r: fs.SimResult, start_unix: float, boot_offset: float,
-          with_mission: bool) -> list:
-    """SimResult -> time-ordered [(unix_s, MAVLink message)]."""
+          with_mission: bool, params: list[tuple[str, float]] | None = None) -> list:
+    """SimResult -> time-ordered [(unix_s, MAVLink message)]; the field streamed is ArduPilot's
+    correction with ``params`` (default identity) applied to the raw sensor."""
     t = r.t_s
     n = len(t)
     boot_ms = _i((t + boot_offset) * 1000)
     acc = _i(r.accel_mps2 / fs.G * 1000.0)
     gyr = _i(r.gyro_rad_s * 1000.0)
-    mag = _i(r.mag_raw_mG)
+    params = params or _params()
+    mag = _i(apply_ardupilot(r.mag_raw_mG, dict(params)))
     np.clip(acc, -32768, 32767, out=acc)
     np.clip(gyr, -32768, 32767, out=gyr)
     np.clip(mag, -32768, 32767, out=mag)
@@ -301,7 +315,6 @@ def _pack(cfg: fs.SimConfig, r: fs.SimResult, start_unix: float, boot_offset: fl
         out.append((u, _M.MAVLink_heartbeat_message(_M.MAV_TYPE_QUADROTOR, _M.MAV_AUTOPILOT_ARDUPILOTMEGA,
                                                     base_mode, custom, _M.MAV_STATE_ACTIVE, 3)))
         out.append((u + 1e-4, _M.MAVLink_system_time_message(int(round(u * 1e6)), int(boot_ms[i]))))
-    params = _params()
     for k, (name, val) in enumerate(params):
         out.append((start_unix + 0.01 + k * 1e-3, _M.MAVLink_param_value_message(
             name.encode(), float(val), _M.MAV_PARAM_TYPE_REAL32, len(params), k)))
