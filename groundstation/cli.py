@@ -191,7 +191,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         return cmd_simulate_fleet(args)
     if args.scenario not in SCENARIOS:
         raise CliError(f"unknown scenario '{args.scenario}' (choose from {', '.join(SCENARIOS)})")
-    sim = simulate(args.scenario, seed=args.seed)
+    sim = simulate(args.scenario, seed=args.seed, onboard_calibration=args.onboard_calibration)
     sim.write(args.out)
     print(f"wrote {printable(args.out)} ({len(sim.messages)} messages) and its truth JSON")
     return 0
@@ -291,6 +291,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenario", help="a scenario, or 'fleet' (a folder of logs with known truth)")
     p.add_argument("--out", required=True, metavar="FILE.tlog|DIR")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--onboard-calibration", action="store_true",
+                   help="the vehicle was calibrated on board: it streams the corrected field (default: the raw sensor)")
     add_fleet_simulate_options(p)
     p.set_defaults(func=cmd_simulate)
 

@@ -163,8 +163,10 @@ def simulate(scenario: str, seed: int = 0, **overrides) -> Simulation:
     those parameters; by default it streams the raw sensor with an identity (never run) calibration.
     """
     if scenario == "demo":
-        cal = simulate("calibration", seed)
-        mis = simulate(overrides.pop("mission", "mission-slow"), seed, **overrides)
+        overrides = dict(overrides)
+        onboard = overrides.pop("onboard_calibration", False)
+        cal = simulate("calibration", seed, onboard_calibration=onboard)
+        mis = simulate(overrides.pop("mission", "mission-slow"), seed, onboard_calibration=onboard, **overrides)
         return _concat("demo", seed, [cal, mis], gap_s=5.0)
     overrides = dict(overrides)
     onboard = overrides.pop("onboard_calibration", False)
