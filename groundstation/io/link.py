@@ -340,7 +340,4 @@ class LiveLink:
         except Exception:
             pass
         if self.recorder is not None:
-            while self._rx:              # received but not yet polled: still the flight's, record them
-                _, packet, unix = self._rx.popleft()
-                self.recorder.write_packet(packet, unix)
             self.recorder.flush()
