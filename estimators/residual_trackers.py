@@ -12,6 +12,21 @@ from collections import deque
 __all__ = ["MotorFieldTracker", "TiltTracker"]
 
 
+def _lagged(hist: deque, row: tuple, lag_s: float) -> tuple | None:
+    """Append ``row`` (its time first) to ``hist`` and return the newest row at least ``lag_s``
+    older (None while the history is shorter): the other end of the change both trackers learn from."""
+    t_s = row[0]
+    hist.append(row)
+    while len(hist) > 2 and hist[1][0] <= t_s - lag_s:
+        hist.popleft()
+    return hist[0] if hist[0][0] <= t_s - lag_s else None
+
+
+def _huber(y: float, pred: float, clip: float) -> float:
+    """``y`` with its departure from ``pred`` clipped at ``clip`` (Huber)."""
+    return pred + min(max(y - pred, -clip), clip)
+
+
 class MotorFieldTracker:
     """Online field per unit of the motor signal from its changes (for the live field-vector test).
 
@@ -42,19 +57,16 @@ class MotorFieldTracker:
         if not math.isfinite(x):
             self._hist.clear()
             return
-        h = self._hist
-        h.append((t_s, float(u_mG[0]), float(u_mG[1]), float(u_mG[2]), x))
-        while len(h) > 2 and h[1][0] <= t_s - self.lag_s:
-            h.popleft()
-        if not learn or h[0][0] > t_s - self.lag_s:
+        old = _lagged(self._hist, (t_s, float(u_mG[0]), float(u_mG[1]), float(u_mG[2]), x), self.lag_s)
+        if not learn or old is None:
             return
-        z = x - h[0][4]
+        z = x - old[4]
         w = math.exp(-dt_s / self.memory_s)
         self._sxx = w * self._sxx + z * z * dt_s
         self.excitation += z * z * dt_s
         for k in range(3):
             pred = self.f[k] * z
-            y = pred + min(max(float(u_mG[k]) - h[0][k + 1] - pred, -clip_mG), clip_mG)
+            y = _huber(float(u_mG[k]) - old[k + 1], pred, clip_mG)
             self._sxy[k] = w * self._sxy[k] + z * y * dt_s
             self.f[k] = self._sxy[k] / (self._sxx + self.reg)
 
@@ -87,14 +99,10 @@ class TiltTracker:
 
     def update(self, t_s: float, p_mG, u_mG, dt_s: float, learn: bool, clip_mG: float) -> None:
         """One step: p = Cᵀh and u = m − p − b − f·Δx (no tilt term) [mG]; learns only when ``learn``."""
-        h = self._hist
-        h.append((t_s, float(p_mG[0]), float(p_mG[1]), float(p_mG[2]),
-                  float(u_mG[0]), float(u_mG[1]), float(u_mG[2])))
-        while len(h) > 2 and h[1][0] <= t_s - self.lag_s:
-            h.popleft()
-        if not learn or h[0][0] > t_s - self.lag_s:
+        old = _lagged(self._hist, (t_s, float(p_mG[0]), float(p_mG[1]), float(p_mG[2]),
+                                   float(u_mG[0]), float(u_mG[1]), float(u_mG[2])), self.lag_s)
+        if not learn or old is None:
             return
-        old = h[0]
         dpx, dpy, dpz = (float(p_mG[k]) - old[k + 1] for k in range(3))
         a_x = (0.0, -dpz, dpy)             # e_x × Δp: the residual change per radian of δ_x
         a_y = (dpz, 0.0, -dpx)             # e_y × Δp
@@ -107,7 +115,7 @@ class TiltTracker:
         rx, ry = w * r[0], w * r[1]
         for k in range(3):
             pred = a_x[k] * tx + a_y[k] * ty
-            y = pred + min(max(float(u_mG[k]) - old[k + 4] - pred, -clip_mG), clip_mG)
+            y = _huber(float(u_mG[k]) - old[k + 4], pred, clip_mG)
             rx += dt_s * a_x[k] * y
             ry += dt_s * a_y[k] * y
         self._r = [rx, ry]
