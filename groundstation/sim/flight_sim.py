@@ -349,7 +349,10 @@ def _add_after_loop(cfg: SimConfig, res_t: np.ndarray, current_A: np.ndarray, ma
     if cfg.payload is not None and cfg.payload.current_A:
         current_A += payload_current_A(cfg.payload, res_t)
         f = payload_field_body_mG(cfg.payload, res_t, cfg.mag.motor_mG_per_A)
-        (extra_body if cfg.payload.mG_per_A is None else foreign_body)[:] += f
+        if cfg.payload.mG_per_A is None:
+            extra_body += f
+        else:
+            foreign_body += f
     if cfg.anomaly is not None:
         foreign_body += anomaly_field_body_mG(cfg.anomaly, pos_ned_m, att_true[:, 0], att_true[:, 1], att_true[:, 2])
     mag_raw_mG += (extra_body + foreign_body) @ cfg.mag.matrix.T

@@ -162,14 +162,12 @@ def simulate(scenario: str, seed: int = 0, **overrides) -> Simulation:
     iron (the symmetric part ArduPilot's OFS/DIA/ODI hold), streams the corrected field and reports
     those parameters; by default it streams the raw sensor with an identity (never run) calibration.
     """
+    overrides = dict(overrides)
+    onboard = overrides.pop("onboard_calibration", False)
     if scenario == "demo":
-        overrides = dict(overrides)
-        onboard = overrides.pop("onboard_calibration", False)
         cal = simulate("calibration", seed, onboard_calibration=onboard)
         mis = simulate(overrides.pop("mission", "mission-slow"), seed, onboard_calibration=onboard, **overrides)
         return _concat("demo", seed, [cal, mis], gap_s=5.0)
-    overrides = dict(overrides)
-    onboard = overrides.pop("onboard_calibration", False)
     cfg = _config(scenario, seed, overrides)
     res = fs.run(cfg)
     truth = _truth(scenario, cfg, res)
