@@ -54,13 +54,19 @@ def fusion_alarm(trial) -> np.ndarray:
     return flags
 
 
-def score(trial, alarm: np.ndarray, on: np.ndarray | None = None) -> dict:
-    """Shares of the movement phase: tested (``on``), alarmed, alarmed where the field strength is
-    disturbed (detected) and where it is clean (false alarm proxy)."""
+def field_masks(trial) -> dict:
+    """Movement samples whose field strength is disturbed (> ``DISTURBED_MG`` from the trial's
+    median) and clean (< ``CLEAN_MG``): the attitude-free truth, once per trial."""
     m = trial.movement
     size = np.linalg.norm(trial.mag_frd_mG()[:, 1:4], axis=1)
     dev = np.abs(size - np.median(size[m]))
-    bad, clean = m & (dev > DISTURBED_MG), m & (dev < CLEAN_MG)
+    return {"movement": m, "disturbed": m & (dev > DISTURBED_MG), "clean": m & (dev < CLEAN_MG)}
+
+
+def score(masks: dict, alarm: np.ndarray, on: np.ndarray | None = None) -> dict:
+    """Shares of the movement phase: tested (``on``), alarmed, alarmed where the field strength is
+    disturbed (detected) and where it is clean (false alarm proxy)."""
+    m, bad, clean = masks["movement"], masks["disturbed"], masks["clean"]
     share = lambda sel: float(alarm[sel].mean()) if sel.any() else float("nan")  # noqa: E731
     return {"on": float(on[m].mean()) if on is not None else 1.0, "alarmed": share(m),
             "disturbed_share": float(bad[m].mean()), "detected": share(bad), "in_clean": share(clean)}
@@ -70,8 +76,9 @@ def run(paths: list[Path], seconds: float | None) -> list[tuple[str, dict, dict]
     rows = []
     for p in paths:
         trial = load_trial(p, seconds)
+        masks = field_masks(trial)
         alarm, on = our_alarm(trial)
-        rows.append((trial.name, score(trial, alarm, on), score(trial, fusion_alarm(trial))))
+        rows.append((trial.name, score(masks, alarm, on), score(masks, fusion_alarm(trial))))
     return rows
 
 

@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         a.airframes = "AF-03,AF-19"
     variants = a.variants.split(",") if a.variants else [v for v in VARIANTS if a.anomaly_site or v != "no site anomaly"]
     plans, _ = plan_fleet(FleetSettings())
-    airframes = a.airframes.split(",") if (a.airframes or not a.anomaly_site) else None
+    airframes = a.airframes.split(",") if a.airframes else None      # None: every airframe (anomaly site)
     chosen = [p for p in plans if (airframes is None or p.airframe in airframes) and not p.interference
               and (p.site.anomaly_ned_mG is not None) == a.anomaly_site][: a.flights]
     with tempfile.TemporaryDirectory() as out, ProcessPoolExecutor(a.workers) as pool:
