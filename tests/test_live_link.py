@@ -8,7 +8,7 @@ import time
 import pytest
 
 import groundstation  # noqa: F401
-from groundstation.io.link import LiveLink
+from groundstation.io.link import LinkOptions, LiveLink
 from groundstation.io.logs import read_log
 from groundstation.io.mavlink import TlogWriter, mavlink2 as m
 from groundstation.samples import MagSample, StatusSample
@@ -86,6 +86,31 @@ def test_udp_link_requests_streams_falls_back_and_records(tmp_path):
     assert link.bad_packets >= 1
     recorded = read_log(tmp_path / "session.tlog")
     assert len(recorded.mag) == len(mags)
+
+
+def test_udp_garbage_never_swallows_the_next_datagram_and_packed_datagrams_all_parse():
+    """A garbage datagram that starts like a MAVLink 2 packet and claims more bytes than it holds
+    is followed by a good packet: the good one must be read (pymavlink alone joins the two and
+    loses the good packet to a CRC error).  A datagram carrying two packets gives both."""
+    port = free_port()
+    link = LiveLink(f"udpin:127.0.0.1:{port}", options=LinkOptions(passive=True))
+    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    enc = m.MAVLink(None, srcSystem=1, srcComponent=1)
+    n_pairs = 60
+    try:
+        for k in range(n_pairs):
+            # a whole packet with a wrong CRC, then 0xFD with payload length 200 and 30 more bytes:
+            # the parser reads the first as bad data and waits for ~180 bytes more of the second
+            bad_crc = bytes([0xFD, 4, 0, 0, k, 1, 1, 30, 0, 0, 1, 2, 3, 4, 0xAB, 0xCD])
+            vehicle.sendto(bad_crc + bytes([0xFD, 200]) + bytes(range(k, k + 30)), ("127.0.0.1", port))
+            vehicle.sendto(b"".join(vehicle_packets(enc, k)), ("127.0.0.1", port))   # two in one
+            time.sleep(0.002)
+        got = poll_until(link, lambda g: sum(isinstance(s, MagSample) for s in g) >= n_pairs)
+    finally:
+        vehicle.close()
+        link.close()
+    mags = [s.mag_body_mG[0] for s in got if isinstance(s, MagSample)]
+    assert mags == [200.0 + k for k in range(n_pairs)]
 
 
 def test_tcp_link_and_loss_is_reported():

@@ -22,11 +22,12 @@ STREAMED_MESSAGES = ("SCALED_IMU", "RAW_IMU", "ATTITUDE", "GPS_RAW_INT", "GLOBAL
                      "HIGHRES_IMU")
 
 
-def _drop_partial_packets_between_datagrams(conn) -> None:
-    """UDP carries whole MAVLink packets per datagram, so an incomplete packet left in the
-    parser when the next datagram arrives can only be garbage: drop it, or the parser would
-    complete it with the next (good) packet's bytes and lose that packet to a CRC error.
-    (Wraps pymavlink's mavudp.recv; serial/TCP streams are left alone.)"""
+def _parse_each_datagram_alone(conn) -> None:
+    """UDP carries whole MAVLink packets in each datagram (one or several), so every datagram is
+    parsed on its own: bytes left over from one (garbage, or a packet cut short) must not be joined
+    to the next, or a good packet would be read as the tail of a bad one and lost to its CRC.
+    pymavlink's mavudp keeps one byte buffer across datagrams; this replaces its recv_msg for the
+    link (serial/TCP are byte streams and keep pymavlink's parser as it is)."""
     from pymavlink import mavutil
 
     if not isinstance(conn, mavutil.mavudp):
@@ -36,18 +37,30 @@ def _drop_partial_packets_between_datagrams(conn) -> None:
     except OSError:
         pass
     parser = conn.mav
-    raw_recv = conn.recv
+    pending: deque = deque()
 
-    def recv(n=None):
-        data = raw_recv(n)
-        if data and 0 < parser.buf_len() < parser.expected_length:
-            parser.buf = bytearray()
-            parser.buf_index = 0
-            parser.expected_length = mavlink2.HEADER_LEN_V1 + 2
-            parser.have_prefix_error = False
-        return data
+    def forget_partial() -> None:
+        parser.buf = bytearray()
+        parser.buf_index = 0
+        parser.expected_length = mavlink2.HEADER_LEN_V1 + 2
+        parser.have_prefix_error = False
 
-    conn.recv = recv
+    def recv_msg():
+        while not pending:
+            conn.pre_message()
+            data = conn.recv()
+            if not data:
+                return None
+            if conn.first_byte:
+                conn.auto_mavlink_version(data)
+            forget_partial()
+            pending.extend(parser.parse_buffer(data) or ())
+            forget_partial()
+        msg = pending.popleft()
+        conn.post_message(msg)
+        return msg
+
+    conn.recv_msg = recv_msg
 
 
 @dataclass(frozen=True)
@@ -97,7 +110,7 @@ class LiveLink:
             self._relay_id, self.mav = forwarder.open_vehicle(endpoint.text, listen_any=listen_any)
         else:
             self._relay_id, self.mav = None, open_endpoint(endpoint)
-        _drop_partial_packets_between_datagrams(self.mav)
+        _parse_each_datagram_alone(self.mav)
         self._lock_writes(self.mav)
         self.signing = None
         if self.options.signing_key is not None:
