@@ -181,15 +181,18 @@ def test_forward_latency_benchmark_quick_with_the_station_busy():
     bounds: median < 5 ms, and p99 below half the station copy's median.  The p99 is not held to
     the 5 ms target here: on a 2-core machine at load 7-9 any forwarder's p99 reached tens of ms
     (MAVProxy's too); the benchmark reports it against the target."""
-    out = subprocess.run([sys.executable, "benchmarks/forward_latency.py", "--quick", "--modes", "hog"], cwd=ROOT,
-                         capture_output=True, text=True, timeout=180)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert re.search(r"^  met     every packet both ways, in order", out.stdout, re.M), out.stdout
-    row = re.search(r"^  MagStation \(hog\) .*\|\s+(-?[\d.]+)\s+(-?[\d.]+)\s+[\d.]+ \|\s+(-?[\d.]+|-)\s+(-?[\d.]+|-)\s+\S+ \|",
-                    out.stdout, re.M)
-    assert row, out.stdout
-    # "-": the busy station had not even opened its recording within the run (seen at load 2 in
-    # the full suite): its copy is later than any packet forwarded
-    fwd_p50, fwd_p99, station_p50, _ = (float("inf") if v == "-" else float(v) for v in row.groups())
+    for _ in range(3):   # the claim needs a busy station: a run where the hog lost the race for the lock is run again
+        out = subprocess.run([sys.executable, "benchmarks/forward_latency.py", "--quick", "--modes", "hog"], cwd=ROOT,
+                             capture_output=True, text=True, timeout=180)
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert re.search(r"^  met     every packet both ways, in order", out.stdout, re.M), out.stdout
+        row = re.search(r"^  MagStation \(hog\) .*\|\s+(-?[\d.]+)\s+(-?[\d.]+)\s+[\d.]+ \|\s+(-?[\d.]+|-)\s+(-?[\d.]+|-)\s+\S+ \|",
+                        out.stdout, re.M)
+        assert row, out.stdout
+        # "-": the busy station had not even opened its recording within the run (seen at load 2 in
+        # the full suite): its copy is later than any packet forwarded
+        fwd_p50, fwd_p99, station_p50, _ = (float("inf") if v == "-" else float(v) for v in row.groups())
+        if station_p50 > 20.0:
+            break
     assert station_p50 > 20.0, out.stdout           # the station's process really was busy
     assert fwd_p50 < 5.0 and fwd_p99 < station_p50 / 2, out.stdout

@@ -67,6 +67,32 @@ def test_tlog_uses_vehicle_boot_clock_not_arrival_jitter(tmp_path):
     assert (np.diff(log.mag[:, 0]) >= 0).all()
 
 
+def test_a_station_held_up_for_seconds_keeps_the_boot_clock_and_a_slow_clock_is_followed(tmp_path):
+    """A 3 s hold-up of the station, then the backlog read in one burst: times keep the vehicle's
+    20 ms spacing (they neither jump forward nor back, which would restart the tests as after a
+    seek).  A vehicle clock running at half real time (SITL below real time) is followed within
+    the re-anchoring time."""
+    from groundstation.io.mavlink import TlogWriter
+
+    held, slow = tmp_path / "held.tlog", tmp_path / "slow.tlog"
+    with TlogWriter(held) as w:
+        for k in range(1000):                                   # 20 s at 50 Hz
+            boot_s, arrival = 1.0 + 0.02 * k, 1_780_000_000.0 + 0.02 * k + 0.001
+            if 250 <= k < 400:                                  # sent at 5-8 s, all read at 8.05 s
+                arrival = 1_780_000_000.0 + 8.05
+            w.write_message(m.MAVLink_scaled_imu_message(round(boot_s * 1000), 0, 0, -1000, 0, 0, 0, 100, 0, 0), arrival)
+    with TlogWriter(slow) as w:
+        for k in range(1000):
+            boot_s, arrival = 1.0 + 0.02 * k, 1_780_000_000.0 + 0.04 * k
+            w.write_message(m.MAVLink_scaled_imu_message(round(boot_s * 1000), 0, 0, -1000, 0, 0, 0, 100, 0, 0), arrival)
+    t = read_log(held).mag[:, 0]
+    assert np.diff(t) == pytest.approx(0.02, abs=1e-6)
+    t_slow = read_log(slow).mag[:, 0]
+    assert (np.diff(t_slow) >= 0).all()
+    late_s = (t_slow[-1] - t_slow[0]) - 0.04 * 999                 # behind the station's clock at the end
+    assert abs(late_s) < 2.0 + 5.0 * 2, late_s                   # re-anchored: not the 20 s of a fixed offset
+
+
 def test_highres_imu_is_gauss_and_si():
     log = read_log(DATA / "nan.tlog")  # holds only HIGHRES_IMU for the IMU
     t = log.mag[:, 0]

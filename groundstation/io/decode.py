@@ -63,24 +63,44 @@ class _BootClock:
 
     Radio links deliver packets in bursts, so arrival times jitter by tens of ms; the
     vehicle's boot clock does not.  t = boot_s + offset, where offset is the smallest
-    (arrival - boot) seen so far (a packet never arrives before it is sent).  A reboot
-    (boot time going back) or a drift beyond 2 s re-anchors the offset.
+    (arrival - boot) seen so far (a packet never arrives before it is sent).  A reboot (boot
+    time going back) re-anchors the offset at once; packets arriving more than
+    ``REANCHOR_LATE_S`` late re-anchor it only when they stay that late for ``REANCHOR_AFTER_S``
+    of boot time (a vehicle clock that runs slow, e.g. SITL below real time): a station held up
+    for a few seconds then reading the backlog in a burst must not move the times forward and
+    then back (the tests would restart as after a seek).
     """
+
+    REANCHOR_LATE_S = 2.0
+    REANCHOR_AFTER_S = 5.0
 
     def __init__(self) -> None:
         self.offset_s: float | None = None
         self.last_boot_s = -math.inf
+        self._late_since_boot_s: float | None = None
+        self._late_offset_s = math.inf
 
     def __call__(self, boot_ms: float, arrival_s: float) -> float:
         boot_s = boot_ms * 1e-3
         candidate = arrival_s - boot_s
-        if (self.offset_s is None or boot_s < self.last_boot_s - 1.0
-                or abs(candidate - self.offset_s) > 2.0):
-            self.offset_s = candidate
+        if self.offset_s is None or boot_s < self.last_boot_s - 1.0:
+            self._anchor(candidate)
         elif candidate < self.offset_s:
             self.offset_s = candidate
+        if candidate - self.offset_s > self.REANCHOR_LATE_S:
+            if self._late_since_boot_s is None:
+                self._late_since_boot_s = boot_s
+            self._late_offset_s = min(self._late_offset_s, candidate)
+            if boot_s - self._late_since_boot_s >= self.REANCHOR_AFTER_S:
+                self._anchor(self._late_offset_s)
+        else:
+            self._late_since_boot_s, self._late_offset_s = None, math.inf
         self.last_boot_s = boot_s
         return boot_s + self.offset_s
+
+    def _anchor(self, offset_s: float) -> None:
+        self.offset_s = offset_s
+        self._late_since_boot_s, self._late_offset_s = None, math.inf
 
 
 class MavlinkDecoder:
