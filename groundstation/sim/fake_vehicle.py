@@ -84,6 +84,7 @@ class FakeVehicle:
         self.refused_unsigned = 0
         self.mirror: tuple[str, int] | None = None    # also send every packet here (latency reference)
         self.send_log: list[tuple[int, float]] = []   # (MAVLink seq, time.monotonic()) with record_send_times
+        self.delivered_packets: list[bytes] | None = None   # set to [] to keep every packet put on the wire
         self._enc = new_encoder(system_id, 1)
         self._parser = mavlink2.MAVLink(None)
         self._parser.robust_parsing = True
@@ -154,6 +155,8 @@ class FakeVehicle:
                 self._sock.sendto(buf, self.mirror)
             kind = msg.get_type()
             self.delivered[kind] = self.delivered.get(kind, 0) + 1
+            if self.delivered_packets is not None:
+                self.delivered_packets.append(buf)
 
     def _vehicle_view(self, msg):
         """The message as the autopilot sends it: compass fields corrected by its parameters;
