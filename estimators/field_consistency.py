@@ -319,9 +319,10 @@ class FieldConsistency:
             b[k] += 0.5 * g * e[k]
 
     def _tilt_learns(self, allowed: bool) -> bool:
-        """The tilt learns while the nose turns (``tilt_min_turn_deg_s``): the horizontal field turning
-        through the body is its signature; a roll or pitch wobble alone would correlate it with
-        whatever else changes (the current, the offset settling)."""
+        """The tilt learns while the nose turns at a vehicle's rates (``tilt_min_turn_deg_s`` to
+        ``tilt_max_turn_deg_s``): the horizontal field turning through the body is its signature; a
+        roll or pitch wobble alone would correlate it with whatever else changes (the current, the
+        offset settling), and hand-held spins teach it the attitude's lag instead."""
         s = self.s
         return (allowed and self.learned_s >= s.tilt_learn_after_s
                 and math.radians(s.tilt_min_turn_deg_s) <= abs(self.yaw_rate_rad_s) <= math.radians(s.tilt_max_turn_deg_s))

@@ -167,7 +167,7 @@ def test_an_alarm_ends_within_seconds_of_its_disturbance():
     assert np.nanmax(np.where(r.t_s < 50.0, r.z, np.nan)) < 1.0
 
 
-def test_residual_trackers_learns_the_field_per_ampere_from_changes_alone():
+def test_motor_field_tracker_learns_the_field_per_ampere_from_changes_alone():
     """u = f·x + an offset drifting 0.5 mG/s + noise, the current stepping by 10 A every 10 s:
     the slope of the changes is f, whatever the drift (which an LMS on u would take into f)."""
     from estimators.residual_trackers import MotorFieldTracker
@@ -198,7 +198,6 @@ def test_a_heading_error_left_by_a_fast_turn_is_dropped_not_alarmed():
     off = field_consistency(*args, settings=replace(FieldConsistencySettings(), reanchor_heading_deg=0.0,
                                                     offset_learn_s=60.0), earth_field_mG=tuple(H_MAG))
     assert np.nanmax(off.z) >= 1.0
-
 
 
 TILT_DEG = (2.5, 1.5, 0.0)                     # magnetometer mounting tilt (roll, pitch) against the body

@@ -53,9 +53,8 @@ def _parse_each_datagram_alone(conn) -> None:
                 return None
             if conn.first_byte:
                 conn.auto_mavlink_version(data)
-            forget_partial()
+            forget_partial()        # what the last datagram left (garbage, a cut-short packet)
             pending.extend(parser.parse_buffer(data) or ())
-            forget_partial()
         msg = pending.popleft()
         conn.post_message(msg)
         return msg
