@@ -11,6 +11,7 @@ import ipaddress
 import os
 import re
 import stat
+import sys
 from dataclasses import dataclass
 
 from .errors import IngestError
@@ -27,7 +28,8 @@ DEFAULT_BAUD = 57600
 _HOST_RE = re.compile(r"^[A-Za-z0-9](?:[A-Za-z0-9.-]{0,252})$")
 _COM_RE = re.compile(r"^COM[1-9][0-9]{0,2}$", re.IGNORECASE)
 _USAGE = "use udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT or a serial port /dev/ttyUSB0,57600"
-_NOT_SERIAL = ("/dev/tty", "/dev/console", "/dev/ptmx")   # the controlling terminal, not a port
+_NOT_SERIAL = ("/dev/tty", "/dev/console", "/dev/ptmx", "/dev/pts/ptmx")   # terminals, not ports
+_NOT_SERIAL_NUMBERS = ((5, 0), (5, 1), (5, 2))    # Linux (major, minor) of /dev/tty, console, ptmx wherever mounted
 
 
 @dataclass(frozen=True)
@@ -64,10 +66,16 @@ def _refuse(text: str, why: str) -> IngestError:
                        f"open: {why} ({_USAGE})")
 
 
+def _ascii_number(text: str) -> bool:
+    """Only the digits 0-9 (``str.isdigit`` also takes '²', Arabic-Indic and full-width digits,
+    which ``int`` then reads as another number than the page shows, or not at all)."""
+    return text.isascii() and text.isdigit()
+
+
 def _network_endpoint(text: str, kind: str, rest: str, listen_any: bool) -> Endpoint:
     host, sep, port = rest.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise _refuse(text, f"{kind} needs HOST:PORT with a port 1..65535")
+    if not sep or not host or not _ascii_number(port) or len(port) > 5 or not 0 < int(port) < 65536:
+        raise _refuse(text, f"{kind} needs HOST:PORT with a port 1..65535 (digits 0-9)")
     if not _HOST_RE.match(host):
         raise _refuse(text, "the host must be a name or an IPv4 address")
     if kind in LISTENING_KINDS and not listen_any and not _is_loopback(host):
@@ -78,8 +86,8 @@ def _network_endpoint(text: str, kind: str, rest: str, listen_any: bool) -> Endp
 
 def _serial_endpoint(text: str) -> Endpoint:
     device, sep, baud = text.partition(",")
-    if sep and not (baud.isdigit() and 50 <= int(baud) <= 20_000_000):
-        raise _refuse(text, "the baud rate after ',' must be a number")
+    if sep and not (_ascii_number(baud) and len(baud) <= 8 and 50 <= int(baud) <= 20_000_000):
+        raise _refuse(text, "the baud rate after ',' must be a number 50..20000000 (digits 0-9)")
     baud_rate = int(baud) if sep else DEFAULT_BAUD
     if os.name == "nt" and _COM_RE.match(device):
         return Endpoint("serial", text, device=device.upper(), baud=baud_rate)
@@ -89,12 +97,14 @@ def _serial_endpoint(text: str) -> Endpoint:
     if not resolved.startswith("/dev/"):
         raise _refuse(text, f"it resolves to {resolved}, outside /dev")
     try:
-        mode = os.stat(resolved).st_mode
+        info = os.stat(resolved)
     except OSError:
         raise _refuse(text, f"no such device {device} (is the radio or autopilot plugged in?)") from None
-    if not stat.S_ISCHR(mode):
+    if not stat.S_ISCHR(info.st_mode):
         raise _refuse(text, f"{resolved} is not a character device")
-    if resolved in _NOT_SERIAL or re.fullmatch(r"/dev/tty[0-9]+", resolved) or resolved in _own_terminals():
+    number = (os.major(info.st_rdev), os.minor(info.st_rdev)) if sys.platform.startswith("linux") else None
+    if resolved in _NOT_SERIAL or number in _NOT_SERIAL_NUMBERS or re.fullmatch(r"/dev/tty[0-9]+", resolved) \
+            or resolved in _own_terminals():
         raise _refuse(text, f"{resolved} is a console or this program's own terminal, not a serial port")
     return Endpoint("serial", text, device=resolved, baud=baud_rate)
 

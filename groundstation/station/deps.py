@@ -9,6 +9,7 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
+from groundstation.jsonsafe import jsonable
 from groundstation.station.hub.session import ConflictError, NotFoundError, Session, SessionError
 from groundstation.station.push import Pusher
 
@@ -43,8 +44,9 @@ MAX_ECHOED_INPUT = 120   # characters of a rejected value shown back in a 422
 
 
 async def validation_handler(request: Request, exc: RequestValidationError) -> JSONResponse:
-    """422 with FastAPI's usual detail list, but a long input is not echoed back whole."""
-    errors = jsonable_encoder(exc.errors(), custom_encoder={Exception: str, bytes: repr})
+    """422 with FastAPI's usual detail list, but a long input is not echoed back whole, and a
+    non-finite number in it (NaN, Infinity, 1e400) is shown as null (JSON has no such numbers)."""
+    errors = jsonable(jsonable_encoder(exc.errors(), custom_encoder={Exception: str, bytes: repr}))
     for error in errors:
         shown = json.dumps(error.get("input"))
         if len(shown) > MAX_ECHOED_INPUT:

@@ -25,7 +25,7 @@ import secrets
 import socket
 from dataclasses import dataclass
 from typing import Annotated, Mapping
-from urllib.parse import parse_qsl, urlencode, urlsplit
+from urllib.parse import parse_qsl, quote, urlencode, urlsplit
 
 from fastapi import APIRouter, Header, HTTPException, Request
 from fastapi.responses import JSONResponse
@@ -226,7 +226,10 @@ class StationGuard:
 
     async def _set_cookie_and_redirect(self, scope, query: str, send) -> None:
         rest = urlencode([(k, v) for k, v in parse_qsl(query, keep_blank_values=True) if k != "token"])
-        location = "/" + scope["path"].lstrip("/") + ("?" + rest if rest else "")   # never //other.host
+        # never //other.host nor /\other.host (browsers read a backslash as a slash): the path
+        # is percent-encoded (a backslash becomes %5C) and starts with exactly one slash
+        path = quote(scope["path"].lstrip("/\\"), safe="/:@!$&'()*+,;=-._~")
+        location = "/" + path + ("?" + rest if rest else "")
         cookie = f"{TOKEN_COOKIE}={self.policy.access_token}; HttpOnly; SameSite=Strict; Path=/"
         if self.policy.scheme == "https":
             cookie += "; Secure"

@@ -10,7 +10,9 @@ link to ``session-*.tlog``, creating the file with the first packet.
 """
 from __future__ import annotations
 
+import os
 import re
+import tempfile
 import threading
 import time
 from collections import Counter
@@ -30,6 +32,7 @@ MAV_TYPES = {1: "fixed wing", 2: "quadrotor", 3: "coaxial", 4: "helicopter", 10:
              21: "VTOL tiltrotor", 22: "VTOL", 23: "VTOL tailsitter", 24: "VTOL tiltwing"}
 
 
+MAX_NAME_TRIES = 10_000
 UNREAD = {"duration_s": None, "start_unix_s": None, "autopilot": None, "vehicle": None, "compasses": None,
           "error": None}
 
@@ -135,29 +138,42 @@ class RecordingsFolder:
         self._lock = threading.Lock()
 
     def names(self) -> list[str]:
+        """The recordings: regular files with a log suffix, no hidden files, no symlinks (a link
+        in the folder, e.g. from an unpacked archive, may point anywhere: it is neither listed,
+        read nor replayed)."""
         if not self.dir.is_dir():
             return []
         return sorted(p.name for p in self.dir.iterdir()
-                      if p.is_file() and p.suffix.lower() in RECORDING_SUFFIXES and not p.name.startswith("."))
+                      if p.suffix.lower() in RECORDING_SUFFIXES and not p.name.startswith(".")
+                      and not p.is_symlink() and p.is_file())
 
     def resolve(self, name: str) -> Path:
-        """A file name from the folder -> its path; anything else (paths, ..) is refused.
+        """A file name from the folder -> its path; anything else (paths, .., symlinks) is refused.
         Raises ValueError (not a name) or FileNotFoundError (no such recording)."""
         if not name or "/" in name or "\\" in name or name.startswith(".") or \
                 Path(name).suffix.lower() not in RECORDING_SUFFIXES:
             raise ValueError(f"'{name}' is not a recording name (a file name from recordings/)")
-        path = (self.dir / name).resolve()
-        if path.parent != self.dir or not path.is_file():
+        path = self.dir / name
+        if path.is_symlink() or path.resolve().parent != self.dir or not path.is_file():
             raise FileNotFoundError(f"no recording named '{name}' (see GET /api/recordings)")
         return path
 
-    def new_path(self, prefix: str, suffix: str, stem: str = "") -> Path:
-        """A fresh file name in the folder: PREFIX-YYYYmmdd-HHMMSS[-stem][_n]SUFFIX."""
+    def new_path(self, prefix: str, suffix: str, stem: str = "", content: Path | None = None) -> Path:
+        """A fresh file PREFIX-YYYYmmdd-HHMMSS[-stem][_n]SUFFIX, created here and now so that no
+        two callers get the same name: empty (exclusive create), or a hard link to ``content``
+        (the finished upload).  An existing file is never replaced."""
         base = time.strftime(f"{prefix}-%Y%m%d-%H%M%S", time.gmtime()) + (f"-{stem}" if stem else "")
-        path, n = self.dir / f"{base}{suffix}", 1
-        while path.exists():
-            path, n = self.dir / f"{base}_{n}{suffix}", n + 1
-        return path
+        for n in range(MAX_NAME_TRIES):
+            path = self.dir / (f"{base}{suffix}" if n == 0 else f"{base}_{n}{suffix}")
+            try:
+                if content is None:
+                    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
+                else:
+                    os.link(content, path)
+                return path
+            except FileExistsError:
+                continue
+        raise OSError(f"no free name for {base}{suffix} in {self.dir} after {MAX_NAME_TRIES} tries")
 
     def new_session_path(self) -> Path:
         self.dir.mkdir(parents=True, exist_ok=True)
@@ -242,8 +258,9 @@ class Upload:
             raise UploadError(f"'{self.filename}': not a log type the station reads "
                               f"({', '.join(RECORDING_SUFFIXES)})")
         folder.dir.mkdir(parents=True, exist_ok=True)
-        self.part = folder.dir / f".upload-{time.monotonic_ns()}.part"
-        self._file = open(self.part, "wb")
+        fd, part = tempfile.mkstemp(prefix=".upload-", suffix=".part", dir=folder.dir)   # exclusive
+        self.part = Path(part)
+        self._file = os.fdopen(fd, "wb")
         self.size = 0
         self.head = b""
 
@@ -272,8 +289,7 @@ class Upload:
                 raise UploadError(f"'{self.filename}' does not look like a {self.suffix} file"
                                   + (f" (its content is a {kind} log)" if kind else ""))
             stem = re.sub(r"[^A-Za-z0-9_-]+", "_", Path(self.filename).stem)[:40].strip("_") or "log"
-            path = self.folder.new_path("upload", self.suffix, stem)
-            self.part.rename(path)
+            path = self.folder.new_path("upload", self.suffix, stem, content=self.part)
         finally:
             self.part.unlink(missing_ok=True)
         entry = RecordingsFolder.describe(path)
