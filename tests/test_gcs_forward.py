@@ -196,3 +196,64 @@ def test_forward_latency_benchmark_quick_with_the_station_busy():
             break
     assert station_p50 > 20.0, out.stdout           # the station's process really was busy
     assert fwd_p50 < 5.0 and fwd_p99 < station_p50 / 2, out.stdout
+
+
+def _foreign_packets(text: str) -> list[bytes]:
+    """What another local process would send the station: a HEARTBEAT and a STATUSTEXT of its own."""
+    from groundstation.io.mavlink import mavlink2 as m
+    mav = m.MAVLink(None, srcSystem=77, srcComponent=1)
+    return [m.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3).pack(mav),
+            m.MAVLink_statustext_message(2, text.encode()).pack(mav)]
+
+
+def test_another_local_process_can_neither_inject_into_nor_read_the_station_link(tmp_path):
+    """The loopback socket between the forwarding process and the station is connected at both
+    ends: datagrams from any other port are dropped, and the station's packets (heartbeats,
+    parameter writes) go to the forwarding process only."""
+    port = free_udp_port()
+    with Forwarder([f"udpout:127.0.0.1:{free_udp_port()}"]) as fw:
+        hub = Session(tmp_path, forwarder=fw)                  # active: heartbeats every second
+        hub.connect(f"udpin:127.0.0.1:{port}")
+        fv = FakeVehicle(rotation_dance_messages(turn_s=1.0, tumble_s=4.0), port, speed=1.0).start()
+        intruder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        intruder.bind(("127.0.0.1", 0))
+        intruder.settimeout(0.1)
+        try:
+            assert wait_until(lambda: hub.snapshot()["source"]["link"] == "up", 10, 0.02)
+            station_port = hub.sources.link.mav.port.getsockname()[1]
+            ports = [station_port, *{a[1] for a in hub.sources.link.mav.clients}]   # and the process's side
+            for _ in range(5):
+                for packet in _foreign_packets("INJECTED by another process"):
+                    for p in ports:
+                        intruder.sendto(packet, ("127.0.0.1", p))
+                time.sleep(0.1)
+            heard, deadline = [], time.monotonic() + 2.5        # > 2 heartbeat periods of the station
+            while time.monotonic() < deadline:
+                try:
+                    heard.append(intruder.recv(65535))
+                except socket.timeout:
+                    pass
+            systems = {s["sysid"] for s in hub.snapshot()["vehicles"]["systems"]}
+        finally:
+            intruder.close()
+            fv.stop()
+            hub.close()
+    assert heard == [], f"the intruder received {len(heard)} datagrams of the station's"
+    assert 77 not in systems and 1 in systems, systems
+    assert fv.rx_datagrams > 0                    # the station's own heartbeats reach the vehicle
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_the_signing_passphrase_never_reaches_the_forwarding_process(tmp_path, monkeypatch):
+    """``--signing-passphrase-env MS_PASS``: the station reads the key; the forwarding process it
+    starts gets an environment without MS_PASS (README: it never holds the key)."""
+    from groundstation.cli import _signing_key, build_parser
+
+    monkeypatch.setenv("MS_PASS", "the field crew's words")
+    monkeypatch.setenv("MS_OTHER", "kept")
+    args = build_parser().parse_args(["serve", "--signing-passphrase-env", "MS_PASS"])
+    assert _signing_key(args) == key_from_passphrase("the field crew's words")
+    with Forwarder([f"udpout:127.0.0.1:{free_udp_port()}"]) as fw:
+        environ = open(f"/proc/{fw.pid}/environ", "rb").read().split(b"\0")
+    assert b"MS_OTHER=kept" in environ                       # the environment is read, and passed on
+    assert not [v for v in environ if v.startswith(b"MS_PASS=") or b"field crew" in v]

@@ -19,6 +19,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 from .errors import IngestError
@@ -81,9 +82,29 @@ class MavlinkFramer:
 
 
 
+def _drop_waiting(sock) -> int:
+    """Read and drop every datagram waiting on a socket (without blocking); returns how many."""
+    blocking = sock.getblocking()
+    sock.setblocking(False)
+    n = 0
+    try:
+        while True:
+            sock.recv(65535)
+            n += 1
+    except OSError:
+        return n
+    finally:
+        sock.setblocking(blocking)
+
+
 def _child_env() -> dict:
-    """The station's environment, with this copy of ``groundstation`` first on the path."""
-    env = dict(os.environ)
+    """The station's environment, with this copy of ``groundstation`` first on the path and
+    without the signing passphrase's variable (the forwarding process never holds the key)."""
+    from .signing import passphrase_variables
+
+    fold = str.upper if os.name == "nt" else str          # Windows names ignore case
+    secret = {fold(name) for name in passphrase_variables()}
+    env = {k: v for k, v in os.environ.items() if fold(k) not in secret}
     root = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     return env
@@ -238,7 +259,20 @@ class Forwarder:
             self.close_vehicle(link_id)
             raise IngestError(reply["error"] if reply else self.error or f"cannot open link '{url}': "
                               "the forwarding process did not answer")
-        conn.last_address = ("127.0.0.1", int(reply["port"]))    # writes go to the process from the start
+        relay_address = ("127.0.0.1", int(reply["port"]))
+        try:        # from now on only the process's socket reaches ours (io.relay: both ends connected)
+            conn.port.connect(relay_address)
+        except OSError as err:
+            conn.close()
+            self.close_vehicle(link_id)
+            raise IngestError(f"cannot open link '{url}': loopback to the forwarding process: "
+                              f"{err.strerror or err}") from err
+        _drop_waiting(conn.port)        # what came before the connect is another process's
+        conn.last_address = relay_address          # writes go to the process from the start
+        if isinstance(getattr(conn, "clients", None), set):        # pymavlink >= 2.4.4x: its peers
+            conn.clients.add(relay_address)
+            conn.clients_last_alive[relay_address] = time.time()
+        self._send({"op": "attach", "id": link_id})
         return link_id, conn
 
     def forward(self, link_id: int | None) -> None:

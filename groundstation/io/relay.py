@@ -13,8 +13,14 @@ signature flag) only.  Packets go on unchanged, signed ones included (a changed 
 the signature; checking them is the station's job, with its key, and each ground station's);
 the process sends nothing of its own (a passive station stays silent on the wire).
 
-Control: JSON lines on stdin (first the outputs, then ``open`` / ``forward`` / ``close`` /
-``stats`` / ``quit``), answers and statistics as JSON lines on stdout.  The process ends on
+The loopback link to the station is connected at both ends, so no other local process can
+inject packets into it or read the station's: the station opens its socket and names its port
+(``open``); this process connects a fresh socket to that port (bound and connected in one step)
+and answers its own port; the station connects its socket to that, drops anything that reached
+it before, and says ``attach``; only then does this process send it the vehicle's packets.
+
+Control: JSON lines on stdin (first the outputs, then ``open`` / ``attach`` / ``forward`` /
+``close`` / ``stats`` / ``quit``), answers and statistics as JSON lines on stdout.  The process ends on
 ``quit``, when stdin closes or when its parent dies (checked every LOOP_TIMEOUT_S).
 """
 from __future__ import annotations
@@ -82,14 +88,18 @@ class VehicleLink:
         self.station = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self.station.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, STATION_BUFFER_BYTES)
-            self.station.bind(("127.0.0.1", 0))
-            self.station.connect(("127.0.0.1", int(station_port)))     # only the station talks to us
+            # connect() of an unbound socket binds and connects in one step: from its first moment
+            # the socket takes datagrams from the station's port only (no bind-then-connect gap)
+            self.station.connect(("127.0.0.1", int(station_port)))
         except OSError:
             self.close()
             raise
         self.station.setblocking(False)
+        self.foreign = _drain(self.station)     # none can be the station's: it does not know our port yet
+        self.attached = False                  # the station connected its side too (the "attach" command)
         self.framer = MavlinkFramer()
         self.from_vehicle = self.to_station_dropped = self.from_station = self.errors = 0
+        self.before_attach = 0
 
     @property
     def port(self) -> int:
@@ -116,6 +126,9 @@ class VehicleLink:
         return packets
 
     def to_station(self, packet: bytes) -> None:
+        if not self.attached:          # the station's socket may still take anyone's datagrams
+            self.before_attach += 1
+            return
         try:
             self.station.send(packet)
         except OSError:          # the station's buffer is full (held up a long time) or it closed
@@ -147,8 +160,19 @@ class VehicleLink:
 
     def snapshot(self) -> dict:
         return {"from_vehicle": self.from_vehicle, "to_station_dropped": self.to_station_dropped,
-                "from_station": self.from_station, "skipped_bytes": self.framer.skipped_bytes,
-                "errors": self.errors}
+                "before_attach": self.before_attach, "from_station": self.from_station,
+                "skipped_bytes": self.framer.skipped_bytes, "errors": self.errors}
+
+
+def _drain(sock: socket.socket) -> int:
+    """Read and drop every datagram waiting on a non-blocking socket; returns how many."""
+    n = 0
+    while True:
+        try:
+            sock.recv(65535)
+        except OSError:        # BlockingIOError: empty (ECONNREFUSED and the like: nothing to read)
+            return n
+        n += 1
 
 
 class Relay:
@@ -258,6 +282,10 @@ class Relay:
         op = cmd.get("op")
         if op == "open":
             self._open(int(cmd["id"]), str(cmd["url"]), bool(cmd.get("listen_any")), int(cmd["station_port"]))
+        elif op == "attach":
+            link = self.links.get(cmd.get("id"))
+            if link is not None:
+                link.attached = True
         elif op == "forward":
             self.forwarding = self.links.get(cmd.get("id"))
         elif op == "close":

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from .errors import IngestError
 
-__all__ = ["SIGNING_KEY_BYTES", "key_from_passphrase", "read_key_file", "passphrase_from_env", "key_id", "LinkSigning"]
+__all__ = ["SIGNING_KEY_BYTES", "key_from_passphrase", "read_key_file", "passphrase_from_env", "passphrase_variables", "key_id", "LinkSigning"]
 
 SIGNING_KEY_BYTES = 32
 MAX_KEY_FILE_BYTES = 4096
@@ -128,13 +128,24 @@ def check_signature_first(mav, msgbuf: bytearray, src_system: int, src_component
     return True
 
 
+_PASSPHRASE_VARIABLES: set[str] = set()
+
+
 def passphrase_from_env(name: str) -> bytes:
     """The key of the passphrase in environment variable ``name`` (kept off the command line).
+    The name is remembered (``passphrase_variables``): the processes the station starts (the
+    forwarding process) get an environment without it.
 
     Raises:
         IngestError: the variable is not set or empty.
     """
+    _PASSPHRASE_VARIABLES.add(name)
     value = os.environ.get(name, "")
     if not value:
         raise IngestError(f"environment variable {name} holds no signing passphrase")
     return key_from_passphrase(value)
+
+
+def passphrase_variables() -> frozenset[str]:
+    """The environment variables read as signing passphrases in this process (never passed on)."""
+    return frozenset(_PASSPHRASE_VARIABLES)
