@@ -30,7 +30,7 @@ from groundstation.station.hub.session import Session, SessionError
 from groundstation.station.push import Pusher
 from groundstation.station.routers import (alarms, calibration, downloads, fleet, line, plots, recordings, replay,
                                            source, status, vehicles, ws)
-from groundstation.station.security import AccessPolicy, StationGuard, protect_viser, require_operator
+from groundstation.station.security import AccessPolicy, StationGuard, protect_viser, require_operator, server_options
 from groundstation.station.settings import WILDCARD_HOSTS, StationSettings
 
 __all__ = ["create_app", "Station", "StationStartError", "serve"]
@@ -145,7 +145,7 @@ class Station:
             self.app = create_app(self.session, page_viser_port, settings, self.access)
             tls = {"ssl_certfile": str(settings.tls_cert), "ssl_keyfile": str(settings.tls_key)} if settings.tls else {}
             config = uvicorn.Config(self.app, host=settings.host, port=settings.port, log_level="warning",
-                                    ws_ping_interval=None, **tls)
+                                    ws_ping_interval=None, **server_options(settings.connection_limits), **tls)
             try:
                 config.load()
             except (OSError, ValueError) as err:   # ssl.SSLError is an OSError

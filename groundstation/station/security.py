@@ -17,6 +17,11 @@ Rules (README, "API and security"):
     ``Authorization: Bearer TOKEN``, the HttpOnly SameSite=Strict cookie that ``?token=TOKEN`` on a
     first GET sets, or ``?token=`` on a WebSocket URL.
   * Request bodies are bounded per path prefix (``StationSettings.body_limits``): 413 beyond.
+  * Slow clients (``server_options``, ``StationSettings.connection_limits``): a request's line and
+    headers must arrive within ``header_timeout_s``; a client holds at most ``max_per_client``
+    connections and the station at most ``connection_cap`` in all; to make room the oldest
+    connection not inside a request is closed, one that never completed a request (never showed
+    a token) first, so a tokened request gets through however many slow sockets are open.
 """
 from __future__ import annotations
 
@@ -31,10 +36,10 @@ from fastapi import APIRouter, Header, HTTPException, Request
 from fastapi.responses import JSONResponse
 from starlette.datastructures import Headers
 
-from groundstation.station.settings import LOOPBACK_HOSTS, WILDCARD_HOSTS, StationSettings
+from groundstation.station.settings import LOOPBACK_HOSTS, WILDCARD_HOSTS, ConnectionLimits, StationSettings
 
 __all__ = ["AccessPolicy", "StationGuard", "require_operator", "protect_viser", "router",
-           "TOKEN_HEADER", "TOKEN_COOKIE", "PAGE_TOKEN_PATH"]
+           "TOKEN_HEADER", "TOKEN_COOKIE", "PAGE_TOKEN_PATH", "server_options", "connection_cap"]
 
 TOKEN_HEADER = "X-MagStation-Token"
 TOKEN_COOKIE = "magstation_token"
@@ -330,3 +335,148 @@ def protect_viser(server, policy: AccessPolicy) -> None:
 
     callbacks.insert(0, guard)
     ws.disconnect_all_clients()
+
+
+# ------------------------------------------------------------------------------ slow clients
+
+CONNECTION_RESERVE_FILES = 96   # descriptors kept for the station's files, the 3-D view, the relay
+REFUSED_RESPONSE = (b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: text/plain; charset=utf-8\r\n"
+                    b"connection: close\r\ncontent-length: 34\r\n\r\ntoo many connections from this host")
+
+
+def connection_cap(limits: ConnectionLimits, open_files: int | None = None) -> int:
+    """Open HTTP connections allowed in all: ``limits.max_connections`` when set, else half of what
+    the open-file limit (RLIMIT_NOFILE, or ``open_files``) leaves after CONNECTION_RESERVE_FILES
+    (each connection is a descriptor; the other half is for WebSockets, logs and the relay),
+    between 8 and ``limits.max_connections_cap``."""
+    if limits.max_connections is not None:
+        return limits.max_connections
+    if open_files is None:
+        try:
+            import resource
+            soft = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+            open_files = soft if soft != resource.RLIM_INFINITY else 1 << 20
+        except (ImportError, OSError, ValueError):       # Windows: no such limit
+            open_files = 1 << 20
+    return max(8, min(limits.max_connections_cap, (open_files - CONNECTION_RESERVE_FILES) // 2))
+
+
+class ConnectionBook:
+    """The open HTTP connections of one server, in the order they came, and by client address.
+    Used on the server's event loop only.  Counts what it closed: ``shed`` (room made for a new
+    connection), ``refused`` (no room: every connection was inside a request), ``timed_out``
+    (headers too slow)."""
+
+    def __init__(self, limits: ConnectionLimits, cap: int) -> None:
+        self.limits = limits
+        self.cap = cap
+        self.open: dict = {}                       # protocol -> None, oldest first
+        self.by_client: dict[str, dict] = {}
+        self.shed = self.refused = self.timed_out = 0
+
+    def admit(self, conn) -> bool:
+        """Count a new connection, making room by closing the oldest connection not inside a
+        request (one that never completed a request first: it showed no token) of the same client,
+        then of all.  False: no room (the caller refuses it)."""
+        peers = self.by_client.get(conn.client_key, {})
+        if len(peers) >= self.limits.max_per_client and not self._shed_one(peers):
+            self.refused += 1
+            return False
+        if len(self.open) >= self.cap and not self._shed_one(self.open):
+            self.refused += 1
+            return False
+        self.open[conn] = None
+        self.by_client.setdefault(conn.client_key, {})[conn] = None
+        return True
+
+    def _shed_one(self, conns: dict) -> bool:
+        victim = next((c for c in conns if c.idle and not c.served), None) or \
+            next((c for c in conns if c.idle), None)
+        if victim is None:
+            return False
+        self.discard(victim)
+        victim.transport.close()
+        self.shed += 1
+        return True
+
+    def discard(self, conn) -> None:
+        self.open.pop(conn, None)
+        peers = self.by_client.get(conn.client_key)
+        if peers is not None:
+            peers.pop(conn, None)
+            if not peers:
+                del self.by_client[conn.client_key]
+
+
+def server_options(limits: ConnectionLimits) -> dict:
+    """uvicorn.Config options bounding slow clients: the HTTP protocol ``GuardedHttpProtocol``
+    (uvicorn's h11 protocol with a header timeout and the connection bounds of ``limits``), the
+    keep-alive time and h11's largest request head.
+
+    Why not uvicorn's own options: ``limit_concurrency`` answers 503 to everyone once slow
+    clients hold the connections (the operator too), ``timeout_keep_alive`` starts only after a
+    response and stops at every byte received, so a client sending a header line every few
+    seconds held its connection (and a descriptor) for ever."""
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    book = ConnectionBook(limits, connection_cap(limits))
+
+    class GuardedHttpProtocol(H11Protocol):
+        """One HTTP connection: its request line and headers must come within
+        ``header_timeout_s`` of the connection or of its previous response, and it is counted
+        in ``book`` (which may close it to make room while it is not inside a request)."""
+        connections = book
+
+        def connection_made(self, transport) -> None:
+            super().connection_made(transport)
+            self.client_key = self.client[0] if self.client else ""
+            self.idle, self.served, self._header_timer = True, 0, None
+            if not book.admit(self):
+                transport.write(REFUSED_RESPONSE)
+                transport.close()
+                return
+            self._arm_header_timer()
+
+        def handle_events(self) -> None:
+            cycle = self.cycle
+            super().handle_events()
+            if self.cycle is not cycle:           # a request's line and headers are in
+                self.idle = False
+                self._disarm_header_timer()
+
+        def on_response_complete(self) -> None:
+            self.served += 1
+            self.idle = True
+            if not self.transport.is_closing():
+                self._arm_header_timer()
+            super().on_response_complete()        # may start a pipelined request (handle_events)
+
+        def handle_websocket_upgrade(self, event) -> None:
+            self.idle = False                     # a WebSocket now: StationGuard checks it
+            self._disarm_header_timer()
+            book.discard(self)
+            super().handle_websocket_upgrade(event)
+
+        def connection_lost(self, exc) -> None:
+            self._disarm_header_timer()
+            book.discard(self)
+            super().connection_lost(exc)
+
+        def _arm_header_timer(self) -> None:
+            self._disarm_header_timer()
+            self._header_timer = self.loop.call_later(limits.header_timeout_s, self._headers_too_slow)
+
+        def _disarm_header_timer(self) -> None:
+            if self._header_timer is not None:
+                self._header_timer.cancel()
+                self._header_timer = None
+
+        def _headers_too_slow(self) -> None:
+            self._header_timer = None
+            if self.idle and not self.transport.is_closing():
+                book.timed_out += 1
+                book.discard(self)
+                self.transport.close()
+
+    return {"http": GuardedHttpProtocol, "timeout_keep_alive": limits.keep_alive_s,
+            "h11_max_incomplete_event_size": limits.max_header_bytes}

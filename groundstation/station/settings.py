@@ -7,7 +7,7 @@ from pathlib import Path
 
 from groundstation.paths import RECORDINGS_DIR
 
-__all__ = ["StationSettings", "LOOPBACK_HOSTS", "WILDCARD_HOSTS", "DEFAULT_BODY_LIMITS"]
+__all__ = ["StationSettings", "ConnectionLimits", "LOOPBACK_HOSTS", "WILDCARD_HOSTS", "DEFAULT_BODY_LIMITS"]
 
 LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
 WILDCARD_HOSTS = ("0.0.0.0", "::", "")
@@ -17,6 +17,32 @@ MIB = 1 << 20
 UPLOAD_PATH = "/api/recordings/upload"
 UPLOAD_OVERHEAD = 64 * 1024           # slack over max_upload_mb (the hub refuses beyond the limit itself)
 DEFAULT_BODY_LIMITS: tuple[tuple[str, int], ...] = (("/", 1 * MIB),)
+
+
+@dataclass(frozen=True)
+class ConnectionLimits:
+    """Bounds on the web port's HTTP connections (slow clients; ``security.GuardedHttpProtocol``).
+
+    header_timeout_s:    a request's line and headers must arrive within this time of the
+                         connection (or of the previous response) [s]; the connection is closed.
+    keep_alive_s:        an idle kept-alive connection is closed after this time [s].
+    max_header_bytes:    request line + headers larger than this get a 400 [bytes].
+    max_per_client:      open connections per client address; beyond, the client's oldest one
+                         not inside a request is closed (or the new one refused with a 503).
+    max_connections:     open connections in all; None: from the open-file limit (see
+                         ``security.connection_cap``), at most ``max_connections_cap``.
+    """
+    header_timeout_s: float = 10.0
+    keep_alive_s: float = 5.0
+    max_header_bytes: int = 16 * 1024
+    max_per_client: int = 64
+    max_connections: int | None = None
+    max_connections_cap: int = 4096
+
+    def __post_init__(self) -> None:
+        if not (self.header_timeout_s > 0 and self.keep_alive_s > 0 and self.max_header_bytes >= 1024
+                and self.max_per_client >= 1 and (self.max_connections is None or self.max_connections >= 1)):
+            raise ValueError("connection limits must be positive (max_header_bytes at least 1024)")
 
 
 @dataclass(frozen=True)
@@ -43,6 +69,7 @@ class StationSettings:
     forward:           forwarding outputs (``udpout:HOST:PORT``, ``tcpin:127.0.0.1:PORT``): every
                        packet of the vehicle link goes to them, theirs go to the vehicle.
     signing_key:       MAVLink 2 signing key (32 bytes; ``groundstation.io.signing``), never shown.
+    connection_limits: header time, keep-alive and connections per client (``ConnectionLimits``).
 
     Raises ValueError when a non-loopback host is asked for without ``allow_remote``, a port is
     out of range, only one of the TLS files is given or one is not a file, a body limit is not
@@ -65,6 +92,7 @@ class StationSettings:
     passive: bool = False
     forward: tuple[str, ...] = ()
     signing_key: bytes | None = field(default=None, repr=False)
+    connection_limits: ConnectionLimits = field(default_factory=ConnectionLimits)
 
     def __post_init__(self) -> None:
         self._check_link()

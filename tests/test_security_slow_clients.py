@@ -1,0 +1,153 @@
+"""Slow clients (slowloris) against the station in remote mode: header time and connections per
+client are bounded, and the connections that have not sent a whole request yet are shed first,
+so the operator's tokened request still answers at once.
+
+The station runs in its own process with a small open-file limit (256, as on many systems), so
+the test shows what a real machine would do when the descriptors run out; every socket is on
+loopback."""
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+TOKEN = "slow-client-test-token-0123456789abcdef"
+SLOW_SOCKETS = 250
+
+
+def _station_process(recordings: Path, limits: str = "") -> tuple[subprocess.Popen, str]:
+    """A remote-mode station (loopback) in a child process with RLIMIT_NOFILE 256; its base URL."""
+    script = textwrap.dedent(f"""
+        import resource, sys
+        resource.setrlimit(resource.RLIMIT_NOFILE, (256, resource.getrlimit(resource.RLIMIT_NOFILE)[1]))
+        from groundstation.station.app import Station
+        from groundstation.station.settings import StationSettings
+        {limits}
+        settings = StationSettings(host="127.0.0.1", port=0, viser_port=None, allow_remote=True,
+                                   access_token={TOKEN!r}, recordings_dir={str(recordings)!r}, **extra)
+        st = Station(settings).start()
+        print(st.port, flush=True)
+        sys.stdin.read()
+        st.close()
+    """)
+    if not limits:
+        script = script.replace("**extra", "")
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    line = proc.stdout.readline()
+    if not line.strip().isdigit():
+        proc.kill()
+        pytest.fail(f"the station did not start: {line!r}")
+    return proc, f"http://127.0.0.1:{int(line)}"
+
+
+def _slow_sockets(port: int, n: int) -> list[socket.socket]:
+    """n connections that each send a request line and one header, then wait (slowloris)."""
+    out = []
+    for i in range(n):
+        s = socket.create_connection(("127.0.0.1", port), timeout=5)
+        s.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+        out.append(s)
+    return out
+
+
+def _closed_by_server(sockets: list[socket.socket]) -> int:
+    closed = 0
+    for s in sockets:
+        s.setblocking(False)
+        try:
+            if s.recv(1) == b"":
+                closed += 1
+        except BlockingIOError:
+            pass
+        except OSError:             # reset
+            closed += 1
+    return closed
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="sets RLIMIT_NOFILE in a child process")
+def test_a_tokened_request_answers_while_250_slow_clients_hold_connections(recordings_dir):
+    proc, base = _station_process(recordings_dir)
+    port = int(base.rsplit(":", 1)[1])
+    sockets: list[socket.socket] = []
+    try:
+        t0 = time.monotonic()
+        sockets = _slow_sockets(port, SLOW_SOCKETS)
+        time.sleep(1.0)                                          # the server accepts what it can
+        for s in sockets[::5]:                                   # ... and they go on, slowly
+            try:
+                s.sendall(b"X-Slow: 1\r\n")
+            except OSError:
+                pass
+        started = time.monotonic()
+        r = httpx.get(base + "/api/health", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=5)
+        answered_s = time.monotonic() - started
+        assert r.status_code == 200 and answered_s < 1.0, (r.status_code, answered_s)
+        # the slow clients were shed, not held: at most the per-client bound stays open
+        from groundstation.station.settings import ConnectionLimits
+        held = SLOW_SOCKETS - _closed_by_server(sockets)
+        assert held <= ConnectionLimits().max_per_client, held
+        assert time.monotonic() - t0 < 20
+    finally:
+        for s in sockets:
+            s.close()
+        proc.stdin.close()
+        proc.wait(10)
+
+
+def test_headers_must_arrive_within_the_header_timeout(recordings_dir):
+    """A client that sends one header line every 0.3 s is closed after header_timeout_s (1 s
+    here) although it never goes quiet; an idle connection and a slow body are not its business."""
+    from groundstation.station.app import Station
+    from groundstation.station.settings import ConnectionLimits, StationSettings
+
+    settings = StationSettings(host="127.0.0.1", port=0, viser_port=None, allow_remote=True, access_token=TOKEN,
+                               recordings_dir=recordings_dir,
+                               connection_limits=ConnectionLimits(header_timeout_s=1.0, keep_alive_s=5))
+    st = Station(settings).start()
+    try:
+        s = socket.create_connection(("127.0.0.1", st.port), timeout=5)
+        s.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+        t0, closed_after = time.monotonic(), None
+        s.settimeout(0.3)
+        while time.monotonic() - t0 < 4.0:
+            try:
+                s.sendall(b"X-Slow: 1\r\n")
+                if s.recv(1) == b"":
+                    closed_after = time.monotonic() - t0
+                    break
+            except socket.timeout:
+                continue
+            except OSError:
+                closed_after = time.monotonic() - t0
+                break
+        s.close()
+        assert closed_after is not None and 0.8 <= closed_after <= 2.5, closed_after
+        # a client that sends its headers at once is served, and its request may take longer
+        slow_body = httpx.post(st.url + "/api/calibration/start", headers={"Authorization": f"Bearer {TOKEN}"},
+                               content=_slowly([b"", b""], 0.7), timeout=10)
+        assert slow_body.status_code == 200
+    finally:
+        st.close()
+
+
+def _slowly(chunks: list[bytes], pause_s: float):
+    for chunk in chunks:
+        time.sleep(pause_s)
+        yield chunk
+
+
+def test_connection_limits_follow_the_open_file_limit():
+    from groundstation.station.security import connection_cap
+    from groundstation.station.settings import ConnectionLimits
+
+    assert connection_cap(ConnectionLimits(), open_files=256) < 256 - 64
+    assert connection_cap(ConnectionLimits(), open_files=1 << 20) == ConnectionLimits().max_connections_cap
+    assert connection_cap(ConnectionLimits(max_connections=50), open_files=1 << 20) == 50
