@@ -208,12 +208,14 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.connect is not None:
         from groundstation.io.link import validate_connection_string
         args.connect = validate_connection_string(args.connect)     # the operator may listen on 0.0.0.0
-    from groundstation.station.settings import StationSettings   # light: no server import yet
+    from groundstation.station.settings import ConnectionLimits, StationSettings   # light: no server import yet
 
     settings = StationSettings(host=args.host, port=args.port, viser_port=args.viser_port,
                                allow_remote=args.allow_remote, allowed_hosts=tuple(args.allowed_host),
                                tls_cert=args.tls_cert, tls_key=args.tls_key, sysid=args.sysid,
-                               passive=args.passive, forward=tuple(args.forward), signing_key=_signing_key(args))
+                               passive=args.passive, forward=tuple(args.forward), signing_key=_signing_key(args),
+                               connection_limits=ConnectionLimits(header_timeout_s=args.header_timeout,
+                                                                  max_per_client=args.max_connections_per_client))
     from groundstation.station.app import StationStartError, serve
 
     try:
@@ -252,6 +254,8 @@ def _add_link_options(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from groundstation.station.settings import ConnectionLimits   # light: settings only
+
     parser = argparse.ArgumentParser(prog="magstation", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -270,6 +274,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a host name or address the station is reached by (Host header), repeatable")
     p.add_argument("--tls-cert", metavar="CERT.pem", help="serve HTTPS with this certificate (with --tls-key)")
     p.add_argument("--tls-key", metavar="KEY.pem", help="the certificate's private key")
+    limits = ConnectionLimits()
+    p.add_argument("--header-timeout", type=float, default=limits.header_timeout_s, metavar="S",
+                   help=f"close a connection whose request line and headers take longer (default {limits.header_timeout_s:g} s)")
+    p.add_argument("--max-connections-per-client", type=int, default=limits.max_per_client, metavar="N",
+                   help=f"open connections per client address (default {limits.max_per_client}; more behind a proxy)")
     _add_link_options(p)
     p.set_defaults(func=cmd_serve)
 

@@ -151,3 +151,45 @@ def test_connection_limits_follow_the_open_file_limit():
     assert connection_cap(ConnectionLimits(), open_files=256) < 256 - 64
     assert connection_cap(ConnectionLimits(), open_files=1 << 20) == ConnectionLimits().max_connections_cap
     assert connection_cap(ConnectionLimits(max_connections=50), open_files=1 << 20) == 50
+
+
+class _Conn:
+    """A connection as ConnectionBook sees it."""
+
+    def __init__(self, client: str, idle: bool = True, served: int = 0) -> None:
+        self.client_key, self.idle, self.served = client, idle, served
+        self.transport = self
+        self.closed = False
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_room_is_made_by_closing_idle_connections_never_served_ones_first():
+    from groundstation.station.security import ConnectionBook
+    from groundstation.station.settings import ConnectionLimits
+
+    book = ConnectionBook(ConnectionLimits(max_per_client=3), cap=5)
+    served_idle, busy, slow = _Conn("a", served=1), _Conn("a", idle=False, served=1), _Conn("a")
+    assert all(book.admit(c) for c in (served_idle, busy, slow))
+    newcomer = _Conn("a")
+    assert book.admit(newcomer) and slow.closed and not served_idle.closed      # never served: first
+    assert book.admit(_Conn("a", idle=False)) and newcomer.closed
+    assert book.admit(_Conn("a", idle=False)) and served_idle.closed            # then a served idle one
+    assert not book.admit(_Conn("a")) and not busy.closed                       # all busy: refused
+    others = [_Conn("b", idle=False), _Conn("c", idle=False)]
+    assert all(book.admit(c) for c in others) and len(book.open) == 5
+    assert not book.admit(_Conn("d"))                                           # the total cap
+    assert (book.shed, book.refused) == (3, 2)
+    for c in list(book.open):
+        book.discard(c)
+    assert book.open == {} and book.by_client == {}
+
+
+def test_serve_refuses_limits_out_of_range_in_one_line(tmp_path):
+    for args, needle in ((["--header-timeout", "0"], "header_timeout_s"),
+                         (["--max-connections-per-client", "0"], "max_per_client")):
+        r = subprocess.run([sys.executable, "-m", "groundstation.cli", "serve", "--port", "0", "--viser-port", "0",
+                            *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+        assert r.returncode == 1 and needle in r.stderr and r.stderr.count("\n") == 1, r.stderr
+        assert "MagStation: web page" not in r.stdout

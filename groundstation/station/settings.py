@@ -40,9 +40,12 @@ class ConnectionLimits:
     max_connections_cap: int = 4096
 
     def __post_init__(self) -> None:
-        if not (self.header_timeout_s > 0 and self.keep_alive_s > 0 and self.max_header_bytes >= 1024
-                and self.max_per_client >= 1 and (self.max_connections is None or self.max_connections >= 1)):
-            raise ValueError("connection limits must be positive (max_header_bytes at least 1024)")
+        least = {"header_timeout_s": 0.1, "keep_alive_s": 0.1, "max_header_bytes": 1024, "max_per_client": 1,
+                 "max_connections": 1, "max_connections_cap": 8}
+        for name, low in least.items():
+            value = getattr(self, name)
+            if value is not None and not value >= low:          # NaN fails too
+                raise ValueError(f"connection limit {name} must be at least {low:g}, got {value}")
 
 
 @dataclass(frozen=True)
