@@ -11,8 +11,11 @@ CLI commands, in process, each run classified as
     .venv/bin/python benchmarks/fuzz.py                  # 2,000 mutations
     .venv/bin/python benchmarks/fuzz.py --cases 300 --seed 1
 
-Targets (issue 10): 0 tracebacks, 0 hangs (and 0 leaks).  Seeds are the small logs in tests/data,
-a calibration JSON, and the first 150 kB of a real PX4 ULog from ../shared/data when present.
+Targets (issues 10, 26): 0 tracebacks, 0 hangs (and 0 leaks).  Seeds (``seeds``) are the small logs
+in tests/data, the same .tlog/.bin with parameters set to NaN, +-inf and 3.4e38, a ULog written
+here (clean and with such parameters), a calibration JSON, and the first 150 kB of a real PX4 ULog
+from ../shared/data when present.  ``absurd_params`` reads the unmutated absurd-parameter seeds
+and says whether the reader flags the values (a warning naming the parameter).
 The smoke run is tests/test_fuzz.py.
 """
 from __future__ import annotations
@@ -23,6 +26,7 @@ import io
 import json
 import re
 import signal
+import struct
 import sys
 import tempfile
 import time
@@ -41,6 +45,7 @@ from groundstation.cli import main as cli_main  # noqa: E402
 from groundstation.io.errors import IngestError  # noqa: E402
 from groundstation.io.logs import read_log  # noqa: E402
 from groundstation.io.mission import read_mission  # noqa: E402
+from groundstation.station.hub.recordings import compass_count, vehicle_type  # noqa: E402
 
 DATA = ROOT / "tests" / "data"
 SHARED_ULOG = ROOT.parent / "shared" / "data" / "px4-pyulog" / "sample_log_small.ulg"
@@ -64,14 +69,77 @@ class Case:
     data: bytes
 
 
-def seeds() -> dict[str, bytes]:
-    out = {"tlog": (DATA / "reference.tlog").read_bytes(), "bin": (DATA / "reference.bin").read_bytes(),
-           "csv": (DATA / "mag.csv").read_bytes(), "plan": (DATA / "mission.plan").read_bytes(),
-           "waypoints": (DATA / "mission.waypoints").read_bytes(),
-           "calibration": json.dumps(GOOD_CALIBRATION).encode()}
+NON_FINITE = (float("nan"), float("inf"), float("-inf"), 3.4e38)      # 3.4e38: near float32's largest
+ABSURD_PARAMS = ("COMPASS_OFS_X", "COMPASS_DIA_X", "COMPASS_DEV_ID", "MAV_TYPE")      # ArduPilot names
+ABSURD_PX4_PARAMS = ("CAL_MAG0_XOFF", "CAL_MAG0_XSCALE", "CAL_MAG0_ID", "MAV_TYPE")
+
+
+def seeds() -> dict[str, list[tuple[str, bytes]]]:
+    """(name, bytes) seeds per kind: the small logs of tests/data, the same logs with parameters set
+    to NaN, +-inf and 3.4e38, a ULog written here (clean and with such parameters), a calibration
+    JSON, and the first 150 kB of a real PX4 ULog from ../shared/data when present."""
+    tlog, dataflash = (DATA / "reference.tlog").read_bytes(), (DATA / "reference.bin").read_bytes()
+    out = {"tlog": [("reference", tlog), ("absurd-params", _tlog_with_params(tlog))],
+           "bin": [("reference", dataflash), ("absurd-params", _bin_with_params(dataflash))],
+           "ulg": [("written", ulog_seed({"CAL_MAG0_ID": 396825, "CAL_MAG0_XOFF": 0.01, "MAV_TYPE": 2})),
+                   ("absurd-params", ulog_seed(dict(zip(ABSURD_PX4_PARAMS, NON_FINITE))))],
+           "csv": [("mag", (DATA / "mag.csv").read_bytes())],
+           "plan": [("mission", (DATA / "mission.plan").read_bytes())],
+           "waypoints": [("mission", (DATA / "mission.waypoints").read_bytes())],
+           "calibration": [("good", json.dumps(GOOD_CALIBRATION).encode())]}
     if SHARED_ULOG.is_file():
-        out["ulg"] = SHARED_ULOG.read_bytes()[:150_000]
+        out["ulg"].append(("px4-pyulog", SHARED_ULOG.read_bytes()[:150_000]))
     return out
+
+
+def _tlog_with_params(tlog: bytes) -> bytes:
+    """The .tlog with PARAM_VALUE records (NaN, +-inf, 3.4e38 for each of ABSURD_PARAMS) before
+    its first record, 1 ms earlier."""
+    from groundstation.io.mavlink import mavlink2 as m
+
+    mav = m.MAVLink(None, srcSystem=1, srcComponent=1)
+    stamp = (int.from_bytes(tlog[:8], "big") - 1000).to_bytes(8, "big")
+    names = [n for n in ABSURD_PARAMS for _ in NON_FINITE]
+    records = [stamp + m.MAVLink_param_value_message(n.encode(), v, 9, len(names), i).pack(mav)
+               for i, (n, v) in enumerate(zip(names, NON_FINITE * len(ABSURD_PARAMS)))]
+    return b"".join(records) + tlog
+
+
+def _bin_with_params(dataflash: bytes) -> bytes:
+    """The DataFlash log with PARM records (NaN, +-inf, 3.4e38 for each of ABSURD_PARAMS) at its end."""
+    sys.path.insert(0, str(DATA))
+    from make_test_logs import df_record
+
+    return dataflash + b"".join(df_record("PARM", 0, n, v) for n in ABSURD_PARAMS for v in NON_FINITE)
+
+
+def _ulog_message(kind: bytes, payload: bytes) -> bytes:
+    return struct.pack("<HB", len(payload), kind[0]) + payload
+
+
+def _ulog_keyed(kind: bytes, key: str, value: bytes) -> bytes:
+    return _ulog_message(kind, bytes([len(key)]) + key.encode() + value)
+
+
+def ulog_seed(params: dict[str, float], n: int = 400, rate_hz: float = 50.0) -> bytes:
+    """A small PX4 ULog (format version 1): header, flag bits, the sensor_mag format, sys_name
+    "PX4", the parameters (``*_ID`` as int32, the rest float32), and ``n`` sensor_mag samples at
+    ``rate_hz`` turning once in the horizontal plane (0.2 G horizontal, 0.45 G down).  Message
+    layout from the ULog file format spec (docs.px4.io, "ULog File Format")."""
+    out = bytearray(b"ULog\x01\x12\x35\x01" + struct.pack("<Q", 0))
+    out += _ulog_message(b"B", bytes(40))                 # no compat/incompat flags, no appended data
+    out += _ulog_message(b"F", b"sensor_mag:uint64_t timestamp;uint32_t device_id;float x;float y;float z;"
+                               b"float temperature")
+    out += _ulog_keyed(b"I", "char[3] sys_name", b"PX4")
+    for name, value in params.items():
+        out += _ulog_keyed(b"P", f"int32_t {name}", struct.pack("<i", int(value))) if name.endswith("_ID") and \
+            np.isfinite(value) else _ulog_keyed(b"P", f"float {name}", struct.pack("<f", value))
+    out += _ulog_message(b"A", struct.pack("<BH", 0, 0) + b"sensor_mag")
+    for i in range(n):
+        turn = 2 * np.pi * i / n
+        out += _ulog_message(b"D", struct.pack("<HQIffff", 0, 1_000_000 + int(i * 1e6 / rate_hz), 396825,
+                                               0.2 * np.cos(turn), 0.2 * np.sin(turn), 0.45, 25.0))
+    return bytes(out)
 
 
 # ------------------------------------------------------------------------------ mutations
@@ -160,7 +228,7 @@ def _text_mutation(d: bytearray, rng, kind: str) -> str:
     return "text"
 
 
-def mutate(seed: bytes, kind: str, rng) -> Case:
+def mutate(seed: bytes, kind: str, rng, seed_name: str = "") -> Case:
     d = bytearray(seed)
     ops = [_flip_bits, _overwrite, _truncate, _insert, _delete]
     names = []
@@ -174,7 +242,7 @@ def mutate(seed: bytes, kind: str, rng) -> Case:
             names.append(_text_mutation(d, rng, kind))
         else:
             names.append(ops[int(rng.integers(0, len(ops)))](d, rng))
-    return Case(kind, "+".join(names) or "empty", bytes(d))
+    return Case(kind, (f"{seed_name}:" if seed_name else "") + ("+".join(names) or "empty"), bytes(d))
 
 
 def make_cases(n: int, seed: int = 0) -> list[Case]:
@@ -185,7 +253,12 @@ def make_cases(n: int, seed: int = 0) -> list[Case]:
     shares = np.array([KINDS[k][1] for k in kinds])
     counts = np.floor(shares / shares.sum() * n).astype(int)
     counts[0] += n - counts.sum()
-    return [mutate(src[k], k, rng) for k, c in zip(kinds, counts) for _ in range(c)]
+    cases = []
+    for k, c in zip(kinds, counts):
+        for _ in range(c):
+            name, data = src[k][int(rng.integers(0, len(src[k])))]
+            cases.append(mutate(data, k, rng, name))
+    return cases
 
 
 # ------------------------------------------------------------------------------ running
@@ -279,6 +352,7 @@ def _read(case: Case, path: Path) -> tuple[str, str]:
         if case.kind == "calibration":
             return "clean", "json"
         log = read_log(path)
+        vehicle_type(log), compass_count(log)          # what the station's recordings list shows
         return ("warnings" if log.warnings else "clean"), "read_log"
     except IngestError as err:
         return ("error" if "\n" not in str(err) else "traceback"), "read"
@@ -305,6 +379,25 @@ def run(n: int, seed: int, budget_s: float, verbose: bool = False) -> tuple[Coun
     return counts, bad, time.perf_counter() - t0
 
 
+def absurd_params() -> list[tuple[str, str, list[str]]]:
+    """(kind, outcome, the absurd parameters a warning names) of each unmutated absurd-parameter seed."""
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for kind, entries in seeds().items():
+            for name, data in entries:
+                if name != "absurd-params":
+                    continue
+                outcome, _ = run_case(Case(kind, name, data), 0, Path(tmp))
+                path = Path(tmp) / f"absurd{KINDS[kind][0]}"
+                path.write_bytes(data)
+                try:
+                    text = " ".join(read_log(path).warnings)
+                except IngestError as err:
+                    text = str(err)
+                rows.append((kind, outcome, [p for p in dict.fromkeys(ABSURD_PARAMS + ABSURD_PX4_PARAMS) if p in text]))
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=2000)
@@ -325,6 +418,10 @@ def main() -> None:
         print(f"  {verdict:<6}  {name}s = {counts[name]} (target {target})")
     for line in bad[:30]:
         print("  " + line)
+    print()
+    for kind, outcome, flagged in absurd_params():
+        print(f"  absurd parameters (NaN, +-inf, 3.4e38) in a {kind}: {outcome}; "
+              + (f"flagged: {', '.join(flagged)}" if flagged else "NOT flagged (no warning names them)"))
 
 
 if __name__ == "__main__":

@@ -27,3 +27,27 @@ def test_300_mutated_files_give_no_traceback_hang_or_leak():
     assert counts["traceback"] == counts["hang"] == counts["leak"] == 0, "\n".join(bad)
     # the harness exercises every outcome it is meant to tell apart
     assert counts["warnings"] > 50 and counts["error"] > 30
+
+
+def test_ulog_seeds_are_shipped_and_read():
+    """The fuzz has .ulg seeds without ../shared: a ULog written by the harness, read back whole."""
+    import tempfile
+
+    from groundstation.io.logs import read_log
+    written = dict(fuzz.seeds()["ulg"])["written"]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "written.ulg"
+        path.write_bytes(written)
+        log = read_log(path)
+    assert log.autopilot == "px4" and len(log.mag) == 400 and not log.warnings
+    assert abs(float(log.mag[-1, 0] - log.mag[0, 0]) - 399 / 50.0) < 1e-3       # 50 Hz
+    assert abs(float(log.mag[0, 3]) - 450.0) < 0.01                                # 0.45 G down, in mG
+
+
+def test_parameters_that_are_nan_inf_or_3_4e38_are_flagged_not_a_traceback():
+    rows = fuzz.absurd_params()
+    assert [kind for kind, _, _ in rows] == ["tlog", "bin", "ulg"]
+    for kind, outcome, flagged in rows:
+        assert outcome == "warnings", (kind, outcome)
+        names = fuzz.ABSURD_PARAMS if kind != "ulg" else fuzz.ABSURD_PX4_PARAMS
+        assert set(flagged) == set(names), (kind, flagged)

@@ -20,7 +20,7 @@ from typing import Callable, Iterable, Iterator
 
 from ..errors import IngestError
 from ...samples import FlightLog
-from .builder import LogBuilder, clean_table, iter_samples
+from .builder import ABSURD_VALUE, LogBuilder, clean_table, iter_samples
 from .csvlog import read_csv
 from .dataflash import read_dataflash
 from .tlog import read_tlog, tlog_records
@@ -57,9 +57,26 @@ def read_log(path: str | os.PathLike, progress: Callable[[float], None] | None =
     if progress is not None:
         progress(1.0)
     _rebase_corrupt_origin(log)
+    _drop_absurd_params(log)
     if not (log.params or any(len(t) for t in (log.mag, log.imu, log.attitude, log.gps))):
         raise IngestError(f"{path.name}: no readable messages (is it really a {path.suffix} file?)")
     return log
+
+
+def _drop_absurd_params(log: FlightLog) -> None:
+    """Parameter values that are NaN, infinite or beyond +-ABSURD_VALUE (as for samples) are
+    dropped from ``params`` and ``param_history`` and counted in one warning naming them: nothing
+    downstream has to guard an int() or a scale factor against them."""
+    def sane(v: float) -> bool:
+        return -ABSURD_VALUE < v < ABSURD_VALUE
+
+    bad = sorted({k for k, v in log.params.items() if not sane(v)} | {k for _, k, v in log.param_history if not sane(v)})
+    if not bad:
+        return
+    log.params = {k: v for k, v in log.params.items() if sane(v)}
+    log.param_history = [e for e in log.param_history if sane(e[2])]
+    log.warnings[f"parameters with a NaN, infinite or absurd value (beyond {ABSURD_VALUE:g}) ignored: "
+                 + ", ".join(bad[:6]) + (", ..." if len(bad) > 6 else "")] += len(bad)
 
 
 TABLES = ("mag", "imu", "attitude", "gps", "battery")
