@@ -153,3 +153,26 @@ def test_dns_rebinding_is_refused_in_the_browser(playwright_instance, station):
         assert httpx.get(station.url + "/api/calibration").json()["state"] == "idle"
     finally:
         b.close()
+
+
+def test_a_backslash_in_the_first_visits_path_does_not_take_chromium_off_site(playwright_instance, recordings_dir):
+    """``/%5Clocalhost:PORT/x?token=T``: the redirect that sets the cookie used to say
+    ``Location: /\\localhost:PORT/x``, which chromium reads as ``//localhost:PORT/x`` (another
+    origin, here a second local server).  It must stay on the station."""
+    from groundstation.station.app import Station
+
+    other = _HostileServer("<!doctype html><title>elsewhere</title>")
+    st = Station(host="127.0.0.1", allow_remote=True, port=0, viser_port=None, recordings_dir=recordings_dir).start()
+    browser = playwright_instance.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+    try:
+        pg = browser.new_context().new_page()
+        token = st.settings.access_token
+        for path in (f"/%5Clocalhost:{other.port}/index.html", f"/%5C%5Clocalhost:{other.port}/index.html",
+                     f"/%09/localhost:{other.port}/index.html"):
+            pg.goto(f"{st.url}{path}?token={token}")
+            assert pg.url.startswith(f"{st.url}/"), (path, pg.url)
+            assert "elsewhere" not in pg.content()
+    finally:
+        browser.close()
+        st.close()
+        other.close()
