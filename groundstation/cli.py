@@ -276,7 +276,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tls-key", metavar="KEY.pem", help="the certificate's private key")
     limits = ConnectionLimits()
     p.add_argument("--header-timeout", type=float, default=limits.header_timeout_s, metavar="S",
-                   help=f"close a connection whose request line and headers take longer (default {limits.header_timeout_s:g} s)")
+                   help="close a connection whose request line and headers take longer "
+                        f"(default {limits.header_timeout_s:g} s)")
     p.add_argument("--max-connections-per-client", type=int, default=limits.max_per_client, metavar="N",
                    help=f"open connections per client address (default {limits.max_per_client}; more behind a proxy)")
     _add_link_options(p)

@@ -160,8 +160,8 @@ class VehicleLink:
 
     def snapshot(self) -> dict:
         return {"from_vehicle": self.from_vehicle, "to_station_dropped": self.to_station_dropped,
-                "before_attach": self.before_attach, "from_station": self.from_station,
-                "skipped_bytes": self.framer.skipped_bytes, "errors": self.errors}
+                "before_attach": self.before_attach, "foreign_dropped": self.foreign,
+                "from_station": self.from_station, "skipped_bytes": self.framer.skipped_bytes, "errors": self.errors}
 
 
 def _drain(sock: socket.socket) -> int:

@@ -22,7 +22,8 @@ from pathlib import Path
 
 from .errors import IngestError
 
-__all__ = ["SIGNING_KEY_BYTES", "key_from_passphrase", "read_key_file", "passphrase_from_env", "passphrase_variables", "key_id", "LinkSigning"]
+__all__ = ["SIGNING_KEY_BYTES", "key_from_passphrase", "read_key_file", "passphrase_from_env", "passphrase_variables",
+           "key_id", "LinkSigning"]
 
 SIGNING_KEY_BYTES = 32
 MAX_KEY_FILE_BYTES = 4096

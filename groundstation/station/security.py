@@ -202,7 +202,7 @@ class StationGuard:
     async def _bounded(self, scope, receive, send, headers: Headers) -> None:
         limit = self.policy.settings.body_limit_for(scope["path"])
         declared = headers.get("content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > limit):
+        if declared is not None and (not (declared.isascii() and declared.isdigit()) or int(declared) > limit):
             return await _json(scope, send, 413, f"request body larger than {_size(limit)}")
         received = 0
         started = False

@@ -70,7 +70,8 @@ def _drop_absurd_params(log: FlightLog) -> None:
     def sane(v: float) -> bool:
         return -ABSURD_VALUE < v < ABSURD_VALUE
 
-    bad = sorted({k for k, v in log.params.items() if not sane(v)} | {k for _, k, v in log.param_history if not sane(v)})
+    bad = sorted({k for k, v in log.params.items() if not sane(v)}
+                 | {k for _, k, v in log.param_history if not sane(v)})
     if not bad:
         return
     log.params = {k: v for k, v in log.params.items() if sane(v)}
