@@ -178,3 +178,21 @@ def remote_station_input(recordings_dir):
 def test_the_pseudo_terminal_multiplexer_is_not_a_serial_port(device):
     with pytest.raises(IngestError, match="is a console or this program's own terminal, not a serial port"):
         parse_connection_string(device + ",57600")
+
+
+def test_new_names_without_hard_links_still_never_replace(tmp_path, monkeypatch):
+    """On a file system without hard links (os.link fails) the upload still gets a name of its own."""
+    from groundstation.station.hub.recordings import RecordingsFolder
+
+    def no_links(*_):
+        raise PermissionError(1, "Operation not permitted")
+
+    folder = RecordingsFolder(tmp_path, max_upload_bytes=1000)
+    taken = folder.new_path("upload", ".tlog", "a")
+    taken.write_bytes(b"someone else's")
+    monkeypatch.setattr(os, "link", no_links)
+    part = tmp_path / ".y.part"
+    part.write_bytes(b"mine")
+    path = folder.new_path("upload", ".tlog", "a", content=part)
+    assert path != taken and path.read_bytes() == b"mine" and taken.read_bytes() == b"someone else's"
+    assert not part.exists()

@@ -161,15 +161,23 @@ class RecordingsFolder:
     def new_path(self, prefix: str, suffix: str, stem: str = "", content: Path | None = None) -> Path:
         """A fresh file PREFIX-YYYYmmdd-HHMMSS[-stem][_n]SUFFIX, created here and now so that no
         two callers get the same name: empty (exclusive create), or a hard link to ``content``
-        (the finished upload).  An existing file is never replaced."""
+        (the finished upload; where the file system has no hard links, the name is created
+        empty first and ``content`` moved onto it).  Another file is never replaced."""
         base = time.strftime(f"{prefix}-%Y%m%d-%H%M%S", time.gmtime()) + (f"-{stem}" if stem else "")
         for n in range(MAX_NAME_TRIES):
             path = self.dir / (f"{base}{suffix}" if n == 0 else f"{base}_{n}{suffix}")
             try:
-                if content is None:
-                    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
-                else:
-                    os.link(content, path)
+                if content is not None:
+                    try:
+                        os.link(content, path)
+                        return path
+                    except FileExistsError:
+                        raise
+                    except OSError:          # no hard links here (FAT, some network shares)
+                        pass
+                os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
+                if content is not None:
+                    os.replace(content, path)            # onto the empty file made just now
                 return path
             except FileExistsError:
                 continue
