@@ -193,3 +193,30 @@ def test_serve_refuses_limits_out_of_range_in_one_line(tmp_path):
                             *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
         assert r.returncode == 1 and needle in r.stderr and r.stderr.count("\n") == 1, r.stderr
         assert "MagStation: web page" not in r.stdout
+
+
+def test_a_client_whose_connections_are_all_inside_requests_gets_a_503(recordings_dir):
+    from groundstation.station.app import Station
+    from groundstation.station.settings import ConnectionLimits, StationSettings
+
+    settings = StationSettings(port=0, viser_port=None, recordings_dir=recordings_dir,
+                               connection_limits=ConnectionLimits(max_per_client=2))
+    st = Station(settings).start()
+    busy = []
+    try:
+        for _ in range(2):                 # uploads whose bodies are still coming: inside a request
+            s = socket.create_connection(("127.0.0.1", st.port), timeout=5)
+            s.sendall(b"POST /api/recordings/upload?filename=a.tlog HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                      b"Content-Type: application/octet-stream\r\nContent-Length: 100000\r\n\r\n" + b"\0" * 100)
+            busy.append(s)
+        time.sleep(0.5)
+        r = httpx.get(st.url + "/api/health", timeout=5)
+        assert r.status_code == 503 and r.text == "too many open connections: try again", (r.status_code, r.text)
+        for s in busy:
+            s.close()
+        time.sleep(0.5)
+        assert httpx.get(st.url + "/api/health", timeout=5).status_code == 200
+    finally:
+        for s in busy:
+            s.close()
+        st.close()

@@ -340,8 +340,9 @@ def protect_viser(server, policy: AccessPolicy) -> None:
 # ------------------------------------------------------------------------------ slow clients
 
 CONNECTION_RESERVE_FILES = 96   # descriptors kept for the station's files, the 3-D view, the relay
-REFUSED_RESPONSE = (b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: text/plain; charset=utf-8\r\n"
-                    b"connection: close\r\ncontent-length: 34\r\n\r\ntoo many connections from this host")
+_REFUSED_BODY = b"too many open connections: try again"
+REFUSED_RESPONSE = (b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: text/plain; charset=utf-8\r\nretry-after: 1\r\n"
+                    b"connection: close\r\ncontent-length: %d\r\n\r\n%s" % (len(_REFUSED_BODY), _REFUSED_BODY))
 
 
 def connection_cap(limits: ConnectionLimits, open_files: int | None = None) -> int:
