@@ -34,6 +34,15 @@ def add_review_parser(sub) -> None:
     p.set_defaults(func=cmd_review)
 
 
+def add_params_options(p: argparse.ArgumentParser) -> None:
+    """--params / --assume-uncalibrated: the corrections in force when a log holds none."""
+    g = p.add_argument_group("parameters in force when the log has none")
+    g.add_argument("--params", metavar="FILE.param",
+                   help="the vehicle's parameters (Mission Planner NAME,VALUE; MAVProxy/QGC NAME VALUE; QGC export)")
+    g.add_argument("--assume-uncalibrated", action="store_true",
+                   help="the vehicle was never calibrated: the autopilot's default compass parameters in force")
+
+
 def add_fleet_simulate_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vehicles", type=int, default=20, help="fleet: number of vehicles (default 20)")
     p.add_argument("--flights", type=int, default=50, help="fleet: flights per vehicle (default 50)")

@@ -3,7 +3,10 @@
 Fields (JSON): file, compass (0-based), device_id, source (the log message), autopilot, status,
 message, method ("window" | "wmm_inflight" | null), window_s ([start, end] s of the data the
 parameters come from), samples, offsets_mG (b of m_cal = C (m_raw − b)), offsets_sd_mG, matrix (C),
-field_strength_mG, expected_field_mG (WMM), residual_rms_mG, coverage (of the chosen window's
+relative_to ("raw": absolute, the parameters to write; "corrections": relative to the corrections
+in force recorded in corrections_in_force; "unknown": relative to corrections nobody knows — see
+frame.py), corrections_in_force (o, N and the autopilot's parameters of the log), field_strength_mG,
+expected_field_mG (WMM), residual_rms_mG, coverage (of the chosen window's
 direction cells, or the heading coverage of an in-flight fit), misalignment_deg, condition_number,
 ardupilot_params / px4_params (names follow the instance: COMPASS_OFS2_X, CAL_MAG1_XOFF, motor
 COMPASS_MOT*, orientation COMPASS_ORIENT* when found), corrections (what the autopilot had in
@@ -31,7 +34,7 @@ def empty_result(source: str, compass: int = 0) -> dict:
             "expected_field_mG": None, "residual_rms_mG": None, "coverage": 0.0, "misalignment_deg": None,
             "condition_number": None, "ardupilot_params": {}, "px4_params": {}, "corrections": None,
             "windows": [], "onboard_report": None, "inflight": None, "motor": None, "orientation": None,
-            "consistency": None, "settings": settings_record(DEFAULT_SETTINGS)}
+            "consistency": None, "relative_to": None, "corrections_in_force": None, "settings": settings_record(DEFAULT_SETTINGS)}
 
 
 def error_result(file: str, message: str, status: str = "error") -> dict:
