@@ -60,6 +60,11 @@ REVIEW_CALIBRATE = CalibrateSettings(wmm=WmmFitSettings(fit_diagonal=False, fit_
 class ReviewSettings:
     """What the per-log job does (units in the names).  ``calibrate``: the in-flight fit's settings."""
     calibrate: CalibrateSettings = REVIEW_CALIBRATE
+    # the calibration for a log without its own dance (jobs.review_calibration): the history's
+    # calibrations ((airframe, unix_s, calibration JSON), ...) and --params values ((name, value), ...)
+    calibrations: tuple = ()
+    params: tuple = ()
+    params_label: str | None = None
     alarm_margin_s: float = 5.0          # samples this close to an alarm are left out of the field residuals
     max_tilt_deg: float = 45.0           # ... and steeper ones (dance, carried)
 
@@ -146,6 +151,9 @@ def data_quality(log: FlightLog) -> dict:
 
 
 def _log_rows(log: FlightLog, path: Path, row: dict, settings: ReviewSettings) -> list[dict]:
+    from groundstation.jobs.review_calibration import apply_review_params, review_calibration
+
+    apply_review_params(log, settings)
     row.update(vehicle_identity(log, path))
     row.update(data_quality(log))
     ef, pos = field_reference(log)
@@ -161,7 +169,10 @@ def _log_rows(log: FlightLog, path: Path, row: dict, settings: ReviewSettings) -
     if not fields:
         row.update(status="no_mag", compasses=0, error="the log has no magnetometer samples")
         return [row]
-    report, _ = analyze_log(log)
+    calibration, row["calibration_used"] = review_calibration(log, row["identity"], settings)
+    report, _ = analyze_log(log, calibration=calibration)
+    if calibration is None:
+        row["calibration_used"] += f" ({report.get('calibration_in_use')})"
     row.update(alarm_fields(report))
     row.update(max_cross_track_m=report.get("max_cross_track_m"), rtk=int(bool(report.get("rtk"))),
                compasses=len(fields), status="ok")

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["RELATIVE_TO", "relative_to", "is_relative", "corrections_record", "compose", "for_log", "Applied",
-           "frame_label", "LOG_RAW_UNKNOWN_STATUSES"]
+           "frame_label", "LOG_RAW_UNKNOWN_STATUSES", "compact"]
 
 RELATIVE_TO = ("raw", "corrections", "unknown")
 # CompassField statuses whose raw field is the logged one, corrections unknown (jobs.compass_raw)
@@ -136,3 +136,18 @@ def for_log(offsets_mG, matrix, calibration: dict, log_status: str, log_offsets_
     b2, C2 = compose(b, C, lo, lN)
     return Applied(b2, C2, False, "relative calibration applied on top of the log's corrections in force (the "
                                   "calibration's own are unknown: assumed the same)")
+
+
+COMPACT_KEYS = ("file", "compass", "device_id", "autopilot", "status", "method", "offsets_mG", "matrix",
+                "relative_to", "corrections_in_force", "residual_rms_mG", "field_strength_mG", "expected_field_mG",
+                "coverage", "window_s", "ardupilot_params", "px4_params", "message")
+
+
+def compact(calibration: dict) -> dict:
+    """The calibration object without its diagnostics (windows, fits, consistency): what the
+    history keeps and the station passes around; ``relative_to`` always set."""
+    out = {k: calibration.get(k) for k in COMPACT_KEYS if k in calibration}
+    out["relative_to"] = relative_to(calibration)
+    if isinstance(out.get("message"), str):
+        out["message"] = out["message"][:500]
+    return out
