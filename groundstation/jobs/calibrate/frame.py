@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["RELATIVE_TO", "relative_to", "is_relative", "corrections_record", "compose", "for_log", "Applied",
-           "frame_label", "LOG_RAW_UNKNOWN_STATUSES", "compact"]
+           "frame_label", "LOG_RAW_UNKNOWN_STATUSES", "compact", "from_params"]
 
 RELATIVE_TO = ("raw", "corrections", "unknown")
 # CompassField statuses whose raw field is the logged one, corrections unknown (jobs.compass_raw)
@@ -151,3 +151,35 @@ def compact(calibration: dict) -> dict:
     if isinstance(out.get("message"), str):
         out["message"] = out["message"][:500]
     return out
+
+
+def from_params(params: dict[str, float], autopilot: str | None, compass: int = 0) -> dict | None:
+    """The absolute calibration that a vehicle's parameters hold for compass ``compass`` (what its
+    autopilot does to the raw field: ArduPilot b = −COMPASS_OFS, C = SCALE·M(DIA, ODI); PX4
+    b = R·CAL_MAGn_OFF, C = R S Rᵀ), as a compact calibration object; None without offsets."""
+    from estimators.compass_corrections import ardupilot_param_names
+    from groundstation.io.params import ardupilot_matrix, detect_autopilot, px4_matrix, px4_slot
+
+    ap = autopilot or detect_autopilot(params)
+    if ap == "px4":
+        slot = px4_slot(params, None, compass)
+        if not all(f"CAL_MAG{slot}_{a}OFF" in params for a in "XYZ"):
+            return None
+        off, S, R = px4_matrix(params, slot)
+        b, C = R @ off * 1000.0, R @ S @ R.T
+        names = {k: v for k, v in params.items() if k.startswith(f"CAL_MAG{slot}_")}
+        key = "px4_params"
+    else:
+        names_all = ardupilot_param_names(compass)
+        if not all(k in params for k in names_all["offsets"]):
+            return None
+        ofs, M, scale = ardupilot_matrix(params, compass)
+        b, C = -ofs, scale * M
+        wanted = {n for group in names_all.values() for n in group}
+        names, key, ap = {k: v for k, v in params.items() if k in wanted}, "ardupilot_params", "ardupilot"
+    if not (np.all(np.isfinite(b)) and np.all(np.isfinite(C))) or abs(np.linalg.det(C)) < 1e-6:
+        return None
+    return {"status": "ok", "method": "parameters", "compass": compass, "autopilot": ap, "relative_to": "raw",
+            "offsets_mG": [float(v) for v in b], "matrix": [[float(v) for v in r] for r in C],
+            key: {k: float(v) for k, v in names.items()}, "corrections_in_force": None,
+            "message": "the autopilot's own calibration parameters"}
