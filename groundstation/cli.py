@@ -266,7 +266,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = StationSettings(host=args.host, port=args.port, viser_port=args.viser_port,
                                allow_remote=args.allow_remote, allowed_hosts=tuple(args.allowed_host),
                                tls_cert=args.tls_cert, tls_key=args.tls_key, sysid=args.sysid,
-                               passive=args.passive, forward=tuple(args.forward), signing_key=_signing_key(args))
+                               passive=args.passive, forward=tuple(args.forward), signing_key=_signing_key(args),
+                               **_serve_params(args))
     from groundstation.station.app import StationStartError, serve
 
     try:
@@ -274,6 +275,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except StationStartError as err:
         raise CliError(str(err)) from err
     return 0
+
+
+def _serve_params(args: argparse.Namespace) -> dict:
+    """serve --params / --assume-uncalibrated as StationSettings fields."""
+    values, label = in_force_params(args)
+    return {} if values is None else {"params_in_force": tuple(sorted(values.items())), "params_label": label}
 
 
 def _signing_key(args: argparse.Namespace) -> bytes | None:

@@ -179,3 +179,23 @@ def test_dataflash_is_absolute_and_named_as_the_autopilot_corrects_it(dataflash,
     assert "autopilot-corrected" in report["calibration_in_use"]          # not "none (raw magnetometer)"
     report, _ = analyze_log(log, calibration=r)
     assert report["calibration_applied"] and report["calibration_in_use"].startswith("absolute")
+
+
+def test_serve_params_fill_a_replayed_log_without_them(logs):
+    """serve --params / --assume-uncalibrated: the station's replays take the values where the
+    log has none (the same rule as the other commands)."""
+    from groundstation.cli import _serve_params, build_parser
+    from groundstation.station.hub.session import Session
+
+    args = build_parser().parse_args(["serve", "--assume-uncalibrated"])
+    settings = _serve_params(args)
+    assert settings["params_label"] == "--assume-uncalibrated"
+    hub = Session(logs["dir"] / "rec", record_live=False)
+    hub.in_use.params_in_force = (dict(settings["params_in_force"]), settings["params_label"])
+    log = read_log(logs["dance-raw"])
+    assert "COMPASS_OFS_X" not in log.params
+    assert "taken as in force" in hub.in_use.fill_params(log)
+    r = calibrate_compasses(log)[0]
+    assert r["relative_to"] == "raw"
+    truth = np.array(logs["truth-raw"]["mag"]["offsets_mG"])
+    assert np.max(np.abs(np.array(r["offsets_mG"]) - truth)) < 5.0

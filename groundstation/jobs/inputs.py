@@ -117,8 +117,7 @@ def primary_field(log: FlightLog):
 
 
 def primary_raw(log: FlightLog) -> np.ndarray:
-    """The primary compass's raw field (N,3), the autopilot's corrections un-applied with the values
-    in force at each sample (jobs.compass_raw), on the rows of ``log.mag``."""
+    """The primary compass's raw field (N,3), corrections in force un-applied (``primary_field``)."""
     return primary_field(log).raw_mG
 
 

@@ -98,6 +98,17 @@ class CalibrationInUse:
         self.current: dict | None = None        # {source, label, note, calibration, airframe, unix_s}
         self.log_fit: dict | None = None        # the replayed log's own dance fit
         self.airframe: str | None = None
+        self.params_in_force: tuple[dict, str] | None = None   # serve --params: (values, label)
+
+    def fill_params(self, flight_log) -> str | None:
+        """serve --params / --assume-uncalibrated: the values in force where the replayed log has none."""
+        if self.params_in_force is None:
+            return None
+        from groundstation.io.param_file import apply_to_log, uncalibrated_params
+        values, label = self.params_in_force
+        if label == "--assume-uncalibrated":
+            values = uncalibrated_params(flight_log.autopilot)
+        return apply_to_log(flight_log, values, label)
 
     # ------------------------------------------------------------------ where
     def db_path(self) -> Path:

@@ -287,6 +287,9 @@ class Session(SessionViews):
     def prepare_replay(self, flight_log: FlightLog) -> tuple:
         """Without the lock: the log's own calibration (if it has a calibration dance) and the
         whole-log analysis with it and the preset line."""
+        params_note = self.in_use.fill_params(flight_log)         # serve --params
+        if params_note:
+            self.event(f"parameters: {params_note}", t_s=0.0)
         own = self.fit_log_calibration(flight_log)
         with self._lock:
             line = self.flight.line
