@@ -51,12 +51,13 @@ def _history_choice(identity: str, start_unix_s: float | None, calibrations: tup
     return cal, f"history: {identity}'s calibration of {_date(when)}, {kind}{tail}"
 
 
-def review_calibration(log: FlightLog, identity: str, settings) -> tuple[dict | None, str]:
-    """(calibration or None, the line saying which) for one log (see the module docstring)."""
+def review_calibration(log: FlightLog, identity: str, settings, own: dict | None = None) -> tuple[dict | None, str]:
+    """(calibration or None, the line saying which) for one log (see the module docstring); ``own``:
+    the calibrate job's result for the primary compass when the caller has it (else fitted here)."""
     from groundstation.jobs.calibrate import calibrate_log
 
     if len(log.mag) >= 200:
-        own = calibrate_log(log)
+        own = calibrate_log(log) if own is None else own
         if own.get("status") == "ok" and own.get("method") == "window":
             w = own.get("window_s") or [0, 0]
             return own, f"own dance {w[0]:.0f}-{w[1]:.0f} s ({'absolute' if own.get('relative_to') == 'raw' else 'relative'})"
