@@ -5,6 +5,7 @@ ArduPilot-like simulator)."""
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -199,3 +200,39 @@ def test_serve_params_fill_a_replayed_log_without_them(logs):
     assert r["relative_to"] == "raw"
     truth = np.array(logs["truth-raw"]["mag"]["offsets_mG"])
     assert np.max(np.abs(np.array(r["offsets_mG"]) - truth)) < 5.0
+
+
+def test_accepted_wizard_result_is_the_next_replays_calibration(logs, tmp_path):
+    """The wizard's Accept chooses its result for the airframe and stores it: the next replay of a
+    log of that airframe without a dance starts with it (the history DB), also after a restart."""
+    from groundstation.io import fleet_db
+    from groundstation.station.hub.session import Session
+
+    read = read_log
+
+    rec = tmp_path / "recordings"
+    rec.mkdir()
+    flight = rec / "flight.tlog"
+    flight.write_bytes(Path(logs["fast-raw"]).read_bytes())
+    result = calibrate_compasses(read(logs["dance-raw"]))[0]
+    hub = Session(rec, record_live=False)
+    airframe = hub.in_use.airframe_of(read(flight).params, rec.name)
+    with hub._lock:
+        hub.in_use.airframe = airframe
+        hub.in_use.accepted(result)
+    deadline = time.time() + 20
+    while time.time() < deadline:
+        try:
+            with fleet_db.connect(fleet_db.default_db_path(rec), read_only=True) as con:
+                if fleet_db.get_in_use(con, airframe):
+                    break
+        except FileNotFoundError:
+            pass
+        time.sleep(0.1)
+    again = Session(rec, record_live=False)                   # a restart
+    choice = again.in_use.for_replay(read(flight), flight, None)
+    assert choice["source"] == "wizard" and choice["calibration"]["relative_to"] == "unknown"
+    assert np.allclose(choice["calibration"]["offsets_mG"], result["offsets_mG"])
+    with fleet_db.connect(fleet_db.default_db_path(rec), read_only=True) as con:
+        rec_ = fleet_db.calibration_in_force(con, airframe)
+    assert rec_ is not None and rec_["relative_to"] == "unknown"     # in the history for `review`

@@ -303,10 +303,11 @@ class CalibrationInUse:
     def _store(self, choice: dict, history: bool) -> None:
         """The choice for the airframe (and, for a fit, a history record so `review` uses it)."""
         from groundstation.io import fleet_db
-        air = choice.get("airframe")
-        if not air:
-            return
         try:
+            if not choice.get("airframe"):          # a live vehicle accepted before anything was chosen
+                self._ensure_airframe()
+                choice["airframe"] = self.airframe
+            air = choice["airframe"]
             with closing(fleet_db.connect(self.db_path())) as con:
                 fleet_db.set_in_use(con, air, choice["source"], choice["label"], choice.get("calibration"),
                                     choice["unix_s"])
