@@ -22,6 +22,7 @@ import numpy as np
 
 from groundstation.io.params import format_param_file
 
+from .frame import frame_label
 from .settings import DEFAULT_SETTINGS, settings_record
 
 __all__ = ["empty_result", "error_result", "format_summary", "write_param_file"]
@@ -87,7 +88,8 @@ def format_summary(result: dict) -> str:
     head = f"{result.get('file')}" + (f" compass {comp}" if comp is not None else "")
     if result.get("device_id"):
         head += f" (device {result['device_id']})"
-    lines = [f"{head}: {result.get('status')}" + (f" [{result['method']}]" if result.get("method") else "")]
+    frame = f", {frame_label(result)}" if result.get("relative_to") and result.get("status") == "ok" else ""
+    lines = [f"{head}: {result.get('status')}" + (f" [{result['method']}]" if result.get("method") else "") + frame]
     if result.get("message"):
         lines.append(f"  {result['message']}")
     lines.append(f"  samples {result.get('samples', 0)}, coverage {_num(result.get('coverage'), '{:.0%}')}, "
