@@ -236,3 +236,21 @@ def test_accepted_wizard_result_is_the_next_replays_calibration(logs, tmp_path):
     with fleet_db.connect(fleet_db.default_db_path(rec), read_only=True) as con:
         rec_ = fleet_db.calibration_in_force(con, airframe)
     assert rec_ is not None and rec_["relative_to"] == "unknown"     # in the history for `review`
+
+
+def test_older_calibration_files_still_load(tmp_path):
+    """An older `calibrate --json` (no relative_to) is absolute; an older no_parameters result is a
+    relative fit; a file without offsets is refused in one line."""
+    from groundstation.cli import CliError
+
+    b, C = [10.0, -20.0, 5.0], [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"results": [{"status": "ok", "offsets_mG": b, "matrix": C}]}))
+    assert relative_to(_load_calibration(str(old))) == "raw"
+    older = tmp_path / "older.json"
+    older.write_text(json.dumps({"results": [{"status": "no_parameters", "offsets_mG": b, "matrix": C}]}))
+    assert relative_to(_load_calibration(str(older))) == "unknown"
+    empty = tmp_path / "empty.json"
+    empty.write_text(json.dumps({"results": [{"status": "insufficient_coverage", "offsets_mG": None}]}))
+    with pytest.raises(CliError, match="no calibration with status 'ok'"):
+        _load_calibration(str(empty))

@@ -268,7 +268,7 @@ function renderInUse(s) {
   if (!c) return;
   $("cal-in-use").textContent = c.source === "none" ? "none: the field as the autopilot sent it" +
     (c.airframe ? " (" + c.airframe + ")" : "") : c.label + " — " + c.frame + (c.note ? "; " + c.note : "") +
-    " [" + c.source + (c.airframe ? ", " + c.airframe : "") + "]";
+    " [" + c.source + (c.airframe ? ", " + c.airframe : "") + "]" + (c.applied ? ". " + c.applied : "");
   $("cal-in-use").dataset.source = c.source;
   const key = s.source.name + "|" + c.source + "|" + c.label + "|" + (s.wizard && s.wizard.state);
   if (key !== inUseKey) { inUseKey = key; loadInUseOptions().catch(() => { inUseKey = null; }); }

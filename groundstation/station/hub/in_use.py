@@ -364,6 +364,8 @@ class CalibrationInUse:
             return {"source": "none", "label": "none", "relative_to": None, "frame": None, "note": "",
                     "airframe": self.airframe}
         cal = c["calibration"]
+        review = self._hub.flight.review
+        applied = review.calibration_note if review is not None and review.calibration is not None else None
         return {"source": c["source"], "label": c["label"], "relative_to": cal.get("relative_to"),
                 "frame": frame_label(cal), "note": c.get("note") or "", "airframe": c.get("airframe") or self.airframe,
-                "unix_s": c.get("unix_s")}
+                "unix_s": c.get("unix_s"), "applied": applied}
