@@ -254,3 +254,21 @@ def test_older_calibration_files_still_load(tmp_path):
     empty.write_text(json.dumps({"results": [{"status": "insufficient_coverage", "offsets_mG": None}]}))
     with pytest.raises(CliError, match="no calibration with status 'ok'"):
         _load_calibration(str(empty))
+
+
+def test_analyze_params_make_the_log_raw_known(logs, tmp_path, capsys):
+    """analyze --params: an absolute calibration on a log without parameters is applied exactly
+    (the file's corrections un-applied); without --params the report says what it assumed."""
+    pfile = tmp_path / "v.param"
+    pfile.write_text("".join(f"COMPASS_OFS_{a} 0\n" for a in "XYZ"))          # MAVProxy format
+    cal = tmp_path / "abs.json"
+    assert main(["calibrate", str(logs["dance-raw"]), "--params", str(pfile), "--json", str(cal)]) == 0
+    out = tmp_path / "r.json"
+    assert main(["analyze", str(logs["fast-raw"]), "--calibration", str(cal), "--params", str(pfile),
+                 "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["calibration_in_use"] == "absolute: absolute calibration applied to the raw field"
+    assert logs["onset_s"] < report["first_alarm_s"] < logs["onset_s"] + 5.0
+    assert main(["analyze", str(logs["fast-raw"]), "--calibration", str(cal), "--json", str(out)]) == 0
+    assert "right only if the vehicle was never calibrated" in json.loads(out.read_text())["calibration_in_use"]
+    assert "calibration: absolute" in capsys.readouterr().out
