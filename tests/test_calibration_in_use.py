@@ -272,3 +272,27 @@ def test_analyze_params_make_the_log_raw_known(logs, tmp_path, capsys):
     assert main(["analyze", str(logs["fast-raw"]), "--calibration", str(cal), "--json", str(out)]) == 0
     assert "right only if the vehicle was never calibrated" in json.loads(out.read_text())["calibration_in_use"]
     assert "calibration: absolute" in capsys.readouterr().out
+
+
+def test_review_job_uses_the_history_at_the_log_date_or_params(logs):
+    """The per-log review job: a log without a dance takes the airframe's calibration in force at
+    its date (the latest before it; only later ones: the earliest, said so), else --params."""
+    from groundstation.jobs.review_row import ReviewSettings, review_log
+
+    path = logs["fast-raw"]
+    bare = review_log(path)[0]
+    assert bare["calibration_used"].startswith("none (autopilot-corrected")
+    cal = json.dumps(calibrate_compasses(read_log(logs["dance-raw"]))[0])
+    start = read_log(path).start_unix_s
+    wrong = json.dumps({"status": "ok", "offsets_mG": [500.0, 0.0, 0.0], "matrix": np.eye(3).tolist()})
+    history = ((bare["identity"], start - 10.0, cal), (bare["identity"], start + 10.0, wrong),
+               ("someone-else", start - 5.0, wrong))
+    row = review_log(path, ReviewSettings(calibrations=history))[0]
+    assert row["calibration_used"].startswith("history:") and "relative (unknown corrections)" in row["calibration_used"]
+    assert logs["onset_s"] < row["first_alarm_s"] < logs["onset_s"] + 5.0
+    later = review_log(path, ReviewSettings(calibrations=((bare["identity"], start + 10.0, cal),)))[0]
+    assert "made after this log" in later["calibration_used"]
+    row = review_log(path, ReviewSettings(params=(("COMPASS_OFS_X", 0.0), ("COMPASS_OFS_Y", 0.0),
+                                                  ("COMPASS_OFS_Z", 0.0)), params_label="v.param"))[0]
+    assert row["calibration_used"].startswith("none, the autopilot's corrections from v.param")
+    assert row["cal_state"] == "ok"                           # raw rebuilt with the file's offsets
