@@ -18,7 +18,7 @@ from groundstation.io.params import ardupilot_never_calibrated
 from groundstation.io.errors import IngestError
 from groundstation.io.logs import read_log
 from groundstation.samples import FlightLog
-from groundstation.cli_fleet import add_fleet_simulate_options, add_review_parser
+from groundstation.cli_fleet import add_fleet_simulate_options, add_params_options, add_review_parser
 
 from groundstation.paths import RECORDINGS_DIR
 DEMO_RECORDING = RECORDINGS_DIR / "demo.tlog"
@@ -62,6 +62,39 @@ def load_log(path: str | Path) -> FlightLog:
         log = read_log(path, progress)
     for warning, count in log.warnings.items():
         print(f"warning: {printable(Path(path).name)}: {printable(warning)} ({count})", file=sys.stderr)
+    return log
+
+
+def in_force_params(args: argparse.Namespace) -> tuple[dict | None, str | None]:
+    """(values, label) of --params FILE or --assume-uncalibrated (never both); (None, None) without.
+    A bad line of the file is counted and skipped with one warning."""
+    from groundstation.io.param_file import ParamFileError, read_param_file
+
+    path, assume = getattr(args, "params", None), getattr(args, "assume_uncalibrated", False)
+    if path and assume:
+        raise CliError("give --params FILE or --assume-uncalibrated, not both")
+    if assume:
+        return {}, "--assume-uncalibrated"
+    if not path:
+        return None, None
+    try:
+        pf = read_param_file(path)
+    except ParamFileError as err:
+        raise CliError(str(err)) from None
+    if pf.warning():
+        print(f"warning: {printable(pf.warning())}", file=sys.stderr)
+    return pf.values, printable(Path(path).name)
+
+
+def with_params(log: FlightLog, values: dict | None, label: str | None) -> FlightLog:
+    """The log with --params / --assume-uncalibrated as its parameters in force where it has none (one line)."""
+    if values is None:
+        return log
+    from groundstation.io.param_file import apply_to_log, uncalibrated_params
+
+    if label == "--assume-uncalibrated":
+        values = uncalibrated_params(log.autopilot)
+    print(f"parameters: {printable(apply_to_log(log, values, label))}", file=sys.stderr)
     return log
 
 
@@ -112,10 +145,11 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from groundstation.jobs.calibrate import calibrate_compasses, error_result, format_consistency, format_summary
 
+    values, label = in_force_params(args)
     results = []
     for file in args.files:
         try:
-            found = calibrate_compasses(load_log(file))    # one result per compass
+            found = calibrate_compasses(with_params(load_log(file), values, label))    # one result per compass
         except IngestError as err:
             found = [error_result(file, str(err))]
         results += found
@@ -123,7 +157,24 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(printable(text.rstrip(), lines=True))
     if args.json:
         _write_json(args.json, {"results": results})
+    if args.param_out:
+        _write_params(args.param_out, results)
     return 0 if all(r["status"] == "ok" for r in results) else 1
+
+
+def _write_params(path: str, results: list[dict]) -> None:
+    """Every absolute result's parameters in one .param file (a relative result has none to write)."""
+    values: dict[str, float] = {}
+    for r in results:
+        ap = r.get("autopilot") or "ardupilot"
+        if r.get("status") == "ok" and r.get("relative_to") == "raw":
+            values.update(r.get("px4_params" if ap == "px4" else "ardupilot_params") or {})
+    if not values:
+        raise CliError("no absolute calibration to write as parameters: the fit is relative to corrections in "
+                       "force that the log does not hold (give --params FILE or --assume-uncalibrated)")
+    from groundstation.io.params import format_param_file
+    Path(path).write_text(format_param_file(values), encoding="utf-8")
+    print(f"wrote {printable(path)} ({len(values)} parameters)")
 
 
 def _load_calibration(path: str) -> dict:
@@ -140,8 +191,9 @@ def _load_calibration(path: str) -> dict:
     candidates = data.get("results", [data]) if isinstance(data, dict) else []
     if not isinstance(candidates, list):
         raise CliError(f"{path}: 'results' must be a list of calibration objects")
-    for result in candidates:
-        if isinstance(result, dict) and result.get("status") == "ok":
+    for result in candidates:     # "no_parameters": an older calibrate's relative fit
+        if isinstance(result, dict) and result.get("status") in ("ok", "no_parameters") \
+                and result.get("offsets_mG") is not None:
             try:
                 check_calibration(result)
             except ValueError as err:
@@ -157,7 +209,8 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 
     calibration = _load_calibration(args.calibration) if args.calibration else None
     mission = read_mission(args.mission) if args.mission else None
-    log = load_log(args.file)
+    values, label = in_force_params(args)
+    log = with_params(load_log(args.file), values, label)
     with progress_bar("analyzing"):
         report, columns = analyze_log(log, calibration=calibration, mission=mission)
     print(printable(format_report(report), lines=True))
@@ -215,7 +268,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
                                tls_cert=args.tls_cert, tls_key=args.tls_key, sysid=args.sysid,
                                passive=args.passive, forward=tuple(args.forward), signing_key=_signing_key(args),
                                connection_limits=ConnectionLimits(header_timeout_s=args.header_timeout,
-                                                                  max_per_client=args.max_connections_per_client))
+                                                                  max_per_client=args.max_connections_per_client),
+                               **_serve_params(args))
     from groundstation.station.app import StationStartError, serve
 
     try:
@@ -223,6 +277,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except StationStartError as err:
         raise CliError(str(err)) from err
     return 0
+
+
+def _serve_params(args: argparse.Namespace) -> dict:
+    """serve --params / --assume-uncalibrated as StationSettings fields."""
+    values, label = in_force_params(args)
+    return {} if values is None else {"params_in_force": tuple(sorted(values.items())), "params_label": label}
 
 
 def _signing_key(args: argparse.Namespace) -> bytes | None:
@@ -281,11 +341,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-connections-per-client", type=int, default=limits.max_per_client, metavar="N",
                    help=f"open connections per client address (default {limits.max_per_client}; more behind a proxy)")
     _add_link_options(p)
+    add_params_options(p)
     p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("calibrate", help="magnetometer calibration from one or more logs")
     p.add_argument("files", nargs="+", metavar="FILE")
     p.add_argument("--json", metavar="OUT")
+    p.add_argument("--param-out", metavar="FILE.param", help="write the absolute COMPASS_*/CAL_MAG* parameters")
+    add_params_options(p)
     p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("analyze", help="heading, velocity split and interference detection")
@@ -295,6 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", metavar="OUT")
     p.add_argument("--csv", metavar="OUT")
     p.add_argument("--plot", metavar="FILE.png", help="heading difference, field residual, current and alarms")
+    add_params_options(p)
     p.set_defaults(func=cmd_analyze)
 
     p = sub.add_parser("simulate", help="write a simulated flight as a .tlog (+ truth JSON), or a fleet")

@@ -31,7 +31,17 @@ def add_review_parser(sub) -> None:
     p.add_argument("--force", action="store_true", help="review logs already in the history again")
     p.add_argument("--timeout", type=float, default=600.0, metavar="S", help="per-log time limit (default 600 s)")
     p.add_argument("--memory-limit", default="2GiB", help="per local worker (default 2GiB)")
+    add_params_options(p)
     p.set_defaults(func=cmd_review)
+
+
+def add_params_options(p: argparse.ArgumentParser) -> None:
+    """--params / --assume-uncalibrated: the corrections in force when a log holds none."""
+    g = p.add_argument_group("parameters in force when the log has none")
+    g.add_argument("--params", metavar="FILE.param",
+                   help="the vehicle's parameters (Mission Planner NAME,VALUE; MAVProxy/QGC NAME VALUE; QGC export)")
+    g.add_argument("--assume-uncalibrated", action="store_true",
+                   help="the vehicle was never calibrated: the autopilot's default compass parameters in force")
 
 
 def add_fleet_simulate_options(p: argparse.ArgumentParser) -> None:
@@ -119,11 +129,13 @@ def cmd_review(args: argparse.Namespace) -> int:
     db = Path(args.db) if args.db else fleet_db.default_db_path()
     out = Path(args.out)
     progress = _Progress(total)
+    started = time.time()
     with fleet_client(args.scheduler, args.workers, args.memory_limit) as (client, dashboard):
         print(f"Dask dashboard: {dashboard or 'not available (install bokeh)'}; {total} logs", file=sys.stderr)
         try:
             summary = run_review(client, args.paths, db, force=args.force, airframes=airframes,
-                                 timeout_s=args.timeout, on_progress=progress, dashboard=dashboard)
+                                 timeout_s=args.timeout, on_progress=progress, dashboard=dashboard,
+                                 settings=_review_settings(args))
         finally:
             progress.close()
     with closing(fleet_db.connect(db, read_only=True)) as con:
@@ -132,7 +144,29 @@ def cmd_review(args: argparse.Namespace) -> int:
     write_parquet(rows, findings.site_of, out / "rows.parquet")
     write_html(rows, findings, out / "report.html", failures=summary.failures)
     _print_summary(summary, out)
+    _print_calibrations(rows, started)
     return 1 if total and summary.progress.failed == summary.progress.done else 0
+
+
+def _review_settings(args: argparse.Namespace):
+    """ReviewSettings with --params / --assume-uncalibrated (the values in force when a log has none)."""
+    from groundstation.cli import in_force_params
+    from groundstation.jobs.review_row import ReviewSettings
+
+    values, label = in_force_params(args)
+    if values is None:
+        return ReviewSettings()
+    return ReviewSettings(params=tuple(sorted(values.items())), params_label=label)
+
+
+def _print_calibrations(rows: list[dict], since_unix_s: float) -> None:
+    """Which calibration each log reviewed now was analysed with (one line per log, compass 0)."""
+    for r in rows:
+        if (r.get("compass") or 0) == 0 and (r.get("reviewed_unix_s") or 0) >= since_unix_s \
+                and r.get("calibration_used"):
+            print(f"  {r.get('file_name')}: calibration {r['calibration_used']}; "
+                  f"{r.get('alarm_count') or 0} alarm(s)" + (f", first at {r['first_alarm_s']:.1f} s"
+                                                             if r.get("first_alarm_s") is not None else ""))
 
 
 def cmd_simulate_fleet(args: argparse.Namespace) -> int:

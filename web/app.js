@@ -91,6 +91,7 @@ function render(s) {
   $("pending").textContent = s.source.pending ? "connecting to " + s.source.pending + ": " + s.source.name +
     " goes on until the first packet arrives (Stop cancels)" : "";
   renderLink(s);
+  renderInUse(s);
   $("line-text").textContent = s.line ? "A " + s.line.a.map((x) => x.toFixed(6)).join(", ") + " → B " +
     s.line.b.map((x) => x.toFixed(6)).join(", ") + " (" + s.line.source + ")" : "none: no path-deviation test";
   $("line-clear").disabled = !s.line;
@@ -251,6 +252,45 @@ $("line-set").onclick = guarded("line-error", () => api("PUT", "/api/line", {
 $("line-mission").onclick = guarded("line-error", () => api("POST", "/api/line/from-mission"));
 $("line-clear").onclick = guarded("line-error", () => api("DELETE", "/api/line"));
 for (const id of ["dl-log", "dl-json", "dl-csv"]) $(id).onclick = (ev) => { if ($(id).classList.contains("disabled")) ev.preventDefault(); };
+
+// ---- Calibration in use: where the station's calibration comes from, per vehicle/airframe (self-contained).
+let inUseKey = null;
+async function loadInUseOptions() {
+  const d = await api("GET", "/api/calibration/in-use");
+  const sel = $("cal-choice"), keep = sel.value;
+  sel.innerHTML = d.options.map((o) => `<option value="${escapeHtml(o.source + (o.name ? ":" + o.name : ""))}">` +
+    `${escapeHtml(o.label)}</option>`).join("");
+  const cur = d.current.source + (d.current.source === "recording" ? ":" + d.current.label.replace(/^the dance in /, "") : "");
+  sel.value = [...sel.options].some((o) => o.value === keep) ? keep : cur;
+}
+function renderInUse(s) {
+  const c = s.calibration_choice;
+  if (!c) return;
+  $("cal-in-use").textContent = c.source === "none" ? "none: the field as the autopilot sent it" +
+    (c.airframe ? " (" + c.airframe + ")" : "") : c.label + " — " + c.frame + (c.note ? "; " + c.note : "") +
+    " [" + c.source + (c.airframe ? ", " + c.airframe : "") + "]" + (c.applied ? ". " + c.applied : "");
+  $("cal-in-use").dataset.source = c.source;
+  const key = s.source.name + "|" + c.source + "|" + c.label + "|" + (s.wizard && s.wizard.state);
+  if (key !== inUseKey) { inUseKey = key; loadInUseOptions().catch(() => { inUseKey = null; }); }
+}
+$("cal-use").onclick = guarded("cal-error", async () => {
+  const v = $("cal-choice").value, i = v.indexOf(":");
+  const body = i < 0 ? { source: v } : { source: v.slice(0, i), name: v.slice(i + 1) };
+  $("cal-in-use").textContent = "fitting / applying…";
+  await api("POST", "/api/calibration/in-use", body);
+});
+$("cal-upload").onchange = guarded("cal-error", async () => {
+  const file = $("cal-upload").files[0];
+  if (!file) return;
+  try {
+    const res = await fetch("/api/calibration/in-use/upload?filename=" + encodeURIComponent(file.name),
+      { method: "POST", credentials: "same-origin", body: file,
+        headers: { "Content-Type": "application/octet-stream", "X-MagStation-Token": await writeToken(false) } });
+    const data = await res.json().catch(() => ({}));
+    if (!res.ok) throw new Error(data.detail || res.statusText);
+  } finally { $("cal-upload").value = ""; }
+});
+// ---- end of the calibration-in-use block
 
 connectState(render, (up) => { if (!up) $("status").textContent = "station connection lost, retrying…"; });
 setupViewer("viewer");

@@ -10,7 +10,9 @@ thousand a month) and written row by row, so a column store gains nothing here; 
 
 Tables (``SCHEMA_VERSION``):
   flights       one row per log and compass (``ROW_COLUMNS``), key (log_hash, compass)
-  calibrations  every calibration accepted (station wizard, written to a vehicle) or imported
+  calibrations  every calibration accepted (station wizard, written to a vehicle) or imported, with
+                the whole calibration object (``calibration_json``, ``relative_to``) since the calibration in use
+  in_use        the calibration the station chose per airframe (``set_in_use`` / ``get_in_use``)
   alerts        derived: drift / payload / anomaly-site / interference findings
   sites         derived: take-off sites with their field effect; flight_sites: log hash -> site
                 (the derived tables are rebuilt together after every write)
@@ -31,7 +33,8 @@ from groundstation.paths import RECORDINGS_DIR
 __all__ = ["ROW_COLUMNS", "CALIBRATION_COLUMNS", "ALERT_COLUMNS", "SCHEMA_VERSION", "connect", "upsert_rows",
            "known_hashes", "flight_rows", "insert_calibration", "calibration_rows",
            "alert_rows", "airframe_summary", "airframe_of_identity", "DB_NAME", "set_airframes", "empty_row", "default_db_path", "replace_findings",
-           "site_rows", "worst_flight_rows", "concern_key"]
+           "site_rows", "worst_flight_rows", "concern_key", "calibration_in_force", "set_in_use", "get_in_use",
+           "IN_USE_COLUMNS"]
 
 SCHEMA_VERSION = 1
 XYZ = ("x", "y", "z")
@@ -57,7 +60,7 @@ ROW_COLUMNS: tuple[tuple[str, str], ...] = tuple([
     ("wmm_strength_mG", "REAL"), ("wmm_inclination_deg", "REAL"), ("wmm_declination_deg", "REAL"),
     ("strength_resid_mG", "REAL"), ("inclination_resid_deg", "REAL"),
     ("alarm_count", "INTEGER"), ("alarm_kinds", "TEXT"), ("first_alarm_s", "REAL"), ("alarm_evidence", "TEXT"),
-    ("alarm_intervals_s", "TEXT"),
+    ("alarm_intervals_s", "TEXT"), ("calibration_used", "TEXT"),
     ("heading_vs_autopilot_rms_deg", "REAL"), ("heading_vs_autopilot_max_deg", "REAL"), ("compass_spread_deg", "REAL"),
     ("max_cross_track_m", "REAL"), ("rtk", "INTEGER"),
     ("mag_rate_hz", "REAL"), ("imu_rate_hz", "REAL"), ("att_rate_hz", "REAL"), ("gps_rate_hz", "REAL"),
@@ -74,8 +77,13 @@ CALIBRATION_COLUMNS: tuple[tuple[str, str], ...] = tuple([
     ("compass", "INTEGER"), *_vec("ofs", "mG"), ("matrix_json", "TEXT"), ("fitness_mG", "REAL"),
     ("orientation", "TEXT"), ("wmm_strength_mG", "REAL"), ("wmm_inclination_deg", "REAL"),
     ("wmm_declination_deg", "REAL"), ("lat_deg", "REAL"), ("lon_deg", "REAL"), ("site", "TEXT"),
-    ("written_to_vehicle", "INTEGER"), ("note", "TEXT"),
+    ("written_to_vehicle", "INTEGER"), ("note", "TEXT"), ("relative_to", "TEXT"), ("calibration_json", "TEXT"),
+    ("recorded_unix_s", "REAL"),
 ])
+# the calibration in use the station chose per airframe (one row each; survives restarts)
+IN_USE_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("airframe", "TEXT PRIMARY KEY"), ("unix_s", "REAL"), ("source", "TEXT"), ("label", "TEXT"),
+    ("calibration_json", "TEXT"))
 
 ALERT_COLUMNS: tuple[tuple[str, str], ...] = tuple([
     ("kind", "TEXT"), ("airframe", "TEXT"), ("site", "TEXT"), ("lat_deg", "REAL"), ("lon_deg", "REAL"),
@@ -122,6 +130,11 @@ def _create(con: sqlite3.Connection) -> None:
     con.execute("CREATE INDEX IF NOT EXISTS flights_airframe ON flights (airframe, start_unix_s)")
     con.execute("CREATE INDEX IF NOT EXISTS flights_path ON flights (path)")   # upsert drops a path's failure rows
     con.execute(f"CREATE TABLE IF NOT EXISTS calibrations ({', '.join(f'{n} {t}' for n, t in CALIBRATION_COLUMNS)})")
+    have_cal = {r[1] for r in con.execute("PRAGMA table_info(calibrations)")}
+    for name, kind in CALIBRATION_COLUMNS:  # an older history's calibrations gain the new columns
+        if name not in have_cal:
+            con.execute(f'ALTER TABLE calibrations ADD COLUMN "{name}" {kind}')
+    con.execute(f"CREATE TABLE IF NOT EXISTS in_use ({', '.join(f'{n} {t}' for n, t in IN_USE_COLUMNS)})")
     for table, spec in (("alerts", ALERT_COLUMNS), ("sites", SITE_COLUMNS)):   # derived: rebuilt when the spec changed
         have = [r[1] for r in con.execute(f"PRAGMA table_info({table})")]
         if have and have != [n for n, _ in spec]:
@@ -224,6 +237,52 @@ def calibration_rows(con: sqlite3.Connection, airframe: str | None = None) -> li
     for r in rows:
         r["matrix"] = json.loads(r.pop("matrix_json")) if r.get("matrix_json") else None
     return rows
+
+
+def calibration_in_force(con: sqlite3.Connection, airframe: str, unix_s: float | None = None,
+                         compass: int = 0) -> dict | None:
+    """The airframe's latest calibration record at ``unix_s`` (None: the latest of all) that holds
+    the whole calibration object (``calibration_json``), with ``calibration`` parsed; None when none."""
+    sql = "SELECT * FROM calibrations WHERE airframe = ? AND COALESCE(compass, 0) = ? AND calibration_json IS NOT NULL"
+    args: tuple = (airframe, int(compass))
+    if unix_s is not None:
+        sql, args = sql + " AND unix_s <= ?", args + (float(unix_s),)
+    row = con.execute(sql + " ORDER BY unix_s DESC, id DESC LIMIT 1", args).fetchone()
+    if row is None:
+        return None
+    out = dict(row)
+    try:
+        out["calibration"] = json.loads(out.pop("calibration_json"))
+    except ValueError:
+        return None
+    return out
+
+
+def set_in_use(con: sqlite3.Connection, airframe: str, source: str, label: str, calibration: dict | None,
+               unix_s: float) -> None:
+    """The station's choice of calibration for an airframe (replaces the previous one; None clears it)."""
+    with con:
+        if calibration is None:
+            con.execute("DELETE FROM in_use WHERE airframe = ?", (airframe,))
+            return
+        con.execute("INSERT OR REPLACE INTO in_use VALUES (?, ?, ?, ?, ?)",
+                    (airframe, float(unix_s), source, label, json.dumps(calibration, allow_nan=False)))
+
+
+def get_in_use(con: sqlite3.Connection, airframe: str) -> dict | None:
+    """{airframe, unix_s, source, label, calibration} the station chose, or None."""
+    try:
+        row = con.execute("SELECT * FROM in_use WHERE airframe = ?", (airframe,)).fetchone()
+    except sqlite3.OperationalError:           # a read-only older history without the table
+        return None
+    if row is None:
+        return None
+    out = dict(row)
+    try:
+        out["calibration"] = json.loads(out.pop("calibration_json"))
+    except ValueError:
+        return None
+    return out
 
 
 def replace_findings(con: sqlite3.Connection, alerts: Iterable[dict], sites: Iterable[dict],

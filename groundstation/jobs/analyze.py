@@ -27,13 +27,15 @@ from estimators.ins_gps import MODE_NAMES
 from groundstation.jobs.alarm_explain import STEP_KEYS, explain_span, explanation_text
 from groundstation.jobs.compass_report import compass_summaries
 from groundstation.jobs.flight_plot import vector_test_status
-from groundstation.jobs.inputs import detection_inputs, heading_deg, rounded
+from groundstation.jobs.calibrate.frame import for_log, frame_label, relative_to
+from groundstation.jobs.inputs import calibration_arrays, detection_inputs, heading_deg, primary_field, rounded
 from groundstation.jobs.motor_heading import attitude_chain, best_heading_chain
 from groundstation.jobs.navigation import ins_runs
 from groundstation.jobs.record import COL, AlarmTracker, record_rows
 from groundstation.samples import FlightLog
 
-__all__ = ["analyze_log", "analyze_flight", "FlightAnalysis", "detector_score", "explanation_text"]
+__all__ = ["analyze_log", "analyze_flight", "FlightAnalysis", "detector_score", "explanation_text",
+           "calibration_for_log"]
 
 
 def detector_score(z_heading, z_path, z_field, z_vector=np.nan) -> np.ndarray:
@@ -87,11 +89,29 @@ def motor_field_report(x: dict) -> dict | None:
     return {"signal": x["motor_signal"], "unit": unit, "estimate": quarters[-1], "trend": quarters}
 
 
+def calibration_for_log(log: FlightLog, calibration: dict | None) -> tuple[dict | None, str | None]:
+    """The calibration in the frame of this log's primary field (``jobs.calibrate.frame.for_log``:
+    absolute as it is, relative on top of the log's corrections in force) and one line saying how
+    it was applied; (calibration, None) when it is not usable or the log has no field."""
+    arrays = calibration_arrays(calibration)
+    if arrays is None or not len(log.mag):
+        return calibration, None
+    cf = primary_field(log)
+    end = len(cf.offsets_in_force_mG) - 1
+    applied = for_log(arrays[0], arrays[1], calibration, cf.status,
+                      cf.offsets_in_force_mG[end] if end >= 0 else None, cf.nominal_matrix)
+    out = dict(calibration, offsets_mG=applied.offsets_mG.tolist(), matrix=applied.matrix.tolist())
+    return out, applied.note
+
+
 def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: list | None = None,
                    settings: DetectionSettings | None = None) -> FlightAnalysis:
-    """Detector inputs, detection and the flight record of a whole log (see module docstring)."""
+    """Detector inputs, detection and the flight record of a whole log (see module docstring); a
+    relative calibration is applied on top of the log's corrections in force (``calibration_for_log``)."""
     settings = settings or DetectionSettings()
+    calibration, note = calibration_for_log(log, calibration)
     x = detection_inputs(log, calibration, mission, settings)
+    x["calibration_note"] = note
     ef = x["ef"]
     det = detect(x["t"], x["e"], x["d"], x["trusted"], x["strength"], x["incl"], x["heading"], x["yaw_rate"],
                  ef.field_strength_mG if ef else np.nan, ef.inclination_deg if ef else np.nan, settings,
@@ -144,6 +164,9 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "duration_s": rounded(log.duration_s, 2),
         "calibration": calibration if calibration else None,
         "calibration_applied": cal is not None,
+        "calibration_relative_to": relative_to(calibration) if cal is not None else None,
+        "calibration_in_use": (f"{frame_label(calibration)}: {x['calibration_note']}" if cal is not None
+                               else x["policy"].note),
         "declination_deg": rounded(ef.declination_deg) if ef else None,
         "inclination_deg": rounded(ef.inclination_deg) if ef else None,
         "field_strength_mG": rounded(ef.field_strength_mG, 1) if ef else None,

@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from estimators.detection import ned_from_lla
+from groundstation.jobs.calibrate.frame import compact, relative_to
 from groundstation.io import fleet_db
 from groundstation.jsonsafe import jsonable
 
@@ -365,7 +366,10 @@ def _calibration_record(airframe: str, compass: int, result: dict, unix_s: float
             "orientation": json.dumps(jsonable(result.get("orientation", result.get("misalignment_deg")))),
             "wmm_strength_mG": result.get("expected_field_mG"),
             "wmm_inclination_deg": result.get("expected_inclination_deg"),
-            "wmm_declination_deg": result.get("expected_declination_deg"), "note": result.get("message"), **where}
+            "wmm_declination_deg": result.get("expected_declination_deg"), "note": result.get("message"),
+            "relative_to": relative_to(result), "calibration_json": json.dumps(jsonable(compact(result)), allow_nan=False),
+            "recorded_unix_s": time.time(),
+            **where}
 
 
 def record_calibrations(db_path: str | Path, airframe: str, results: dict[int, dict], *, written_to_vehicle: bool = True,

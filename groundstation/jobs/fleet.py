@@ -33,7 +33,7 @@ import os
 import threading
 import time
 from contextlib import closing, contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
@@ -41,6 +41,7 @@ from groundstation.io import fleet_db
 from groundstation.io.logs import READERS
 from groundstation.jobs.airframes import AirframeEntry, resolve_airframe
 from groundstation.jobs.compass_history import DriftSettings, refresh_alerts
+from groundstation.jobs.review_calibration import history_calibrations
 from groundstation.jobs.review_row import ROW_VERSION, ReviewSettings, review_log
 
 __all__ = ["discover_logs", "fleet_client", "run_review", "ReviewProgress", "ReviewSummary", "LogTimeout",
@@ -231,6 +232,18 @@ def _account(summary: ReviewSummary, rows: list[dict]) -> list[dict]:
     return rows
 
 
+def _recalibrated(con) -> frozenset:
+    """Log hashes reviewed before a calibration of their vehicle was added to the history: they are
+    reviewed again (a log without its own dance is analysed with the airframe's calibration)."""
+    try:
+        rows = con.execute("SELECT DISTINCT f.log_hash FROM flights f JOIN calibrations c "
+                           "ON c.airframe IN (f.identity, f.airframe) WHERE c.calibration_json IS NOT NULL "
+                           "AND c.recorded_unix_s > f.reviewed_unix_s").fetchall()
+    except Exception:          # an older history without the columns: nothing to redo
+        return frozenset()
+    return frozenset(r[0] for r in rows)
+
+
 def run_review(client, paths: Iterable[str | os.PathLike], db_path: str | os.PathLike, *, force: bool = False,
                airframes: list[AirframeEntry] | None = None, timeout_s: float = 600.0,
                settings: ReviewSettings = ReviewSettings(), drift: DriftSettings = DriftSettings(),
@@ -246,6 +259,8 @@ def run_review(client, paths: Iterable[str | os.PathLike], db_path: str | os.Pat
     with closing(fleet_db.connect(db_path)) as con:
         skip = frozenset() if force else frozenset(fleet_db.known_hashes(con, only_ok=True,
                                                                           min_row_version=ROW_VERSION))
+        skip -= _recalibrated(con)
+        settings = replace(settings, calibrations=history_calibrations(con))
         skip_future = client.scatter([skip], broadcast=True)[0]   # one object, not its elements
         pending = iter(logs)
         path_of: dict[str, str] = {}

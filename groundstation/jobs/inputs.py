@@ -34,7 +34,7 @@ from groundstation.io.params import ardupilot_never_calibrated, unapply_onboard_
 from groundstation.jobs.compass_raw import compass_field
 from groundstation.samples import CompassTable, FlightLog, finite_or_none
 
-__all__ = ["detection_inputs", "calibration_arrays", "check_calibration", "primary_raw", "mission_legs",
+__all__ = ["detection_inputs", "calibration_arrays", "check_calibration", "primary_raw", "primary_field", "mission_legs",
            "cross_track_legs", "hold_last", "Held", "field_reference", "field_policy", "FieldPolicy", "gps_rows",
            "GPS_COLUMNS", "imu_rate_hz", "step_inputs", "StepState", "too_steep", "rotation_rate", "rounded",
            "heading_deg", "GPS_TIMEOUT_S", "ATTITUDE_TIMEOUT_S", "RATE_WINDOW", "vector_test_inputs", "earth_prior_mG",
@@ -107,14 +107,18 @@ def check_calibration(calibration: dict) -> tuple[np.ndarray, np.ndarray]:
     return off, mat
 
 
-def primary_raw(log: FlightLog) -> np.ndarray:
-    """The primary compass's raw field (N,3), the autopilot's corrections un-applied with the values
-    in force at each sample (jobs.compass_raw), on the rows of ``log.mag``."""
+def primary_field(log: FlightLog):
+    """The primary compass (jobs.compass_raw.CompassField) on the rows of ``log.mag``."""
     mag = np.asarray(log.mag, dtype=float).reshape(-1, 4)
     same = [c for c in log.compasses if c.compass == log.primary_compass and c.field is log.mag]
     table = CompassTable(log.primary_compass, mag, "mag", None, log.mag_calibration_applied,
                          same[0].motor_offset_mG if same else None)
-    return compass_field(log, table).raw_mG
+    return compass_field(log, table)
+
+
+def primary_raw(log: FlightLog) -> np.ndarray:
+    """The primary compass's raw field (N,3), corrections in force un-applied (``primary_field``)."""
+    return primary_field(log).raw_mG
 
 
 def calibration_arrays(calibration: dict | None) -> tuple[np.ndarray, np.ndarray] | None:

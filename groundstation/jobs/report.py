@@ -44,7 +44,8 @@ def format_report(report: dict) -> str:
         lines.append(f"WMM: declination {report['declination_deg']:.2f}°, inclination "
                      f"{report['inclination_deg']:.2f}°, field {report['field_strength_mG']:.1f} mG "
                      f"(measured median {report.get('measured_field_strength_mG')} mG)")
-    lines.append("calibration: " + ("applied" if report.get("calibration_applied") else "none (raw magnetometer)"))
+    lines.append("calibration: " + (report.get("calibration_in_use")
+                                    or ("applied" if report.get("calibration_applied") else "none (raw magnetometer)")))
     lines.append(f"RTK: {'yes' if report.get('rtk') else 'no'};  path test: {report.get('path_test')}")
     lines.append(f"heading test: {report.get('heading_test')};  field test: {report.get('field_test')}")
     if report.get("mission"):

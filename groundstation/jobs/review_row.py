@@ -60,6 +60,11 @@ REVIEW_CALIBRATE = CalibrateSettings(wmm=WmmFitSettings(fit_diagonal=False, fit_
 class ReviewSettings:
     """What the per-log job does (units in the names).  ``calibrate``: the in-flight fit's settings."""
     calibrate: CalibrateSettings = REVIEW_CALIBRATE
+    # the calibration for a log without its own dance (jobs.review_calibration): the history's
+    # calibrations ((airframe, unix_s, calibration JSON), ...) and --params values ((name, value), ...)
+    calibrations: tuple = ()
+    params: tuple = ()
+    params_label: str | None = None
     alarm_margin_s: float = 5.0          # samples this close to an alarm are left out of the field residuals
     max_tilt_deg: float = 45.0           # ... and steeper ones (dance, carried)
 
@@ -146,6 +151,9 @@ def data_quality(log: FlightLog) -> dict:
 
 
 def _log_rows(log: FlightLog, path: Path, row: dict, settings: ReviewSettings) -> list[dict]:
+    from groundstation.jobs.review_calibration import apply_review_params, review_calibration
+
+    apply_review_params(log, settings)
     row.update(vehicle_identity(log, path))
     row.update(data_quality(log))
     ef, pos = field_reference(log)
@@ -161,12 +169,17 @@ def _log_rows(log: FlightLog, path: Path, row: dict, settings: ReviewSettings) -
     if not fields:
         row.update(status="no_mag", compasses=0, error="the log has no magnetometer samples")
         return [row]
-    report, _ = analyze_log(log)
+    ctx = log_context(log)
+    results = {cf.compass: _calibrate(log, cf, ctx, settings) for cf in fields}    # once per compass
+    calibration, row["calibration_used"] = review_calibration(log, row["identity"], settings,
+                                                              results.get(log.primary_compass))
+    report, _ = analyze_log(log, calibration=calibration)
+    if calibration is None:
+        row["calibration_used"] += f" ({report.get('calibration_in_use')})"
     row.update(alarm_fields(report))
     row.update(max_cross_track_m=report.get("max_cross_track_m"), rtk=int(bool(report.get("rtk"))),
                compasses=len(fields), status="ok")
-    ctx = log_context(log)
-    return [{**row, **compass_row(log, cf, ctx, report, settings)} for cf in fields]
+    return [{**row, **compass_row(log, cf, ctx, report, settings, results[cf.compass])} for cf in fields]
 
 
 def alarm_fields(report: dict) -> dict:
@@ -222,14 +235,15 @@ def _fit_fields(result: dict, in_force_mG: np.ndarray) -> dict:
     return out
 
 
-def compass_row(log: FlightLog, cf: CompassField, ctx, report: dict, settings: ReviewSettings) -> dict:
+def compass_row(log: FlightLog, cf: CompassField, ctx, report: dict, settings: ReviewSettings,
+                result: dict | None = None) -> dict:
     """One compass: the corrections in force (``jobs.compass_raw``), the calibrate job's in-flight
     WMM fit and motor field, and the field / heading residuals of the field as the autopilot
     corrected it (fitted motor field removed) over level flight away from alarms."""
     in_force = cf.offsets_in_force_mG[-1] if len(cf.offsets_in_force_mG) else np.full(3, np.nan)
     out = {"compass": cf.compass, "device_id": cf.device_id, "compass_source": cf.source, "cal_state": cf.status,
            **_vector("cal_ofs", in_force)}
-    result = _calibrate(log, cf, ctx, settings)
+    result = _calibrate(log, cf, ctx, settings) if result is None else result
     out.update(_fit_fields(result, in_force))
     if ctx.field is None or len(log.attitude) < 2:
         return out

@@ -133,6 +133,8 @@ class Station:
         self.session = Session(settings.recordings_dir, record_live=settings.record_live,
                                max_upload_bytes=int(settings.max_upload_mb * 1e6),
                                link_options=settings.link_options(), forwarder=forwarder)
+        if settings.params_in_force is not None:      # serve --params / --assume-uncalibrated
+            self.session.in_use.params_in_force = (dict(settings.params_in_force), settings.params_label)
         try:
             self.access = AccessPolicy.from_settings(settings)
             if settings.viser_port is not None:

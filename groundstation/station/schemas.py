@@ -220,6 +220,9 @@ class State(BaseModel):
     alarm_count: int
     line: Line | None
     calibration_in_use: bool
+    calibration_choice: dict | None = Field(None, description="the calibration in use: source (log, recording, "
+                                            "wizard, history, vehicle, upload, none), label, relative_to, frame, "
+                                            "note, airframe (as GET /api/calibration/in-use 'current')")
     tests: InterferenceTests
     downloads: Downloads
     wizard: Wizard

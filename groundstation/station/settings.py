@@ -96,6 +96,8 @@ class StationSettings:
     forward: tuple[str, ...] = ()
     signing_key: bytes | None = field(default=None, repr=False)
     connection_limits: ConnectionLimits = field(default_factory=ConnectionLimits)
+    params_in_force: tuple[tuple[str, float], ...] | None = None   # serve --params: values in force when a log has none
+    params_label: str | None = None                                # the file's name, or "--assume-uncalibrated"
 
     def __post_init__(self) -> None:
         self._check_link()

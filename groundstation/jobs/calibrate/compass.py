@@ -11,12 +11,14 @@ from __future__ import annotations
 import numpy as np
 
 from estimators.calibration import apply_calibration
+from estimators.compass_corrections import ardupilot_param_names
 from groundstation.io.params import export_params, px4_rotation, rotation_enum_matrix
 from groundstation.jobs.compass_raw import CompassField
 from groundstation.samples import FlightLog, finite_or_none
 
 from .checks import orientation_dict, orientation_reference, orientation_step, reorient
 from .context import LogContext, onboard_report
+from .frame import LOG_RAW_UNKNOWN_STATUSES, corrections_record
 from .inflight import flight_inputs, inflight_step, motor_dict, motor_step, wmm_dict
 from .result import empty_result
 from .settings import CalibrateSettings, settings_record
@@ -38,6 +40,16 @@ def _corrections_dict(cf: CompassField) -> dict:
     return {"status": cf.status, "note": cf.note, "orientation_in_use": cf.orientation_id, "px4_slot": cf.px4_slot,
             "offsets_in_force_end_mG": _vec(end, 2), "offsets_convention": convention, "motor_in_force": cf.motor_in_force,
             "changes": [{"t_s": round(t, 2), "offsets": _vec(o, 2)} for t, o in cf.changes]}
+
+
+def _params_of(log: FlightLog, cf: CompassField) -> dict:
+    """The compass's own calibration parameters of the log (their last values)."""
+    params = log.params or {}
+    if cf.autopilot == "px4":
+        pre = f"CAL_MAG{cf.px4_slot if cf.px4_slot is not None else cf.compass}_"
+        return {k: v for k, v in params.items() if k.startswith(pre)}
+    names = {n for group in ardupilot_param_names(cf.compass).values() for n in group}
+    return {k: v for k, v in params.items() if k in names}
 
 
 def _start(log: FlightLog, cf: CompassField, ctx: LogContext, settings: CalibrateSettings) -> dict:
@@ -220,10 +232,15 @@ def _finish(r, log, cf, ctx, settings, step, wmm, motor, cal, notes) -> tuple[di
     r["orientation"] = orientation_dict(check, ref)
     C_body = _body_matrix(r, log, cf, ctx, settings, step, (b, C), check, notes)
     r.update(offsets_mG=_vec(b, 4), matrix=[_vec(row, 6) for row in C_body])
-    if cf.status == "no_parameters":
-        r.update(status="no_parameters", message="; ".join(
-            [cf.note + ": offsets shown are relative to the corrections in force, nothing exported"] + notes[1:]))
-        return r, None
+    if cf.status in LOG_RAW_UNKNOWN_STATUSES:
+        r.update(status="ok", relative_to="unknown", corrections_in_force=None, message="; ".join(
+            [cf.note + ": the fit is relative to the corrections in force (unknown), right for logs flown with "
+             "the same corrections; nothing to write (give --params FILE or --assume-uncalibrated for the "
+             "parameters)"] + notes[1:]))
+        return r, (b, C_body)
+    end = len(cf.offsets_in_force_mG) - 1
+    r.update(relative_to="raw", corrections_in_force=corrections_record(
+        cf.offsets_in_force_mG[end] if end >= 0 else np.full(3, np.nan), cf.nominal_matrix, _params_of(log, cf)))
     _export(r, log, cf, b, C, motor, check, notes)
     if ctx.field is not None and r["field_strength_mG"] is not None:
         notes.append(f"fitted field {r['field_strength_mG']:.0f} mG vs WMM {ctx.field.field_strength_mG:.0f} mG")

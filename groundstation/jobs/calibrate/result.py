@@ -3,7 +3,10 @@
 Fields (JSON): file, compass (0-based), device_id, source (the log message), autopilot, status,
 message, method ("window" | "wmm_inflight" | null), window_s ([start, end] s of the data the
 parameters come from), samples, offsets_mG (b of m_cal = C (m_raw − b)), offsets_sd_mG, matrix (C),
-field_strength_mG, expected_field_mG (WMM), residual_rms_mG, coverage (of the chosen window's
+relative_to ("raw": absolute, the parameters to write; "corrections": relative to the corrections
+in force recorded in corrections_in_force; "unknown": relative to corrections nobody knows — see
+frame.py), corrections_in_force (o, N and the autopilot's parameters of the log), field_strength_mG,
+expected_field_mG (WMM), residual_rms_mG, coverage (of the chosen window's
 direction cells, or the heading coverage of an in-flight fit), misalignment_deg, condition_number,
 ardupilot_params / px4_params (names follow the instance: COMPASS_OFS2_X, CAL_MAG1_XOFF, motor
 COMPASS_MOT*, orientation COMPASS_ORIENT* when found), corrections (what the autopilot had in
@@ -19,6 +22,7 @@ import numpy as np
 
 from groundstation.io.params import format_param_file
 
+from .frame import frame_label
 from .settings import DEFAULT_SETTINGS, settings_record
 
 __all__ = ["empty_result", "error_result", "format_summary", "write_param_file"]
@@ -31,7 +35,7 @@ def empty_result(source: str, compass: int = 0) -> dict:
             "expected_field_mG": None, "residual_rms_mG": None, "coverage": 0.0, "misalignment_deg": None,
             "condition_number": None, "ardupilot_params": {}, "px4_params": {}, "corrections": None,
             "windows": [], "onboard_report": None, "inflight": None, "motor": None, "orientation": None,
-            "consistency": None, "settings": settings_record(DEFAULT_SETTINGS)}
+            "consistency": None, "relative_to": None, "corrections_in_force": None, "settings": settings_record(DEFAULT_SETTINGS)}
 
 
 def error_result(file: str, message: str, status: str = "error") -> dict:
@@ -84,7 +88,8 @@ def format_summary(result: dict) -> str:
     head = f"{result.get('file')}" + (f" compass {comp}" if comp is not None else "")
     if result.get("device_id"):
         head += f" (device {result['device_id']})"
-    lines = [f"{head}: {result.get('status')}" + (f" [{result['method']}]" if result.get("method") else "")]
+    frame = f", {frame_label(result)}" if result.get("relative_to") and result.get("status") == "ok" else ""
+    lines = [f"{head}: {result.get('status')}" + (f" [{result['method']}]" if result.get("method") else "") + frame]
     if result.get("message"):
         lines.append(f"  {result['message']}")
     lines.append(f"  samples {result.get('samples', 0)}, coverage {_num(result.get('coverage'), '{:.0%}')}, "

@@ -51,6 +51,7 @@ class AfterWrite:
         w, hub = self._w, self._hub
         hub.use_calibration(w.result)      # the detector re-learns with it
         w.state, w.in_use = "accepted", "station"
+        hub.in_use.accepted(w.result)       # the calibration in use for this airframe from now on
         autopilot = hub.vehicle.autopilot or "ardupilot"
         params = w.result.get(f"{autopilot}_params") or {}
         link = hub.sources.link

@@ -48,6 +48,7 @@ class Review:
     line: dict | None = None
     explain_steps: dict | None = None     # per-step inputs of the alarm explanations (jobs.alarm_explain)
     motor_signal: str = "none"
+    calibration_note: str | None = None   # how the calibration was applied to this log (jobs.calibrate.frame)
 
 
 def build_review(log: FlightLog, calibration: dict | None, line: dict | None) -> Review:
@@ -62,7 +63,7 @@ def build_review(log: FlightLog, calibration: dict | None, line: dict | None) ->
     gps = np.c_[g[:, 0], g[:, 1], g[:, 2], g[:, 7], alarm_at_fix] if len(g) else np.zeros((0, 5))
     review = Review(rows=rows, gps=gps, policy=fa.x["policy"], earth_field=fa.x["ef"],
                     calibration=calibration, line=line, explain_steps=fa.explain_steps(),
-                    motor_signal=fa.x.get("motor_signal", "none"))
+                    motor_signal=fa.x.get("motor_signal", "none"), calibration_note=fa.x.get("calibration_note"))
     _outages(review, log)
     review.markers += [{"t_s": a["start_s"], "end_s": a["end_s"], "kind": "alarm",
                         "label": "interference alarm: " + evidence_text(a["evidence"])} for a in fa.combined_alarms()]

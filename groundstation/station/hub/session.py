@@ -28,6 +28,7 @@ from groundstation.jsonsafe import jsonable
 from groundstation.samples import FlightLog, MissionSample, ParamSample, Sample, StatusSample
 from groundstation.station.hub.calibration import CalibrationControl
 from groundstation.station.hub.flight import FlightState
+from groundstation.station.hub.in_use import CalibrationInUse
 from groundstation.station.hub.recordings import RecordingsFolder
 from groundstation.station.hub.param_watch import on_compass_params_changed
 from groundstation.station.hub.review import build_review
@@ -58,6 +59,7 @@ class Session(SessionViews):
         self.vehicle = VehicleLink(self._lock)
         self.flight = FlightState(self.event)
         self.calibration = CalibrationControl(self._lock, self)
+        self.in_use = CalibrationInUse(self)        # the calibration in use and where it came from
         self.log_calibration: dict | None = None
         self._log_mission: list | None = None
         self._review_generation = 0
@@ -168,6 +170,7 @@ class Session(SessionViews):
         self.flight.new_source(None)
         self.vehicle.reset(None, {})
         self.calibration.new_source()
+        self.in_use.new_source()
         self.log_calibration = None
         self._log_mission = None
         self.event(s.text)
@@ -277,20 +280,28 @@ class Session(SessionViews):
             self.event("the calibration result is kept for this link: accept writes it to the vehicle")
         self._wizard_for_link = None
         self.log_calibration = None
+        self.in_use.new_source()
         self._log_mission = mission
         self._review_generation += 1
 
     def prepare_replay(self, flight_log: FlightLog) -> tuple:
         """Without the lock: the log's own calibration (if it has a calibration dance) and the
         whole-log analysis with it and the preset line."""
-        calibration = self.fit_log_calibration(flight_log)
+        params_note = self.in_use.fill_params(flight_log)         # serve --params
+        if params_note:
+            self.event(f"parameters: {params_note}", t_s=0.0)
+        own = self.fit_log_calibration(flight_log)
         with self._lock:
             line = self.flight.line
-        return calibration, line, build_review(flight_log, calibration, line)
+            path = self.sources.replay_path
+        choice = self.in_use.for_replay(flight_log, path, own)   # own dance, else the airframe's stored choice
+        calibration = (choice or {}).get("calibration")
+        return calibration, line, build_review(flight_log, calibration, line), choice, own
 
     def start_review(self, prepared: tuple) -> None:
-        calibration, line, review = prepared
-        if calibration is not None:
+        calibration, line, review, choice, own = prepared
+        self.in_use.start(choice, own)
+        if calibration is not None and calibration is own:
             self.log_calibration = calibration
             self.event(f"using the calibration fitted to this log (residual "
                        f"{calibration.get('residual_rms_mG') or 0:.1f} mG)", t_s=0.0)

@@ -46,6 +46,7 @@ class SessionViews:
                 "alarm_count": len(flight.tracker.alarms),
                 "line": flight.line,
                 "calibration_in_use": self.calibration.in_use(),
+                "calibration_choice": self.in_use.snapshot(),
                 "tests": tests_snapshot(row, flight.policy, flight.line),
                 "downloads": {"log": path.name if path is not None and path.is_file() else None,
                               "tlog": path is not None and path.suffix.lower() == ".tlog" and path.is_file()},

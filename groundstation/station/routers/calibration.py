@@ -4,13 +4,15 @@ from __future__ import annotations
 
 from typing import Literal
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import PlainTextResponse, Response
 
 from groundstation.io.magcal import section_centres
 from groundstation.io.params import format_param_file
 from groundstation.station.deps import HubDep
 from groundstation.station.hub.session import NotFoundError
+from groundstation.station.hub.in_use import MAX_CALIBRATION_UPLOAD_BYTES, InUseError
 from groundstation.station.schemas import (AcceptRequest, CalibrationStart, CompassInclude, FixedYawRequest, Fitness,
                                            HeadingCheckRequest, ParamWrite, RebootRequest, Wizard)
 
@@ -112,3 +114,30 @@ def calibration_params(hub: HubDep, autopilot: Literal["ardupilot", "px4"] | Non
         raise NotFoundError(f"the result has no {ap} parameters")
     return PlainTextResponse(format_param_file(params), headers={
         "Content-Disposition": f'attachment; filename="magstation-{ap}.param"'})
+
+
+# ---------------------------------------------------------------------------- the calibration in use
+@router.get("/in-use", summary="The calibration in use, where it came from, and the sources to choose from")
+def calibration_in_use(hub: HubDep) -> dict:
+    with hub._lock:
+        return hub.in_use.options()
+
+
+@router.post("/in-use", summary="Choose the calibration in use: {source: log|recording|wizard|history|vehicle|none, "
+                                "name: recording}")
+def calibration_in_use_choose(hub: HubDep, body: dict) -> dict:
+    source, name = body.get("source"), body.get("name")
+    if not isinstance(source, str) or (name is not None and not isinstance(name, str)):
+        raise InUseError("give {\"source\": ..., \"name\": recording} as strings")
+    return hub.in_use.choose(source[:40], None if name is None else name[:255])
+
+
+@router.post("/in-use/upload", summary="Upload a calibrate JSON or a vehicle .param file (raw body) and use it")
+async def calibration_in_use_upload(request: Request, hub: HubDep,
+                                    filename: str = Query(..., min_length=1, max_length=255)) -> dict:
+    data = bytearray()
+    async for chunk in request.stream():
+        data += chunk
+        if len(data) > MAX_CALIBRATION_UPLOAD_BYTES:
+            raise InUseError(f"'{filename[:60]}': larger than {MAX_CALIBRATION_UPLOAD_BYTES >> 20} MiB")
+    return await run_in_threadpool(hub.in_use.upload, filename, bytes(data))
