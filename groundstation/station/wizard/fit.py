@@ -10,7 +10,8 @@
    orientation parameter goes out with the rest (COMPASS_ORIENTn / CAL_MAGk_ROT).  As in
    ArduPilot, an ambiguous answer fails the compass only when its best guess is not the rotation
    in use.
-4. Quality in words (``quality.judge``), the exported parameters of compass k.
+4. Quality in words (``quality.judge``), the exported parameters of compass k (scaled to the WMM
+   intensity as ArduPilot's fix_radius does: ``groundstation.io.params.wmm_scale``).
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ import numpy as np
 from estimators.calibration import apply_calibration, polar_decomposition
 from estimators.orientation_check import check_orientation
 from groundstation.io.params import (ardupilot_params_from_calibration, px4_params_from_calibration,
-                                     rotation_enum_matrix, unapply_ardupilot, unapply_px4)
+                                     rotation_enum_matrix, unapply_ardupilot, unapply_px4, wmm_scale)
 from groundstation.jsonsafe import jsonable
 from groundstation.samples import FlightLog
 from groundstation.station.wizard.quality import judge
@@ -155,8 +156,9 @@ def _export(result: dict, k: int, orientation: dict | None, current: int) -> tup
     rot = current
     if orientation is not None and orientation["status"] == "rotation_found":
         rot = int(orientation["detected"])
-    ap = ardupilot_params_from_calibration(b, C, k)
-    px4 = px4_params_from_calibration(b, C, k, rotation_enum_matrix(rot))
+    scale = wmm_scale(result.get("field_strength_mG"), result.get("expected_field_mG"))   # ArduPilot's fix_radius
+    ap = ardupilot_params_from_calibration(b, C, k, scale)
+    px4 = px4_params_from_calibration(b, C, k, rotation_enum_matrix(rot), scale)
     if orientation is not None and orientation["status"] in ("rotation_found", "confirmed"):
         ap[orientation_param("ardupilot", k)] = float(rot)
         px4[orientation_param("px4", k)] = float(rot)
