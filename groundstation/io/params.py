@@ -32,6 +32,9 @@ folded silently into the symmetric parameters.
 """
 from __future__ import annotations
 
+import math
+import re
+
 import numpy as np
 
 from estimators.calibration import polar_decomposition
@@ -50,6 +53,63 @@ _ROTATIONS_DEG = [
     (180, 90, 0), (270, 90, 0), (90, 180, 0), (270, 180, 0), (90, 270, 0), (180, 270, 0), (270, 270, 0),
     (90, 180, 90), (90, 0, 270),
 ]
+
+
+# ------------------------------------------------------------------------- trusted values
+# One table of the values a compass parameter can hold: (pattern, low, high, also allowed, source).
+# ArduPilot (AP_Compass.cpp @Range, CompassCalibrator.cpp): COMPASS_OFS* documents ±400 mG, but the
+# vehicle's own calibrator stores offsets up to COMPASS_OFFS_MAX, whose documented range ends at 3000;
+# DIA 0.2–5 and ODI ±1 are CompassCalibrator::fit_acceptable's limits (DIA 0 means "unset" = 1);
+# COMPASS_SCALE 0 (unused) or up to COMPASS_MAX_SCALE_FACTOR 1.5; COMPASS_MOT* ±1000 mG/A;
+# COMPASS_DEC ±3.142 rad; COMPASS_ORIENT* the ROTATION_* values 0–43 and 100–102.
+# PX4 (CAL_MAGn_*) documents no bounds for its calibration values; the same physical limits are used
+# in its units (gauss): offsets ±3 G, scales 0.2–5, off-diagonals ±1, CAL_MAGn_ROT −1 (internal) to 100.
+PARAM_RANGES: tuple[tuple[str, float, float, tuple[float, ...], str], ...] = (
+    (r"COMPASS_OFS[23]?_[XYZ]", -3000.0, 3000.0, (), "mG, up to COMPASS_OFFS_MAX's 3000"),
+    (r"COMPASS_DIA[23]?_[XYZ]", 0.2, 5.0, (0.0,), "CompassCalibrator fit_acceptable"),
+    (r"COMPASS_ODI[23]?_[XYZ]", -1.0, 1.0, (), "CompassCalibrator fit_acceptable"),
+    (r"COMPASS_SCALE[23]?", SCALE_FACTOR_LIMITS[0], SCALE_FACTOR_LIMITS[1], (0.0,), "COMPASS_MAX_SCALE_FACTOR"),
+    (r"COMPASS_MOT[23]?_[XYZ]", -1000.0, 1000.0, (), "mG/A, AP_Compass @Range"),
+    (r"COMPASS_DEC", -3.142, 3.142, (), "rad, AP_Compass @Range"),
+    (r"COMPASS_ORIENT[23]?", 0.0, 43.0, (100.0, 101.0, 102.0), "ROTATION_* values"),
+    (r"CAL_MAG\d_[XYZ]OFF", -3.0, 3.0, (), "gauss"),
+    (r"CAL_MAG\d_[XYZ]SCALE", 0.2, 5.0, (), "scale factor"),
+    (r"CAL_MAG\d_[XYZ]ODIAG", -1.0, 1.0, (), "off-diagonal"),
+    (r"CAL_MAG\d_ROT", -1.0, 100.0, (), "rotation enum, -1 internal"),
+)
+_RANGES = [(re.compile(p + r"\Z"), lo, hi, extra, src) for p, lo, hi, extra, src in PARAM_RANGES]
+
+
+def param_value_problem(name: str, value) -> str | None:
+    """Why a parameter value cannot be true (None: it can): not a number, NaN or infinite (any
+    parameter), or outside ``PARAM_RANGES`` (compass parameters).  The one check used for the live
+    parameter cache, the parameters read from logs and ``.param`` files, and ``info``."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return f"{name}: not a number ({value!r})"
+    if not math.isfinite(v):
+        return f"{name}: {v} is not a finite number"
+    if abs(v) >= 1e30:                 # 3.4e38 is float32's largest: an unset or corrupted value
+        return f"{name}: {v:.3g} is absurd"
+    for pattern, lo, hi, extra, src in _RANGES:
+        if pattern.match(name):
+            if not (lo <= v <= hi or v in extra):
+                return f"{name}: {v:.6g} is outside {lo:g}…{hi:g} ({src})"
+            return None
+    return None
+
+
+def trusted_params(params: dict[str, float]) -> tuple[dict[str, float], list[str]]:
+    """(the values ``param_value_problem`` accepts, one line per value refused)."""
+    kept, refused = {}, []
+    for name, value in params.items():
+        problem = param_value_problem(name, value)
+        if problem is None:
+            kept[name] = float(value)
+        else:
+            refused.append(problem)
+    return kept, refused
 
 
 def rotation_enum_matrix(rot: int, custom_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
