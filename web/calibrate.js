@@ -216,7 +216,8 @@ function render(s) {
   renderResult(w, s.source.autopilot); renderAfter(w); renderFixed(w);
   show("deviation-card", !!w.deviation);
   if (w.deviation) {
-    $("deviation-text").textContent = "max ±" + fmt(w.deviation.max_before_deg, 1) + "° before, ±" + fmt(w.deviation.max_after_deg, 1) + "° after";
+    $("deviation-text").textContent = "max ±" + fmt(w.deviation.max_before_deg, 1) + "° before, ±" + fmt(w.deviation.max_after_deg, 1) + "° after" +
+      (w.deviation.after_significant === false ? " (within the noise of the dance)" : "");
     drawDeviation($("deviation"), w.deviation);
   }
 }
