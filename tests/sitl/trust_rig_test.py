@@ -214,6 +214,40 @@ def run_rig(run_dir: Path) -> dict:
         s.stop()
 
 
+def wizard_on_tlog(path: Path):
+    """The station's guided wizard fed the session .tlog as the live link decodes it (the dance only:
+    from the first spin command on); finished when the tlog ends.  The parameters in force are the
+    0/1/0 the rig set."""
+    from pymavlink import mavutil
+
+    from groundstation.io.decode import MavlinkDecoder
+    from groundstation.station.wizard import CalibrationWizard
+
+    params = {}
+    for n in ("", "2", "3"):
+        for a in "XYZ":
+            params |= {f"COMPASS_OFS{n}_{a}": 0.0, f"COMPASS_DIA{n}_{a}": 1.0, f"COMPASS_ODI{n}_{a}": 0.0}
+        params[f"COMPASS_SCALE{n}"] = 1.0
+    mlog = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+    dec, w, t0, started = MavlinkDecoder(), CalibrationWizard(), None, False
+    while True:
+        m = mlog.recv_match()
+        if m is None:
+            break
+        unix = getattr(m, "_timestamp", 0.0)
+        t0 = unix if t0 is None else t0
+        if m.get_type() == "COMMAND_LONG" and m.command == 183 and int(m.param1) == 5 and m.param2 >= 1300:
+            if not started:
+                w.start()
+                started = True
+        if started and m.get_type() == "PARAM_SET":
+            break                          # our result being written: the dance is over
+        for smp in dec.decode(m, unix - t0):
+            w.on_sample(smp)
+    w.finish("ardupilot", params)
+    return w
+
+
 needs_sitl = pytest.mark.skipif(not BINARY.exists(), reason=f"ArduPilot SITL binary absent ({BINARY})")
 
 
@@ -235,7 +269,15 @@ def test_calibration_of_the_firmware_against_its_truth(tmp_path):
                         [ap[f"COMPASS_ODI{n}_Y"], ap[f"COMPASS_ODI{n}_Z"], ap[f"COMPASS_DIA{n}_Z"]]])
         np.testing.assert_allclose(got, M, atol=0.01)
         assert abs(np.median(out["field"][k]) / wmm - 1.0) < 0.01     # the firmware's corrected field
+        assert r["misalignment_deg"] is None, r["message"]             # a perfect rig: none beyond noise
     assert all(v is not None for v in out["written"].values())
+    w = wizard_on_tlog(tmp_path / "session.tlog")                      # the station's wizard on the same dance
+    for k in range(3):
+        r = w.results[k]
+        ofs, _ = truth_params(k)
+        assert r["status"] == "ok" and r["cautions"] == [] and r["misalignment_deg"] is None, r
+        np.testing.assert_allclose(-np.asarray(r["offsets_mG"]), ofs, atol=2.0)
+    assert w.consistency["status"] == "ok", w.consistency
 
 
 if __name__ == "__main__":
@@ -257,3 +299,11 @@ if __name__ == "__main__":
               f"{np.round(dia, 4).tolist()} vs {np.diag(M).tolist()}  ODI {np.round(odi, 4).tolist()} vs "
               f"{[M[0, 1], M[0, 2], M[1, 2]]}  firmware |B| {np.median(out['field'][k]):.1f} mG")
         print("   message:", (r.get("message") or "")[:400])
+    w = wizard_on_tlog(d / "session.tlog")
+    for k, r in sorted(w.results.items()):
+        print(f"wizard compass {k + 1}: {r.get('status')} cautions {r.get('cautions')} misalignment "
+              f"{r.get('misalignment_deg')} disturbances {r.get('disturbances')} (live {w.tracks[k].disturbances})")
+    print("wizard consistency:", (w.consistency or {}).get("text"))
+    dev = w.deviation or {}
+    print("wizard deviation card: max before", dev.get("max_before_deg"), "after", dev.get("max_after_deg"),
+          "significant", dev.get("after_significant"))

@@ -28,7 +28,7 @@ __all__ = ["check_consistency", "BLOCK_S", "SLOW_DEG_S"]
 
 BLOCK_S = 0.5
 SLOW_DEG_S = 10.0
-MIN_SLOW_BLOCKS = 6
+MIN_SLOW_BLOCKS = 12          # (compass_consistency compares pairs with at least 10 common samples)
 NOISE_FACTOR = 4.0
 
 
@@ -79,6 +79,8 @@ def check_consistency(entries: list[tuple[int, dict, np.ndarray, object]], setti
         fields.append(f)
     means, per_block = _block_means(t_ref, fields, attitude)
     report = compass_consistency(means, expected_strength_mG=expected_mG)
+    if not report.pairs:
+        return None                       # too little in common to say anything
     names = [e[0] for e in entries]
     sigma = [float(e[1].get("residual_rms_mG") or 0.0) for e in entries]
     field = float(expected_mG or np.nanmedian(np.linalg.norm(fields[0], axis=1)))
