@@ -360,9 +360,9 @@ def estimate_misalignment(mag_cal_mG: np.ndarray, roll_rad: np.ndarray, pitch_ra
     attitude per time block is fitted beside φ (a field sample lagging its attitude by δ during a
     turn at ω looks like a rotation ω δ about the turn's axis: on ArduPilot SITL's exact attitude a
     session .tlog's compass lags its ATTITUDE by ~0.1 s, arrival-timed RAW_IMU by a varying amount,
-    a false 1–3° "misalignment"), and the Wahba solution is taken on the lag-corrected directions.  ``significant`` only when the Wald
-    χ² of φ against its block-robust covariance exceeds ``MISALIGNMENT_CHI2`` and |φ| exceeds
-    ``MISALIGNMENT_MIN_DEG``.
+    a false 1–3° "misalignment"), and the Wahba solution is taken on the lag-corrected directions.
+    ``significant`` only when the Wald χ² of φ against its block-robust covariance exceeds
+    ``MISALIGNMENT_CHI2`` and |φ| exceeds ``MISALIGNMENT_MIN_DEG``.
     """
     m = np.asarray(mag_cal_mG, float).reshape(-1, 3)
     att = np.stack([np.asarray(roll_rad, float).ravel(), np.asarray(pitch_rad, float).ravel(),

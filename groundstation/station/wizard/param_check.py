@@ -76,13 +76,17 @@ class CompassParamCheck:
 
     def resend(self, now_s: float) -> list[str]:
         """Names to request again (once, ``REREAD_RESEND_S`` after the start)."""
-        if self.purpose is None or self.resent or self.requested_at is None or now_s - self.requested_at < REREAD_RESEND_S:
+        if self.purpose is None or self.resent or self.requested_at is None:
+            return []
+        if now_s - self.requested_at < REREAD_RESEND_S:
             return []
         self.resent = True
         return sorted(self.pending)
 
     def done(self, now_s: float) -> bool:
-        return self.purpose is not None and (not self.pending or now_s - (self.requested_at or now_s) >= REREAD_TIMEOUT_S)
+        if self.purpose is None:
+            return False
+        return not self.pending or now_s - (self.requested_at or now_s) >= REREAD_TIMEOUT_S
 
     def differences(self) -> list[str]:
         """What the vehicle answered that is not the reference."""
