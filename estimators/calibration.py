@@ -38,7 +38,7 @@ Frames: NED navigation, FRD body.  Pure numpy, no I/O.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -294,11 +294,59 @@ class MisalignmentFit:
     small_angle_deg: np.ndarray   # linear small-angle LS solution (seed 004 claim 4)
     residual_deg: float           # RMS angle between R·m and the expected direction
     observability: float          # sqrt(λmid/λmax) of Σ h hᵀ of expected directions (0: one direction)
+    angles_sd_deg: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))  # block-robust standard error
+    chi2: float = float("nan")    # Wald statistic φᵀ V⁻¹ φ of the small-angle rotation (3 degrees of freedom)
+    lag_s: float = float("nan")   # median timing offset of the attitude estimated with it (t_s given)
+    significant: bool = False     # chi2 beyond MISALIGNMENT_CHI2 and the angle beyond MISALIGNMENT_MIN_DEG
+
+
+MISALIGNMENT_CHI2 = 16.27         # χ²(3) at p = 0.001: the rotation is beyond the fit's own noise
+MISALIGNMENT_MIN_DEG = 0.25       # and large enough to matter (heading targets are 0.5°)
+MISALIGNMENT_BLOCKS = 30          # time blocks of the block-robust covariance (at least 2 s each)
+
+
+def _misalignment_test(m: np.ndarray, h: np.ndarray, t_s: np.ndarray | None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Small-angle LS h_i − m_i = −[m_i×] φ − δ_b ḣ_i over K contiguous time blocks b (at least 2 s,
+    ``MISALIGNMENT_BLOCKS`` of the span): φ the misalignment, δ_b each block's timing offset of the
+    attitude (when t_s is given; ḣ the expected direction's rate) — a link's timing drifts, a
+    mounting rotation does not, and a turn about one axis cannot tell the two apart, so only a
+    rotation common to turns about different axes counts.  Block-robust ("cluster sandwich")
+    covariance V = (AᵀA)⁺ (Σ_b g_b g_bᵀ) (AᵀA)⁺ · K/(K−1), g_b = Σ_{i∈b} A_iᵀ e_i, so residuals
+    correlated in time (timing jitter, a slow disturbance) count as the noise they are.
+    Returns (φ rad, its 3×3 covariance, δ per sample s (zeros without t_s))."""
+    n = len(m)
+    mx = np.zeros((n, 3, 3))
+    mx[:, 0, 1], mx[:, 0, 2], mx[:, 1, 2] = -m[:, 2], m[:, 1], -m[:, 0]
+    mx[:, 1, 0], mx[:, 2, 0], mx[:, 2, 1] = m[:, 2], -m[:, 1], m[:, 0]
+    if t_s is not None and t_s[-1] > t_s[0]:
+        width = max(2.0, (t_s[-1] - t_s[0]) / MISALIGNMENT_BLOCKS)
+        block = np.floor((t_s - t_s[0]) / width).astype(int)
+    else:
+        block = np.arange(n) * MISALIGNMENT_BLOCKS // max(n, 1)
+    _, inv = np.unique(block, return_inverse=True)
+    k = int(inv.max()) + 1
+    p = 3 + (k if t_s is not None else 0)
+    A = np.zeros((n, 3, p))
+    A[:, :, :3] = -mx
+    if t_s is not None:
+        hdot = np.gradient(h, axis=0) / np.maximum(np.gradient(t_s), 1e-3)[:, None]
+        A[np.arange(n), :, 3 + inv] = -hdot
+    y = h - m
+    A2 = A.reshape(-1, p)
+    bread = np.linalg.pinv(A2.T @ A2)
+    x = bread @ (A2.T @ y.ravel())
+    e = y - np.einsum("nij,j->ni", A, x)
+    gb = np.zeros((k, p))
+    np.add.at(gb, inv, np.einsum("nij,ni->nj", A, e))        # g_b = Σ A_iᵀ e_i
+    V = bread @ (gb.T @ gb) @ bread * (k / max(k - 1, 1))
+    lag = x[3 + inv] if t_s is not None else np.zeros(n)
+    return x[:3], V[:3, :3], lag
 
 
 def estimate_misalignment(mag_cal_mG: np.ndarray, roll_rad: np.ndarray, pitch_rad: np.ndarray,
                           yaw_rad: np.ndarray, field_ned_mG: np.ndarray,
-                          min_observability: float = 0.05) -> MisalignmentFit:
+                          min_observability: float = 0.05, t_s: np.ndarray | None = None) -> MisalignmentFit:
     """Seed 004 step 2: find R with R·m_cal,i ≈ C_n^b(att_i)·H_n (directions only, so the field
     strength scale of C does not matter).
 
@@ -307,6 +355,14 @@ def estimate_misalignment(mag_cal_mG: np.ndarray, roll_rad: np.ndarray, pitch_ra
     converges to).  Needs rotation about at least two axes; otherwise ``ok`` is False.
     Note: if the attitude yaw was itself derived from this magnetometer, the rotation about the
     vertical is only as good as that yaw.
+
+    Significance (``_misalignment_test``): with ``t_s`` (s, increasing) a timing offset of the
+    attitude per time block is fitted beside φ (a field sample lagging its attitude by δ during a
+    turn at ω looks like a rotation ω δ about the turn's axis: on ArduPilot SITL's exact attitude a
+    session .tlog's compass lags its ATTITUDE by ~0.1 s, arrival-timed RAW_IMU by a varying amount,
+    a false 1–3° "misalignment"), and the Wahba solution is taken on the lag-corrected directions.
+    ``significant`` only when the Wald χ² of φ against its block-robust covariance exceeds
+    ``MISALIGNMENT_CHI2`` and |φ| exceeds ``MISALIGNMENT_MIN_DEG``.
     """
     m = np.asarray(mag_cal_mG, float).reshape(-1, 3)
     att = np.stack([np.asarray(roll_rad, float).ravel(), np.asarray(pitch_rad, float).ravel(),
@@ -322,6 +378,23 @@ def estimate_misalignment(mag_cal_mG: np.ndarray, roll_rad: np.ndarray, pitch_ra
     h = np.einsum("nji,j->ni", Cbn, Hn)          # C_n^b H_n = (C_b^n)ᵀ H_n
     ev = np.linalg.eigvalsh(h.T @ h / len(h))   # uncentred: Wahba needs non-parallel directions
     obs = float(np.sqrt(max(ev[1], 0) / max(ev[-1], 1e-15)))  # 2 non-parallel directions suffice
+    ts = None
+    if t_s is not None:
+        ts = np.asarray(t_s, float).ravel()[good]
+        if len(ts) != len(m) or not np.all(np.isfinite(ts)) or np.any(np.diff(ts) < 0):
+            ts = None
+    phi_t, V, lags = _misalignment_test(m, h, ts)
+    lag = float(np.median(lags)) if ts is not None else float("nan")
+    if ts is not None:
+        dt = np.maximum(np.gradient(ts), 1e-3)
+        h = h + lags[:, None] * np.gradient(h, axis=0) / dt[:, None]     # the directions at the field's own times
+        h /= np.linalg.norm(h, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore"):
+        sd = np.degrees(np.sqrt(np.clip(np.diag(V), 0, None)))
+        try:
+            chi2 = float(phi_t @ np.linalg.solve(V, phi_t))
+        except np.linalg.LinAlgError:
+            chi2 = float("nan")
     B = h.T @ m
     U, _, Vt = np.linalg.svd(B)
     R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0]) @ Vt
@@ -332,8 +405,11 @@ def estimate_misalignment(mag_cal_mG: np.ndarray, roll_rad: np.ndarray, pitch_ra
     err = np.degrees(np.arccos(np.clip(np.sum((m @ R.T) * h, 1), -1, 1)))
     resid = float(np.sqrt(np.mean(err ** 2)))
     ok = obs >= min_observability
+    angles = rotation_to_vector_deg(R)
+    significant = bool(ok and np.isfinite(chi2) and chi2 > MISALIGNMENT_CHI2
+                       and float(np.linalg.norm(angles)) > MISALIGNMENT_MIN_DEG)
     return MisalignmentFit(ok, "" if ok else "attitude varied about one axis only (rotation unobservable)",
-                           R, rotation_to_vector_deg(R), np.degrees(phi), resid, obs)
+                           R, angles, np.degrees(phi), resid, obs, sd, chi2, lag, significant)
 
 
 def combine_calibration(offsets_mG: np.ndarray, matrix: np.ndarray, misalignment_rotation: np.ndarray

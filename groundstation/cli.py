@@ -106,7 +106,7 @@ def _write_json(path: str, obj: object) -> None:
 
 def cmd_info(args: argparse.Namespace) -> int:
     from groundstation.io.logs import summarize_rates
-    from groundstation.jobs.log_summary import compass_lines
+    from groundstation.jobs.log_summary import compass_lines, refused_parameter_lines
 
     log = load_log(args.file)
     tables = {"magnetometer": log.mag, "IMU": log.imu, "attitude": log.attitude, "GPS": log.gps,
@@ -134,6 +134,8 @@ def cmd_info(args: argparse.Namespace) -> int:
     print(f"  RTK             {'yes' if rtk else 'no'}")
     print(f"  mission         {len(log.mission)} waypoints" if log.mission else "  mission         none")
     print(f"  parameters      {len(log.params)}")
+    for line in refused_parameter_lines(log):
+        print(printable(line))
     print("  messages:")
     for mtype, count, rate in summarize_rates(log)[: args.top]:
         print(f"    {printable(mtype):<28} {count:>8}  {rate:8.2f} Hz")

@@ -441,7 +441,7 @@ def test_a_calibration_written_to_the_vehicle_enters_its_airframe_history(tmp_pa
     try:
         w = _wait_until(lambda: session.snapshot()["wizard"], lambda w: w["state"] == "result", 90.0)
         assert w["state"] == "result" and w["result"]["status"] == "ok", w["result"]
-        assert session.wizard_accept()["state"] == "writing"
+        assert session.wizard_accept()["state"] == "checking"      # re-reads the parameters, then writes
         _wait_until(lambda: list(session.events), lambda ev: any("fleet history" in e["text"] for e in ev), 30.0)
         pw = session.snapshot()["wizard"]["param_write"]
         events = [e["text"] for e in session.events]

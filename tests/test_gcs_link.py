@@ -227,8 +227,8 @@ def test_signed_write_succeeds_unsigned_is_refused_and_reported(tmp_path):
                      require_signing=True).start()
     intruder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
-        confirmed, failed, _ = write_one(hub, "CAL_MAG0_XOFF", 12.5)
-        assert confirmed == ["CAL_MAG0_XOFF"] and failed == [] and fv.params["CAL_MAG0_XOFF"] == 12.5
+        confirmed, failed, _ = write_one(hub, "CAL_MAG0_XOFF", 0.125)    # gauss (beyond ±3 G a PARAM_VALUE is refused)
+        assert confirmed == ["CAL_MAG0_XOFF"] and failed == [] and fv.params["CAL_MAG0_XOFF"] == 0.125
         before, bad_before = hub.snapshot()["rx_count"], hub.sources.link.bad_packets
         spoof = new_encoder(1, 1)                                 # unsigned, as if from the vehicle
         wrong = new_encoder(1, 1)
@@ -257,7 +257,7 @@ def test_signed_write_succeeds_unsigned_is_refused_and_reported(tmp_path):
     fv = FakeVehicle(msgs, port, autopilot="px4", params={"CAL_MAG0_XOFF": 0.0}, signing_key=key,
                      require_signing=True).start()
     try:
-        confirmed, failed, echoed = write_one(hub, "CAL_MAG0_XOFF", 7.0)
+        confirmed, failed, echoed = write_one(hub, "CAL_MAG0_XOFF", 0.07)
         assert confirmed == [] and failed == ["CAL_MAG0_XOFF"] and echoed == {}
         assert fv.params["CAL_MAG0_XOFF"] == 0.0 and fv.param_sets == [] and fv.refused_unsigned >= 2
         snap = hub.snapshot()

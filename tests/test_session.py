@@ -177,8 +177,9 @@ def test_param_write_confirmed_and_failure_listed(tmp_path):
         assert wait_for(lambda: session.snapshot()["wizard"]["state"] == "result", timeout=20)
         assert session.snapshot()["source"]["autopilot"] == "px4"
         pw = session.wizard_accept()
-        assert pw["state"] == "writing" and pw["autopilot"] == "px4"
-        assert wait_for(lambda: session.snapshot()["wizard"]["param_write"]["state"] != "writing", timeout=10)
+        assert pw["state"] == "checking" and pw["autopilot"] == "px4"     # re-reads the parameters first
+        assert wait_for(lambda: session.snapshot()["wizard"]["param_write"]["state"] not in ("checking", "writing"),
+                        timeout=15)
         pw = session.snapshot()["wizard"]["param_write"]
         result = session.snapshot()["wizard"]["result"]
     finally:

@@ -301,9 +301,10 @@ def test_px4_vehicle_with_an_old_calibration_refitted_and_written(tmp_path):
             np.testing.assert_allclose(r["offsets_mG"], c.offsets_mG, atol=3.0)      # the sensor's own hard iron
             assert f"CAL_MAG{k}" in r["message"]                                   # it says what it un-applied
         pw = session.wizard_accept()
-        assert pw["state"] == "writing" and pw["autopilot"] == "px4"
+        assert pw["state"] == "checking" and pw["autopilot"] == "px4"     # re-reads the parameters first
         deadline = time.monotonic() + 20
-        while session.snapshot()["wizard"]["param_write"]["state"] == "writing" and time.monotonic() < deadline:
+        while session.snapshot()["wizard"]["param_write"]["state"] in ("checking", "writing") and \
+                time.monotonic() < deadline:
             time.sleep(0.05)
         pw = session.snapshot()["wizard"]["param_write"]
         sent = w["result"]["px4_params"]

@@ -33,8 +33,9 @@ function renderControl(w) {
 
 function renderWrite(pw) {
   if (!pw) { setHtml("param-write", ""); return; }
-  const cls = pw.state === "failed" ? "error" : (pw.state === "written" ? "good" : "muted");
-  let html = `<div class="write ${cls}">${pw.state === "written" ? "✔ " : (pw.state === "failed" ? "✖ " : "")}${escapeHtml(pw.message)}` +
+  const bad = pw.state === "failed" || pw.state === "refused";
+  const cls = bad ? "error" : (pw.state === "written" ? "good" : "muted");
+  let html = `<div class="write ${cls}">${pw.state === "written" ? "✔ " : (bad ? "✖ " : "")}${escapeHtml(pw.message)}` +
     (pw.state === "writing" && pw.total ? ` (${pw.confirmed.length}/${pw.total} confirmed)` : "") + "</div>";
   const fails = pw.failures || [];
   if (fails.length) {
@@ -155,7 +156,7 @@ function renderResult(w, vehicleAutopilot) {
   });
   setHtml("result-table", rows.join(""));
   const pw = w.param_write;
-  $("accept").disabled = r.status !== "ok" || (pw && ["writing", "written"].includes(pw.state));
+  $("accept").disabled = r.status !== "ok" || (pw && ["checking", "writing", "written"].includes(pw.state));
   $("accept").textContent = pw && pw.state === "failed" ? "Retry the write" : "Accept and write";
   $("export").disabled = r.status !== "ok";
 }
@@ -215,7 +216,8 @@ function render(s) {
   renderResult(w, s.source.autopilot); renderAfter(w); renderFixed(w);
   show("deviation-card", !!w.deviation);
   if (w.deviation) {
-    $("deviation-text").textContent = "max ±" + fmt(w.deviation.max_before_deg, 1) + "° before, ±" + fmt(w.deviation.max_after_deg, 1) + "° after";
+    $("deviation-text").textContent = "max ±" + fmt(w.deviation.max_before_deg, 1) + "° before, ±" + fmt(w.deviation.max_after_deg, 1) + "° after" +
+      (w.deviation.after_significant === false ? " (within the noise of the dance)" : "");
     drawDeviation($("deviation"), w.deviation);
   }
 }

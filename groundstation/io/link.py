@@ -36,6 +36,7 @@ def _parse_each_datagram_alone(conn) -> None:
         conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER_BYTES)
     except OSError:
         pass
+    conn.port = _AddressRecordingSocket(conn.port)
     parser = conn.mav
     pending: deque = deque()
 
@@ -54,12 +55,31 @@ def _parse_each_datagram_alone(conn) -> None:
             if conn.first_byte:
                 conn.auto_mavlink_version(data)
             forget_partial()        # what the last datagram left (garbage, a cut-short packet)
-            pending.extend(parser.parse_buffer(data) or ())
+            for m in parser.parse_buffer(data) or ():
+                m._src_addr = conn.port.last_from      # who sent it (the link's param_guard asks)
+                pending.append(m)
         msg = pending.popleft()
         conn.post_message(msg)
         return msg
 
     conn.recv_msg = recv_msg
+
+
+class _AddressRecordingSocket:
+    """A UDP socket that remembers the address of the last datagram it received (pymavlink's
+    mavudp keeps no per-datagram address in udpin mode); everything else is the socket's."""
+
+    def __init__(self, sock) -> None:
+        self._sock = sock
+        self.last_from = None
+
+    def recvfrom(self, *args):
+        data, addr = self._sock.recvfrom(*args)
+        self.last_from = addr
+        return data, addr
+
+    def __getattr__(self, name):
+        return getattr(self._sock, name)
 
 
 @dataclass(frozen=True)
@@ -123,6 +143,7 @@ class LiveLink:
         self.passive = self.options.passive
         self.passive_reason = "started with --passive" if self.passive else None
         self.forwarder = None
+        self.param_guard = None     # station.hub.param_watch.ParamSourceGuard: which PARAM_VALUEs to trust
         self.t0_unix = time.time()
         self.last_rx_unix: float | None = None
         self.connected = False
@@ -260,6 +281,13 @@ class LiveLink:
         if src != self.sysid:
             return
         mtype = msg.get_type()
+        if self.param_guard is not None:
+            why, say = self.param_guard.check(msg, getattr(msg, "_src_addr", None), unix)
+            if why is not None:
+                self.decoder.warnings["PARAM_VALUE refused (not from the vehicle's component/address)"] += 1
+                if say:
+                    out.append(StatusSample(self.t_s(unix), "param_refused", why))
+                return
         if mtype == "COMMAND_ACK" and msg.command == MAV_CMD_SET_MESSAGE_INTERVAL and msg.result == 0:
             self._interval_acked = True
         out.extend(self.decoder.decode(msg, self.t_s(unix)))
@@ -273,6 +301,8 @@ class LiveLink:
             return
         self.sysid = sysid
         self.decoder = MavlinkDecoder(vehicle_sysid=sysid)
+        if self.param_guard is not None:
+            self.param_guard.reset()
         self._streams_requested_at = None
         out.append(StatusSample(self.t_s(unix), "vehicle" if switch else "vehicle_found",
                                 f"following vehicle {sysid}" + (" (switched)" if switch else "")))

@@ -9,7 +9,7 @@ ArduPilot (AP_Compass_Backend::correct_field, read in the ArduPilot source):
     OFS in mG and *added*; SCALE (COMPASS_SCALE) used only when set (> 0); DIA all zero means 1.
     Motor compensation (COMPASS_MOT_*) is not modelled here.
     Our "raw" for ArduPilot is rot_raw (orientation applied, calibration not), so
-    OFS = −b,  M = S (symmetric part of C),  SCALE = 1.  COMPASS_ORIENT is left as it is.
+    OFS = −b,  M = k·S (symmetric part of C, scaled),  SCALE = 1.  COMPASS_ORIENT is left as it is.
 
 PX4 (calibration::Magnetometer::Correct in the PX4 source):
     corrected = R · (S · (raw − off)),  raw and off in gauss, S = [[XSCALE, XODIAG, YODIAG],
@@ -19,11 +19,21 @@ PX4 (calibration::Magnetometer::Correct in the PX4 source):
     Our "raw" for PX4 is R·raw (body-aligned, uncalibrated): raw_ours = R S⁻¹ Rᵀ m_corr + R off.
     Export: off = Rᵀ b / 1000 (gauss), S = Rᵀ C_sym R, so R·S·(raw − off) = C_sym (raw_ours − b).
 
+Field scale (``wmm_scale``): our fit normalises C to determinant 1, so |C (raw − b)| is the fitted
+radius, not the Earth's field.  ArduPilot's calibrator scales its result to the WMM intensity at the
+vehicle (CompassCalibrator::fix_radius: scale = WMM intensity / fitted radius, refused outside
+COMPASS_MIN/MAX_SCALE_FACTOR 1/1.5 … 1.5, left unscaled without a position); the export does the
+same, k = WMM / radius, folded into DIA/ODI (and PX4's *SCALE/*ODIAG) with COMPASS_SCALE 1, so the
+corrected field's length is the WMM intensity and DIA/ODI equal the true soft-iron matrix.
+
 If C is not symmetric (misalignment estimated), C = R_mis · S (``polar_decomposition``):
 S goes to DIA/ODI or SCALE/ODIAG, R_mis is reported separately (misalignment) and is *not*
 folded silently into the symmetric parameters.
 """
 from __future__ import annotations
+
+import math
+import re
 
 import numpy as np
 
@@ -32,6 +42,7 @@ from estimators.compass_corrections import ardupilot_param_names
 from estimators.rotations import dcm_body_to_ned
 
 MG_PER_GAUSS = 1000.0
+SCALE_FACTOR_LIMITS = (1.0 / 1.5, 1.5)    # ArduPilot COMPASS_MIN/MAX_SCALE_FACTOR (AP_Compass_config.h)
 
 # PX4 / ArduPilot rotation enum -> (roll, pitch, yaw) in degrees; both share 0..37.
 _ROTATIONS_DEG = [
@@ -42,6 +53,63 @@ _ROTATIONS_DEG = [
     (180, 90, 0), (270, 90, 0), (90, 180, 0), (270, 180, 0), (90, 270, 0), (180, 270, 0), (270, 270, 0),
     (90, 180, 90), (90, 0, 270),
 ]
+
+
+# ------------------------------------------------------------------------- trusted values
+# One table of the values a compass parameter can hold: (pattern, low, high, also allowed, source).
+# ArduPilot (AP_Compass.cpp @Range, CompassCalibrator.cpp): COMPASS_OFS* documents ±400 mG, but the
+# vehicle's own calibrator stores offsets up to COMPASS_OFFS_MAX, whose documented range ends at 3000;
+# DIA 0.2–5 and ODI ±1 are CompassCalibrator::fit_acceptable's limits (DIA 0 means "unset" = 1);
+# COMPASS_SCALE 0 (unused) or up to COMPASS_MAX_SCALE_FACTOR 1.5; COMPASS_MOT* ±1000 mG/A;
+# COMPASS_DEC ±3.142 rad; COMPASS_ORIENT* the ROTATION_* values 0–43 and 100–102.
+# PX4 (CAL_MAGn_*) documents no bounds for its calibration values; the same physical limits are used
+# in its units (gauss): offsets ±3 G, scales 0.2–5, off-diagonals ±1, CAL_MAGn_ROT −1 (internal) to 100.
+PARAM_RANGES: tuple[tuple[str, float, float, tuple[float, ...], str], ...] = (
+    (r"COMPASS_OFS[23]?_[XYZ]", -3000.0, 3000.0, (), "mG, up to COMPASS_OFFS_MAX's 3000"),
+    (r"COMPASS_DIA[23]?_[XYZ]", 0.2, 5.0, (0.0,), "CompassCalibrator fit_acceptable"),
+    (r"COMPASS_ODI[23]?_[XYZ]", -1.0, 1.0, (), "CompassCalibrator fit_acceptable"),
+    (r"COMPASS_SCALE[23]?", SCALE_FACTOR_LIMITS[0], SCALE_FACTOR_LIMITS[1], (0.0,), "COMPASS_MAX_SCALE_FACTOR"),
+    (r"COMPASS_MOT[23]?_[XYZ]", -1000.0, 1000.0, (), "mG/A, AP_Compass @Range"),
+    (r"COMPASS_DEC", -3.142, 3.142, (), "rad, AP_Compass @Range"),
+    (r"COMPASS_ORIENT[23]?", 0.0, 43.0, (100.0, 101.0, 102.0), "ROTATION_* values"),
+    (r"CAL_MAG\d_[XYZ]OFF", -3.0, 3.0, (), "gauss"),
+    (r"CAL_MAG\d_[XYZ]SCALE", 0.2, 5.0, (), "scale factor"),
+    (r"CAL_MAG\d_[XYZ]ODIAG", -1.0, 1.0, (), "off-diagonal"),
+    (r"CAL_MAG\d_ROT", -1.0, 100.0, (), "rotation enum, -1 internal"),
+)
+_RANGES = [(re.compile(p + r"\Z"), lo, hi, extra, src) for p, lo, hi, extra, src in PARAM_RANGES]
+
+
+def param_value_problem(name: str, value) -> str | None:
+    """Why a parameter value cannot be true (None: it can): not a number, NaN or infinite (any
+    parameter), or outside ``PARAM_RANGES`` (compass parameters).  The one check used for the live
+    parameter cache, the parameters read from logs and ``.param`` files, and ``info``."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return f"{name}: not a number ({value!r})"
+    if not math.isfinite(v):
+        return f"{name}: {v} is not a finite number"
+    if abs(v) >= 1e30:                 # 3.4e38 is float32's largest: an unset or corrupted value
+        return f"{name}: {v:.3g} is absurd"
+    for pattern, lo, hi, extra, src in _RANGES:
+        if pattern.match(name):
+            if not (lo <= v <= hi or v in extra):
+                return f"{name}: {v:.6g} is outside {lo:g}…{hi:g} ({src})"
+            return None
+    return None
+
+
+def trusted_params(params: dict[str, float]) -> tuple[dict[str, float], list[str]]:
+    """(the values ``param_value_problem`` accepts, one line per value refused)."""
+    kept, refused = {}, []
+    for name, value in params.items():
+        problem = param_value_problem(name, value)
+        if problem is None:
+            kept[name] = float(value)
+        else:
+            refused.append(problem)
+    return kept, refused
 
 
 def rotation_enum_matrix(rot: int, custom_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
@@ -65,6 +133,21 @@ def detect_autopilot(params: dict[str, float]) -> str | None:
     if any(k.startswith("CAL_MAG") for k in params):
         return "px4"
     return None
+
+
+def wmm_scale(fitted_field_mG: float | None, expected_field_mG: float | None) -> float:
+    """k = WMM intensity / fitted radius (ArduPilot's fix_radius), the factor the exported soft-iron
+    matrix takes so the corrected field has the WMM's length; 1.0 when either is unknown or not
+    finite, or k is outside ``SCALE_FACTOR_LIMITS`` (ArduPilot refuses such a radius: the
+    calibration's own checks report it, the export does not hide it in a scale)."""
+    try:
+        fitted, expected = float(fitted_field_mG), float(expected_field_mG)
+    except (TypeError, ValueError):
+        return 1.0
+    if not (np.isfinite(fitted) and np.isfinite(expected)) or fitted <= 0 or expected <= 0:
+        return 1.0
+    k = expected / fitted
+    return k if SCALE_FACTOR_LIMITS[0] <= k <= SCALE_FACTOR_LIMITS[1] else 1.0
 
 
 # ------------------------------------------------------------------------------------ ArduPilot
@@ -111,11 +194,12 @@ def unapply_ardupilot(corrected_mG: np.ndarray, params: dict[str, float], instan
     return np.asarray(corrected_mG, float) @ np.linalg.inv(M).T / scale - ofs
 
 
-def ardupilot_params_from_calibration(offsets_mG: np.ndarray, matrix: np.ndarray, instance: int = 0
-                                      ) -> dict[str, float]:
-    """COMPASS_OFS/DIA/ODI/SCALE for m_cal = S (raw − b); the rotation part of a non-symmetric
-    C is dropped here (report it as misalignment)."""
+def ardupilot_params_from_calibration(offsets_mG: np.ndarray, matrix: np.ndarray, instance: int = 0,
+                                      scale: float = 1.0) -> dict[str, float]:
+    """COMPASS_OFS/DIA/ODI/SCALE for m_cal = scale · S (raw − b) (``scale``: ``wmm_scale``); the
+    rotation part of a non-symmetric C is dropped here (report it as misalignment)."""
     _, S = polar_decomposition(matrix)
+    S = float(scale) * S
     names = ardupilot_param_names(instance)
     b = np.asarray(offsets_mG, float)
     out: dict[str, float] = {}
@@ -178,10 +262,12 @@ def unapply_px4(corrected_mG: np.ndarray, params: dict[str, float], slot: int = 
 
 
 def px4_params_from_calibration(offsets_mG: np.ndarray, matrix: np.ndarray, slot: int = 0,
-                                rotation: np.ndarray | None = None) -> dict[str, float]:
-    """CAL_MAGn_{X,Y,Z}OFF (gauss), *SCALE, *ODIAG for m_cal = S (raw_body − b), raw_body = R raw_sensor.
-    The rotation part of a non-symmetric C is dropped (report it as misalignment)."""
+                                rotation: np.ndarray | None = None, scale: float = 1.0) -> dict[str, float]:
+    """CAL_MAGn_{X,Y,Z}OFF (gauss), *SCALE, *ODIAG for m_cal = scale · S (raw_body − b), raw_body =
+    R raw_sensor (``scale``: ``wmm_scale``).  The rotation part of a non-symmetric C is dropped
+    (report it as misalignment)."""
     _, S = polar_decomposition(matrix)
+    S = float(scale) * S
     R = np.eye(3) if rotation is None else np.asarray(rotation, float)
     off = R.T @ np.asarray(offsets_mG, float) / MG_PER_GAUSS
     Ss = R.T @ S @ R
@@ -226,12 +312,14 @@ def unapply_onboard_calibration(mag_mG: np.ndarray, params: dict[str, float], au
 
 
 def export_params(offsets_mG: np.ndarray, matrix: np.ndarray, params: dict[str, float] | None = None, *,
-                  compass: int = 0, device_id: int | None = None) -> tuple[dict[str, float], dict[str, float]]:
+                  compass: int = 0, device_id: int | None = None, scale: float = 1.0
+                  ) -> tuple[dict[str, float], dict[str, float]]:
     """(ArduPilot params, PX4 params) for a calibration in the body-aligned raw frame of compass
     ``compass`` (COMPASS_OFS{n}_*); the PX4 slot (CAL_MAG{slot}_*: the one whose CAL_MAGn_ID is the
-    device id, else the compass number) and sensor rotation follow the log's parameters."""
+    device id, else the compass number) and sensor rotation follow the log's parameters.
+    ``scale``: ``wmm_scale`` of the fit (the corrected field's length becomes the WMM's)."""
     params = params or {}
-    ap = ardupilot_params_from_calibration(offsets_mG, matrix, compass)
+    ap = ardupilot_params_from_calibration(offsets_mG, matrix, compass, scale)
     has_px4 = any(k.startswith("CAL_MAG") for k in params)
     if device_id is not None or compass:
         slot = px4_slot(params, device_id, compass) if has_px4 else compass
@@ -241,7 +329,7 @@ def export_params(offsets_mG: np.ndarray, matrix: np.ndarray, params: dict[str, 
         R = px4_rotation(params, slot) if has_px4 else np.eye(3)
     except ValueError:
         R = np.eye(3)
-    return ap, px4_params_from_calibration(offsets_mG, matrix, slot, R)
+    return ap, px4_params_from_calibration(offsets_mG, matrix, slot, R, scale)
 
 
 def format_param_file(values: dict[str, float], style: str = "comma") -> str:

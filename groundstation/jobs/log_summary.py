@@ -8,7 +8,9 @@ import numpy as np
 from groundstation.jobs.compass_raw import compass_fields
 from groundstation.samples import MAG_CAL_SUCCESS, FlightLog
 
-__all__ = ["compass_lines", "MAX_CHANGES_LISTED"]
+__all__ = ["compass_lines", "refused_parameter_lines", "MAX_CHANGES_LISTED", "REFUSED_PREFIX"]
+
+REFUSED_PREFIX = "parameter value refused: "      # the readers' warning (groundstation.io.params.param_value_problem)
 
 MAX_CHANGES_LISTED = 6
 
@@ -62,6 +64,21 @@ def _signal_line(name: str, table: np.ndarray, unit: str) -> str:
     if len(table) < 2:
         return f"  {name:<15} none"
     return (f"  {name:<15} {len(table)} samples, {float(np.min(table[:, 1])):.1f}–{float(np.max(table[:, 1])):.1f} {unit}")
+
+
+def refused_parameter_lines(log: FlightLog) -> list[str]:
+    """`info`'s flag for absurd parameter values: every value the log reader refused (NaN,
+    infinite, 3.4e38-style float32 garbage, beyond the autopilot's range), which the rest of the
+    project does not use."""
+    refused = [(w[len(REFUSED_PREFIX):], n) for w, n in log.warnings.items() if w.startswith(REFUSED_PREFIX)]
+    if not refused:
+        return []
+    total = sum(n for _, n in refused)
+    lines = [f"  ABSURD VALUES   {total} parameter value(s) refused and not used:"]
+    lines += [f"    {text}" + (f" ({n}×)" if n > 1 else "") for text, n in refused[:10]]
+    if len(refused) > 10:
+        lines.append(f"    … and {len(refused) - 10} more")
+    return lines
 
 
 def compass_lines(log: FlightLog) -> list[str]:

@@ -11,6 +11,7 @@ import numpy as np
 from ...samples import (AttitudeSample, BatterySample, FlightLog, GpsSample, ImuSample, MagCalSample, MagSample,
                         MissionSample, OffsetsSample, ParamSample, Sample, StatusSample, ThrottleSample)
 from .instances import compact_history, split_compasses, split_imus
+from ..params import param_value_problem
 
 __all__ = ["LogBuilder", "clean_table", "drop_time_outliers", "iter_samples"]
 
@@ -57,6 +58,10 @@ class LogBuilder:
         elif isinstance(s, ThrottleSample):
             self.rows["throttle"].extend((s.t_s, s.throttle))
         elif isinstance(s, ParamSample):
+            problem = param_value_problem(s.name, s.value)
+            if problem is not None:
+                self.log.warnings[f"parameter value refused: {problem}"] += 1
+                return
             self.log.params[s.name] = s.value
             self.history.append((s.t_s, s.name, s.value, 0.0))
         elif isinstance(s, OffsetsSample):

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..decode import MG_PER_GAUSS
 from ..errors import IngestError
+from ..params import param_value_problem, trusted_params
 from .builder import clean_table
 from .instances import compact_history
 from .quiet import counting, quiet
@@ -158,11 +159,17 @@ def read_ulog(path: Path, progress: Callable[[float], None] | None) -> FlightLog
                           f"{str(err).splitlines()[0][:120] if str(err) else ''})") from err
     log = FlightLog(source=str(path), autopilot="px4")
     log.warnings.update(complaints)
-    log.params = {k: float(v) for k, v in ulog.initial_parameters.items()}
+    log.params, refused = trusted_params(ulog.initial_parameters)     # NaN, inf, beyond the range: refused
+    for problem in refused:
+        log.warnings[f"parameter value refused: {problem}"] += 1
     for d in ulog.data_list:
         log.message_counts[d.name if d.multi_id == 0 else f"{d.name}[{d.multi_id}]"] += len(d.data["timestamp"])
     t0_us = float(ulog.start_timestamp)
     log.param_history = _param_history(ulog, t0_us)
+    bad = [h for h in log.param_history if param_value_problem(h[1], h[2]) is not None]
+    for h in bad:
+        log.warnings[f"parameter value refused: {param_value_problem(h[1], h[2])}"] += 1
+    log.param_history = [h for h in log.param_history if h not in bad] if bad else log.param_history
     for _, name, value in log.param_history:
         log.params[name] = value
 

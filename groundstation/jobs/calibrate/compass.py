@@ -12,7 +12,7 @@ import numpy as np
 
 from estimators.calibration import apply_calibration
 from estimators.compass_corrections import ardupilot_param_names
-from groundstation.io.params import export_params, px4_rotation, rotation_enum_matrix
+from groundstation.io.params import export_params, px4_rotation, rotation_enum_matrix, wmm_scale
 from groundstation.jobs.compass_raw import CompassField
 from groundstation.samples import FlightLog, finite_or_none
 
@@ -127,7 +127,8 @@ def _orientation_export(r: dict, log: FlightLog, cf: CompassField, b, C, check, 
 
 
 def _export(r: dict, log: FlightLog, cf: CompassField, b, C, motor, check, notes: list[str]) -> None:
-    ap, px4 = export_params(b, C, log.params, compass=cf.compass, device_id=cf.device_id)
+    k = wmm_scale(r.get("field_strength_mG"), r.get("expected_field_mG"))    # ArduPilot's fix_radius
+    ap, px4 = export_params(b, C, log.params, compass=cf.compass, device_id=cf.device_id, scale=k)
     r["ardupilot_params"], r["px4_params"] = dict(ap), dict(px4)
     if motor is not None:
         r["ardupilot_params"].update(r["motor"]["ardupilot_params"])
@@ -136,7 +137,7 @@ def _export(r: dict, log: FlightLog, cf: CompassField, b, C, motor, check, notes
         notes.append("COMPASS_MOT in force was un-applied and not re-fitted: the offsets include the mean motor field")
     b2, C2 = _orientation_export(r, log, cf, b, C, check, notes)
     if b2 is not b:
-        ap2, _ = export_params(b2, C2, log.params, compass=cf.compass, device_id=cf.device_id)
+        ap2, _ = export_params(b2, C2, log.params, compass=cf.compass, device_id=cf.device_id, scale=k)
         r["ardupilot_params"].update(ap2)
     ofs = [v for k, v in ap.items() if "_OFS" in k]
     if any(abs(v) > 1800 for v in ofs):

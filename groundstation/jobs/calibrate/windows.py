@@ -51,7 +51,11 @@ def misalignment(log: FlightLog, cf: CompassField, ctx: LogContext, window, C: n
     if inside.sum() < MIN_MISALIGNMENT_SAMPLES:
         return None, None, ""
     mis = estimate_misalignment(cal[inside], att.roll_rad[inside], att.pitch_rad[inside], att.yaw_rad[inside],
-                                ctx.field.field_ned_mG)
+                                ctx.field.field_ned_mG, t_s=t[inside])
+    if mis.ok and not mis.significant:     # within the fit's own noise (timing jitter, attitude errors)
+        angle, sd = float(np.linalg.norm(mis.angles_deg)), float(np.linalg.norm(mis.angles_sd_deg))
+        return None, None, (f"no misalignment beyond the noise ({angle:.2f} deg, sd {sd:.2f} deg, "
+                            f"attitude lag {mis.lag_s * 1e3:.0f} ms)")
     angle = float(np.linalg.norm(mis.angles_deg)) if mis.ok else float("nan")
     if mis.ok and mis.residual_deg <= settings.max_misalignment_residual_deg and angle <= settings.max_misalignment_deg:
         return mis.rotation, [round(float(a), 3) for a in mis.angles_deg], \

@@ -21,6 +21,7 @@ import numpy as np
 from groundstation.io.mavlink import mavlink2
 from groundstation.samples import GpsSample, MagSample, Sample
 from groundstation.station.hub.after_write import AfterWrite
+from groundstation.station.hub.param_watch import param_trust, wizard_accept, wizard_on_param, wizard_param_tick
 from groundstation.station.hub.sources import ConflictError, SessionError
 from groundstation.station.hub.vehicle import RESULT_TEXT
 from groundstation.station.wizard import FITNESS_LEVELS, MODES, CalibrationWizard
@@ -78,6 +79,10 @@ class CalibrationControl:
         elif isinstance(s, GpsSample):
             self.after.on_gps(s)
 
+    def on_param(self, name: str, value: float) -> None:
+        """A PARAM_VALUE the parameter cache accepted: the wizard's re-reads and change checks."""
+        wizard_on_param(self, name, value)
+
     def on_link(self, up: bool, t_s: float) -> None:
         text = self.wizard.on_link(up, t_s)
         if text:
@@ -90,8 +95,8 @@ class CalibrationControl:
         for msg in hub.vehicle.vehicle_messages(hub.sources.link):
             self._on_vehicle_message(msg)
         self.after.tick()
-        if w.ready():
-            w.finish(hub.vehicle.autopilot, hub.vehicle.params)
+        if wizard_param_tick(self):      # ready, and the compass parameters re-read (param_watch)
+            w.finish(hub.vehicle.autopilot, {**hub.vehicle.params, **w.param_check.reference})
             r = w.result or {}
             hub.event(f"calibration finished: {r.get('status')} {r.get('message') or ''}".strip()[:300])
 
@@ -144,6 +149,7 @@ class CalibrationControl:
                                         "ArduPilot's; use the guided mode for PX4")
                 self.send("the onboard calibration", _M.MAV_CMD_DO_START_MAG_CAL, 0, 0, 0, 0, 0)
             w.start(mode)
+            w.param_check.begin(hub.vehicle.params)        # the corrections the samples come with
             if mode == "onboard":
                 w.onboard = OnboardCalibration()
             hub.vehicle.request_params(hub.sources.link)   # the onboard calibration to un-apply
@@ -219,11 +225,11 @@ class CalibrationControl:
                 return self.after.accept_onboard()
             if w.result is None or w.result.get("status") != "ok":
                 raise ConflictError("no successful calibration result to accept")
-            if w.param_write is not None and w.param_write.get("state") == "writing":
+            if w.param_write is not None and w.param_write.get("state") in ("writing", "checking"):
                 return w.param_write
             if w.onboard is not None and w.onboard.state in ("running", "reported"):
                 self._cancel_onboard()
-            return self.after.write_ours()
+            return wizard_accept(self)           # re-read the compass parameters, then write
 
     def cancel_onboard(self) -> None:
         with self._lock:
@@ -289,6 +295,11 @@ class CalibrationControl:
         if self.wizard.fixed_yaw is not None:
             self.wizard.fixed_yaw.on_params(self._hub.vehicle.params)
         snap = self.wizard.snapshot()
+        snap["param_trust"] = trust = param_trust(self._hub)
+        if trust["refused"] or trust["values_refused"]:
+            snap["warnings"] = snap["warnings"] + [
+                f"{trust['refused'] + trust['values_refused']} parameter value(s) refused (not from the vehicle, or "
+                "not a possible value): " + (trust["last"] or next(iter(trust["values_refused_names"].values()), ""))]
         ob = snap.get("onboard")
         if ob is not None:
             from groundstation.station.wizard.onboard import compare

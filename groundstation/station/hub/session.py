@@ -30,7 +30,7 @@ from groundstation.station.hub.calibration import CalibrationControl
 from groundstation.station.hub.flight import FlightState
 from groundstation.station.hub.in_use import CalibrationInUse
 from groundstation.station.hub.recordings import RecordingsFolder
-from groundstation.station.hub.param_watch import on_compass_params_changed
+from groundstation.station.hub.param_watch import on_compass_params_changed, param_trust
 from groundstation.station.hub.review import build_review
 from groundstation.station.hub.sources import (ConflictError, NotFoundError, SessionError, SourceControl,
                                                check_speed)
@@ -125,6 +125,8 @@ class Session(SessionViews):
             elif isinstance(s, ParamSample):
                 if self.vehicle.on_param(s) and live:
                     changed_elsewhere.append(s.name)
+                if live and self.vehicle.params.get(s.name) == s.value:     # accepted into the cache
+                    self.calibration.on_param(s.name, s.value)
             elif isinstance(s, MissionSample):
                 if self._log_mission is None:
                     self.vehicle.on_mission_item(s)      # live: the mission comes item by item
@@ -157,7 +159,7 @@ class Session(SessionViews):
             self.calibration.on_link(up, s.t_s)
         elif s.kind == "statustext":
             self.event("vehicle: " + s.text)
-        elif s.kind in ("passive", "signing"):
+        elif s.kind in ("passive", "signing", "param_refused"):
             self.event(s.text, "warning")
         elif s.kind == "vehicle_found":
             self.event(s.text)
@@ -200,6 +202,7 @@ class Session(SessionViews):
         with self._lock:
             out = self.sources.vehicles_snapshot()
             out["params_changed_elsewhere"] = {k: list(v) for k, v in self.vehicle.changed_elsewhere.items()}
+            out["param_trust"] = param_trust(self)
             return out
 
     def snapshot(self) -> dict:

@@ -122,6 +122,7 @@ class SourceControl:
         """Open a live link (pymavlink connection string) with its lazy recording; nothing is
         changed when it fails.  Returns (url, link, recording)."""
         from groundstation.io.link import LiveLink, validate_connection_string
+        from groundstation.station.hub.param_watch import ParamSourceGuard
 
         try:
             url = validate_connection_string(url)
@@ -134,6 +135,7 @@ class SourceControl:
             link = LiveLink(url, recorder=recording, options=self.link_options, forwarder=self.forwarder)
         except IngestError as err:
             raise SessionError(str(err)) from err
+        link.param_guard = ParamSourceGuard()       # PARAM_VALUEs only from the vehicle's component/address
         return url, link, recording
 
     def start_live(self, url: str, link, recording) -> None:

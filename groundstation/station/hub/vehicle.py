@@ -18,6 +18,7 @@ from typing import Callable
 import numpy as np
 
 from groundstation.io.mavlink import mavlink2
+from groundstation.io.params import param_value_problem
 from groundstation.samples import MissionSample, ParamSample
 from groundstation.station.hub.sources import ConflictError
 
@@ -66,12 +67,21 @@ class VehicleLink:
         self.autopilot = autopilot
         self.params: dict[str, float] = dict(params)
         self.changed_elsewhere: dict[str, tuple[float, float]] = {}   # name -> (old, new), not by our writes
+        self.refused_values: dict[str, str] = {}      # name -> why its last value was refused
+        self.refused_count = 0
         self.mission_items: dict[int, tuple[float, float, float]] = {}   # live: raw sequence numbers
 
     # ------------------------------------------------------------------ receiving
     def on_param(self, s: ParamSample) -> bool:
         """Cache a PARAM_VALUE; True when it changed a compass parameter we did not write
-        (another ground station did: the cached value differs and no write of ours awaits it)."""
+        (another ground station did: the cached value differs and no write of ours awaits it).
+        A value ``param_value_problem`` refuses (NaN, infinite, beyond the autopilot's range) is
+        not cached: counted in ``refused_values`` (name -> why) and ``refused_count``."""
+        problem = param_value_problem(s.name, s.value)
+        if problem is not None:
+            self.refused_values[s.name] = problem
+            self.refused_count += 1
+            return False
         old = self.params.get(s.name)
         self.params[s.name] = s.value
         echoes = self._waiters.get(s.name)

@@ -128,16 +128,56 @@ def _level_runs(level: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(edges[::2], edges[1::2]))
 
 
+HARMONIC_CHI2 = 18.47        # χ²(4) at p = 0.001
+CORRELATION_S = 0.5          # residuals closer than this in time are not independent
+
+
+def _deviation_model(t: np.ndarray, heading_deg: np.ndarray, err_deg: np.ndarray, run: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, float]:
+    """The classic deviation model e = A_run + D_run·t + B sin ψ + C cos ψ + E sin 2ψ + F cos 2ψ:
+    an offset and a linear drift per level run (the gyro reference has no north and drifts: neither
+    is deviation) and the four harmonics shared.  Returns (harmonic coefficients deg, their
+    covariance — OLS scaled by n / n_eff, n_eff = span / CORRELATION_S —, Wald χ²)."""
+    psi = np.radians(heading_deg)
+    runs = np.unique(run)
+    cols = []
+    for r in runs:
+        m = (run == r).astype(float)
+        tr = np.where(run == r, t - t[run == r].mean(), 0.0)
+        cols += [m, tr]
+    H = np.column_stack([np.sin(psi), np.cos(psi), np.sin(2 * psi), np.cos(2 * psi)])
+    X = np.column_stack(cols + [H])
+    coef, *_ = np.linalg.lstsq(X, err_deg, rcond=None)
+    e = err_deg - X @ coef
+    n, p = X.shape
+    span = sum(float(np.ptp(t[run == r])) for r in runs)
+    inflate = max(1.0, n / max(span / CORRELATION_S, 1.0))
+    cov = np.linalg.pinv(X.T @ X) * float(e @ e) / max(n - p, 1) * inflate
+    h, V = coef[-4:], cov[-4:, -4:]
+    try:
+        chi2 = float(h @ np.linalg.solve(V, h))
+    except np.linalg.LinAlgError:
+        chi2 = float("nan")
+    return h, V, chi2
+
+
+def _harmonics_at(h: np.ndarray, heading_deg) -> np.ndarray:
+    psi = np.radians(np.asarray(heading_deg, float))
+    return h[0] * np.sin(psi) + h[1] * np.cos(psi) + h[2] * np.sin(2 * psi) + h[3] * np.cos(2 * psi)
+
+
 def deviation_card(mag_t: np.ndarray, before_mG: np.ndarray, after_mG: np.ndarray, attitude: np.ndarray,
                    imu: np.ndarray, declination_deg: float) -> dict | None:
-    """Heading error against heading (30° bins) before and after, about each curve's mean; None
-    when the dance held no level turn of at least 180°."""
+    """Heading error against heading (30° bins) before and after — the fitted deviation model
+    (``_deviation_model``: harmonics of the heading, each run's offset and gyro drift removed) at
+    the bin centres, with whether it is beyond the noise (``*_significant``: Wald χ² of the
+    harmonics past ``HARMONIC_CHI2``).  None when the dance held no level turn of at least 180°."""
     if len(imu) < 10 or len(attitude) < 10:
         return None
     att_imu = attitude_at(attitude, imu[:, 0])
     level = np.all(np.abs(np.degrees(att_imu[:, :2])) < LEVEL_DEG, axis=1)
     rows = []
-    for a, b in _level_runs(level):
+    for i, (a, b) in enumerate(_level_runs(level)):
         yaw = _gyro_yaw_deg(imu[a:b], att_imu[a:b])
         if len(yaw) < 10 or np.ptp(yaw) < 180.0:
             continue
@@ -148,21 +188,24 @@ def deviation_card(mag_t: np.ndarray, before_mG: np.ndarray, after_mG: np.ndarra
         att = attitude_at(attitude, mag_t[sel])
         hb = compass_heading_deg(before_mG[sel], att[:, 0], att[:, 1], declination_deg)
         ha = compass_heading_deg(after_mG[sel], att[:, 0], att[:, 1], declination_deg)
-        rows.append(np.column_stack([ha, wrap_angle_deg(hb - ref), wrap_angle_deg(ha - ref)]))
+        eb, ea = wrap_angle_deg(hb - ref), wrap_angle_deg(ha - ref)
+        rows.append(np.column_stack([ha, wrap_angle_deg(eb - circular_mean_deg(eb)),
+                                     wrap_angle_deg(ea - circular_mean_deg(ea)), mag_t[sel], np.full(sel.sum(), i)]))
     if not rows:
         return None
     r = np.vstack(rows)
-    before = wrap_angle_deg(r[:, 1] - circular_mean_deg(r[:, 1]))
-    after = wrap_angle_deg(r[:, 2] - circular_mean_deg(r[:, 2]))
+    hb_, Vb, chi_b = _deviation_model(r[:, 3], r[:, 0], r[:, 1], r[:, 4])
+    ha_, Va, chi_a = _deviation_model(r[:, 3], r[:, 0], r[:, 2], r[:, 4])
     bins = np.floor(r[:, 0] / BIN_DEG).astype(int) % int(360 / BIN_DEG)
-    centres, b_dev, a_dev = [], [], []
-    for k in range(int(360 / BIN_DEG)):
-        m = bins == k
-        if m.sum() >= 3:
-            centres.append((k + 0.5) * BIN_DEG)
-            b_dev.append(round(float(np.mean(before[m])), 2))
-            a_dev.append(round(float(np.mean(after[m])), 2))
+    centres = [(k + 0.5) * BIN_DEG for k in range(int(360 / BIN_DEG)) if (bins == k).sum() >= 3]
+    b_dev = [round(float(v), 2) for v in _harmonics_at(hb_, centres)]
+    a_dev = [round(float(v), 2) for v in _harmonics_at(ha_, centres)]
+    fine = np.arange(0.0, 360.0, 5.0)
+    sd_a = float(np.degrees(0) + np.sqrt(max(float(np.trace(Va)), 0.0)))
     return {"heading_deg": centres, "before_deg": b_dev, "after_deg": a_dev, "samples": int(len(r)),
-            "max_before_deg": round(float(np.max(np.abs(b_dev))), 2) if b_dev else None,
-            "max_after_deg": round(float(np.max(np.abs(a_dev))), 2) if a_dev else None,
-            "note": "error about its mean; a constant offset needs the heading check"}
+            "max_before_deg": round(float(np.max(np.abs(_harmonics_at(hb_, fine)))), 2) if centres else None,
+            "max_after_deg": round(float(np.max(np.abs(_harmonics_at(ha_, fine)))), 2) if centres else None,
+            "after_sd_deg": round(sd_a, 3), "before_significant": bool(chi_b > HARMONIC_CHI2),
+            "after_significant": bool(chi_a > HARMONIC_CHI2),
+            "note": "fitted deviation (harmonics of the heading; offset and gyro drift removed); a constant "
+                    "offset needs the heading check"}

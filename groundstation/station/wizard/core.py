@@ -26,6 +26,7 @@ from groundstation.samples import AttitudeSample, GpsSample, ImuSample, MagSampl
 from groundstation.station.tables import GrowingTable
 from groundstation.station.wizard.compass import MAX_POINTS, CompassTrack, compass_index
 from groundstation.station.wizard.coverage import body_field_directions, field_unit_ned, next_pose
+from groundstation.station.wizard.param_check import CompassParamCheck
 from groundstation.station.wizard.progress import AxisProgress
 from groundstation.station.wizard.results import build_results, merged_result
 from groundstation.station.wizard.settings import DEFAULT_SETTINGS, WizardSettings
@@ -73,6 +74,7 @@ class CalibrationWizard:
         self.reboot: dict | None = None
         self.heading_check = None           # aftercheck.HeadingCheck
         self.in_use: str | None = None      # "station" | "vehicle"
+        self.param_check = CompassParamCheck()   # the corrections in force, re-read (hub: param_watch)
         self._imu_instance: int | None = None
         self._fast_until = -math.inf
         self._last_gyro_deg_s = 0.0
@@ -328,5 +330,6 @@ class CalibrationWizard:
             "reboot": self.reboot,
             "heading_check": None if self.heading_check is None else self.heading_check.snapshot(),
             "in_use": self.in_use,
+            "param_check": self.param_check.snapshot(),
             "settings": self.settings.as_dict(),
         }

@@ -10,7 +10,8 @@
    orientation parameter goes out with the rest (COMPASS_ORIENTn / CAL_MAGk_ROT).  As in
    ArduPilot, an ambiguous answer fails the compass only when its best guess is not the rotation
    in use.
-4. Quality in words (``quality.judge``), the exported parameters of compass k.
+4. Quality in words (``quality.judge``), the exported parameters of compass k (scaled to the WMM
+   intensity as ArduPilot's fix_radius does: ``groundstation.io.params.wmm_scale``).
 """
 from __future__ import annotations
 
@@ -22,10 +23,10 @@ import numpy as np
 from estimators.calibration import apply_calibration, polar_decomposition
 from estimators.orientation_check import check_orientation
 from groundstation.io.params import (ardupilot_params_from_calibration, px4_params_from_calibration,
-                                     rotation_enum_matrix, unapply_ardupilot, unapply_px4)
+                                     rotation_enum_matrix, unapply_ardupilot, unapply_px4, wmm_scale)
 from groundstation.jsonsafe import jsonable
 from groundstation.samples import FlightLog
-from groundstation.station.wizard.quality import judge
+from groundstation.station.wizard.quality import confirmed_disturbances, judge
 from groundstation.station.wizard.settings import WizardSettings
 
 __all__ = ["DanceData", "fit_compass", "orientation_param", "ROTATION_NAMES", "attitude_at", "calibrated_in_new_frame",
@@ -127,7 +128,10 @@ def fit_compass(k: int, mag: np.ndarray, autopilot: str, params: dict[str, float
     result["message"] = "; ".join(p for p in (note, result.get("message")) if p)
     result["compass"] = k
     result["orientation"] = orientation
-    result.update(judge(result, k, orientation, disturbances, settings, data.field_ned_mG))
+    if result.get("status") == "ok":       # the live count (``disturbances``) only flags; the final fit confirms
+        disturbances, worst = confirmed_disturbances(t_s, calibrated_in_new_frame(result, raw), settings)
+        result["disturbances"], result["disturbance_max_mG"] = disturbances, round(worst, 1)
+    result.update(judge(result, k, orientation, result.get("disturbances", 0), settings, data.field_ned_mG))
     result["ardupilot_params"], result["px4_params"] = _export(result, k, orientation, current)
     return result
 
@@ -142,10 +146,15 @@ def raw_in_result_frame(result: dict, received: np.ndarray, unapply) -> np.ndarr
     return raw
 
 
-def calibrated_in_new_frame(result: dict, raw: np.ndarray) -> np.ndarray:
-    """Un-applied samples -> calibrated body field with the result (orientation fix included)."""
+def calibrated_in_new_frame(result: dict, raw: np.ndarray, as_vehicle: bool = False) -> np.ndarray:
+    """Un-applied samples -> calibrated body field with the result (orientation fix included).
+    ``as_vehicle``: as the vehicle will correct it with the exported parameters, i.e. the symmetric
+    part of the matrix only (COMPASS_DIA/ODI cannot hold a misalignment rotation)."""
     raw = raw_in_result_frame(result, raw, lambda m: m)
-    return apply_calibration(raw, np.asarray(result["offsets_mG"], float), np.asarray(result["matrix"], float))
+    C = np.asarray(result["matrix"], float)
+    if as_vehicle:
+        _, C = polar_decomposition(C)
+    return apply_calibration(raw, np.asarray(result["offsets_mG"], float), C)
 
 
 def _export(result: dict, k: int, orientation: dict | None, current: int) -> tuple[dict, dict]:
@@ -155,8 +164,9 @@ def _export(result: dict, k: int, orientation: dict | None, current: int) -> tup
     rot = current
     if orientation is not None and orientation["status"] == "rotation_found":
         rot = int(orientation["detected"])
-    ap = ardupilot_params_from_calibration(b, C, k)
-    px4 = px4_params_from_calibration(b, C, k, rotation_enum_matrix(rot))
+    scale = wmm_scale(result.get("field_strength_mG"), result.get("expected_field_mG"))   # ArduPilot's fix_radius
+    ap = ardupilot_params_from_calibration(b, C, k, scale)
+    px4 = px4_params_from_calibration(b, C, k, rotation_enum_matrix(rot), scale)
     if orientation is not None and orientation["status"] in ("rotation_found", "confirmed"):
         ap[orientation_param("ardupilot", k)] = float(rot)
         px4[orientation_param("px4", k)] = float(rot)

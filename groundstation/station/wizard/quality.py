@@ -9,6 +9,11 @@
   150–950 mG, offsets beyond COMPASS_OFFS_MAX, fitness above the threshold, orientation
   ambiguous or wrong; cautions (not failures): field far from the WMM (worded as a hypothesis),
   disturbances during the dance.
+* **Disturbances need evidence** (``confirmed_disturbances``): the live count flags samples off a
+  fit still being learnt; the caution counts only episodes the final fit confirms — the
+  calibrated field's length off the fitted sphere by more than ``DISTURBANCE_FRACTION`` of it and
+  more than ``DISTURBANCE_SIGMAS`` × the fit's own robust residual σ (1.4826·MAD), for at least
+  ``DISTURBANCE_MIN_SAMPLES`` samples in a row (one odd sample is a glitch, a magnet moved stays).
 """
 from __future__ import annotations
 
@@ -19,9 +24,36 @@ import numpy as np
 from groundstation.samples import finite_or_none
 from groundstation.station.wizard.settings import FITNESS_LEVELS, WizardSettings, fitness_threshold_mG
 
-__all__ = ["judge", "predicted_heading_error_deg", "field_hypothesis"]
+__all__ = ["judge", "predicted_heading_error_deg", "field_hypothesis", "confirmed_disturbances"]
 
 DEFAULT_INCLINATION_DEG = 60.0
+DISTURBANCE_SIGMAS = 8.0
+DISTURBANCE_FRACTION = 0.05     # and at least this share of the field (25 mG at 490 mG)
+DISTURBANCE_MIN_SAMPLES = 3
+DISTURBANCE_GAP_S = 1.0
+
+
+def confirmed_disturbances(t_s: np.ndarray, cal_mG: np.ndarray, settings: WizardSettings) -> tuple[int, float]:
+    """(episodes, largest departure in mG) of the calibrated field's length leaving its sphere
+    beyond max(DISTURBANCE_FRACTION·F, DISTURBANCE_SIGMAS·σ) for DISTURBANCE_MIN_SAMPLES samples
+    in a row; episodes closer than DISTURBANCE_GAP_S are one."""
+    r = np.linalg.norm(np.asarray(cal_mG, float), axis=1)
+    ok = np.isfinite(r)
+    if ok.sum() < 10:
+        return 0, 0.0
+    F = float(np.median(r[ok]))
+    e = np.where(ok, r - F, 0.0)
+    sigma = 1.4826 * float(np.median(np.abs(e[ok])))
+    off = np.abs(e) > max(DISTURBANCE_FRACTION * F, DISTURBANCE_SIGMAS * sigma)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], off.astype(int), [0]])))
+    runs = [(a, b) for a, b in zip(edges[::2], edges[1::2]) if b - a >= DISTURBANCE_MIN_SAMPLES]
+    episodes, last_end = 0, -np.inf
+    for a, b in runs:
+        if t_s[a] - last_end > DISTURBANCE_GAP_S:
+            episodes += 1
+        last_end = t_s[b - 1]
+    worst = max((float(np.max(np.abs(e[a:b]))) for a, b in runs), default=0.0)
+    return episodes, worst
 
 
 def predicted_heading_error_deg(residual_mG: float | None, field_mG: float | None,
@@ -85,8 +117,10 @@ def judge(result: dict, k: int, orientation: dict | None, disturbances: int, set
     if field and expected and abs(field - expected) > s.wmm_mismatch_fraction * expected:
         cautions.append(field_hypothesis(field, expected))
     if disturbances:
-        cautions.append(f"The field jumped off the fitted sphere {disturbances} time(s) during the dance: "
-                        "something magnetic moved near the vehicle.")
+        worst = finite_or_none(result.get("disturbance_max_mG"))
+        cautions.append(f"The field left the fitted sphere {disturbances} time(s) during the dance"
+                        + (f" (by up to {worst:.0f} mG, well beyond the fit's noise)" if worst else "")
+                        + ": something magnetic moved near the vehicle.")
     return {
         "fitness_mG": fit, "fitness_level": s.fitness_level,
         "fitness_threshold_mG": fitness_threshold_mG(s.fitness_level, k),

@@ -45,7 +45,7 @@ def consistency_of(w, autopilot: str, params: dict[str, float], results: dict[in
     """Consistency of the included compasses that fitted."""
     entries = [(k, r, w.tracks[k].mag.view(), unapply_function(autopilot, params, k))
                for k, r in sorted(results.items()) if w.tracks[k].included and r.get("status") == "ok"]
-    return check_consistency(entries, w.settings, w.expected_field_mG)
+    return check_consistency(entries, w.settings, w.expected_field_mG, w.att.view())
 
 
 def _deviation(w, autopilot, params, results) -> dict | None:
@@ -53,7 +53,7 @@ def _deviation(w, autopilot, params, results) -> dict | None:
     if k is None:
         return None
     mag = w.tracks[k].mag.view()
-    after = calibrated_in_new_frame(results[k], unapply_function(autopilot, params, k)(mag[:, 1:4]))
+    after = calibrated_in_new_frame(results[k], unapply_function(autopilot, params, k)(mag[:, 1:4]), as_vehicle=True)
     card = deviation_card(mag[:, 0], mag[:, 1:4], after, w.att.view(), w.imu.view(), w.declination_deg or 0.0)
     if card is not None:
         card["compass"] = k
@@ -67,7 +67,7 @@ def merged_result(w, autopilot: str) -> dict | None:
         return None
     for k, r in w.results.items():
         if r.get("status") == "ok":
-            r.update(judge(r, k, r.get("orientation"), w.tracks[k].disturbances, w.settings, w.field_ned_mG))
+            r.update(judge(r, k, r.get("orientation"), r.get("disturbances", 0), w.settings, w.field_ned_mG))
     included = [k for k in sorted(w.results) if w.tracks[k].included]
     if not included:
         return {"status": "failed", "message": "every compass is left out", "autopilot": autopilot,
