@@ -29,7 +29,7 @@ from groundstation.samples import FlightLog, MissionSample, ParamSample, Sample,
 from groundstation.station.hub.calibration import CalibrationControl
 from groundstation.station.hub.flight import FlightState
 from groundstation.station.hub.recordings import RecordingsFolder
-from groundstation.station.hub.param_watch import on_compass_params_changed
+from groundstation.station.hub.param_watch import autopilot_change, on_compass_params_changed
 from groundstation.station.hub.review import build_review
 from groundstation.station.hub.sources import (ConflictError, NotFoundError, SessionError, SourceControl,
                                                check_speed)
@@ -122,7 +122,13 @@ class Session(SessionViews):
                 self._on_status(s)
             elif isinstance(s, ParamSample):
                 if self.vehicle.on_param(s) and live:
-                    changed_elsewhere.append(s.name)
+                    why = autopilot_change(self.vehicle, self.sources.link, s.name, time.time())
+                    if why is None:
+                        changed_elsewhere.append(s.name)
+                    else:
+                        old, new = self.vehicle.changed_elsewhere[s.name]
+                        self.vehicle.changed_by_itself(s.name, why)
+                        self.event(f"{s.name} {old:g} -> {new:g} changed by the autopilot itself: {why}")
             elif isinstance(s, MissionSample):
                 if self._log_mission is None:
                     self.vehicle.on_mission_item(s)      # live: the mission comes item by item
@@ -155,8 +161,12 @@ class Session(SessionViews):
             self.calibration.on_link(up, s.t_s)
         elif s.kind == "statustext":
             self.event("vehicle: " + s.text)
-        elif s.kind in ("passive", "signing"):
+        elif s.kind in ("passive", "signing", "reboot"):
             self.event(s.text, "warning")
+        elif s.kind == "live_data":
+            self.event(s.text, "info" if s.text.startswith("live data resumed") else "warning")
+        elif s.kind == "mag_unit":
+            self.event(s.text)
         elif s.kind == "vehicle_found":
             self.event(s.text)
             self.vehicle.request_params(self.sources.link)
@@ -200,9 +210,16 @@ class Session(SessionViews):
             return out
 
     def snapshot(self) -> dict:
+        """The state; on a live link whose data stopped while the vehicle's heartbeats go on (a
+        reboot, streams not sent), the vehicle shows no attitude (None) and says why
+        (``vehicle.no_data``) rather than the last one, frozen."""
         with self._lock:
             snap = super().snapshot()
             snap["vehicles"] = self.vehicles()
+            stale = getattr(self.sources.link, "stale_reason", None) if self.sources.kind == "live" else None
+            if stale:
+                snap["vehicle"] = {k: (0 if k == "fix_type" else None) for k in snap["vehicle"]}
+            snap["vehicle"]["no_data"] = f"no attitude data: {stale}" if stale else None
             return snap
 
     def restart_flight(self) -> None:
