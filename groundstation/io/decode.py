@@ -302,7 +302,7 @@ class MavlinkDecoder:
 
     def _judge(self, instance: int, sent: tuple[float, float, float], units, t: float) -> list[Sample]:
         """The unit of a magnetometer source, judged at its first non-zero sample
-        (``judge_field_unit``); a "mag_unit" status says which and why."""
+        (``judge_field_unit``), kept in ``mag_units`` (the live link says it as a "mag_unit" status)."""
         if instance in self._mag_scale:
             return []
         m = math.sqrt(sum(v * v for v in sent))
@@ -317,7 +317,7 @@ class MavlinkDecoder:
         self.mag_units[unit.source] = unit.as_dict()
         if not unit.plausible:
             self.warnings[f"{unit.source}: implausible magnetometer field ({unit.why})"] += 1
-        return [StatusSample(t, "mag_unit", f"{unit.source} magnetometer: {unit.why}")]
+        return []
 
     def _attitude(self, msg, arrival_s: float) -> list[Sample]:
         if not _finite(msg.roll, msg.pitch, msg.yaw):

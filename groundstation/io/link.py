@@ -138,6 +138,7 @@ class LiveLink:
         self._link_up_unix = 0.0
         self._last_heartbeat = 0.0
         self.streams = StreamTracker()
+        self._units_told = 0
         self._streams_requested_at: float | None = None
         self._last_vehicle_heartbeat: float | None = None
         self._last_boot_ms: float | None = None
@@ -287,6 +288,11 @@ class LiveLink:
             return
         self._watch_vehicle(msg, unix, out)
         out.extend(self.decoder.decode(msg, self.t_s(unix)))
+        units = self.decoder.mag_units
+        if len(units) != self._units_told:
+            for name in list(units)[self._units_told:]:
+                out.append(StatusSample(self.t_s(unix), "mag_unit", f"{name} magnetometer: {units[name]['why']}"))
+            self._units_told = len(units)
 
     def _watch_vehicle(self, msg, unix: float, out: list[Sample]) -> None:
         """Stream arrivals and acknowledgements; a reboot (boot time going back, a heartbeat gap,
@@ -335,6 +341,7 @@ class LiveLink:
         self.sysid = sysid
         self.decoder = MavlinkDecoder(vehicle_sysid=sysid)
         self.streams = StreamTracker()
+        self._units_told = 0
         self._streams_requested_at = None
         self._last_vehicle_heartbeat = self._last_boot_ms = None
         self.stale_reason = None

@@ -26,6 +26,7 @@ class StreamSpec:
     use: str
     rate_ardupilot_hz: float | None = None
     on_demand: bool = False
+    optional: bool = False      # refused by some firmware, the station does without it (not "missing")
 
     def rate_for(self, autopilot: str | None) -> float:
         return self.rate_ardupilot_hz if autopilot == "ardupilot" and self.rate_ardupilot_hz else self.rate_hz
@@ -47,7 +48,8 @@ STREAMS: tuple[StreamSpec, ...] = (
     StreamSpec("SYS_STATUS", 5, "battery current (motor interference)"),
     StreamSpec("VFR_HUD", 10, "throttle"),
     StreamSpec("SYSTEM_TIME", 1, "the date (WMM) and the vehicle's boot time (reboots)"),
-    StreamSpec("SENSOR_OFFSETS", 1, "compass 1 offsets in force (ArduPilot)"),
+    StreamSpec("SENSOR_OFFSETS", 1, "compass 1 offsets in force (older ArduPilot; else from the parameters)",
+               optional=True),
     StreamSpec("MAG_CAL_PROGRESS", 10, "onboard calibration progress", on_demand=True),
     StreamSpec("MAG_CAL_REPORT", 1, "onboard calibration report", on_demand=True),
 )
@@ -166,8 +168,9 @@ class StreamTracker:
         return "asked; waiting for the vehicle"
 
     def snapshot(self, unix: float, passive: bool) -> dict:
-        """{"messages": [{name, use, state, rate_hz, why}], "missing": [...]}; state is
-        "arriving", "on demand" (MAG_CAL_* while no calibration runs) or "missing"."""
+        """{"messages": [{name, use, state, rate_hz, why, acked}], "missing": [...]}; state is
+        "arriving", "on demand" (MAG_CAL_* while no calibration runs), "not available" (an
+        optional message the vehicle refused) or "missing"."""
         rows, missing = [], []
         for name, st in self.streams.items():
             if self.arriving(name, unix):
@@ -177,7 +180,7 @@ class StreamTracker:
             else:
                 why = self._why_missing(st, passive)
                 state = "on demand" if st.spec.on_demand and not passive and st.requested_unix is not None \
-                    else "missing"
+                    else "not available" if st.spec.optional and st.ack not in (None, 0) else "missing"
                 if state == "missing":
                     missing.append(name)
             rows.append({"name": name, "use": st.spec.use, "state": state, "rate_hz": self._rate_hz(st, unix)
