@@ -9,9 +9,12 @@ Scenarios, each printed as one table: ours vs the truth vs ArduPilot's own resul
                accept, read back); a forced failure (COMPASS_CAL_FIT tiny) and a cancel.
 4. logs      -- calibrate / analyze / info on the firmware's own .BIN and on the station's session
                .tlog of the wizard run: the same offsets, the same alarms, one report per compass.
+5. flights   -- (--flights) 2-minute GUIDED flights at real time: clean, with SIM_MAG_MOT, low over a
+               SIM_MAG_ALY anomaly, with SIM_GPS1_ENABLE 0 for 60 s: alarms on the .BIN vs on the .tlog.
 Ports 14613-14619 (-I 1..3 only).  Bounded by `timeout` per SITL run.
 
 Run:  nice -n 10 .venv/bin/python benchmarks/sitl.py [--speedup 8] [--only streams,wizard,onboard,logs]
+          [--flights clean,motor,anomaly,gps_off]
 """
 from __future__ import annotations
 
@@ -28,8 +31,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests" / "sitl"))
 
-from harness import (MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, MISSING, RIG_TRUTH, SITL_BINARY, Sitl,  # noqa: E402
-                     command, rig_tour, set_params, station_link, truth_params, uncalibrated_params, wait_for)
+from harness import (COPTER_LAND, HOME, MAV_CMD_NAV_TAKEOFF, MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, MISSING,  # noqa: E402
+                     RIG_TRUTH, SITL_BINARY, Sitl, Watch, arm, command, goto, rig_tour, set_mode, set_params,
+                     station_link, truth_params, uncalibrated_params, wait_for)
 
 RIG_PARAMS = {**truth_params(), **uncalibrated_params(), **{f"SERVO{n}_FUNCTION": 0 for n in (5, 6, 7, 8)}}
 
@@ -203,6 +207,79 @@ def run_logs(out: dict) -> None:
         out[f"{kind}_sources"] = {c.compass: c.source for c in log.compass_tables()}
 
 
+MOTOR_TRUTH_mG_PER_A = (3.0, -2.0, 4.0)
+FLIGHTS = {   # name: (extra defaults, legs' altitude m, what the truth is)
+    "clean": ({}, 15.0, "no alarm"),
+    "motor": ({f"SIM_MAG_MOT_{a}": v for a, v in zip("XYZ", MOTOR_TRUTH_mG_PER_A)}, 15.0,
+              f"motor field {list(MOTOR_TRUTH_mG_PER_A)} mG/A (SIM_MAG_MOT)"),
+    "anomaly": ({"SIM_MAG_ALY_X": 150.0, "SIM_MAG_ALY_Y": -100.0, "SIM_MAG_ALY_Z": 200.0, "SIM_MAG_ALY_HGT": 5.0}, 4.0,
+                "anomaly [150, -100, 200] mG at the ground, 1/8 at 5 m: alarms low only"),
+    "gps_off": ({}, 15.0, "no alarm (GPS away 60 s from the second leg)"),
+}
+
+
+def run_flight(name: str, out: dict) -> None:
+    """A 2-minute GUIDED flight at real time (the .tlog's arrival times are wall clock, the .BIN's
+    the simulation's: a speedup would squeeze one against the other): takeoff, an 80 m square,
+    land.  Session .tlog and .BIN analysed alike."""
+    from groundstation.io.logs import read_log
+    from groundstation.jobs.analyze import analyze_log
+
+    extra, alt, _ = FLIGHTS[name]
+    rec = Path(tempfile.mkdtemp(prefix=f"sitl-bench-{name}-"))
+    sitl = Sitl(3, 14615, model="quad", speedup=1, extra=extra, limit_s=400).start()
+    res: dict = {}
+    try:
+        session, link = connect(sitl, rec)
+        try:
+            watch = Watch(link)
+            res["armed"] = arm(session, watch)
+            command(session, MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, alt)
+            wait_for(lambda: watch.position and watch.position[2] > alt - 1.5, 60)
+            lat0, lon0 = HOME[0], HOME[1]
+            for i, (dn, de) in enumerate(((80, 0), (80, 80), (0, 80), (0, 0))):
+                if name == "gps_off" and i == 1:
+                    set_params(session, {"SIM_GPS1_ENABLE": 0})
+                    res["gps_off_unix"] = time.time()
+                lat = lat0 + dn / 111320.0
+                lon = lon0 + de / (111320.0 * np.cos(np.radians(lat0)))
+                goto(session, lat, lon, alt)
+                wait_for(lambda: watch.position and np.hypot((watch.position[0] - lat) * 111320.0,
+                                                             (watch.position[1] - lon) * 96000.0) < 3, 40)
+                if name == "gps_off" and "gps_off_unix" in res and time.time() - res["gps_off_unix"] > 60:
+                    set_params(session, {"SIM_GPS1_ENABLE": 1})
+            if name == "gps_off":
+                wait_for(lambda: time.time() - res["gps_off_unix"] > 60, 70)
+                set_params(session, {"SIM_GPS1_ENABLE": 1})
+            set_mode(session, COPTER_LAND)
+            wait_for(lambda: not watch.armed, 120)
+            time.sleep(2)
+            res["tlog"] = session.sources.recording_path
+            res["events"] = [e["text"] for e in session.snapshot()["events"] if "vehicle:" in e["text"]]
+        finally:
+            session.close()
+    finally:
+        sitl.stop(keep=True)
+    res["bin"] = max(sitl.bin_logs(), key=lambda p: p.stat().st_size, default=None)
+    for kind in ("bin", "tlog"):
+        if res.get(kind) is None:
+            continue
+        log = read_log(res[kind])
+        summary, _ = analyze_log(log)
+        t0 = log.start_unix_s or 0.0
+        res[f"{kind}_alarms"] = [(a["kind"], round(t0 + a["start_s"], 2)) for a in summary.get("alarms", [])]
+        res[f"{kind}_motor"] = summary.get("motor_field") or {}
+        res[f"{kind}_duration"] = log.duration_s
+    out.setdefault("flights", {})[name] = res
+
+
+def _alarm_text(alarms: list, t0: float) -> str:
+    kinds: dict[str, list] = {}
+    for kind, unix in alarms:
+        kinds.setdefault(kind, []).append(f"{unix - t0:.1f}")
+    return "; ".join(f"{k} at {', '.join(v[:4])}{' …' if len(v) > 4 else ''}" for k, v in kinds.items()) or "none"
+
+
 # ---------------------------------------------------------------------------------- tables
 def print_tables(out: dict) -> None:
     st = out.get("streams")
@@ -223,7 +300,9 @@ def print_tables(out: dict) -> None:
                 err = max(abs(a - b) for a, b in zip(o, truth[key])) if None not in o else None
                 rep_v = rep.get(rk)
                 rep_err = max(abs(a - b) for a, b in zip(rep_v, truth[key])) if rep_v else None
-                rows.append((f"compass {k + 1} {key}", o, truth[key], rep_v, err, rep_err))
+                nd = 2 if key == "OFS" else 4
+                rows.append((f"compass {k + 1} {key}", fmt(o, nd), fmt(truth[key], nd), fmt(rep_v, nd), fmt(err, nd),
+                             fmt(rep_err, nd)))
         table(f"2. guided wizard on the rig ({out.get('wizard_compasses')} compasses, {out.get('wizard_s', 0):.0f} s wall)"
               " vs the truth vs ArduPilot's onboard calibrator",
               ("", "ours", "truth (SIM_MAGn_*)", "ArduPilot report", "ours - truth (max)", "ArduPilot - truth"), rows)
@@ -266,6 +345,22 @@ def print_tables(out: dict) -> None:
               ("", ".BIN", "session .tlog", "truth", "ArduPilot report", ".BIN - .tlog (max) mG"), rows)
 
 
+def print_flights(out: dict) -> None:
+    flights = out.get("flights") or {}
+    if not flights:
+        return
+    rows = []
+    for name, r in flights.items():
+        t0 = min([u for _, u in r.get("bin_alarms", []) + r.get("tlog_alarms", [])] or [0.0])
+        bm, tm = r.get("bin_motor", {}), r.get("tlog_motor", {})
+        rows.append((name, r.get("armed"), _alarm_text(r.get("bin_alarms", []), t0),
+                     _alarm_text(r.get("tlog_alarms", []), t0), FLIGHTS[name][2],
+                     f"{bm.get('status')} {fmt(bm.get('mG_per_A'))} / {tm.get('status')} {fmt(tm.get('mG_per_A'))}"))
+    table("5. flights at real time (alarm starts in s after the first alarm of either log, on one UNIX clock)",
+          ("flight", "armed", "alarms on the .BIN", "alarms on the session .tlog", "truth",
+           "motor field mG/A .BIN / .tlog"), rows)
+
+
 def print_notes(out: dict) -> None:
     """What a reader needs when a row misses its target."""
     w = out.get("write") or {}
@@ -275,7 +370,7 @@ def print_notes(out: dict) -> None:
         for k, (status, msg) in (out.get(f"{kind}_cal_status") or {}).items():
             if status != "ok":
                 print(f"{kind} compass {k + 1}: {status}: {msg}")
-    if out.get("reboot_resume_s") is None or out["reboot_resume_s"] > 5:
+    if "wizard" in out and (out.get("reboot_resume_s") is None or out["reboot_resume_s"] > 5):
         print("events of the wizard run (last 15):\n  " + "\n  ".join(out.get("wizard_events", [])[-15:]))
 
 
@@ -287,6 +382,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--speedup", type=float, default=8.0)
     ap.add_argument("--only", default="streams,wizard,onboard,logs")
+    ap.add_argument("--flights", default="", help="comma-separated of clean,motor,anomaly,gps_off "
+                    "(2 min each at real time; none by default)")
     args = ap.parse_args()
     if SITL_BINARY is None:
         print(f"skipped: {MISSING}")
@@ -300,7 +397,10 @@ def main() -> int:
         run_wizard(args.speedup, out)
     if "logs" in only:
         run_logs(out)
+    for name in filter(None, args.flights.split(",")):
+        run_flight(name, out)
     print_tables(out)
+    print_flights(out)
     print_notes(out)
     return 0
 

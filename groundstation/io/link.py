@@ -97,8 +97,12 @@ class LiveLink:
     ``poll`` records each (raw bytes, through ``recorder``), lists its system (``roster``) and
     decodes the packets of the followed vehicle only (``options.sysid``, else the first autopilot
     heard; ``select`` changes it).  Unless passive, it sends a GCS heartbeat every second, asks
-    the followed vehicle for the streams we need with SET_MESSAGE_INTERVAL and falls back to
-    REQUEST_DATA_STREAM when the vehicle does not acknowledge it.
+    the followed vehicle for every stream the station decodes with SET_MESSAGE_INTERVAL, each at
+    its rate, checks the ACKs and the arrivals (``streams``, ``streams_snapshot``: what is missing
+    and why), and falls back to REQUEST_DATA_STREAM when the vehicle acknowledges none.  A reboot
+    (boot time going back, a heartbeat gap, the ACK of a reboot command) makes it ask again; no IMU
+    data for STALE_AFTER_S while heartbeats arrive is stale data (``stale_reason``, a "live_data"
+    status), asked again every REREQUEST_EVERY_S.  What it sends is recorded too.
     """
 
     RATE_HZ = 50
@@ -167,7 +171,7 @@ class LiveLink:
         def write(buf):
             with lock:
                 sent = raw_write(buf)
-                if self.last_rx_unix is not None and buf and buf[0] in (0xFD, 0xFE):
+                if getattr(self, "last_rx_unix", None) is not None and buf and buf[0] in (0xFD, 0xFE):
                     self._record(bytes(buf), time.time())
                 return sent
 

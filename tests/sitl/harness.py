@@ -204,3 +204,54 @@ def wait_for(predicate, timeout_s: float, step_s: float = 0.1):
             return got
         time.sleep(step_s)
     return None
+
+
+# ------------------------------------------------------------------ flying (GUIDED)
+MAV_CMD_DO_SET_MODE = 176
+MAV_CMD_COMPONENT_ARM_DISARM = 400
+MAV_CMD_NAV_TAKEOFF = 22
+MAV_CMD_DO_REPOSITION = 192
+COPTER_GUIDED, COPTER_LAND = 4, 9
+
+
+class Watch:
+    """HEARTBEAT armed flag, COMMAND_ACKs and the position of the vehicle, from a pymavlink hook
+    on the station's link (read only)."""
+
+    def __init__(self, link) -> None:
+        self.armed = False
+        self.acks: list[tuple[int, int]] = []
+        self.position: tuple[float, float, float] | None = None   # lat, lon deg, relative alt m
+        link.mav.message_hooks.append(self._hook)
+
+    def _hook(self, _conn, msg) -> None:
+        if msg.get_srcSystem() != 1:
+            return
+        kind = msg.get_type()
+        if kind == "HEARTBEAT" and msg.type != 6:
+            self.armed = bool(msg.base_mode & 128)
+        elif kind == "COMMAND_ACK":
+            self.acks.append((int(msg.command), int(msg.result)))
+        elif kind == "GLOBAL_POSITION_INT":
+            self.position = (msg.lat * 1e-7, msg.lon * 1e-7, msg.relative_alt * 1e-3)
+
+
+def set_mode(session, custom_mode: int) -> None:
+    command(session, MAV_CMD_DO_SET_MODE, 1, custom_mode)
+
+
+def arm(session, watch: Watch, timeout_s: float = 120.0) -> bool:
+    """GUIDED, then arm until the vehicle says armed (its pre-arm checks pass once the EKF has GPS)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not watch.armed:
+        set_mode(session, COPTER_GUIDED)
+        command(session, MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        wait_for(lambda: watch.armed, 2.0, 0.1)
+    return watch.armed
+
+
+def goto(session, lat_deg: float, lon_deg: float, alt_m: float) -> None:
+    """MAV_CMD_DO_REPOSITION as COMMAND_INT (ArduPilot takes positions only in COMMAND_INT)."""
+    link = station_link(session)
+    link.mav.mav.command_int_send(link.sysid, 1, 6, MAV_CMD_DO_REPOSITION, 0, 0, -1, 1, 0, math.nan,
+                                  int(lat_deg * 1e7), int(lon_deg * 1e7), float(alt_m))

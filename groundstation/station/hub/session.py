@@ -11,7 +11,7 @@ after each batch, so pushers wake without polling; a failing listener is logged.
 
 A new source starts from a clean state: flight, alarms, events, wizard, preset line (the new
 log's mission or none) and the vehicle's parameters all start over.  Everything a live link
-receives is recorded to ``recordings/session-*.tlog``, from its first packet.
+receives and sends is recorded to ``recordings/session-*.tlog``, from its first packet.
 Thread-safe: every public method may be called from any thread.
 """
 from __future__ import annotations
