@@ -434,7 +434,11 @@ class LiveLink:
         autopilot = self.decoder.autopilot
         specs = {s.name: s for s in STREAMS}
         sent = []
+        skipped = [n for n in names if specs[n].rate_for(autopilot) <= 0]
+        self.streams.skipped(skipped)
         for name in names:
+            if name in skipped:
+                continue
             msg_id = getattr(mavlink2, "MAVLINK_MSG_ID_" + name)
             interval_us = 1e6 / specs[name].rate_for(autopilot)
             try:

@@ -29,20 +29,23 @@ class StreamSpec:
     optional: bool = False      # refused by some firmware, the station does without it (not "missing")
 
     def rate_for(self, autopilot: str | None) -> float:
-        return self.rate_ardupilot_hz if autopilot == "ardupilot" and self.rate_ardupilot_hz else self.rate_hz
+        """The rate to ask for [Hz]; 0: not asked of this autopilot."""
+        if autopilot == "ardupilot" and self.rate_ardupilot_hz is not None:
+            return self.rate_ardupilot_hz
+        return self.rate_hz
 
 
 # Every message groundstation.io.decode.MavlinkDecoder turns into samples that is sent as a stream
 # (PARAM_VALUE, MISSION_ITEM, COMMAND_ACK and STATUSTEXT come as answers or events, not streams).
-# ArduPilot sends compass 1 in RAW_IMU; its SCALED_IMU and HIGHRES_IMU repeat it, so they are asked
-# at a low rate there.
+# ArduPilot sends compass 1 and IMU 1 in RAW_IMU; its SCALED_IMU and HIGHRES_IMU repeat them (HIGHRES
+# in mG x 1000, not the gauss its definition says), so they are not asked of ArduPilot (rate 0).
 STREAMS: tuple[StreamSpec, ...] = (
     StreamSpec("ATTITUDE", 50, "attitude, the autopilot's heading"),
     StreamSpec("RAW_IMU", 50, "compass 1 and IMU 1 (ArduPilot)"),
-    StreamSpec("SCALED_IMU", 50, "compass 1 and IMU 1", rate_ardupilot_hz=5),
+    StreamSpec("SCALED_IMU", 50, "compass 1 and IMU 1", rate_ardupilot_hz=0),
     StreamSpec("SCALED_IMU2", 50, "compass 2 and IMU 2"),
     StreamSpec("SCALED_IMU3", 50, "compass 3 and IMU 3"),
-    StreamSpec("HIGHRES_IMU", 50, "IMU and compass (PX4)", rate_ardupilot_hz=5),
+    StreamSpec("HIGHRES_IMU", 50, "IMU and compass (PX4)", rate_ardupilot_hz=0),
     StreamSpec("GPS_RAW_INT", 10, "position, course and the WMM field"),
     StreamSpec("GLOBAL_POSITION_INT", 10, "position when GPS_RAW_INT is missing"),
     StreamSpec("SYS_STATUS", 5, "battery current (motor interference)"),
@@ -68,6 +71,7 @@ class _Stream:
     requested_unix: float | None = None
     tries: int = 0
     ack: int | None = None            # MAV_RESULT of the last answered request
+    not_asked: bool = False           # rate 0 for this autopilot (StreamSpec.rate_for)
     count: int = 0                    # arrived since the link (re)started
     first_unix: float | None = None
     last_unix: float | None = None
@@ -126,9 +130,16 @@ class StreamTracker:
         return max(times) if times else None
 
     def unanswered_since(self, unix: float) -> bool:
-        """Requests went out more than ACK_WAIT_S ago and none was answered (older firmware)."""
+        """Requests went out more than ACK_WAIT_S ago and none was accepted (no answer, or every
+        answer a refusal: older firmware, which still honours REQUEST_DATA_STREAM)."""
         sent = [st.requested_unix for st in self.streams.values() if st.requested_unix is not None]
-        return bool(sent) and not self.any_ack and unix - min(sent) > ACK_WAIT_S
+        accepted = any(st.ack == 0 for st in self.streams.values())
+        return bool(sent) and not accepted and unix - min(sent) > ACK_WAIT_S
+
+    def skipped(self, names) -> None:
+        """Not asked of this autopilot (its rate there is 0)."""
+        for name in names:
+            self.streams[name].not_asked = True
 
     def retry_due(self, unix: float) -> list[str]:
         """Accepted (or unanswered) continuous streams that have not arrived RETRY_AFTER_S after
@@ -151,6 +162,10 @@ class StreamTracker:
         return round((st.count - 1) / (st.last_unix - st.first_unix), 1)
 
     def _why_missing(self, st: _Stream, passive: bool) -> str:
+        if st.not_asked:
+            return "not asked of this autopilot (" + (
+                "ArduPilot sends compass 1 and IMU 1 in RAW_IMU)" if st.spec.name in ("SCALED_IMU", "HIGHRES_IMU")
+                else "the station does without it)")
         if passive:
             return ("MagStation only listens here (asks for nothing) and the other ground station does not "
                     "have it streamed")
@@ -159,7 +174,8 @@ class StreamTracker:
         if st.requested_unix is None:
             return "not requested yet"
         if st.ack is not None and st.ack != 0:
-            return f"the vehicle refused SET_MESSAGE_INTERVAL ({ACK_RESULT_TEXT.get(st.ack, st.ack)})"
+            return f"the vehicle refused SET_MESSAGE_INTERVAL ({ACK_RESULT_TEXT.get(st.ack, st.ack)})" + (
+                "; asked again with REQUEST_DATA_STREAM" if self.fallback_sent_unix is not None else "")
         if st.ack == 0:
             return ("accepted by the vehicle but not sent (it may not have this sensor"
                     + (", e.g. no third compass)" if st.spec.name == "SCALED_IMU3" else ")"))
@@ -169,8 +185,8 @@ class StreamTracker:
 
     def snapshot(self, unix: float, passive: bool) -> dict:
         """{"messages": [{name, use, state, rate_hz, why, acked}], "missing": [...]}; state is
-        "arriving", "on demand" (MAG_CAL_* while no calibration runs), "not available" (an
-        optional message the vehicle refused) or "missing"."""
+        "arriving", "on demand" (MAG_CAL_* while no calibration runs), "not asked" (of this
+        autopilot), "not available" (an optional message the vehicle refused) or "missing"."""
         rows, missing = [], []
         for name, st in self.streams.items():
             if self.arriving(name, unix):
@@ -180,6 +196,7 @@ class StreamTracker:
             else:
                 why = self._why_missing(st, passive)
                 state = "on demand" if st.spec.on_demand and not passive and st.requested_unix is not None \
+                    else "not asked" if st.not_asked and not passive \
                     else "not available" if st.spec.optional and st.ack not in (None, 0) else "missing"
                 if state == "missing":
                     missing.append(name)

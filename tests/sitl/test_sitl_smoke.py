@@ -34,6 +34,10 @@ def rig_run(tmp_path_factory):
         try:
             link = station_link(session)
             wait_for(lambda: not link.streams_snapshot()["missing"], 30)
+            seen["own_streams"] = link.streams_snapshot()
+            # HIGHRES_IMU is not asked of ArduPilot; another tool may have it streamed: here we do
+            command(session, 511, 105, 20000)      # MAV_CMD_SET_MESSAGE_INTERVAL HIGHRES_IMU 50 Hz
+            wait_for(lambda: link.streams.arriving("HIGHRES_IMU", time.time()), 10)
             time.sleep(0.5)             # a rate measured over a few samples
             seen["state"] = session.snapshot()
             rig_tour(session)
@@ -65,10 +69,15 @@ def rig_run(tmp_path_factory):
 def test_stock_arducopter_sends_every_stream_the_station_asks_for(rig_run):
     """Every MAVn_* rate is 0 on a stock Copter: the station asked for each message itself, the
     vehicle accepted, and all arrive (compasses 2 and 3, battery current included); the on-demand
-    MAG_CAL_* wait for a calibration and ArduPilot 4.7's refused SENSOR_OFFSETS is not 'missing'."""
-    streams = rig_run["state"]["vehicles"]["streams"]
+    MAG_CAL_* wait for a calibration, ArduPilot 4.7's refused SENSOR_OFFSETS is not 'missing', and
+    the duplicates of RAW_IMU (SCALED_IMU, HIGHRES_IMU) are not asked of ArduPilot."""
+    streams = rig_run["own_streams"]
     rows = {m["name"]: m for m in streams["messages"]}
     assert streams["missing"] == [], streams["missing"]
+    for name in ("SCALED_IMU", "HIGHRES_IMU"):      # compass 1 comes in RAW_IMU: not asked of ArduPilot
+        assert rows[name]["state"] == "not asked" and "RAW_IMU" in rows[name]["why"], rows[name]
+    rows = {m["name"]: m for m in rig_run["state"]["vehicles"]["streams"]["messages"]}
+    assert rows["HIGHRES_IMU"]["state"] == "arriving" and "vehicle's own settings" in rows["HIGHRES_IMU"]["why"]
     for name in ("ATTITUDE", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3", "SYS_STATUS", "GPS_RAW_INT", "SYSTEM_TIME"):
         assert rows[name]["state"] == "arriving" and rows[name]["acked"] == "accepted", rows[name]
     assert rows["SCALED_IMU2"]["rate_hz"] > 100          # 50 Hz asked, at 8x simulated time
