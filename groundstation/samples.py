@@ -161,7 +161,8 @@ class CompassTable:
     (``calibration_applied`` says whether the autopilot's corrections are in it).  source: the
     message it came from ("RAW_IMU", "SCALED_IMU2", "MAG2", "MAG[1]", "sensor_mag[1]",
     "vehicle_magnetometer").  motor_offset_mG: (N, 3) motor compensation the autopilot logged with
-    each sample (DataFlash MAG MOfsX.. / MOX..), None when not logged.
+    each sample (DataFlash MAG MOfsX.. / MOX..), None when not logged.  source_note: which source
+    was chosen among the log's for this compass, in which unit, and why (None: the only one).
     """
     compass: int
     field: np.ndarray
@@ -169,6 +170,7 @@ class CompassTable:
     device_id: int | None = None
     calibration_applied: bool | None = None
     motor_offset_mG: np.ndarray | None = None
+    source_note: str | None = None      # why this source (of several for the compass) and its unit
 
     @property
     def rate_hz(self) -> float:

@@ -77,7 +77,10 @@ def test_udp_link_requests_streams_falls_back_and_records(tmp_path):
     types = [msg.get_type() for msg in received]
     assert "HEARTBEAT" in types  # the station's GCS heartbeat
     intervals = [msg for msg in received if msg.get_type() == "COMMAND_LONG" and msg.command == 511]
-    assert {int(msg.param1) for msg in intervals} >= {m.MAVLINK_MSG_ID_SCALED_IMU, m.MAVLINK_MSG_ID_ATTITUDE}
+    asked = {int(msg.param1) for msg in intervals}        # an ArduPilot heartbeat: compass 1 in RAW_IMU
+    assert asked >= {m.MAVLINK_MSG_ID_RAW_IMU, m.MAVLINK_MSG_ID_SCALED_IMU2, m.MAVLINK_MSG_ID_SCALED_IMU3,
+                     m.MAVLINK_MSG_ID_ATTITUDE, m.MAVLINK_MSG_ID_SYS_STATUS, m.MAVLINK_MSG_ID_MAG_CAL_REPORT}
+    assert m.MAVLINK_MSG_ID_HIGHRES_IMU not in asked
     assert intervals[0].param2 == pytest.approx(20000)  # 50 Hz
     assert "REQUEST_DATA_STREAM" in types  # no COMMAND_ACK came, so it fell back
     mags = [s for s in samples if isinstance(s, MagSample)]

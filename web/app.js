@@ -69,6 +69,10 @@ function renderLink(s) {
   if (v.forwarding) extra.push("forwarding to " + v.forwarding.outputs.map((o) => o.url + " (" + o.to_gcs +
     " out, " + o.from_gcs + " in)").join(", ") + (v.forwarding.process && v.forwarding.process.error ?
     " — forwarding process stopped: " + v.forwarding.process.error : ""));
+  const st = v.streams;     // the messages the station uses: missing ones and why (passive: the other station's)
+  if (st && st.stale) extra.push("no attitude data: " + st.stale);
+  if (st) extra.push(st.missing.length ? "missing: " + st.messages.filter((m) => m.state === "missing")
+    .map((m) => m.name + " (" + m.why + ")").join(", ") : "all streams arriving" + (v.passive ? " (provided by the other station)" : ""));
   const changed = Object.keys(v.params_changed_elsewhere || {});
   if (changed.length) extra.push("changed by another ground station: " + changed.join(", "));
   $("link-extra").textContent = extra.join(" · ");

@@ -6,13 +6,16 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from dataclasses import dataclass
 from typing import Callable
 
 from ..samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, MagCalSample, MagSample, MissionSample,
                        OffsetsSample, ParamSample, Sample, StatusSample, ThrottleSample)
 
 __all__ = ["MavlinkDecoder", "G_MPS2", "MG_PER_GAUSS", "MG_PER_UT", "MAV_CMD_NAV_WAYPOINT",
-           "MAV_CMD_SET_MESSAGE_INTERVAL", "MAG_CAL_COMMANDS", "SOURCE_NAMES", "compass_of_source", "source_name"]
+           "MAV_CMD_SET_MESSAGE_INTERVAL", "MAG_CAL_COMMANDS", "SOURCE_NAMES", "compass_of_source", "source_name",
+           "PLAUSIBLE_FIELD_mG", "FieldUnit", "judge_field_unit", "field_plausible", "expected_field_mG",
+           "HIGHRES_MAG_UNITS", "MG_UNIT", "rank_mag_source"]
 
 G_MPS2 = 9.80665
 MG_PER_GAUSS = 1000.0
@@ -44,6 +47,87 @@ def source_name(instance: int) -> str:
     instance = int(instance)
     return SOURCE_NAMES.get(instance, f"HIGHRES_IMU[{instance - 20}]" if instance >= 20 else f"source {instance}")
 
+
+
+# The Earth's field is 220-670 mG at the surface; a compass whose offsets are not yet removed, or
+# near iron, reads more.  A source outside this range (or 0.5-2x the WMM where the place is known)
+# is not in the unit we think.
+PLAUSIBLE_FIELD_mG = (150.0, 1000.0)
+PLAUSIBLE_WMM_RATIO = (0.5, 2.0)
+MG_UNIT = (("mG", 1.0),)
+# HIGHRES_IMU xmag..zmag: gauss says the MAVLink XML; ArduPilot (4.7, GCS_Common.cpp
+# send_highres_imu) sends get_field() * 1000, i.e. mG x 1000.  The magnitudes differ 10^6-fold.
+HIGHRES_MAG_UNITS = (("gauss (the MAVLink definition)", MG_PER_GAUSS),
+                     ("mG x 1000 (ArduPilot sends get_field() * 1000)", 1e-3))
+
+
+@dataclass(frozen=True)
+class FieldUnit:
+    """The unit chosen for a magnetometer source: ``scale_to_mG`` times the value as sent is mG;
+    ``magnitude_mG`` the field's length judged; ``plausible`` whether it is within the range."""
+    source: str
+    unit: str
+    scale_to_mG: float
+    magnitude_mG: float
+    plausible: bool
+    why: str
+
+    def as_dict(self) -> dict:
+        return {"source": self.source, "unit": self.unit, "scale_to_mG": self.scale_to_mG,
+                "magnitude_mG": round(self.magnitude_mG, 1) if math.isfinite(self.magnitude_mG) else None,
+                "plausible": self.plausible, "why": self.why}
+
+
+def expected_field_mG(lat_deg: float, lon_deg: float, alt_m: float, unix_s: float | None) -> float | None:
+    """The WMM total intensity [mG] at a place (None when the place is not a place)."""
+    from estimators.geomag import decimal_year_from_unix, earth_field
+
+    if not _finite(lat_deg, lon_deg, alt_m) or not (-90 <= lat_deg <= 90 and -180 <= lon_deg <= 180):
+        return None
+    year = decimal_year_from_unix(unix_s if unix_s is not None and math.isfinite(unix_s) else 1.75e9)
+    return float(earth_field(lat_deg, lon_deg, alt_m, year).field_strength_mG)
+
+
+def field_plausible(magnitude_mG: float, expected_mG: float | None = None) -> bool:
+    """|B| within 0.5-2x the WMM intensity (``expected_mG``), or 150-1000 mG where no place is known."""
+    if not math.isfinite(magnitude_mG):
+        return False
+    if expected_mG is not None and math.isfinite(expected_mG) and expected_mG > 0:
+        return PLAUSIBLE_WMM_RATIO[0] <= magnitude_mG / expected_mG <= PLAUSIBLE_WMM_RATIO[1]
+    return PLAUSIBLE_FIELD_mG[0] <= magnitude_mG <= PLAUSIBLE_FIELD_mG[1]
+
+
+def judge_field_unit(source: str, magnitude_as_sent: float, units=MG_UNIT,
+                     expected_mG: float | None = None) -> FieldUnit:
+    """The unit of a magnetometer source, judged by its field's length: of ``units`` ((name,
+    scale to mG), the documented one first) the one whose |B| x scale is nearest the expected
+    field in ratio, min |ln(|B| s / E)|, E the WMM intensity where known, else the geometric
+    middle of PLAUSIBLE_FIELD_mG (387 mG).  With one unit it is only checked.  The one rule for
+    the live decoder and the log readers (which decode through it)."""
+    target = expected_mG if expected_mG is not None and expected_mG > 0 else math.sqrt(
+        PLAUSIBLE_FIELD_mG[0] * PLAUSIBLE_FIELD_mG[1])
+    against = f"the WMM's {expected_mG:.0f} mG" if expected_mG is not None and expected_mG > 0 else \
+        f"the plausible {PLAUSIBLE_FIELD_mG[0]:.0f}-{PLAUSIBLE_FIELD_mG[1]:.0f} mG (no position yet)"
+    m = abs(float(magnitude_as_sent))
+    if not math.isfinite(m) or m == 0.0:
+        name, scale = units[0]
+        return FieldUnit(source, name, scale, math.nan, False, f"|B| {m:g} as sent: unit not judged, {name} assumed")
+    name, scale = min(units, key=lambda u: abs(math.log(m * u[1] / target)))
+    mag = m * scale
+    ok = field_plausible(mag, expected_mG)
+    others = [f"{n} would give {m * sc:.3g} mG" for n, sc in units if n != name]
+    why = (f"|B| {mag:.0f} mG read as {name}, against {against}" + ("; " + ", ".join(others) if others else "")
+           + ("" if ok else "; implausible in every unit known: the source is used with a warning"))
+    return FieldUnit(source, name, scale, mag, ok, why)
+
+
+def rank_mag_source(instance: int, magnitude_mG: float, n_samples: int, autopilot: str | None,
+                    expected_mG: float | None = None) -> tuple:
+    """Sort key (larger is better) of a compass's candidate sources: a plausible field first,
+    then, for ArduPilot, RAW_IMU/SCALED_IMUn before HIGHRES_IMU (whose unit it does not send as
+    documented), then the most samples."""
+    return (field_plausible(magnitude_mG, expected_mG), not (autopilot == "ardupilot" and instance >= 20),
+            n_samples)
 
 
 def _finite(*values: float) -> bool:
@@ -107,7 +191,9 @@ class MavlinkDecoder:
     """Turns pymavlink message objects into samples, with units exactly as the MAVLink XML says.
 
     SCALED_IMU/2/3 and ArduPilot's RAW_IMU: acc mG (milli-g), gyro mrad/s, mag mgauss.
-    HIGHRES_IMU: acc m/s^2, gyro rad/s, mag gauss.  ATTITUDE: rad.  GPS_RAW_INT: degE7, mm,
+    HIGHRES_IMU: acc m/s^2, gyro rad/s, mag gauss, or mG x 1000 as ArduPilot sends it: each
+    magnetometer source's unit is judged at its first sample by its field's length
+    (``judge_field_unit``, ``mag_units`` says which and why).  ATTITUDE: rad.  GPS_RAW_INT: degE7, mm,
     cm/s, cdeg.  Messages from a GCS (our own heartbeats echoed, other ground stations) are
     ignored.  ``vehicle_sysid``: the system to decode (None: the first autopilot heartbeat's);
     messages of other systems give no samples.
@@ -121,6 +207,9 @@ class MavlinkDecoder:
         self.warnings: Counter = Counter()
         self._last_gps_raw_t = -math.inf
         self._last_fix_type = 3
+        self._place: tuple[float, float, float] | None = None     # the last GPS position (WMM)
+        self.mag_units: dict[str, dict] = {}      # source name -> FieldUnit.as_dict(), judged at its first sample
+        self._mag_scale: dict[int, float] = {}
         self._handlers: dict[str, Callable] = {
             "HEARTBEAT": self._heartbeat,
             "RAW_IMU": self._scaled_imu(0),
@@ -184,6 +273,7 @@ class MavlinkDecoder:
             out: list[Sample] = []
             mag = (float(msg.xmag), float(msg.ymag), float(msg.zmag))
             if mag != (0.0, 0.0, 0.0):  # all-zero = no compass on this instance
+                out += self._judge(instance, mag, MG_UNIT, t)
                 out.append(MagSample(t, mag, instance))
             gyro = (msg.xgyro * 1e-3, msg.ygyro * 1e-3, msg.zgyro * 1e-3)
             acc = (msg.xacc * 1e-3 * G_MPS2, msg.yacc * 1e-3 * G_MPS2, msg.zacc * 1e-3 * G_MPS2)
@@ -195,9 +285,11 @@ class MavlinkDecoder:
         updated = msg.fields_updated
         out: list[Sample] = []
         if updated & 0x1C0 or not updated:
-            mag = (msg.xmag * MG_PER_GAUSS, msg.ymag * MG_PER_GAUSS, msg.zmag * MG_PER_GAUSS)
-            if _finite(*mag):
-                out.append(MagSample(t, mag, 20 + msg.id))
+            sent = (float(msg.xmag), float(msg.ymag), float(msg.zmag))
+            if _finite(*sent):
+                out += self._judge(20 + msg.id, sent, HIGHRES_MAG_UNITS, t)
+                scale = self._mag_scale.get(20 + msg.id, MG_PER_GAUSS)
+                out.append(MagSample(t, (sent[0] * scale, sent[1] * scale, sent[2] * scale), 20 + msg.id))
             else:
                 self.warnings["NaN magnetometer field"] += 1
         gyro = (msg.xgyro, msg.ygyro, msg.zgyro)
@@ -207,6 +299,25 @@ class MavlinkDecoder:
         else:
             self.warnings["NaN IMU field"] += 1
         return out
+
+    def _judge(self, instance: int, sent: tuple[float, float, float], units, t: float) -> list[Sample]:
+        """The unit of a magnetometer source, judged at its first non-zero sample
+        (``judge_field_unit``), kept in ``mag_units`` (the live link says it as a "mag_unit" status)."""
+        if instance in self._mag_scale:
+            return []
+        m = math.sqrt(sum(v * v for v in sent))
+        if m == 0.0:
+            return []
+        expected = None
+        if self._place is not None:
+            unix = self.start_unix_s + t if self.start_unix_s is not None else None
+            expected = expected_field_mG(*self._place, unix)
+        unit = judge_field_unit(source_name(instance), m, units, expected)
+        self._mag_scale[instance] = unit.scale_to_mG
+        self.mag_units[unit.source] = unit.as_dict()
+        if not unit.plausible:
+            self.warnings[f"{unit.source}: implausible magnetometer field ({unit.why})"] += 1
+        return []
 
     def _attitude(self, msg, arrival_s: float) -> list[Sample]:
         if not _finite(msg.roll, msg.pitch, msg.yaw):
@@ -227,6 +338,7 @@ class MavlinkDecoder:
         self._last_fix_type = int(msg.fix_type)
         if msg.fix_type < 2 or (msg.lat == 0 and msg.lon == 0):
             return []
+        self._place = (msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
         speed = msg.vel * 0.01 if msg.vel != 65535 else math.nan
         course = math.radians(msg.cog * 0.01) if msg.cog != 65535 else math.nan
         vel = (speed * math.cos(course), speed * math.sin(course), math.nan)

@@ -8,7 +8,7 @@ import numpy as np
 from groundstation.jobs.compass_raw import compass_fields
 from groundstation.samples import MAG_CAL_SUCCESS, FlightLog
 
-__all__ = ["compass_lines", "refused_parameter_lines", "MAX_CHANGES_LISTED", "REFUSED_PREFIX"]
+__all__ = ["compass_lines", "refused_parameter_lines", "MAX_CHANGES_LISTED", "REFUSED_PREFIX", "distinct_reports"]
 
 REFUSED_PREFIX = "parameter value refused: "      # the readers' warning (groundstation.io.params.param_value_problem)
 
@@ -45,14 +45,33 @@ def _changes(cf) -> list[str]:
     return lines
 
 
+def distinct_reports(events) -> list:
+    """The onboard calibration's reports, each once: ArduPilot repeats a compass's MAG_CAL_REPORT
+    at its stream rate until the result is accepted or a new calibration starts, so a report equal
+    to the last one of the same compass (status, fitness, offsets, soft iron) since the last start
+    command is the same report again."""
+    out, last = [], {}
+    for e in events:
+        if e.kind == "start":
+            last.clear()
+        elif e.kind == "report":
+            key = (e.status, e.fitness_mG, e.offsets_mG, e.diag, e.offdiag, e.scale_factor)
+            if last.get(e.compass) != key:
+                last[e.compass] = key
+                out.append(e)
+    return out
+
+
 def _mag_cal_lines(log: FlightLog) -> list[str]:
     if not log.mag_cal:
         return []
     starts = [e for e in log.mag_cal if e.kind == "start"]
-    reports = [e for e in log.mag_cal if e.kind == "report"]
+    messages = sum(1 for e in log.mag_cal if e.kind == "report")
+    reports = distinct_reports(log.mag_cal)
     progress = [e for e in log.mag_cal if e.kind == "progress"]
+    repeats = f" (in {messages} MAG_CAL_REPORT messages)" if messages != len(reports) else ""
     out = [f"  onboard cal     {len(starts)} start command(s), {len(progress)} progress messages, "
-           f"{len(reports)} report(s)"]
+           f"{len(reports)} report(s){repeats}"]
     for r in reports:
         ok = "success" if r.status == MAG_CAL_SUCCESS else f"status {r.status}"
         out.append(f"      compass {r.compass} at {r.t_s:.1f} s: {ok}, fitness {r.fitness_mG:.1f} mG, "
@@ -92,6 +111,8 @@ def compass_lines(log: FlightLog) -> list[str]:
         lines.append(f"    compass {cf.compass}: {cf.source}, {len(cf.t_s)} samples, {table.rate_hz:.1f} Hz{dev}, "
                      f"{cf.t_s[0]:.0f}–{cf.t_s[-1]:.0f} s, {_state(table.calibration_applied, cf.status)}"
                      if len(cf.t_s) else f"    compass {cf.compass}: {cf.source}, no samples")
+        if table.source_note:
+            lines.append(f"      source: {table.source_note}")
         lines += _changes(cf)
     if len(log.imus) > 1:
         lines.append("  IMUs            " + ", ".join(f"{k}: {len(v)} samples" for k, v in sorted(log.imus.items())))

@@ -10,6 +10,7 @@ import numpy as np
 
 from ...samples import (AttitudeSample, BatterySample, FlightLog, GpsSample, ImuSample, MagCalSample, MagSample,
                         MissionSample, OffsetsSample, ParamSample, Sample, StatusSample, ThrottleSample)
+from ..decode import expected_field_mG
 from .instances import compact_history, split_compasses, split_imus
 from ..params import param_value_problem
 
@@ -76,11 +77,22 @@ class LogBuilder:
             if s.kind == "autopilot":
                 self.log.autopilot = s.text
 
+    def _expected_field_mG(self) -> float | None:
+        """The WMM intensity at the log's median GPS position (None without one), to judge the
+        magnetometer sources by (``decode.field_plausible``)."""
+        gps = np.frombuffer(self.rows["gps"], dtype=float).reshape(-1, WIDTHS["gps"])
+        good = gps[np.isfinite(gps[:, 1]) & np.isfinite(gps[:, 2]) & ((gps[:, 1] != 0) | (gps[:, 2] != 0))]
+        if not len(good):
+            return None
+        lat, lon, alt = (float(np.median(good[:, i])) for i in (1, 2, 3))
+        return expected_field_mG(lat, lon, alt, self.log.start_unix_s)
+
     def finish(self) -> FlightLog:
         log = self.log
         mag = np.frombuffer(self.rows.pop("mag"), dtype=float).reshape(-1, WIDTHS["mag"])
         log.compasses, log.primary_compass = split_compasses(mag, self.source_names, log.params,
-                                                             log.mag_calibration_applied, log.warnings, clean_table)
+                                                             log.mag_calibration_applied, log.warnings, clean_table,
+                                                             log.autopilot, self._expected_field_mG())
         del mag
         primary = [c for c in log.compasses if c.compass == log.primary_compass]
         log.mag = primary[0].field if primary else np.empty((0, 4))

@@ -3,7 +3,9 @@
 A log may hold up to three compasses and IMUs (ArduPilot RAW_IMU / SCALED_IMU2 / SCALED_IMU3,
 DataFlash MAG/MAG2/MAG3 or MAG with an instance column, PX4 sensor_mag instances).  Every one is
 kept; the primary (the one ``FlightLog.mag`` / ``imu`` hold, for the single-sensor callers) is
-the one with the most samples, ties to the lowest number.
+the one with the most samples, ties to the lowest number.  A compass sent in several messages
+(ArduPilot: RAW_IMU and HIGHRES_IMU) is read from the one with a plausible field, ArduPilot's
+RAW_IMU/SCALED_IMUn before HIGHRES_IMU, then the most samples (``decode.rank_mag_source``).
 """
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..decode import compass_of_source, source_name
+from ..decode import compass_of_source, rank_mag_source, source_name
 from ...samples import CompassTable
 
 Clean = Callable[[np.ndarray, str, Counter], np.ndarray]   # builder.clean_table
@@ -30,6 +32,7 @@ def ardupilot_device_id(params: dict[str, float], compass: int) -> int | None:
 
 
 def _sources(rows: np.ndarray) -> dict[int, int]:
+    """The source with the most rows for each compass/IMU number (IMUs; compasses: ``_mag_sources``)."""
     best: dict[int, tuple[int, int]] = {}
     for src in np.unique(rows[:, -1]).astype(int).tolist():
         n = int(np.count_nonzero(rows[:, -1] == src))
@@ -39,26 +42,59 @@ def _sources(rows: np.ndarray) -> dict[int, int]:
     return {k: s for k, (s, _) in best.items()}
 
 
+def _mag_sources(rows: np.ndarray, source_names: dict[int, str], autopilot: str | None,
+                 expected_mG: float | None) -> dict[int, tuple[int, str | None]]:
+    """For each compass, its source ranked by ``decode.rank_mag_source`` (a plausible median
+    |B| first, for ArduPilot RAW_IMU/SCALED_IMUn before HIGHRES_IMU, then the most samples) and a
+    note saying why when there was a choice or the field is implausible."""
+    cands: dict[int, list[tuple[tuple, int, float, int]]] = {}
+    for src in np.unique(rows[:, -1]).astype(int).tolist():
+        sel = rows[rows[:, -1] == src, 1:4]
+        with np.errstate(invalid="ignore", over="ignore"):
+            mag = float(np.nanmedian(np.linalg.norm(sel, axis=1))) if len(sel) else float("nan")
+        k = compass_of_source(src)
+        cands.setdefault(k, []).append((rank_mag_source(src, mag, len(sel), autopilot, expected_mG), src, mag, len(sel)))
+    out: dict[int, tuple[int, str | None]] = {}
+    for k, options in cands.items():
+        options.sort(key=lambda c: c[0], reverse=True)
+        key, src, mag, n = options[0]
+        name = lambda s: source_names.get(s) or source_name(s)  # noqa: E731
+        against = f"WMM {expected_mG:.0f} mG" if expected_mG else "150-1000 mG"
+        note = None
+        if len(options) > 1:
+            why = "plausible field" if key[0] else "no source has a plausible field"
+            if autopilot == "ardupilot" and any(c[1] >= 20 for c in options) and src < 20:
+                why += ", ArduPilot: RAW_IMU/SCALED_IMUn preferred to HIGHRES_IMU"
+            note = (f"{name(src)} chosen ({why}; median |B| {mag:.0f} mG vs {against}, {n} samples) over "
+                    + ", ".join(f"{name(c[1])} (|B| {c[2]:.4g} mG, {c[3]} samples)" for c in options[1:]))
+        elif not key[0]:
+            note = f"{name(src)}: implausible median |B| {mag:.4g} mG (vs {against}): is its unit right?"
+        out[k] = (src, note)
+    return out
+
+
 def _primary(tables: dict[int, np.ndarray]) -> int:
     return max(sorted(tables), key=lambda k: len(tables[k]))
 
 
 def split_compasses(rows: np.ndarray, source_names: dict[int, str], params: dict[str, float],
-                    applied: bool | None, warnings: Counter, clean_table: Clean) -> tuple[list[CompassTable], int]:
+                    applied: bool | None, warnings: Counter, clean_table: Clean, autopilot: str | None = None,
+                    expected_mG: float | None = None) -> tuple[list[CompassTable], int]:
     """CompassTables from mag rows [t, mx, my, mz, mox, moy, moz, source] (motor offsets NaN when
-    not logged) and the primary compass number (0 when there is none)."""
+    not logged) and the primary compass number (0 when there is none); each compass's source is
+    chosen by ``_mag_sources`` (``expected_mG``: the WMM intensity at the log's place, or None)."""
     if not len(rows):
         return [], 0
-    sources = _sources(rows)
+    sources = _mag_sources(rows, source_names, autopilot, expected_mG)
     out: list[CompassTable] = []
-    for k, src in sorted(sources.items()):
+    for k, (src, note) in sorted(sources.items()):
         sel = rows[rows[:, -1] == src, :-1]
         has_mot = bool(np.isfinite(sel[:, 4:7]).any())
         sel = np.column_stack([sel[:, :4], np.nan_to_num(sel[:, 4:7])])
         table = clean_table(sel, "mag" if k == 0 else f"mag[{k}]", warnings)
         name = source_names.get(src) or source_name(src)
         out.append(CompassTable(k, np.ascontiguousarray(table[:, :4]), name, ardupilot_device_id(params, k), applied,
-                                np.ascontiguousarray(table[:, 4:7]) if has_mot else None))
+                                np.ascontiguousarray(table[:, 4:7]) if has_mot else None, note))
     out = [c for c in out if len(c.field)]
     if not out:
         return [], 0

@@ -29,9 +29,11 @@ from collections import Counter
 
 from groundstation.station.hub.vehicle import same_float32
 
-__all__ = ["on_compass_params_changed", "ParamSourceGuard", "ADDRESS_SILENT_S"]
+__all__ = ["on_compass_params_changed", "ParamSourceGuard", "ADDRESS_SILENT_S", "autopilot_change"]
 
 ADDRESS_SILENT_S = 3.0          # the vehicle's known address silent this long: a new one may take over
+LEARNING = (1, 2, 3)            # COMPASS_LEARN: internal, EKF, in-flight learning (3 turns itself off when done)
+OTHER_GCS_SET_WITHIN_S = 10.0   # a PARAM_SET of this name by another GCS this recently: that station did it
 REPORT_EVERY = 100              # after the first refusal of a kind, say so again every this many
 
 
@@ -94,6 +96,27 @@ class ParamSourceGuard:
         return {"refused": int(sum(self.refused.values())), "by_source": dict(self.refused), "last": self.last,
                 "vehicle_address": None if self.address is None else _addr_text(self.address),
                 "vehicle_component": self.component}
+
+def autopilot_change(vehicle, link, name: str, now_unix: float) -> str | None:
+    """Who changed compass parameter ``name`` (not this station): why the autopilot did it itself,
+    or None (another ground station).  A PARAM_SET of it heard from another GCS on the link makes
+    it that station's; else COMPASS_DEC with COMPASS_AUTODEC on (ArduPilot's default 1: set from
+    its own WMM table once it has a position), and COMPASS_OFS* / COMPASS_LEARN while COMPASS_LEARN
+    learns offsets (3, in-flight learning, saves the offsets and sets itself back to 0) are the
+    autopilot's own."""
+    seen = getattr(link, "param_sets_seen", {}).get(name)
+    if seen is not None and now_unix - seen[1] <= OTHER_GCS_SET_WITHIN_S:
+        return None
+    params, own = vehicle.params, vehicle.changed_by_autopilot
+    if name == "COMPASS_DEC" and params.get("COMPASS_AUTODEC", 1.0) != 0:
+        return "ArduPilot sets it from its own WMM table (COMPASS_AUTODEC on)"
+    learn_old = own["COMPASS_LEARN"][0] if "COMPASS_LEARN" in own else None
+    learning = int(params.get("COMPASS_LEARN", 0)) in LEARNING or (learn_old is not None and int(learn_old) in LEARNING)
+    if name == "COMPASS_LEARN" and int(vehicle.changed_elsewhere.get(name, (0, 0))[0]) in LEARNING:
+        return "ArduPilot's offset learning finished and switched itself off"
+    if name.startswith("COMPASS_OFS") and learning:
+        return "learnt by ArduPilot's compass offset learning (COMPASS_LEARN)"
+    return None
 
 
 def on_compass_params_changed(hub, names: list[str]) -> None:

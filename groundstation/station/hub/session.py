@@ -11,7 +11,7 @@ after each batch, so pushers wake without polling; a failing listener is logged.
 
 A new source starts from a clean state: flight, alarms, events, wizard, preset line (the new
 log's mission or none) and the vehicle's parameters all start over.  Everything a live link
-receives is recorded to ``recordings/session-*.tlog``, from its first packet.
+receives and sends is recorded to ``recordings/session-*.tlog``, from its first packet.
 Thread-safe: every public method may be called from any thread.
 """
 from __future__ import annotations
@@ -30,7 +30,7 @@ from groundstation.station.hub.calibration import CalibrationControl
 from groundstation.station.hub.flight import FlightState
 from groundstation.station.hub.in_use import CalibrationInUse
 from groundstation.station.hub.recordings import RecordingsFolder
-from groundstation.station.hub.param_watch import on_compass_params_changed, param_trust
+from groundstation.station.hub.param_watch import autopilot_change, on_compass_params_changed, param_trust
 from groundstation.station.hub.review import build_review
 from groundstation.station.hub.sources import (ConflictError, NotFoundError, SessionError, SourceControl,
                                                check_speed)
@@ -124,7 +124,13 @@ class Session(SessionViews):
                 self._on_status(s)
             elif isinstance(s, ParamSample):
                 if self.vehicle.on_param(s) and live:
-                    changed_elsewhere.append(s.name)
+                    why = autopilot_change(self.vehicle, self.sources.link, s.name, time.time())
+                    if why is None:
+                        changed_elsewhere.append(s.name)
+                    else:
+                        old, new = self.vehicle.changed_elsewhere[s.name]
+                        self.vehicle.changed_by_itself(s.name, why)
+                        self.event(f"{s.name} {old:g} -> {new:g} changed by the autopilot itself: {why}")
                 if live and self.vehicle.params.get(s.name) == s.value:     # accepted into the cache
                     self.calibration.on_param(s.name, s.value)
             elif isinstance(s, MissionSample):
@@ -159,8 +165,12 @@ class Session(SessionViews):
             self.calibration.on_link(up, s.t_s)
         elif s.kind == "statustext":
             self.event("vehicle: " + s.text)
-        elif s.kind in ("passive", "signing", "param_refused"):
+        elif s.kind in ("passive", "signing", "param_refused", "reboot"):
             self.event(s.text, "warning")
+        elif s.kind == "live_data":
+            self.event(s.text, "info" if s.text.startswith("live data resumed") else "warning")
+        elif s.kind == "mag_unit":
+            self.event(s.text)
         elif s.kind == "vehicle_found":
             self.event(s.text)
             self.vehicle.request_params(self.sources.link)
@@ -206,9 +216,16 @@ class Session(SessionViews):
             return out
 
     def snapshot(self) -> dict:
+        """The state; on a live link whose data stopped while the vehicle's heartbeats go on (a
+        reboot, streams not sent), the vehicle shows no attitude (None) and says why
+        (``vehicle.no_data``) rather than the last one, frozen."""
         with self._lock:
             snap = super().snapshot()
             snap["vehicles"] = self.vehicles()
+            stale = getattr(self.sources.link, "stale_reason", None) if self.sources.kind == "live" else None
+            if stale:
+                snap["vehicle"] = {k: (0 if k == "fix_type" else None) for k in snap["vehicle"]}
+            snap["vehicle"]["no_data"] = f"no attitude data: {stale}" if stale else None
             return snap
 
     def restart_flight(self) -> None:

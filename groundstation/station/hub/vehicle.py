@@ -69,6 +69,7 @@ class VehicleLink:
         self.changed_elsewhere: dict[str, tuple[float, float]] = {}   # name -> (old, new), not by our writes
         self.refused_values: dict[str, str] = {}      # name -> why its last value was refused
         self.refused_count = 0
+        self.changed_by_autopilot: dict[str, tuple[float, float, str]] = {}   # name -> (old, new, why)
         self.mission_items: dict[int, tuple[float, float, float]] = {}   # live: raw sequence numbers
 
     # ------------------------------------------------------------------ receiving
@@ -94,6 +95,11 @@ class VehicleLink:
             return False        # the autopilot saving its own calibration after our command
         self.changed_elsewhere[s.name] = (old, s.value)
         return True
+
+    def changed_by_itself(self, name: str, why: str) -> None:
+        """A compass parameter the autopilot changed itself: not another station's change."""
+        old, new = self.changed_elsewhere.pop(name)
+        self.changed_by_autopilot[name] = (old, new, why)
 
     def on_mission_item(self, s: MissionSample) -> None:
         self.mission_items[s.seq] = (s.lat_deg, s.lon_deg, s.alt_m)

@@ -1,0 +1,409 @@
+"""The station against ArduPilot's own firmware (SITL ArduCopter 4.7, ../shared/sitl, stock stream rates).
+
+Scenarios, each printed as one table: ours vs the truth vs ArduPilot's own result.
+1. streams   -- a stock Copter (every MAVn_* rate 0): what the station asked for, what arrived.
+2. wizard    -- the guided wizard on the calibration rig (its 18-pose tour) with three compasses of
+               known SIM_MAGn_OFS/DIA/ODI: our offsets and soft iron vs the truth vs the vehicle's own
+               calibrator on the same rig (scenario 3); accept, read back, reboot, live data again.
+3. onboard   -- the vehicle's calibrator through the station (start, progress per compass, reports,
+               accept, read back); a forced failure (COMPASS_CAL_FIT tiny) and a cancel.
+4. logs      -- calibrate / analyze / info on the firmware's own .BIN and on the station's session
+               .tlog of the wizard run: the same offsets, the same alarms, one report per compass.
+5. flights   -- (--flights) 2-minute GUIDED flights at real time: clean, with SIM_MAG_MOT, low over a
+               SIM_MAG_ALY anomaly, with SIM_GPS1_ENABLE 0 for 60 s: alarms on the .BIN vs on the .tlog.
+Ports 14613-14619 (-I 1..3 only).  Bounded by `timeout` per SITL run.
+
+Run:  nice -n 10 .venv/bin/python benchmarks/sitl.py [--speedup 8] [--only streams,wizard,onboard,logs]
+          [--flights clean,motor,anomaly,gps_off]
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests" / "sitl"))
+
+from harness import (COPTER_LAND, HOME, MAV_CMD_NAV_TAKEOFF, MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, MISSING,  # noqa: E402
+                     RIG_TRUTH, SITL_BINARY, Sitl, Watch, arm, command, goto, rig_tour, set_mode, set_params,
+                     station_link, truth_params, uncalibrated_params, wait_for)
+
+RIG_PARAMS = {**truth_params(), **uncalibrated_params(), **{f"SERVO{n}_FUNCTION": 0 for n in (5, 6, 7, 8)}}
+
+
+def fmt(v, nd: int = 2) -> str:
+    if v is None:
+        return "—"
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(fmt(x, nd) for x in v) + "]"
+    if isinstance(v, float):
+        return f"{v:.{nd}f}"
+    return str(v)
+
+
+def table(title: str, header: tuple, rows: list) -> None:
+    rows = [tuple(fmt(c) for c in r) for r in rows]
+    widths = [max(len(str(h)), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(header)]
+    print(f"\n## {title}\n")
+    print("| " + " | ".join(str(h).ljust(w) for h, w in zip(header, widths)) + " |")
+    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    for r in rows:
+        print("| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |")
+
+
+def connect(sitl: Sitl, rec: Path):
+    from groundstation.station.hub.session import Session
+
+    session = Session(rec)
+    session.connect(f"udpin:127.0.0.1:{sitl.port}")
+    link = station_link(session, timeout_s=60)
+    wait_for(lambda: not link.streams_snapshot()["missing"], 40)
+    time.sleep(1.0)
+    return session, link
+
+
+def sfx(k: int) -> str:
+    return "" if k == 0 else str(k + 1)
+
+
+def params_of(p: dict, k: int, key: str) -> list:
+    return [p.get(f"COMPASS_{key}{sfx(k)}_{a}") for a in "XYZ"]
+
+
+# ---------------------------------------------------------------------------------- scenarios
+def run_onboard(speedup: float, out: dict) -> None:
+    """The vehicle's own calibrator: success run (accept, read back), a forced failure, a cancel."""
+    rec = Path(tempfile.mkdtemp(prefix="sitl-bench-onboard-"))
+    sitl = Sitl(2, 14614, model="calibration", speedup=speedup, extra=RIG_PARAMS, limit_s=400).start()
+    try:
+        session, link = connect(sitl, rec)
+        try:
+            out["streams"] = session.snapshot()["vehicles"]["streams"]
+            rig_tour(session)
+            t0 = time.monotonic()
+            session.wizard_start("onboard")
+            seen_pct: dict[int, set] = {}
+
+            def reported():
+                ob = session.calibration.snapshot()["onboard"]
+                for c in ob["compasses"]:
+                    seen_pct.setdefault(c["index"], set()).add(c.get("completion_pct"))
+                return ob if ob["state"] in ("reported", "failed") else None
+            ob = wait_for(reported, 180, 0.2)
+            out["onboard_s"] = time.monotonic() - t0
+            out["onboard"] = ob
+            out["progress_steps"] = {k: len(v) for k, v in seen_pct.items()}
+            if ob and ob["state"] == "reported":
+                session.calibration.accept("vehicle")
+                wait_for(lambda: (session.calibration.snapshot()["param_write"] or {}).get("state") == "written", 30)
+                reports = {c["index"]: c["report"] for c in ob["compasses"]}
+
+                def read_back():
+                    got = {k: params_of(session.params, k, "OFS") for k in reports}
+                    return got if all(None not in v and np.allclose(v, reports[k]["ofs_mG"], atol=0.05)
+                                      for k, v in got.items()) else None
+                out["onboard_read_back"] = wait_for(read_back, 30)
+            # a forced failure: a fit tolerance no fit meets
+            session.wizard_reset()
+            out["fail_set"] = set_params(session, {"COMPASS_CAL_FIT": 0.001})
+            session.wizard_start("onboard")
+            out["fail"] = wait_for(lambda: (lambda ob: ob if ob["state"] in ("reported", "failed") else None)(
+                session.calibration.snapshot()["onboard"]), 180, 0.3)
+            # a cancel while running
+            session.wizard_reset()
+            set_params(session, {"COMPASS_CAL_FIT": 16.0})
+            session.wizard_start("onboard")
+            wait_for(lambda: session.calibration.snapshot()["onboard"]["state"] == "running", 30, 0.2)
+            session.calibration.cancel_onboard()
+            out["cancel"] = wait_for(lambda: (lambda ob: ob if ob["state"] not in ("running", "starting") else None)(
+                session.calibration.snapshot()["onboard"]), 20, 0.2)
+            out["onboard_tlog"] = session.sources.recording_path
+        finally:
+            session.close()
+    finally:
+        sitl.stop(keep=True)
+    out["onboard_bin"] = max(sitl.bin_logs(), key=lambda p: p.stat().st_size, default=None)
+
+
+def run_wizard(speedup: float, out: dict) -> None:
+    """The guided wizard on the rig; accept, read back, reboot; the logs kept for scenario 4."""
+    rec = Path(tempfile.mkdtemp(prefix="sitl-bench-wizard-"))
+    sitl = Sitl(1, 14613, model="calibration", speedup=speedup, extra=RIG_PARAMS, limit_s=400).start()
+    try:
+        session, link = connect(sitl, rec)
+        try:
+            session.wizard_start("guided")
+            rig_tour(session)
+            t0 = time.monotonic()
+            done = wait_for(lambda: session.calibration.snapshot()["state"] not in ("running",), 200 / speedup + 30, 0.3)
+            if not done:
+                session.wizard_finish_now()
+                time.sleep(2)
+            out["wizard_s"] = time.monotonic() - t0
+            snap = session.calibration.snapshot()
+            out["wizard"] = snap["result"]
+            out["wizard_compasses"] = len(snap["compasses"])
+            if snap["result"] and snap["result"].get("status") == "ok":
+                session.wizard_accept()
+                wait_for(lambda: (session.calibration.snapshot()["param_write"] or {}).get("state") in
+                         ("written", "failed"), 60, 0.3)
+                out["write"] = session.calibration.snapshot()["param_write"]
+                ours = snap["result"]["ardupilot_params"]
+                session.vehicle.request_params(link)
+
+                def read_back():
+                    names = [n for n in ours if n.startswith(("COMPASS_OFS", "COMPASS_DIA", "COMPASS_ODI"))]
+                    bad = [n for n in names if session.params.get(n) is None or
+                           abs(session.params[n] - ours[n]) > 1e-3 * max(1, abs(ours[n]))]
+                    return {"checked": len(names), "different": bad} if not bad else None
+                out["wizard_read_back"] = wait_for(read_back, 30) or {"checked": 0, "different": ["(timeout)"]}
+            t0 = time.monotonic()
+            command(session, MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1)
+            wait_for(lambda: session.snapshot()["vehicle"]["no_data"], 10, 0.05)
+            back = wait_for(lambda: session.snapshot()["vehicle"]["no_data"] is None and time.monotonic(), 20, 0.05)
+            out["reboot_resume_s"] = (back - t0) if back else None
+            time.sleep(2)
+            out["after_reboot_params"] = {k: params_of(session.params, k, "OFS") for k in range(3)}
+            out["tlog"] = session.sources.recording_path
+            out["wizard_events"] = [f"{e['t_s']:.1f} {e['text']}" for e in session.snapshot()["events"]]
+        finally:
+            session.close()
+    finally:
+        sitl.stop(keep=True)
+    out["bin"] = max(sitl.bin_logs(), key=lambda p: p.stat().st_size, default=None)   # before the reboot
+
+
+def run_logs(out: dict) -> None:
+    """calibrate / analyze / info on the firmware's .BIN and on the station's session .tlog."""
+    from groundstation.io.logs import read_log
+    from groundstation.jobs.analyze import analyze_log
+    from groundstation.jobs.calibrate import calibrate_compasses
+    from groundstation.jobs.log_summary import compass_lines, distinct_reports
+
+    for kind, path in (("onboard_bin", out.get("onboard_bin")), ("onboard_tlog", out.get("onboard_tlog"))):
+        if path is not None:
+            log = read_log(path)
+            out[f"{kind}_reports"] = (len(distinct_reports(log.mag_cal)), sum(e.kind == "report" for e in log.mag_cal),
+                                      sum(e.kind == "start" for e in log.mag_cal))
+    for kind, path in (("bin", out.get("bin")), ("tlog", out.get("tlog"))):
+        if path is None:
+            continue
+        log = read_log(path)
+        res = {r["compass"]: r for r in calibrate_compasses(log)}
+        summary, _ = analyze_log(log)
+        out[f"{kind}_cal"] = res
+        out[f"{kind}_cal_status"] = {k: (r["status"], (r.get("message") or "")[:120]) for k, r in res.items()}
+        out[f"{kind}_alarms"] = summary.get("alarms", [])
+        out[f"{kind}_info"] = compass_lines(log)
+        out[f"{kind}_reports"] = (len(distinct_reports(log.mag_cal)), sum(e.kind == "report" for e in log.mag_cal),
+                                  sum(e.kind == "start" for e in log.mag_cal))
+        out[f"{kind}_sources"] = {c.compass: c.source for c in log.compass_tables()}
+
+
+MOTOR_TRUTH_mG_PER_A = (3.0, -2.0, 4.0)
+FLIGHTS = {   # name: (extra defaults, legs' altitude m, what the truth is)
+    "clean": ({}, 15.0, "no alarm"),
+    "motor": ({f"SIM_MAG_MOT_{a}": v for a, v in zip("XYZ", MOTOR_TRUTH_mG_PER_A)}, 15.0,
+              f"motor field {list(MOTOR_TRUTH_mG_PER_A)} mG/A (SIM_MAG_MOT)"),
+    "anomaly": ({"SIM_MAG_ALY_X": 150.0, "SIM_MAG_ALY_Y": -100.0, "SIM_MAG_ALY_Z": 200.0, "SIM_MAG_ALY_HGT": 5.0}, 4.0,
+                "anomaly [150, -100, 200] mG at the ground, 1/8 at 5 m: alarms low only"),
+    "gps_off": ({}, 15.0, "no alarm (GPS away 60 s from the second leg)"),
+}
+
+
+def run_flight(name: str, out: dict) -> None:
+    """A 2-minute GUIDED flight at real time (the .tlog's arrival times are wall clock, the .BIN's
+    the simulation's: a speedup would squeeze one against the other): takeoff, an 80 m square,
+    land.  Session .tlog and .BIN analysed alike."""
+    from groundstation.io.logs import read_log
+    from groundstation.jobs.analyze import analyze_log
+
+    extra, alt, _ = FLIGHTS[name]
+    rec = Path(tempfile.mkdtemp(prefix=f"sitl-bench-{name}-"))
+    sitl = Sitl(3, 14615, model="quad", speedup=1, extra=extra, limit_s=400).start()
+    res: dict = {}
+    try:
+        session, link = connect(sitl, rec)
+        try:
+            watch = Watch(link)
+            res["armed"] = arm(session, watch)
+            command(session, MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, alt)
+            wait_for(lambda: watch.position and watch.position[2] > alt - 1.5, 60)
+            lat0, lon0 = HOME[0], HOME[1]
+            for i, (dn, de) in enumerate(((80, 0), (80, 80), (0, 80), (0, 0))):
+                if name == "gps_off" and i == 1:
+                    set_params(session, {"SIM_GPS1_ENABLE": 0})
+                    res["gps_off_unix"] = time.time()
+                lat = lat0 + dn / 111320.0
+                lon = lon0 + de / (111320.0 * np.cos(np.radians(lat0)))
+                goto(session, lat, lon, alt)
+                wait_for(lambda: watch.position and np.hypot((watch.position[0] - lat) * 111320.0,
+                                                             (watch.position[1] - lon) * 96000.0) < 3, 40)
+                if name == "gps_off" and "gps_off_unix" in res and time.time() - res["gps_off_unix"] > 60:
+                    set_params(session, {"SIM_GPS1_ENABLE": 1})
+            if name == "gps_off":
+                wait_for(lambda: time.time() - res["gps_off_unix"] > 60, 70)
+                set_params(session, {"SIM_GPS1_ENABLE": 1})
+            set_mode(session, COPTER_LAND)
+            wait_for(lambda: not watch.armed, 120)
+            time.sleep(2)
+            res["tlog"] = session.sources.recording_path
+            res["events"] = [e["text"] for e in session.snapshot()["events"] if "vehicle:" in e["text"]]
+        finally:
+            session.close()
+    finally:
+        sitl.stop(keep=True)
+    res["bin"] = max(sitl.bin_logs(), key=lambda p: p.stat().st_size, default=None)
+    for kind in ("bin", "tlog"):
+        if res.get(kind) is None:
+            continue
+        log = read_log(res[kind])
+        summary, _ = analyze_log(log)
+        t0 = log.start_unix_s or 0.0
+        res[f"{kind}_alarms"] = [(a["kind"], round(t0 + a["start_s"], 2)) for a in summary.get("alarms", [])]
+        res[f"{kind}_motor"] = summary.get("motor_field") or {}
+        res[f"{kind}_duration"] = log.duration_s
+    out.setdefault("flights", {})[name] = res
+
+
+def _alarm_text(alarms: list, t0: float) -> str:
+    kinds: dict[str, list] = {}
+    for kind, unix in alarms:
+        kinds.setdefault(kind, []).append(f"{unix - t0:.1f}")
+    return "; ".join(f"{k} at {', '.join(v[:4])}{' …' if len(v) > 4 else ''}" for k, v in kinds.items()) or "none"
+
+
+# ---------------------------------------------------------------------------------- tables
+def print_tables(out: dict) -> None:
+    st = out.get("streams")
+    if st:
+        rows = [(m["name"], m["state"], m["rate_hz"], m["acked"], m["why"][:60]) for m in st["messages"]]
+        table("1. streams on a stock ArduCopter (the station asks; truth: every consumed stream arrives)",
+              ("message", "state", "rate Hz (sim x speedup)", "SET_MESSAGE_INTERVAL", "why"), rows)
+    w, ob = out.get("wizard"), out.get("onboard")
+    reports = {c["index"]: c["report"] for c in (ob or {}).get("compasses", [])}
+    if w:
+        ours = w.get("ardupilot_params") or {}
+        rows = []
+        for k in range(3):
+            truth = RIG_TRUTH[k + 1]
+            rep = reports.get(k, {})
+            for key, rk in (("OFS", "ofs_mG"), ("DIA", "diag"), ("ODI", "offdiag")):
+                o = params_of(ours, k, key)
+                err = max(abs(a - b) for a, b in zip(o, truth[key])) if None not in o else None
+                rep_v = rep.get(rk)
+                rep_err = max(abs(a - b) for a, b in zip(rep_v, truth[key])) if rep_v else None
+                nd = 2 if key == "OFS" else 4
+                rows.append((f"compass {k + 1} {key}", fmt(o, nd), fmt(truth[key], nd), fmt(rep_v, nd), fmt(err, nd),
+                             fmt(rep_err, nd)))
+        table(f"2. guided wizard on the rig ({out.get('wizard_compasses')} compasses, {out.get('wizard_s', 0):.0f} s wall)"
+              " vs the truth vs ArduPilot's onboard calibrator",
+              ("", "ours", "truth (SIM_MAGn_*)", "ArduPilot report", "ours - truth (max)", "ArduPilot - truth"), rows)
+        rb = out.get("wizard_read_back") or {}
+        table("2b. accept, read back, reboot", ("", "ours", "target"),
+              [("parameters written", (out.get("write") or {}).get("state"), "written"),
+               ("read back equal", f"{rb.get('checked', 0) - len(rb.get('different', []))}/{rb.get('checked', 0)}",
+                "all"),
+               ("live data after the reboot command [s]", out.get("reboot_resume_s"), "<= 5"),
+               ("compass 1 offsets after the reboot", out.get("after_reboot_params", {}).get(0), truth_row(0))])
+    if ob:
+        rows = [(f"compass {c['index'] + 1}", c["report"]["success"], c["report"]["fitness_mG"], c["report"]["ofs_mG"],
+                 RIG_TRUTH[c["index"] + 1]["OFS"], out.get("progress_steps", {}).get(c["index"]))
+                for c in ob["compasses"]]
+        rb = out.get("onboard_read_back")
+        rows.append(("accepted, read back", "yes" if rb else "no", None, None, None, None))
+        fail, cancel = out.get("fail") or {}, out.get("cancel") or {}
+        rows.append(("COMPASS_CAL_FIT 0.001", fail.get("state"), None, [c.get("status_text") for c in
+                     fail.get("compasses", [])], "failed", None))
+        rows.append(("cancel while running", cancel.get("state"), None, None, "cancelled", None))
+        table(f"3. the vehicle's calibrator through the station ({out.get('onboard_s', 0):.0f} s wall)",
+              ("", "success / state", "fitness mG", "ArduPilot's offsets", "truth", "progress values seen"), rows)
+    if out.get("tlog_cal") or out.get("bin_cal"):
+        rows = []
+        for k in range(3):
+            b = out.get("bin_cal", {}).get(k, {})
+            t = out.get("tlog_cal", {}).get(k, {})
+            ob_ = params_of(b.get("ardupilot_params") or {}, k, "OFS")
+            ot = params_of(t.get("ardupilot_params") or {}, k, "OFS")
+            diff = max(abs(x - y) for x, y in zip(ob_, ot)) if None not in ob_ + ot else None
+            rows.append((f"compass {k + 1} offsets", ob_, ot, RIG_TRUTH[k + 1]["OFS"], reports.get(k, {}).get("ofs_mG"),
+                         diff))
+        rows.append(("sources", out.get("bin_sources"), out.get("tlog_sources"), None, None, None))
+        rows.append(("alarms (kind@start s)", [f"{a.get('kind')}@{a.get('start_s')}" for a in out.get("bin_alarms", [])],
+                     [f"{a.get('kind')}@{a.get('start_s')}" for a in out.get("tlog_alarms", [])], "none", None, None))
+        rows.append(("onboard run: reports distinct / MAG_CAL_REPORT messages / start commands",
+                     out.get("onboard_bin_reports"), out.get("onboard_tlog_reports"), "[6, -, 3]: success + forced failure, 3 compasses each; the cancel none",
+                     None, None))
+        table("4. calibrate / analyze / info on the firmware's .BIN vs the station's session .tlog (wizard run)",
+              ("", ".BIN", "session .tlog", "truth", "ArduPilot report", ".BIN - .tlog (max) mG"), rows)
+
+
+def print_flights(out: dict) -> None:
+    flights = out.get("flights") or {}
+    if not flights:
+        return
+    rows = []
+    for name, r in flights.items():
+        t0 = min([u for _, u in r.get("bin_alarms", []) + r.get("tlog_alarms", [])] or [0.0])
+        bm, tm = r.get("bin_motor", {}), r.get("tlog_motor", {})
+        rows.append((name, r.get("armed"), _alarm_text(r.get("bin_alarms", []), t0),
+                     _alarm_text(r.get("tlog_alarms", []), t0), FLIGHTS[name][2],
+                     f"{bm.get('status')} {fmt(bm.get('mG_per_A'))} / {tm.get('status')} {fmt(tm.get('mG_per_A'))}"))
+    table("5. flights at real time (alarm starts in s after the first alarm of either log, on one UNIX clock)",
+          ("flight", "armed", "alarms on the .BIN", "alarms on the session .tlog", "truth",
+           "motor field mG/A .BIN / .tlog"), rows)
+
+
+def print_notes(out: dict) -> None:
+    """What a reader needs when a row misses its target."""
+    w = out.get("write") or {}
+    if w.get("state") not in (None, "written"):
+        print(f"\nwrite: {w.get('state')}: {w.get('message')}; failures {w.get('failures') or w.get('failed')}")
+    for kind in ("bin", "tlog"):
+        for k, (status, msg) in (out.get(f"{kind}_cal_status") or {}).items():
+            if status != "ok":
+                print(f"{kind} compass {k + 1}: {status}: {msg}")
+    if "wizard" in out and (out.get("reboot_resume_s") is None or out["reboot_resume_s"] > 5):
+        print("events of the wizard run (last 15):\n  " + "\n  ".join(out.get("wizard_events", [])[-15:]))
+
+
+def truth_row(k: int):
+    return RIG_TRUTH[k + 1]["OFS"]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--speedup", type=float, default=8.0)
+    ap.add_argument("--only", default="streams,wizard,onboard,logs")
+    ap.add_argument("--flights", default="", help="comma-separated of clean,motor,anomaly,gps_off "
+                    "(2 min each at real time; none by default)")
+    args = ap.parse_args()
+    if SITL_BINARY is None:
+        print(f"skipped: {MISSING}")
+        return 0
+    only = set(args.only.split(","))
+    out: dict = {}
+    print(f"# benchmarks/sitl.py --speedup {args.speedup:g}  ({datetime.datetime.utcnow():%Y-%m-%d %H:%M} UTC)")
+    if only & {"streams", "onboard", "wizard"}:
+        run_onboard(args.speedup, out)
+    if only & {"wizard", "logs"}:
+        run_wizard(args.speedup, out)
+    if "logs" in only:
+        run_logs(out)
+    for name in filter(None, args.flights.split(",")):
+        run_flight(name, out)
+    print_tables(out)
+    print_flights(out)
+    print_notes(out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,169 @@
+"""The station against ArduPilot's own firmware (SITL ArduCopter 4.7, stock stream rates): the
+smoke set run with the suite (about a minute; the rest is benchmarks/sitl.py).
+
+One calibration-rig run (three compasses with known offsets and soft iron, ``harness.RIG_TRUTH``)
+serves the stream, onboard-calibration and recording tests; a quad run the reboot test."""
+from __future__ import annotations
+
+import time
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from harness import (MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, MISSING, RIG_TRUTH, SITL_BINARY, Sitl, command,
+                     rig_tour, station_link, truth_params, uncalibrated_params, wait_for)
+from conftest import station_for
+
+RIG_PARAMS = {**truth_params(), **uncalibrated_params(),
+              **{f"SERVO{n}_FUNCTION": 0 for n in (5, 6, 7, 8)}}
+
+
+@pytest.fixture(scope="module")
+def rig_run(tmp_path_factory):
+    """Stock ArduCopter on the rig at 8x: the station connects, the vehicle's own calibrator runs
+    through it (start, tour of the rig, reports, accept), then the station stops.  Returns what was
+    seen, and the session .tlog."""
+    if SITL_BINARY is None:
+        pytest.skip(MISSING)
+    rec = tmp_path_factory.mktemp("rig-recordings")
+    sitl = Sitl(1, 14612, model="calibration", speedup=8, extra=RIG_PARAMS, limit_s=240).start()
+    seen: dict = {}
+    try:
+        session = station_for(sitl, rec)
+        try:
+            link = station_link(session)
+            wait_for(lambda: not link.streams_snapshot()["missing"], 30)
+            seen["own_streams"] = link.streams_snapshot()
+            # HIGHRES_IMU is not asked of ArduPilot; another tool may have it streamed: here we do
+            command(session, 511, 105, 20000)      # MAV_CMD_SET_MESSAGE_INTERVAL HIGHRES_IMU 50 Hz
+            wait_for(lambda: link.streams.arriving("HIGHRES_IMU", time.time()), 10)
+            time.sleep(0.5)             # a rate measured over a few samples
+            seen["state"] = session.snapshot()
+            rig_tour(session)
+            session.wizard_start("onboard")
+            wait_for(lambda: session.calibration.snapshot()["onboard"]["state"] == "reported", 90, 0.25)
+            cal = session.calibration.snapshot()
+            seen["onboard"], seen["wizard_compasses"] = cal["onboard"], cal["compasses"]
+            if cal["onboard"]["state"] == "reported":
+                session.calibration.accept("vehicle")
+                wait_for(lambda: (session.calibration.snapshot()["param_write"] or {}).get("state") == "written", 20)
+                seen["param_write"] = session.calibration.snapshot()["param_write"]
+                ofs = {k: v["report"]["ofs_mG"] for k, v in
+                       ((c["index"], c) for c in cal["onboard"]["compasses"])}
+                names = {k: "COMPASS_OFS" + ("" if k == 0 else str(k + 1)) for k in ofs}
+
+                def read_back():
+                    got = {k: [session.params.get(f"{names[k]}_{a}") for a in "XYZ"] for k in ofs}
+                    ok = all(None not in v and np.allclose(v, ofs[k], atol=0.05) for k, v in got.items())
+                    return got if ok else None
+                seen["read_back"] = wait_for(read_back, 20)
+            seen["tlog"] = session.sources.recording_path
+        finally:
+            session.close()
+    finally:
+        sitl.stop()
+    return seen
+
+
+def test_stock_arducopter_sends_every_stream_the_station_asks_for(rig_run):
+    """Every MAVn_* rate is 0 on a stock Copter: the station asked for each message itself, the
+    vehicle accepted, and all arrive (compasses 2 and 3, battery current included); the on-demand
+    MAG_CAL_* wait for a calibration, ArduPilot 4.7's refused SENSOR_OFFSETS is not 'missing', and
+    the duplicates of RAW_IMU (SCALED_IMU, HIGHRES_IMU) are not asked of ArduPilot."""
+    streams = rig_run["own_streams"]
+    rows = {m["name"]: m for m in streams["messages"]}
+    assert streams["missing"] == [], streams["missing"]
+    for name in ("SCALED_IMU", "HIGHRES_IMU"):      # compass 1 comes in RAW_IMU: not asked of ArduPilot
+        assert rows[name]["state"] == "not asked" and "RAW_IMU" in rows[name]["why"], rows[name]
+    rows = {m["name"]: m for m in rig_run["state"]["vehicles"]["streams"]["messages"]}
+    assert rows["HIGHRES_IMU"]["state"] == "arriving" and "vehicle's own settings" in rows["HIGHRES_IMU"]["why"]
+    for name in ("ATTITUDE", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3", "SYS_STATUS", "GPS_RAW_INT", "SYSTEM_TIME"):
+        assert rows[name]["state"] == "arriving" and rows[name]["acked"] == "accepted", rows[name]
+    assert rows["SCALED_IMU2"]["rate_hz"] > 100          # 50 Hz asked, at 8x simulated time
+    assert rows["MAG_CAL_REPORT"]["state"] == "on demand"
+    assert rows["SENSOR_OFFSETS"]["state"] == "not available" and "denied" in rows["SENSOR_OFFSETS"]["why"]
+    assert rig_run["state"]["vehicle"]["no_data"] is None and rig_run["state"]["vehicle"]["roll_deg"] is not None
+    units = rig_run["state"]["vehicles"]["streams"]["mag_units"]
+    assert units["HIGHRES_IMU[0]"]["unit"].startswith("mG x 1000") and units["HIGHRES_IMU[0]"]["plausible"]
+    # the same compass 1 (uncalibrated: |B| is not the WMM's) in both messages, once HIGHRES is read right
+    assert units["HIGHRES_IMU[0]"]["magnitude_mG"] == pytest.approx(units["RAW_IMU"]["magnitude_mG"], rel=0.03)
+
+
+def test_onboard_calibrator_seen_per_compass_accepted_and_read_back(rig_run):
+    """The vehicle's own calibrator through the station: a report for each of the three compasses
+    (offsets = the SIM truth), accepted, and the vehicle's saved offsets read back equal."""
+    onboard = rig_run["onboard"]
+    assert onboard["state"] == "reported", onboard
+    assert len(rig_run["wizard_compasses"]) == 3
+    for c in onboard["compasses"]:
+        truth = RIG_TRUTH[c["index"] + 1]["OFS"]
+        assert c["report"]["success"] and c["report"]["fitness_mG"] < 1.0
+        assert np.allclose(c["report"]["ofs_mG"], truth, atol=1.0), (c["index"], c["report"]["ofs_mG"], truth)
+    assert rig_run["param_write"]["state"] == "written"
+    assert rig_run["read_back"] is not None
+
+
+def test_session_tlog_has_both_directions_one_report_each_and_the_right_magnetometer_unit(rig_run):
+    """The session .tlog holds what the station sent (the start command, the stream requests), info
+    counts each compass's repeated MAG_CAL_REPORT once, the HIGHRES_IMU field (mG x 1000 from
+    ArduPilot) reads as the same field as RAW_IMU, and RAW_IMU is the source chosen for compass 0."""
+    from groundstation.io.decode import MavlinkDecoder
+    from groundstation.io.logs import read_log, tlog_records
+    from groundstation.jobs.log_summary import compass_lines
+    from groundstation.samples import MagSample
+
+    path = rig_run["tlog"]
+    log = read_log(path)
+    assert log.message_counts["COMMAND_LONG"] >= 14          # SET_MESSAGE_INTERVAL per stream + start
+    lines = "\n".join(compass_lines(log))
+    assert "1 start command(s)" in lines, lines
+    assert "3 report(s)" in lines and log.message_counts["MAG_CAL_REPORT"] > 3, lines
+    c0 = [c for c in log.compass_tables() if c.compass == 0][0]
+    assert c0.source == "RAW_IMU" and "HIGHRES_IMU" in (c0.source_note or "")
+    dec, mags = MavlinkDecoder(), {0: [], 20: []}
+    with open(path, "rb") as f:
+        for unix, msg in tlog_records(f, Counter()):
+            for s in dec.decode(msg, unix):
+                if isinstance(s, MagSample) and s.instance in mags:
+                    mags[s.instance].append(np.linalg.norm(s.mag_body_mG))
+    raw, highres = np.median(mags[0]), np.median(mags[20])
+    assert abs(highres / raw - 1) < 0.02, (raw, highres)
+    assert len(log.battery) > 10 and np.isfinite(log.battery[:, 1]).all()
+
+
+def test_session_tlog_calibrates_every_compass_to_the_truth(rig_run):
+    """calibrate on the station's own session .tlog of the rig (the vehicle's calibration accepted
+    half-way: its offsets un-applied as in force at each sample): each compass within 2 mG."""
+    from groundstation.io.logs import read_log
+    from groundstation.jobs.calibrate import calibrate_compasses
+
+    results = calibrate_compasses(read_log(rig_run["tlog"]))
+    assert sorted(r["compass"] for r in results) == [0, 1, 2]
+    for r in results:
+        n = "" if r["compass"] == 0 else str(r["compass"] + 1)
+        ofs = [r["ardupilot_params"][f"COMPASS_OFS{n}_{a}"] for a in "XYZ"]
+        assert r["status"] == "ok", r["message"]
+        assert np.allclose(ofs, RIG_TRUTH[r["compass"] + 1]["OFS"], atol=2.0), (r["compass"], ofs)
+
+
+def test_reboot_live_data_resumes_within_5_s_and_no_frozen_attitude(start_sitl, tmp_path):
+    """After the station's reboot command the stock vehicle streams nothing again: the station
+    says "no attitude data" meanwhile, asks again, and the data is back within 5 s."""
+    sitl = start_sitl(2, 14622, model="quad", speedup=1, limit_s=120)
+    session = station_for(sitl, tmp_path)
+    try:
+        link = station_link(session)
+        assert wait_for(lambda: link.streams.arriving("ATTITUDE", time.time()), 30)
+        t0 = time.monotonic()
+        command(session, MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1)
+        stale = wait_for(lambda: session.snapshot()["vehicle"]["no_data"], 10, 0.05)
+        assert stale and "no attitude data" in stale
+        assert session.snapshot()["vehicle"]["roll_deg"] is None
+        back = wait_for(lambda: session.snapshot()["vehicle"]["no_data"] is None and time.monotonic(), 10, 0.05)
+        assert back and back - t0 <= 5.0, f"live data resumed {back - t0 if back else None} s after the reboot"
+        assert wait_for(lambda: link.streams.arriving("SCALED_IMU2", time.time()), 5)
+        texts = [e["text"] for e in session.snapshot()["events"]]
+        assert any("restarted" in t and "asked for again" in t for t in texts), texts
+    finally:
+        session.close()
