@@ -96,7 +96,7 @@ class AhrsSettings:
     rest_acc_mps2: float = 0.5               # specific-force spread inside a block below this
     rest_gyro_drift_rad_s: float = math.radians(0.3)  # block-mean gyro off its low-pass below this
     rest_acc_drift_mps2: float = 0.1         # block-mean f off its low-pass below this (~0.6° of tilt)
-    rest_filter_s: float = 0.3               # that low-pass of the block means
+    rest_filter_s: float = 1.0               # that low-pass of the block means
     acc_norm_tol_mps2: float = 1.0           # | |x1| − g | above this: tilt held on the gyro
     acc_reject_deg: float = 10.0             # x1 this far from x2: tilt held on the gyro
     acc_recovery_s: float = 5.0              # held this long: use the accelerometer until recovered
