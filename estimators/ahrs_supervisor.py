@@ -149,13 +149,13 @@ class Supervisor:
         still = (b.gyro_sq / ng - (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) < self._g2
                  and f_spread2 < self._a2
                  and max(abs(w[0]), abs(w[1]), abs(w[2])) < s.bias_max_rad_s)
-        if not still:                       # a move (spread inside the block): the low-pass starts
-            self.lp_w[:], self.lp_f[:] = w, f   # again from here, so a hold after it is seen at once
         k = self._k_rest_lp
         for x, lp, lim2 in ((w, self.lp_w, self._gd2), (f, self.lp_f, self._ad2)):
             d0, d1, d2 = x[0] - lp[0], x[1] - lp[1], x[2] - lp[2]
             still = still and d0 * d0 + d1 * d1 + d2 * d2 < lim2
             lp[0] += k * d0; lp[1] += k * d1; lp[2] += k * d2  # noqa: E702
+        if not still:                       # moving: the low-pass starts again from this block, so
+            self.lp_w[:], self.lp_f[:] = w, f   # a hold after a move is seen within rest_time_s
         self.rest_t = self.rest_t + T if still else 0.0
         self.at_rest = self.rest_t >= s.rest_time_s
 
