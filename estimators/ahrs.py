@@ -80,32 +80,32 @@ class AhrsSettings:
     the batch chain from ~210k to ~300k IMU samples/s.
     The interference detector's heading reference keeps its own setting
     (groundstation.jobs.inputs.DETECTOR_CHAIN)."""
-    gravity_gain_per_s: float = 0.5          # k1: accelerometer → first gravity stage
-    gravity_smoothing_per_s: float = 0.5     # k2: first → second stage (tilt)
-    field_gain_per_s: float = 0.12           # k_m: magnetometer → field vector
-    bias_tilt_time_s: float = 100.0          # time constant of the tilt-axes motion bias path
-    bias_heading_time_s: float = 60.0        # time constant of the heading-axis motion bias path
-    bias_acc_spread_mps2: float = 1.0        # tilt-axes motion bias learnt only in blocks whose specific-
-    bias_acc_norm_mps2: float = 0.5          # force spread and | |f̄| − g | are under these (quasi-static)
-    bias_rest_time_s: float = 5.0            # time constant of the at-rest bias learning
+    gravity_gain_per_s: float = 0.459          # k1: accelerometer → first gravity stage
+    gravity_smoothing_per_s: float = 0.817     # k2: first → second stage (tilt)
+    field_gain_per_s: float = 0.161           # k_m: magnetometer → field vector
+    bias_tilt_time_s: float = 138.0          # time constant of the tilt-axes motion bias path
+    bias_heading_time_s: float = 85.4        # time constant of the heading-axis motion bias path
+    bias_acc_spread_mps2: float = 1.23        # tilt-axes motion bias learnt only in blocks whose specific-
+    bias_acc_norm_mps2: float = 1.57          # force spread and | |f̄| − g | are under these (quasi-static)
+    bias_rest_time_s: float = 3.79            # time constant of the at-rest bias learning
     bias_max_rad_s: float = math.radians(2.0)  # |b̂| per axis is clipped here
     rest_tilt_time_s: float = 0.5            # at rest: gravity stages → block-mean specific force
     rest_field_time_s: float = 1.0           # at rest: field vector → block-mean field (accepted)
     rest_time_s: float = 1.0                 # still this long before "at rest"
     rest_gyro_rad_s: float = math.radians(1.0)   # gyro spread inside a block below this (vibration)
-    rest_acc_mps2: float = 0.5               # specific-force spread inside a block below this
+    rest_acc_mps2: float = 0.425               # specific-force spread inside a block below this
     rest_gyro_drift_rad_s: float = math.radians(0.3)  # block-mean gyro off its low-pass below this
     rest_acc_drift_mps2: float = 0.1         # block-mean f off its low-pass below this (~0.6° of tilt)
     rest_filter_s: float = 1.0               # that low-pass of the block means
     acc_norm_tol_mps2: float = 1.0           # | |x1| − g | above this: tilt held on the gyro
     acc_reject_deg: float = 10.0             # x1 this far from x2: tilt held on the gyro
     acc_recovery_s: float = 5.0              # held this long: use the accelerometer until recovered
-    field_norm_tol: float = 0.05             # strength departs from the reference by this fraction
-    field_dip_tol_deg: float = 4.0           # dip departs from the reference by this much
-    mag_reject_deg: float = 10.0             # heading innovation above this: heading held on the gyro
+    field_norm_tol: float = 0.0557             # strength departs from the reference by this fraction
+    field_dip_tol_deg: float = 3.41           # dip departs from the reference by this much
+    mag_reject_deg: float = 5.4             # heading innovation above this: heading held on the gyro
     mag_recovery_s: float = 10.0             # held this long: use the magnetometer until recovered
     field_relearn_s: float = 20.0            # a new field steady this long (turning): it becomes the reference
-    relearn_min_gyro_rad_s: float = 0.0      # ... counted only while turning faster than this
+    relearn_min_gyro_rad_s: float = 0.0281      # ... counted only while turning faster than this
     field_ref_time_s: float = 20.0           # the reference follows clean fields this slowly
     recovery_ratio: float = 9.0              # recovery triggers fall this much faster than they rise
     block_s: float = 0.1                     # bias / gating schedule
