@@ -128,7 +128,8 @@ class Supervisor:
             v[0] += k * (m[0] - v[0]); v[1] += k * (m[1] - v[1]); v[2] += k * (m[2] - v[2])  # noqa: E702
 
     def _rest(self, b: BlockSums, T: float) -> None:
-        """Still: the gyro and specific-force spread inside the block (vibration, shocks) and the
+        """Still: the gyro and specific-force spread inside the block (vibration, shocks), |f̄| within
+        ``acc_norm_tol_mps2`` of g (a steady acceleration is not rest), and the
         drift of the block means from their low-pass (a slow rotation about a horizontal axis turns
         the specific force) under the thresholds; at rest after ``rest_time_s`` still (VQF's rest
         detection on block means).  A slow turn about the vertical below ``bias_max_rad_s`` is not
@@ -147,7 +148,7 @@ class Supervisor:
         f_spread2 = b.force_sq / nf - f2
         self.acc_quiet = (f_spread2 < self._q2 and abs(math.sqrt(f2) - s.gravity_mps2) < s.bias_acc_norm_mps2)
         still = (b.gyro_sq / ng - (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) < self._g2
-                 and f_spread2 < self._a2
+                 and f_spread2 < self._a2 and abs(math.sqrt(f2) - s.gravity_mps2) < s.acc_norm_tol_mps2
                  and max(abs(w[0]), abs(w[1]), abs(w[2])) < s.bias_max_rad_s)
         k = self._k_rest_lp
         for x, lp, lim2 in ((w, self.lp_w, self._gd2), (f, self.lp_f, self._ad2)):
