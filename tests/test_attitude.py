@@ -150,3 +150,20 @@ def test_offline_smoother_beats_the_causal_ahrs_against_truth():
     assert chain.estimator == "offline"
     np.testing.assert_allclose(np.angle(np.exp(1j * (chain.heading_true_rad - offline.yaw_rad))), np.radians(5.0),
                                atol=1e-12)
+
+
+def test_offline_smoother_on_bad_input_stays_finite():
+    from estimators.attitude_smoother import smooth_ahrs
+    imu, mag, _, _ = _turning_log(n=3000)
+    imu[100:105, 1] = np.nan                               # gyro dropouts
+    imu[200, 0] = np.nan                                   # a bad and a backwards time stamp
+    imu[300, 0] -= 1.0
+    imu[400:403, 4] = np.inf
+    mag[50, 0] = np.nan
+    mag[60, 2] = np.nan
+    r = smooth_ahrs(imu, mag)
+    assert all(np.all(np.isfinite(a)) for a in (r.roll_rad, r.pitch_rad, r.yaw_rad, r.gravity_body, r.field_body_mG))
+    assert r.valid[10:].all()
+    no_mag = smooth_ahrs(imu, np.zeros((0, 4)))            # no magnetometer: tilt only, never valid
+    assert not no_mag.valid.any() and np.all(np.isfinite(no_mag.roll_rad))
+    assert len(smooth_ahrs(imu[:1], mag).t_s) == 1 and len(smooth_ahrs(np.zeros((0, 7)), mag).t_s) == 0
