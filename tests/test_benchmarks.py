@@ -27,11 +27,14 @@ def test_heading_benchmark_quick():
     targets = dict((name.strip(), state) for state, name in re.findall(r"^  (met   |MISSED)  (.+)$", out, re.M))
     for name in ("static Cairo: 45 deg step RMS <= 0.5 deg", "static Cairo: level-vs-roll RMS <= 0.3 deg",
                  "static Tromso: 45 deg step RMS <= 0.5 deg", "static Tromso: level-vs-roll RMS <= 0.3 deg",
+                 "random static 45 deg: 45 deg step RMS <= 0.5 deg", "random static 45 deg: level-vs-tilt RMS <= 0.3 deg",
+                 "random static 78 deg: 45 deg step RMS <= 0.5 deg", "random static 78 deg: level-vs-tilt RMS <= 0.3 deg",
                  "outage Hangzhou: heading error < 2 deg", "outage Hangzhou: roll/pitch error < 2 deg"):
         assert targets.get(name) == "met   ", (name, out)
-    # both estimators in the static tables, the INS rows in both outage cases, speed measured
-    assert len(re.findall(r"^  ours \(AHRS\)\s+[\d.]+", out, re.M)) == 2, out
-    assert len(re.findall(r"^  seed 000 filters\s+[\d.]+", out, re.M)) == 2, out
+    # both estimators in the static tables (2 protocols, 3 randomised groups), the INS rows in both
+    # outage cases, speed measured
+    assert len(re.findall(r"^  ours \(AHRS\)\s+[\d.]+", out, re.M)) == 5, out
+    assert len(re.findall(r"^  seed 000 filters\s+[\d.]+", out, re.M)) == 5, out
     assert len(re.findall(r"^  Hangzhou seed 1 .+INS/GPS default\s+[\d.]+", out, re.M)) == 2, out
     assert re.search(r"^  ours \(AHRS\)\s+batch\s+[\d,]+\s+per-sample\s+[\d,]+", out, re.M), out
 
