@@ -12,7 +12,8 @@ Frames: body FRD = sensor rotated 180° about x (``SENSOR_TO_FRD``), NED = ENU w
 and z negated (``ENU_TO_NED``); both matrices are their own inverse.
 
 Peers: ``vqf`` (VQF, Laidig & Seel, Information Fusion 91:187, 2023: online ``VQF`` and
-``offlineVQF``, defaults, earth frame ENU), ``imufusion`` (x-io Fusion's C core; optional gyro ``Bias`` at-rest offset), the ``ahrs``
+``offlineVQF``, defaults, earth frame ENU), ``imufusion`` (x-io Fusion's C core; optional gyro
+``Bias`` at-rest offset), the ``ahrs``
 package's Madgwick (earth frame NWU: gravity +z, field in the x–z plane) and Mahony (earth frame
 ENU: gravity +z, field in the y–z plane), each started from the first sample as BROAD does.
 """

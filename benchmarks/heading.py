@@ -176,7 +176,8 @@ def _random_site(rng, inclination_deg: float | None):
             warnings.simplefilter("ignore")
             ef = earth_field(lat, lon, 10.0, 2026.5)
         inc = abs(ef.inclination_deg)
-        if (inclination_deg is None and inc <= 78.0) or (inclination_deg is not None and abs(inc - inclination_deg) < 1.5):
+        ok = inc <= 78.0 if inclination_deg is None else abs(inc - inclination_deg) < 1.5
+        if ok:
             return lat, lon, ef
     raise RuntimeError(f"no site with inclination {inclination_deg} found")
 

@@ -110,8 +110,9 @@ def smooth_ahrs(imu: np.ndarray, mag: np.ndarray, settings: SmootherSettings | N
     m = wf[:, None] * _unit(fwd.field_body_mG) + wb[:, None] * _unit(back.field_body_mG[::-1])
     valid = fwd.valid | vb
     # back to the vectors' scale (gravity m/s², field mG) for the callers that read them
-    g = _unit(g) * np.linalg.norm(np.where(fwd.valid[:, None], fwd.gravity_body, back.gravity_body[::-1]), axis=1)[:, None]
-    m = _unit(m) * np.linalg.norm(np.where(fwd.valid[:, None], fwd.field_body_mG, back.field_body_mG[::-1]), axis=1)[:, None]
+    fv = fwd.valid[:, None]
+    g = _unit(g) * np.linalg.norm(np.where(fv, fwd.gravity_body, back.gravity_body[::-1]), axis=1)[:, None]
+    m = _unit(m) * np.linalg.norm(np.where(fv, fwd.field_body_mG, back.field_body_mG[::-1]), axis=1)[:, None]
     roll, pitch, yaw, mag_heading = (np.where(valid, a, 0.0) for a in angles_from_vectors(g, m, fwd.mag_latest_mG))
     return AhrsResult(t, roll, pitch, yaw, mag_heading, fwd.gyro_bias_rad_s, fwd.acc_rejected, fwd.mag_rejected,
                       fwd.mag_disturbed, fwd.at_rest, valid, g, m, fwd.mag_latest_mG)

@@ -47,11 +47,13 @@ def _current_field(log: FlightLog, x: dict) -> tuple[CurrentFieldFit | None, np.
     return fit_current_field(mag_cal[:, 1:4], current, tilt[:, 0], tilt[:, 1]), current, ""
 
 
-def attitude_chain(log: FlightLog, field: np.ndarray, declination_deg: float, offline: bool = False) -> HeadingChainResult:
+def attitude_chain(log: FlightLog, field: np.ndarray, declination_deg: float,
+                   offline: bool = False) -> HeadingChainResult:
     """The default AHRS (``estimators.ahrs.AhrsSettings``) on the log's IMU and a field (M, 4);
     ``offline``: its forward-backward smoother over the whole log (estimators/attitude_smoother.py)."""
     imu = np.asarray(log.imu, dtype=float).reshape(-1, 7)
-    return smooth_heading_chain(imu, field, declination_deg) if offline else run_heading_chain(imu, field, declination_deg)
+    run = smooth_heading_chain if offline else run_heading_chain
+    return run(imu, field, declination_deg)
 
 
 def best_heading_chain(log: FlightLog, x: dict, shown: HeadingChainResult,
