@@ -1,27 +1,28 @@
-"""AHRS benchmark on the BROAD trials (real IMU, optical truth): ours beside x-io Fusion (imufusion),
-Madgwick and Mahony (the ``ahrs`` package), one run, the dataset's own metric.
+"""AHRS benchmark on the BROAD trials (real IMU, optical truth): ours beside VQF (online and offline),
+x-io Fusion (imufusion), Madgwick and Mahony (the ``ahrs`` package), one run, the dataset's metric.
 
 Every trial in ../shared/data/broad runs through
-  * ours: the heading chain's default estimator (estimators/ahrs.py, ``AhrsSettings()``, no per-trial
-    tuning) and seed 000's filters (``HeadingChainSettings(estimator="seed000")``) for reference;
-  * the peers at their defaults and over a small grid of settings (Fusion: gain, acceleration and
-    magnetic rejection, its at-rest gyro ``Bias``; Madgwick: gain; Mahony: k_P, k_I).
+  * ours, causal: the heading chain's default estimator (estimators/ahrs.py, ``AhrsSettings()``,
+    no per-trial tuning) — the live station's and the detector's attitude;
+  * ours, offline: the forward-backward smoother over the whole trial
+    (estimators/attitude_smoother.py, ``SmootherSettings()``) — ``analyze``'s best estimate;
+  * seed 000's filters (``HeadingChainSettings(estimator="seed000")``) for reference;
+  * the peers, each at its own defaults: VQF ``vqf.VQF(Ts).updateBatch`` and ``vqf.offlineVQF``,
+    Fusion, Madgwick, Mahony.
 Metric (BROAD's broad_utils.py): q_err = q_est ⊗ q_ref* in the earth frame, heading error
 2·atan(|z/w|), inclination error 2·acos(√(w² + z²)), RMS over the movement phase; every filter
 starts from the data (no truth), and no heading offset is removed, as in BROAD's own evaluation
 (the optical frame is aligned with magnetic north by the authors).  See benchmarks/broad_peers.py.
 
-Columns: "best setting" is each peer's lowest RMS on that trial over its grid (the oracle: a
-different setting per trial), "best common" its one setting with the lowest mean (heading +
-inclination) over the trials run.  Target (issue 12): ours at or below the best peer at any
-setting, per trial and metric.
+Targets (issue 27): causal at or below VQF's default (+0.02°) on at least 80 % of the trial-metrics
+and both means below VQF's; offline mean inclination below offlineVQF's and offline mean heading
+below our causal mean.
 
-Run:  .venv/bin/python benchmarks/ahrs.py [--quick] [--jobs 2]
+Run:  .venv/bin/python benchmarks/ahrs.py [--quick] [--jobs 2] [--trials 02 15 ...]
 """
 from __future__ import annotations
 
 import argparse
-import itertools
 import pathlib
 import sys
 import time
@@ -35,145 +36,118 @@ sys.path[:] = [p for p in sys.path if pathlib.Path(p or ".").resolve() != _HERE]
 sys.path.insert(0, str(_HERE.parent))
 
 from benchmarks.broad_peers import (load_trial, quat_enu_from_dcm_ned, run_fusion, run_madgwick,  # noqa: E402
-                                    run_mahony, score_deg, trial_paths)
+                                    run_mahony, run_offline_vqf, run_vqf, score_deg, trial_paths)
+from estimators.attitude_smoother import smooth_heading_chain  # noqa: E402
 from estimators.heading import HeadingChainSettings, run_heading_chain  # noqa: E402
 from estimators.rotations import dcm_body_to_ned  # noqa: E402
 
-OURS = ("ours (AHRS default)", "seed 000 filters")
-
-
-def _peer_grid(quick: bool) -> list[tuple[str, str, dict]]:
-    """(peer, label, settings); the first entry of each peer is its default."""
-    fusion = [("x-io Fusion", "default", {}),
-              ("x-io Fusion", "x-io example", dict(acc_rejection_deg=10, mag_rejection_deg=20,
-                                                    rejection_timeout_s=5.0, gyro_bias=True))]
-    madgwick = [("Madgwick (ahrs)", "default", {})]
-    mahony = [("Mahony (ahrs)", "default", {})]
-    if not quick:
-        for g, ar, mr, b in itertools.product([0.05, 0.1, 0.2, 0.5], [0, 10, 20], [0, 10, 20], [False, True]):
-            fusion.append(("x-io Fusion", f"gain {g} acc {ar} mag {mr}{' bias' if b else ''}",
-                           dict(gain=g, acc_rejection_deg=ar, mag_rejection_deg=mr,
-                                rejection_timeout_s=5.0 if (ar or mr) else 0.0, gyro_bias=b)))
-        madgwick += [("Madgwick (ahrs)", f"gain {g}", dict(gain=g)) for g in (0.005, 0.01, 0.02, 0.08, 0.15)]
-        mahony += [("Mahony (ahrs)", f"kP {p} kI {i}", dict(k_p=p, k_i=i))
-                   for p, i in itertools.product((0.1, 0.3, 1.0), (0.003, 0.03, 0.3))]
-    return fusion + madgwick + mahony
-
-
-_RUN = {"x-io Fusion": run_fusion, "Madgwick (ahrs)": run_madgwick, "Mahony (ahrs)": run_mahony}
+CAUSAL, OFFLINE, SEED = "ours causal", "ours offline", "seed 000"
+VQF, OFFLINE_VQF = "VQF", "offlineVQF"
+PEERS = {VQF: run_vqf, OFFLINE_VQF: run_offline_vqf, "Fusion": run_fusion, "Madgwick": run_madgwick,
+         "Mahony": run_mahony}
+COLUMNS = (CAUSAL, OFFLINE, SEED, *PEERS)
+TOLERANCE_DEG = 0.02            # "at or below VQF" allows this much
 
 
 def run_ours(trial, estimator: str = "ahrs"):
-    """Sensor → ENU quaternions of the heading chain on a BROAD trial (declination 0: the
-    optical frame is magnetic)."""
-    r = run_heading_chain(trial.imu_frd(), trial.mag_frd_mG(), 0.0, HeadingChainSettings(estimator=estimator))
+    """Sensor → ENU quaternions of our estimators on a BROAD trial (declination 0: the optical
+    frame is magnetic); ``estimator``: "ahrs" (causal), "offline" or "seed000"."""
+    imu, mag = trial.imu_frd(), trial.mag_frd_mG()
+    if estimator == "offline":
+        r = smooth_heading_chain(imu, mag, 0.0)
+    else:
+        r = run_heading_chain(imu, mag, 0.0, HeadingChainSettings(estimator=estimator))
     return quat_enu_from_dcm_ned(dcm_body_to_ned(r.roll_rad, r.pitch_rad, r.yaw_rad)), r
 
 
 def _job(arg):
-    path, peer, label, kw, seconds = arg
+    path, column, seconds = arg
     trial = load_trial(path, seconds)
-    if peer in OURS:
-        t0 = time.process_time()
-        q, _ = run_ours(trial, "ahrs" if peer == OURS[0] else "seed000")
-        return trial.name, peer, label, score_deg(q, trial), len(q) / max(time.process_time() - t0, 1e-9)
-    return trial.name, peer, label, score_deg(_RUN[peer](trial, **kw), trial), None
+    t0 = time.process_time()
+    if column in PEERS:
+        q = PEERS[column](trial)
+    else:
+        q, _ = run_ours(trial, {CAUSAL: "ahrs", OFFLINE: "offline", SEED: "seed000"}[column])
+    speed = len(q) / max(time.process_time() - t0, 1e-9)
+    return trial.name, column, score_deg(q, trial), speed
 
 
-def run_all(paths, quick: bool, jobs: int, seconds: float | None = None) -> list[tuple]:
-    jobs_list = [(p, o, "", {}, seconds) for p in paths for o in OURS]
-    jobs_list += [(p, peer, label, kw, seconds) for peer, label, kw in _peer_grid(quick) for p in paths]
+def run_all(paths, jobs: int, seconds: float | None = None) -> list[tuple]:
+    jobs_list = [(p, c, seconds) for p in paths for c in COLUMNS]
     if jobs <= 1:
         return [_job(a) for a in jobs_list]
     with ProcessPoolExecutor(jobs) as ex:
         return list(ex.map(_job, jobs_list, chunksize=1))
 
 
-def summarise(rows: list[tuple]) -> tuple[dict, dict]:
-    """Per trial: {column: (heading, inclination, setting)}; and each peer's best common setting."""
-    trials = sorted({r[0] for r in rows})
-    table = {t: {} for t in trials}
-    by_setting: dict[tuple, dict] = {}
-    for trial, peer, label, (h, i), _ in rows:
-        by_setting.setdefault((peer, label), {})[trial] = (h, i)
-        if peer in OURS:
-            table[trial][peer] = (h, i, "")
-        elif label == "default":
-            table[trial][f"{peer} default"] = (h, i, "")
-    common = {}
-    for peer in _RUN:
-        full = {k: v for k, v in by_setting.items() if k[0] == peer and len(v) == len(trials)}
-        if full:
-            (_, label), res = min(full.items(), key=lambda kv: np.mean([h + i for h, i in kv[1].values()]))
-            common[peer] = (label, res)
-    for t in trials:
-        for peer in _RUN:
-            cand = [(v[t], k[1]) for k, v in by_setting.items() if k[0] == peer and t in v]
-            if cand:
-                (h, _), lh = min(cand, key=lambda c: c[0][0])
-                (_, i), li = min(cand, key=lambda c: c[0][1])
-                table[t][f"{peer} best"] = (h, i, f"hdg: {lh}; incl: {li}")
-            if peer in common:
-                h, i = common[peer][1][t]
-                table[t][f"{peer} common"] = (h, i, common[peer][0])
-    return table, common
+def summarise(rows: list[tuple]) -> dict:
+    """{trial: {column: (heading, inclination)}}."""
+    table: dict = {}
+    for trial, column, hi, _ in rows:
+        table.setdefault(trial, {})[column] = hi
+    return dict(sorted(table.items()))
 
 
-def print_table(table: dict, common: dict) -> tuple[int, int]:
-    """Prints the side-by-side table and the verdicts; returns (metrics met, metrics total)."""
-    cols = [c for c in next(iter(table.values())) if not c.endswith("best")]
+def verdicts(table: dict) -> dict:
+    """The issue-27 comparisons: k of n trial-metrics at or below VQF (+ tolerance) and the means."""
+    k = sum(row[CAUSAL][j] <= row[VQF][j] + TOLERANCE_DEG for row in table.values() for j in (0, 1))
+    mean = {c: tuple(float(np.mean([row[c][j] for row in table.values()])) for j in (0, 1)) for c in COLUMNS}
+    return dict(k=k, n=2 * len(table), mean=mean,
+                causal_means=mean[CAUSAL][0] < mean[VQF][0] and mean[CAUSAL][1] < mean[VQF][1],
+                offline_incl=mean[OFFLINE][1] < mean[OFFLINE_VQF][1],
+                offline_heading=mean[OFFLINE][0] < mean[CAUSAL][0])
+
+
+def print_table(table: dict) -> dict:
     print("\nBROAD heading / inclination RMS [deg] over the movement phase (dataset metric, no offset removed)")
-    print(f"{'trial':28s} " + " ".join(f"{c[:19]:>19s}" for c in cols))
+    print(f"{'trial':28s} " + " ".join(f"{c:>13s}" for c in COLUMNS))
     for t, row in table.items():
-        print(f"{t[:28]:28s} " + " ".join(f"{row[c][0]:9.2f}/{row[c][1]:<9.2f}" if c in row else f"{'—':>19s}"
-                                           for c in cols))
-    print("\nbest peer at any setting (per trial and metric) vs ours; target: ours <= best peer")
-    met = total = 0
+        print(f"{t[:28]:28s} " + " ".join(f"{row[c][0]:6.2f}/{row[c][1]:<6.2f}" for c in COLUMNS))
+    v = verdicts(table)
+    print(f"{'mean':28s} " + " ".join(f"{v['mean'][c][0]:6.2f}/{v['mean'][c][1]:<6.2f}" for c in COLUMNS))
+    print("\nper trial, ours causal vs VQF default (+0.02 deg)")
     for t, row in table.items():
-        peers = {c: v for c, v in row.items() if c not in OURS}
-        bh = min(peers.items(), key=lambda kv: kv[1][0])
-        bi = min(peers.items(), key=lambda kv: kv[1][1])
-        oh, oi = row[OURS[0]][:2]
-        ok_h, ok_i = round(oh, 2) <= round(bh[1][0], 2), round(oi, 2) <= round(bi[1][1], 2)   # as printed
-        met += ok_h + ok_i
-        total += 2
-        print(f"  {t[:28]:28s} heading {oh:5.2f} vs {bh[1][0]:5.2f} ({bh[0]}) {'met   ' if ok_h else 'MISSED'}"
-              f" | inclination {oi:5.2f} vs {bi[1][1]:5.2f} ({bi[0]}) {'met   ' if ok_i else 'MISSED'}")
-    if common:
-        print("  best common settings: " + "; ".join(f"{p}: {c[0]}" for p, c in common.items()))
-
-    def mean(c, k):
-        return np.mean([row[c][k] for row in table.values() if c in row])
-    print(f"  mean over trials: ours {mean(OURS[0], 0):.2f}/{mean(OURS[0], 1):.2f}, seed 000 "
-          f"{mean(OURS[1], 0):.2f}/{mean(OURS[1], 1):.2f}"
-          + "".join(f", {p} common {mean(p + ' common', 0):.2f}/{mean(p + ' common', 1):.2f}" for p in common))
-    print(f"\n{met} of {total} trial metrics at or below the best peer at any setting")
-    return met, total
+        marks = ["met   " if row[CAUSAL][j] <= row[VQF][j] + TOLERANCE_DEG else "MISSED" for j in (0, 1)]
+        print(f"  {t[:28]:28s} heading {row[CAUSAL][0]:5.2f} vs {row[VQF][0]:5.2f} {marks[0]} | "
+              f"inclination {row[CAUSAL][1]:5.3f} vs {row[VQF][1]:5.3f} {marks[1]}")
+    print(f"\n{v['k']} of {v['n']} trial metrics: ours causal at or below VQF default (+{TOLERANCE_DEG} deg)")
+    m = v["mean"]
+    checks = [(f"causal means below VQF's ({m[CAUSAL][0]:.3f}/{m[CAUSAL][1]:.3f} vs {m[VQF][0]:.3f}/{m[VQF][1]:.3f})",
+               v["causal_means"]),
+              (f"offline mean inclination below offlineVQF's ({m[OFFLINE][1]:.3f} vs {m[OFFLINE_VQF][1]:.3f})",
+               v["offline_incl"]),
+              (f"offline mean heading below ours causal ({m[OFFLINE][0]:.3f} vs {m[CAUSAL][0]:.3f})",
+               v["offline_heading"])]
+    for name, ok in checks:
+        print(f"  {'met   ' if ok else 'MISSED'}  {name}")
+    return v
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true",
-                    help="smoke run: the first trial's first 70 s (30 s of movement), peers at their defaults")
+    ap.add_argument("--quick", action="store_true", help="smoke run: the first trial's first 70 s (30 s of movement)")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    ap.add_argument("--trials", nargs="*", default=None, help="trial name prefixes (default: all)")
     a = ap.parse_args(argv)
     paths = trial_paths()
+    if a.trials:
+        paths = [p for p in paths if any(p.stem.startswith(x) for x in a.trials)]
     if not paths:
         print("no BROAD trials in ../shared/data/broad; nothing to do")
         return 0
-    missing = [m for m in ("h5py", "imufusion", "ahrs") if not _importable(m)]
+    missing = [m for m in ("h5py", "imufusion", "ahrs", "vqf") if not _importable(m)]
     if missing:
         print(f"missing packages {missing}: pip install -e .[bench]")
         return 1
     if a.quick:
         paths = paths[:1]
     t0 = time.perf_counter()
-    rows = run_all(paths, a.quick, a.jobs, 70.0 if a.quick else None)
-    table, common = summarise(rows)
-    print_table(table, common)
-    speeds = [r[4] for r in rows if r[1] == OURS[0]]
-    print(f"ours: batch heading chain {np.median(speeds):,.0f} IMU samples/s of CPU time (median over trials); "
-          f"benchmark wall time {time.perf_counter() - t0:.0f} s")
+    rows = run_all(paths, a.jobs, 70.0 if a.quick else None)
+    print_table(summarise(rows))
+    for column in (CAUSAL, OFFLINE):
+        speeds = [r[3] for r in rows if r[1] == column]
+        print(f"{column}: batch {np.median(speeds):,.0f} IMU samples/s of CPU time (median over trials)")
+    print(f"benchmark wall time {time.perf_counter() - t0:.0f} s")
     return 0
 
 

@@ -11,7 +11,9 @@ offset is removed.  We do the same for every estimator here.
 Frames: body FRD = sensor rotated 180° about x (``SENSOR_TO_FRD``), NED = ENU with x and y swapped
 and z negated (``ENU_TO_NED``); both matrices are their own inverse.
 
-Peers: ``imufusion`` (x-io Fusion's C core; optional gyro ``Bias`` at-rest offset), the ``ahrs``
+Peers: ``vqf`` (VQF, Laidig & Seel, Information Fusion 91:187, 2023: online ``VQF`` and
+``offlineVQF``, defaults, earth frame ENU), ``imufusion`` (x-io Fusion's C core; optional gyro
+``Bias`` at-rest offset), the ``ahrs``
 package's Madgwick (earth frame NWU: gravity +z, field in the x–z plane) and Mahony (earth frame
 ENU: gravity +z, field in the y–z plane), each started from the first sample as BROAD does.
 """
@@ -153,3 +155,18 @@ def run_mahony(trial: BroadTrial, k_p: float | None = None, k_i: float | None = 
     for i in range(1, len(q)):
         q[i] = f.updateMARG(q[i - 1], gyr[i], acc[i], mag[i])
     return q
+
+
+def run_vqf(trial: BroadTrial) -> np.ndarray:
+    """VQF (Laidig & Seel 2023, PyPI ``vqf``) with its defaults: ``VQF(Ts).updateBatch`` on the
+    sensor-frame data (earth frame ENU, as BROAD's truth); the 9-D quaternion."""
+    import vqf
+    g, a, m = (np.ascontiguousarray(x, dtype=float) for x in (trial.gyro_rad_s, trial.acc_mps2, trial.mag_uT))
+    return np.asarray(vqf.VQF(1.0 / trial.rate_hz).updateBatch(g, a, m)["quat9D"])
+
+
+def run_offline_vqf(trial: BroadTrial) -> np.ndarray:
+    """VQF's offline mode (``vqf.offlineVQF``, forward-backward over the whole trial), defaults."""
+    import vqf
+    g, a, m = (np.ascontiguousarray(x, dtype=float) for x in (trial.gyro_rad_s, trial.acc_mps2, trial.mag_uT))
+    return np.asarray(vqf.offlineVQF(g, a, m, 1.0 / trial.rate_hz)["quat9D"])

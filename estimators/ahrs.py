@@ -35,11 +35,25 @@ Information Fusion 91:187, 2023).  Beyond the seeds:
    departs from the reference by more than ``field_norm_tol`` or its dip (below the horizontal of
    x2) by more than ``field_dip_tol_deg``; the reference is the expected field (WMM or calibration)
    when given, else the first field, follows clean fields with ``field_ref_time_s`` and becomes the
-   field disturbed for ``field_relearn_s``.  A disturbed field or a heading innovation over
+   field steady for ``field_relearn_s`` (item 5).  A disturbed field or a heading innovation over
    ``mag_reject_deg`` holds the heading on the gyro with the learned bias (``mag_rejected``), with
    the same recovery trigger (``mag_recovery_s``): a disturbance that does not end is eventually
    accepted, as Fusion does; ``mag_disturbed`` stays set for the detector.
-4. Schedule.  Bias and gating are decided at block ends (time grid ``block_s``, at least
+4. Rest (VQF's rest bias estimation and our own use of it): at rest the gravity stages are
+   pulled to the block-mean specific force (``rest_tilt_time_s``) and the field vector to the
+   block-mean field when it is accepted (``rest_field_time_s``), so tilt and heading settle within
+   a hold of a few seconds instead of over the motion time constants; the rest low-pass restarts
+   from the block after every block that is not still, so a hold after a move is seen after
+   ``rest_time_s``; a block whose |f̄| departs from g by ``acc_norm_tol_mps2`` is not still.
+   In motion the tilt-axes bias path learns only in quasi-static blocks (specific-force spread
+   under ``bias_acc_spread_mps2``, | |f̄| − g | under ``bias_acc_norm_mps2``), the role of VQF's
+   motion bias estimation being trusted only when the accelerometer is.
+5. New field (VQF's new-field acceptance): a candidate field follows the block-mean strength and
+   dip while they stay within the tolerances of it; the time it has stayed so is counted only
+   while turning faster than ``relearn_min_gyro_rad_s`` (a field that stays the same while the
+   body turns is homogeneous; a magnet on the body changes strength and dip as it turns), and
+   after ``field_relearn_s`` a disturbed reference is replaced by the candidate.
+6. Schedule.  Bias and gating are decided at block ends (time grid ``block_s``, at least
    ``block_min_samples`` and at most ``block_max_samples`` IMU samples; estimators/
    ahrs_supervisor.py) and held over the next block;
    the bias is applied to the raw-gyro propagation as one rotation R(b̂·τ), τ the time into the block
@@ -70,37 +84,42 @@ GRAVITY_MPS2 = 9.80665
 class AhrsSettings:
     """The one default for every vehicle and log (no per-trial tuning).  Units in the names.
 
-    Chosen between the seven BROAD trials (benchmarks/ahrs.py: real IMUs, small gyro biases) and
-    the simulated missions and static protocol with gyro biases of 0.2-0.5°/s per axis
-    (benchmarks/heading.py): a field gain of 0.12/s (an 8 s heading time constant) with the
-    heading-axis bias learnt in ~60 s took the BROAD mean heading RMS from 1.72° (0.2/s, 300 s) to
-    1.51°, inclination unchanged.  Slower gains do better on BROAD (0.06/s: 1.15°) but not with a
-    large unlearnt bias: 6° median heading error on the 0.5°/s missions, and at 0.1/s the
-    level-vs-rolled difference at inclination 78° reaches the 0.3° target.  A 0.1 s block took
-    the batch chain from ~210k to ~300k IMU samples/s.
-    The interference detector's heading reference keeps its own setting
-    (groundstation.jobs.inputs.DETECTOR_CHAIN)."""
-    gravity_gain_per_s: float = 0.5          # k1: accelerometer → first gravity stage
-    gravity_smoothing_per_s: float = 0.5     # k2: first → second stage (tilt)
-    field_gain_per_s: float = 0.12           # k_m: magnetometer → field vector
-    bias_tilt_time_s: float = 100.0          # time constant of the tilt-axes motion bias path
-    bias_heading_time_s: float = 60.0        # time constant of the heading-axis motion bias path
-    bias_rest_time_s: float = 5.0            # time constant of the at-rest bias learning
+    Tuned (issue 27) on the seven BROAD trials against VQF's default (benchmarks/ahrs.py: 13 of 14
+    trial-metrics at or below VQF + 0.02°, mean heading / inclination 1.37° / 0.672° vs VQF's
+    1.60° / 0.673°), then checked on the static protocols and the randomised static cases at
+    inclination 45° and 78° (gyro bias up to 0.3°/s per axis, 4-6 s holds) and the GPS-outage
+    missions (benchmarks/heading.py).  The rest terms carry the static cases (tilt and heading
+    settle within a hold); the gravity stages (k2 > k1) and the quasi-static gating of the
+    tilt-bias path carry BROAD's fast translation; the tighter field tests (5.6 %, 3.4°, 5.4°) and
+    the new-field acceptance counted while turning carry the magnet trials.  Known cost: a
+    sustained lateral 0.5 g without rotation is rejected only after ~6 s (tests/test_ahrs.py).
+    A 0.1 s block keeps the batch chain near 300k IMU samples/s."""
+    gravity_gain_per_s: float = 0.459          # k1: accelerometer → first gravity stage
+    gravity_smoothing_per_s: float = 0.817     # k2: first → second stage (tilt)
+    field_gain_per_s: float = 0.161           # k_m: magnetometer → field vector
+    bias_tilt_time_s: float = 138.0          # time constant of the tilt-axes motion bias path
+    bias_heading_time_s: float = 85.4        # time constant of the heading-axis motion bias path
+    bias_acc_spread_mps2: float = 1.23        # tilt-axes motion bias learnt only in blocks whose specific-
+    bias_acc_norm_mps2: float = 1.57          # force spread and | |f̄| − g | are under these (quasi-static)
+    bias_rest_time_s: float = 3.79            # time constant of the at-rest bias learning
     bias_max_rad_s: float = math.radians(2.0)  # |b̂| per axis is clipped here
-    rest_time_s: float = 1.5                 # still this long before "at rest"
+    rest_tilt_time_s: float = 0.5            # at rest: gravity stages → block-mean specific force
+    rest_field_time_s: float = 1.0           # at rest: field vector → block-mean field (accepted)
+    rest_time_s: float = 1.0                 # still this long before "at rest"
     rest_gyro_rad_s: float = math.radians(1.0)   # gyro spread inside a block below this (vibration)
-    rest_acc_mps2: float = 0.5               # specific-force spread inside a block below this
+    rest_acc_mps2: float = 0.425               # specific-force spread inside a block below this
     rest_gyro_drift_rad_s: float = math.radians(0.3)  # block-mean gyro off its low-pass below this
     rest_acc_drift_mps2: float = 0.1         # block-mean f off its low-pass below this (~0.6° of tilt)
     rest_filter_s: float = 1.0               # that low-pass of the block means
     acc_norm_tol_mps2: float = 1.0           # | |x1| − g | above this: tilt held on the gyro
     acc_reject_deg: float = 10.0             # x1 this far from x2: tilt held on the gyro
     acc_recovery_s: float = 5.0              # held this long: use the accelerometer until recovered
-    field_norm_tol: float = 0.05             # strength departs from the reference by this fraction
-    field_dip_tol_deg: float = 4.0           # dip departs from the reference by this much
-    mag_reject_deg: float = 10.0             # heading innovation above this: heading held on the gyro
+    field_norm_tol: float = 0.0557             # strength departs from the reference by this fraction
+    field_dip_tol_deg: float = 3.41           # dip departs from the reference by this much
+    mag_reject_deg: float = 5.4             # heading innovation above this: heading held on the gyro
     mag_recovery_s: float = 10.0             # held this long: use the magnetometer until recovered
-    field_relearn_s: float = 20.0            # disturbed this long: the field becomes the reference
+    field_relearn_s: float = 20.0            # a new field steady this long (turning): it becomes the reference
+    relearn_min_gyro_rad_s: float = 0.0281      # ... counted only while turning faster than this
     field_ref_time_s: float = 20.0           # the reference follows clean fields this slowly
     recovery_ratio: float = 9.0              # recovery triggers fall this much faster than they rise
     block_s: float = 0.1                     # bias / gating schedule

@@ -32,7 +32,7 @@ from estimators.ahrs_math import ACCEPT, REJECT, SERIES_MAX_RAD
 from estimators.ahrs_supervisor import BlockSums, Supervisor
 from estimators.rotations import wrap_heading_rad
 
-__all__ = ["AhrsResult", "run_ahrs"]
+__all__ = ["AhrsResult", "run_ahrs", "angles_from_vectors"]
 
 
 @dataclass
@@ -386,12 +386,19 @@ def _outputs(fl: dict, raw: np.ndarray, tau: np.ndarray, var: np.ndarray, bias: 
     g, m = v
     valid = fl["g_init"] & fl["m_init"]
     latest = fl["latest"]
+    roll, pitch, yaw, mag_heading = (np.where(valid, a, 0.0) for a in angles_from_vectors(g, m, latest))
+    return (fl["t"], roll, pitch, yaw, mag_heading, bias, fl["g_init"] & (var[:, 0] == REJECT),
+            var[:, 1] == REJECT, flags[:, 1], flags[:, 0], valid, g, m, latest)
+
+
+def angles_from_vectors(g: np.ndarray, m: np.ndarray, latest: np.ndarray) -> tuple:
+    """Vectorised ``estimators.ahrs_math.attitude_from_vectors`` (same formulas, same order):
+    (roll, pitch, heading of m, heading of ``latest``) [rad] from body specific force g (N, 3) and
+    fields (N, 3)."""
     roll = np.arctan2(-g[:, 1], -g[:, 2])
     pitch = np.arctan2(g[:, 0], np.hypot(g[:, 1], g[:, 2]))
     sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
     spsr, spcr = sp * sr, sp * cr
     heads = [wrap_heading_rad(np.arctan2(-(h[:, 1] * cr - h[:, 2] * sr),
                                          h[:, 0] * cp + h[:, 1] * spsr + h[:, 2] * spcr)) for h in (m, latest)]
-    roll, pitch, yaw, mag_heading = (np.where(valid, a, 0.0) for a in (roll, pitch, *heads))
-    return (fl["t"], roll, pitch, yaw, mag_heading, bias, fl["g_init"] & (var[:, 0] == REJECT),
-            var[:, 1] == REJECT, flags[:, 1], flags[:, 0], valid, g, m, latest)
+    return roll, pitch, heads[0], heads[1]

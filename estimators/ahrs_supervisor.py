@@ -49,8 +49,11 @@ class Supervisor:
         self.bias = [float(b) for b in bias_rad_s]
         self.var_g, self.var_m = ACCEPT, ACCEPT
         self.acc_trig = self.mag_trig = self.dist_t = self.rest_t = 0.0
+        self.cand_norm = self.cand_dip = None         # candidate new field (VQF's new-field acceptance)
+        self.gyro_norm = 0.0                          # |block-mean gyro| [rad/s]
         self.acc_recovering = self.mag_recovering = False
         self.at_rest = False
+        self.acc_quiet = False                       # the block's specific force is near g and steady
         self.field_disturbed = False                 # the latest block-mean field departs from the reference
         self.ref_norm = expected_field.strength_mG if expected_field else None
         self.ref_dip = math.radians(expected_field.inclination_deg) if expected_field else 0.0
@@ -60,6 +63,7 @@ class Supervisor:
         self._psi_max = math.radians(s.mag_reject_deg)
         self._dip_tol = math.radians(s.field_dip_tol_deg)
         self._g2, self._a2 = s.rest_gyro_rad_s ** 2, s.rest_acc_mps2 ** 2
+        self._q2 = s.bias_acc_spread_mps2 ** 2
         self._gd2, self._ad2 = s.rest_gyro_drift_rad_s ** 2, s.rest_acc_drift_mps2 ** 2
         self._T = None                               # block duration the cached gains are for
 
@@ -70,6 +74,8 @@ class Supervisor:
         self._k_rest_lp = -math.expm1(-T / s.rest_filter_s)
         self._k_bias_rest = -math.expm1(-T / s.bias_rest_time_s)
         self._k_ref = -math.expm1(-T / s.field_ref_time_s)
+        self._k_rest_tilt = -math.expm1(-T / s.rest_tilt_time_s)
+        self._k_rest_field = -math.expm1(-T / s.rest_field_time_s)
         self._k_tilt = T / s.bias_tilt_time_s * s.gravity_smoothing_per_s
         self._k_head = T / s.bias_heading_time_s * s.field_gain_per_s
 
@@ -88,7 +94,7 @@ class Supervisor:
             gs = b.gyro_sum
             nb = (bx + k * (gs[0] / n - bx), by + k * (gs[1] / n - by), bz + k * (gs[2] / n - bz))
         else:
-            kg, km = self._k_tilt, self._k_head * psi
+            kg, km = (self._k_tilt if self.acc_quiet else 0.0), self._k_head * psi
             nb = (bx + kg * r_g[0] + km * up[0], by + kg * r_g[1] + km * up[1], bz + kg * r_g[2] + km * up[2])
         lim = self.s.bias_max_rad_s
         n0, n1, n2 = nb
@@ -101,31 +107,56 @@ class Supervisor:
             v[0] = c * vx - sn * (ty * vz - tz * vy) + d * tx
             v[1] = c * vy - sn * (tz * vx - tx * vz) + d * ty
             v[2] = c * vz - sn * (tx * vy - ty * vx) + d * tz
+        if self.at_rest:
+            self._pull_at_rest(b)
         return b.fast_end, b.gravity_end, b.field_end
 
+    def _pull_at_rest(self, b: BlockSums) -> None:
+        """At rest the specific force is gravity and the body does not turn: the gravity stages
+        are pulled to the block-mean specific force and the field vector to the block-mean field
+        (when it is accepted) with the short time constants ``rest_tilt_time_s`` and
+        ``rest_field_time_s``, so tilt and heading settle within a hold instead of over the
+        motion time constants (1/k)."""
+        if b.force_n and self.var_g == ACCEPT:
+            n, k = b.force_n, self._k_rest_tilt
+            f = (b.force_sum[0] / n, b.force_sum[1] / n, b.force_sum[2] / n)
+            for v in (b.fast_end, b.gravity_end):
+                v[0] += k * (f[0] - v[0]); v[1] += k * (f[1] - v[1]); v[2] += k * (f[2] - v[2])  # noqa: E702
+        if b.mag_n and b.field_init and self.var_m == ACCEPT and not self.field_disturbed:
+            n, k, v = b.mag_n, self._k_rest_field, b.field_end
+            m = (b.mag_sum[0] / n, b.mag_sum[1] / n, b.mag_sum[2] / n)
+            v[0] += k * (m[0] - v[0]); v[1] += k * (m[1] - v[1]); v[2] += k * (m[2] - v[2])  # noqa: E702
+
     def _rest(self, b: BlockSums, T: float) -> None:
-        """Still: the gyro and specific-force spread inside the block (vibration, shocks) and the
+        """Still: the gyro and specific-force spread inside the block (vibration, shocks), |f̄| within
+        ``acc_norm_tol_mps2`` of g (a steady acceleration is not rest), and the
         drift of the block means from their low-pass (a slow rotation about a horizontal axis turns
         the specific force) under the thresholds; at rest after ``rest_time_s`` still (VQF's rest
         detection on block means).  A slow turn about the vertical below ``bias_max_rad_s`` is not
         seen: a platform yawing slowly while otherwise still is taken for a gyro bias."""
         if not (b.gyro_n and b.force_n):
-            self.rest_t, self.at_rest = 0.0, False
+            self.rest_t, self.at_rest, self.acc_quiet = 0.0, False, False
             return
         s = self.s
         ng, nf = b.gyro_n, b.force_n
         w = (b.gyro_sum[0] / ng, b.gyro_sum[1] / ng, b.gyro_sum[2] / ng)
         f = (b.force_sum[0] / nf, b.force_sum[1] / nf, b.force_sum[2] / nf)
+        self.gyro_norm = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
         if self.lp_w is None:
             self.lp_w, self.lp_f = list(w), list(f)
+        f2 = f[0] * f[0] + f[1] * f[1] + f[2] * f[2]
+        f_spread2 = b.force_sq / nf - f2
+        self.acc_quiet = (f_spread2 < self._q2 and abs(math.sqrt(f2) - s.gravity_mps2) < s.bias_acc_norm_mps2)
         still = (b.gyro_sq / ng - (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) < self._g2
-                 and b.force_sq / nf - (f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) < self._a2
+                 and f_spread2 < self._a2 and abs(math.sqrt(f2) - s.gravity_mps2) < s.acc_norm_tol_mps2
                  and max(abs(w[0]), abs(w[1]), abs(w[2])) < s.bias_max_rad_s)
         k = self._k_rest_lp
         for x, lp, lim2 in ((w, self.lp_w, self._gd2), (f, self.lp_f, self._ad2)):
             d0, d1, d2 = x[0] - lp[0], x[1] - lp[1], x[2] - lp[2]
             still = still and d0 * d0 + d1 * d1 + d2 * d2 < lim2
             lp[0] += k * d0; lp[1] += k * d1; lp[2] += k * d2  # noqa: E702
+        if not still:                       # moving: the low-pass starts again from this block, so
+            self.lp_w[:], self.lp_f[:] = w, f   # a hold after a move is seen within rest_time_s
         self.rest_t = self.rest_t + T if still else 0.0
         self.at_rest = self.rest_t >= s.rest_time_s
 
@@ -169,6 +200,7 @@ class Supervisor:
         none = (0.0, (0.0, 0.0, 0.0))
         if b.reinit_field:
             self.mag_trig, self.dist_t, self.mag_recovering, self.var_m = 0.0, 0.0, False, ACCEPT
+            self.cand_norm = None
             self.field_disturbed = False
         if not (b.mag_n and b.field_init and b.gravity_init):
             return none
@@ -193,9 +225,20 @@ class Supervisor:
         cr = _cross(h1, h2)
         psi = math.atan2(ux * cr[0] + uy * cr[1] + uz * cr[2], h1[0] * h2[0] + h1[1] * h2[1] + h1[2] * h2[2])
         dist = abs(norm - self.ref_norm) > s.field_norm_tol * self.ref_norm or abs(dip - self.ref_dip) > self._dip_tol
-        self.dist_t = self.dist_t + T if dist else 0.0
+        # a new field: its strength and dip steady (within the tolerances of their own low-pass)
+        # for field_relearn_s counted while turning faster than relearn_min_gyro_rad_s (a field
+        # that stays the same while the body turns is homogeneous); then it is the reference
+        if (self.cand_norm is not None and abs(norm - self.cand_norm) <= s.field_norm_tol * self.cand_norm
+                and abs(dip - self.cand_dip) <= self._dip_tol):
+            if self.gyro_norm >= s.relearn_min_gyro_rad_s:
+                self.dist_t += T
+            k = self._k_ref
+            self.cand_norm += k * (norm - self.cand_norm)
+            self.cand_dip += k * (dip - self.cand_dip)
+        else:
+            self.cand_norm, self.cand_dip, self.dist_t = norm, dip, 0.0
         if dist and self.dist_t >= s.field_relearn_s:       # a new, lasting field: take it
-            self.ref_norm, self.ref_dip, self.dist_t, dist = norm, dip, 0.0, False
+            self.ref_norm, self.ref_dip, dist = self.cand_norm, self.cand_dip, False
         self.field_disturbed = dist
         bad = dist or abs(psi) > self._psi_max
         self.mag_trig = trig = self._trigger(self.mag_trig, bad, T, s.mag_recovery_s)

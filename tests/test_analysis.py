@@ -138,6 +138,7 @@ def test_csv_columns(slow_report, tmp):
     alarm = [r[rows[0].index("alarm")] for r in rows[1:]]
     assert set(alarm) <= {"0", "1"} and "1" in alarm
     assert {r[rows[0].index("ins_mode")] for r in rows[1:]} == {""}    # GPS all the way: no INS run
+    assert {r[rows[0].index("attitude_source")] for r in rows[1:]} == {"offline"}   # ... so the smoother's
 
 
 def test_without_calibration_and_bad_input(slow):

@@ -83,7 +83,10 @@ def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
     # nor a motor-current field changes it (issue 12), not the detector's faster heading reference
     assert not report["motor_field"]["removed_from_heading"]
     plain = columns["ins_mode"] == ""
-    np.testing.assert_allclose(live_rows[plain, COL["roll_deg"]], columns["roll_deg"][plain], atol=1e-6)
+    # ... analyze's CSV attitude is the offline smoother's there (issue 27), the page the causal AHRS's
+    assert set(columns["attitude_source"][plain]) == {"offline"}
+    d_roll = np.abs((live_rows[plain, COL["roll_deg"]] - columns["roll_deg"][plain] + 180.0) % 360.0 - 180.0)
+    assert np.nanmedian(d_roll) < 1.5 and np.nanpercentile(d_roll, 90) < 6.0   # demo 0.13/0.46, real 0.88/5.3
     detector_roll = np.where(batch.x["chain"].valid, np.degrees(batch.x["chain"].roll_rad), np.nan)
     assert np.nanmax(np.abs(live_rows[:, COL["roll_deg"]] - detector_roll)) > 0.05
     if path == DEMO:      # the interference episode of the demo and nothing before it; it ends with it

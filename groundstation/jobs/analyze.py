@@ -135,7 +135,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
     hdg = lambda a: np.where(valid, heading_deg(a), np.nan)  # noqa: E731
     declination = ef.declination_deg if ef else 0.0
     nav, runs = ins_runs(log, x["mag_cal"], declination, x["imu_rate_hz"], settings)
-    best_chain, motor = best_heading_chain(log, x, fa.attitude)
+    best_chain, motor = best_heading_chain(log, x, fa.attitude, offline=True)   # the whole log: offline
     best = best_attitude(t, best_chain, valid, runs, declination)
     v_fwd, v_lat = split_velocity(gps[:, 5], gps[:, 6], np.radians(best["heading_true_deg"]))
     columns = {
@@ -146,6 +146,9 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "v_forward_mps": v_fwd, "v_lateral_mps": v_lat,
         "cross_track_m": d, "alarm": det.combined.astype(int),
         **bias_and_rejection(best_chain, valid), "ins_mode": best["ins_mode"],
+        # the attitude columns: the offline smoother, or causal where the INS/GPS filter runs
+        "attitude_source": np.where((best["ins_mode"] == "") & (best_chain.estimator == "offline"),
+                                    "offline", "causal").astype(object),
     }
 
     alarms = alarm_list(t, det, d, settings) + fa.combined_alarms()

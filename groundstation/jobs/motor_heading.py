@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from estimators.attitude_smoother import smooth_heading_chain
 from estimators.heading import HeadingChainResult, run_heading_chain
 from estimators.motor_field import CurrentFieldFit, fit_current_field
 
@@ -46,20 +47,27 @@ def _current_field(log: FlightLog, x: dict) -> tuple[CurrentFieldFit | None, np.
     return fit_current_field(mag_cal[:, 1:4], current, tilt[:, 0], tilt[:, 1]), current, ""
 
 
-def attitude_chain(log: FlightLog, field: np.ndarray, declination_deg: float) -> HeadingChainResult:
-    """The default AHRS (``estimators.ahrs.AhrsSettings``) on the log's IMU and a field (M, 4)."""
-    return run_heading_chain(np.asarray(log.imu, dtype=float).reshape(-1, 7), field, declination_deg)
+def attitude_chain(log: FlightLog, field: np.ndarray, declination_deg: float,
+                   offline: bool = False) -> HeadingChainResult:
+    """The default AHRS (``estimators.ahrs.AhrsSettings``) on the log's IMU and a field (M, 4);
+    ``offline``: its forward-backward smoother over the whole log (estimators/attitude_smoother.py)."""
+    imu = np.asarray(log.imu, dtype=float).reshape(-1, 7)
+    run = smooth_heading_chain if offline else run_heading_chain
+    return run(imu, field, declination_deg)
 
 
-def best_heading_chain(log: FlightLog, x: dict, shown: HeadingChainResult) -> tuple[HeadingChainResult, dict]:
+def best_heading_chain(log: FlightLog, x: dict, shown: HeadingChainResult,
+                       offline: bool = False) -> tuple[HeadingChainResult, dict]:
     """(the default AHRS on the field with the motor-current field removed when it is found, else
     ``shown``, the default AHRS on the field as measured; report["motor_field"]).  ``x``:
-    detection_inputs of the log (its mag_cal, chain and WMM)."""
+    detection_inputs of the log (its mag_cal, chain and WMM).  ``offline``: the offline smoother
+    instead of the causal AHRS (a finished log's best estimate)."""
     fit, current, why = _current_field(log, x)
+    ef = x["ef"]
+    decl = ef.declination_deg if ef else 0.0
     if fit is None or fit.status != "ok":
-        return shown, _report(fit, False, why)
+        return (attitude_chain(log, x["mag_cal"], decl, True) if offline else shown), _report(fit, False, why)
     field = x["mag_cal"].copy()
     have = np.isfinite(current)
     field[have, 1:4] -= np.outer(current[have], fit.motor_mG_per_A)
-    ef = x["ef"]
-    return attitude_chain(log, field, ef.declination_deg if ef else 0.0), _report(fit, True, why)
+    return attitude_chain(log, field, decl, offline), _report(fit, True, why)

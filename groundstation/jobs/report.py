@@ -11,9 +11,9 @@ __all__ = ["CSV_COLUMNS", "write_csv", "format_report"]
 
 CSV_COLUMNS = ("t_s", "roll_deg", "pitch_deg", "yaw_deg", "mag_heading_deg", "heading_true_deg",
                "v_forward_mps", "v_lateral_mps", "cross_track_m", "alarm", "gyro_bias_x_dps", "gyro_bias_y_dps",
-               "gyro_bias_z_dps", "acc_rejected", "mag_rejected", "ins_mode")
+               "gyro_bias_z_dps", "acc_rejected", "mag_rejected", "ins_mode", "attitude_source")
 INTEGER_COLUMNS = ("alarm", "acc_rejected", "mag_rejected")
-TEXT_COLUMNS = ("ins_mode",)
+TEXT_COLUMNS = ("ins_mode", "attitude_source")
 
 
 def write_csv(path: str | Path, columns: dict[str, np.ndarray]) -> Path:
