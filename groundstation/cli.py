@@ -70,6 +70,11 @@ def _write_json(path: str, obj: object) -> None:
     Path(path).write_text(json.dumps(obj, indent=2, allow_nan=False) + "\n", encoding="utf-8")
 
 
+def _file_name(record: dict) -> dict:
+    """``record`` with its "file" as the file's name: a report to share carries no local path."""
+    return {**record, "file": Path(str(record["file"])).name} if record.get("file") else record
+
+
 # ------------------------------------------------------------------------------------ commands
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -100,6 +105,12 @@ def cmd_info(args: argparse.Namespace) -> int:
     print(printable("\n".join(compass_lines(log)), lines=True))
     rtk = bool(len(log.gps) and (log.gps[:, 7] >= 5).any())
     print(f"  RTK             {'yes' if rtk else 'no'}")
+    if len(log.gps):
+        import numpy as np
+
+        from groundstation.jobs.words import fix_name
+        kinds, counts = np.unique(log.gps[:, 7][np.isfinite(log.gps[:, 7])].astype(int), return_counts=True)
+        print("  GPS fixes       " + ", ".join(f"{fix_name(k)} {n}" for k, n in zip(kinds[::-1], counts[::-1])))
     print(f"  mission         {len(log.mission)} waypoints" if log.mission else "  mission         none")
     print(f"  parameters      {len(log.params)}")
     print("  messages:")
@@ -123,7 +134,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         text = "\n".join([format_summary(r) for r in found] + [format_consistency(found[0].get("consistency"))])
         print(printable(text.rstrip(), lines=True))
     if args.json:
-        _write_json(args.json, {"results": results})
+        _write_json(args.json, {"results": [_file_name(r) for r in results]})
     return 0 if all(r["status"] == "ok" for r in results) else 1
 
 
@@ -169,7 +180,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         report, columns = analyze_log(log, calibration=calibration, mission=mission)
     print(printable(format_report(report), lines=True))
     if args.json:
-        _write_json(args.json, report)
+        _write_json(args.json, _file_name(report))
     if args.csv:
         write_csv(args.csv, columns)
     if args.plot:
