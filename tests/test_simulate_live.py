@@ -70,7 +70,7 @@ def test_simulate_live_drives_the_station_and_the_wizard():
         _wait(lambda: httpx.get(url + "/api/state", timeout=5).json()["source"]["kind"] == "live", 60,
               "the station", [station])
         assert httpx.post(url + "/api/calibration/start", timeout=10).status_code == 200
-        vehicle = _start(["simulate", "calibration", "--live", f"udpout:127.0.0.1:{udp}", "--speed", "4"])
+        vehicle = _start(["simulate", "calibration", "--live", f"udpout:127.0.0.1:{udp}", "--speed", "6"])
         first = _wait(lambda: vehicle.stdout.readline(), 60, "the vehicle's first line", [vehicle])
         assert first.startswith("streaming 'calibration' (") and f"udpin:127.0.0.1:{udp}" in first
         _wait(lambda: httpx.get(url + "/api/state", timeout=5).json()["source"]["autopilot"] == "ardupilot", 60,
