@@ -43,3 +43,31 @@ def test_simulate_help_lists_every_scenario():
     for name in (*SCENARIOS, "fleet"):
         assert f"\n  {name} " in text, name
     assert "--live udpout:127.0.0.1:14550" in text
+
+
+def test_plot_without_matplotlib_fails_before_the_work(monkeypatch, capsys, tmp_path):
+    """`analyze --plot` checks matplotlib before reading the log (not after the whole analysis)."""
+    import groundstation.cli as cli
+    from groundstation.jobs import flight_plot
+
+    def missing() -> None:
+        raise flight_plot.PlotUnavailable("--plot needs matplotlib, a dependency of magstation: reinstall it")
+
+    read: list[str] = []
+    monkeypatch.setattr(flight_plot, "check_plotting", missing)
+    monkeypatch.setattr(cli, "load_log", lambda path: read.append(path))
+    assert cli.main(["analyze", "recordings/demo.tlog", "--plot", str(tmp_path / "p.png")]) == 1
+    err = capsys.readouterr().err
+    assert read == [] and err.count("\n") == 1 and "needs matplotlib" in err
+
+
+def test_review_and_plot_need_no_extra():
+    """What `review` and `analyze --plot` import is installed by the base dependencies (./run)."""
+    import tomllib
+    from pathlib import Path
+
+    project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]
+    base = " ".join(project["dependencies"])
+    for name in ("dask[distributed]", "pyarrow", "matplotlib", "bokeh"):
+        assert name in base, name
+    assert "fleet" not in project.get("optional-dependencies", {})
