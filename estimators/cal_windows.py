@@ -205,10 +205,10 @@ def find_calibration_windows(t_s: np.ndarray, mag_raw_mG: np.ndarray, *, rate_de
     windows = tuple(judge_window(a, b, src, m[(t >= a) & (t <= b)], s) for a, b, src in _merge(spans))
     ok = [i for i, w in enumerate(windows) if w.sufficient]
     if not ok:
-        why = "; ".join(f"{w.start_s:.0f}-{w.end_s:.0f} s: {w.reason}" for w in windows)
+        why = "; ".join(f"{w.start_s:.0f}–{w.end_s:.0f} s: {w.reason}" for w in windows)
         return WindowSearch("insufficient_coverage", f"{len(windows)} window(s), none sufficient ({why})", windows, None, s)
     best = min(ok, key=lambda i: float(np.max(windows[i].offsets_sd_mG)))
     w = windows[best]
-    return WindowSearch("ok", f"{len(windows)} window(s), {len(ok)} sufficient; chosen {w.start_s:.0f}-{w.end_s:.0f} s "
+    return WindowSearch("ok", f"{len(windows)} window(s), {len(ok)} sufficient; chosen {w.start_s:.0f}–{w.end_s:.0f} s "
                         f"({w.source}, {w.n_samples} samples, {w.model}, coverage {w.coverage:.0%}, offsets sd "
                         f"{np.max(w.offsets_sd_mG):.1f} mG)", windows, best, s)

@@ -321,7 +321,7 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
     notes = [motor_note] if motor_note else []
     if ok.sum() < s.min_samples:
         return _failed("insufficient_data", f"{int(ok.sum())} usable samples of {n} (need {s.min_samples}); "
-                       f"rejected: {rej}", n, rej, s)
+                       "rejected: " + (", ".join(f"{k.replace('_', ' ')} {v}" for k, v in rej.items() if v) or "none"), n, rej, s)
     flown = _heading_coverage(cols[2][ok])
     if flown < s.min_heading_coverage:          # the attitude's headings, before any fit: no point solving
         return _failed("insufficient_data", f"offsets unobservable: {int(round(flown * 12))} of 12 heading sectors "

@@ -1,4 +1,4 @@
-"""`magstation` command line: serve, calibrate, analyze, simulate, info.
+"""`magstation` command line: serve, calibrate, analyze, simulate, review, info.
 
 Errors are one line on stderr and a non-zero exit code, never a traceback (set
 MAGSTATION_DEBUG=1 to see one).
@@ -10,6 +10,7 @@ import json
 import os
 import re
 import sys
+import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator
@@ -102,6 +103,11 @@ def _write_json(path: str, obj: object) -> None:
     Path(path).write_text(json.dumps(obj, indent=2, allow_nan=False) + "\n", encoding="utf-8")
 
 
+def _file_name(record: dict) -> dict:
+    """``record`` with its "file" as the file's name: a report to share carries no local path."""
+    return {**record, "file": Path(str(record["file"])).name} if record.get("file") else record
+
+
 # ------------------------------------------------------------------------------------ commands
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -132,6 +138,12 @@ def cmd_info(args: argparse.Namespace) -> int:
     print(printable("\n".join(compass_lines(log)), lines=True))
     rtk = bool(len(log.gps) and (log.gps[:, 7] >= 5).any())
     print(f"  RTK             {'yes' if rtk else 'no'}")
+    if len(log.gps):
+        import numpy as np
+
+        from groundstation.jobs.words import fix_name
+        kinds, counts = np.unique(log.gps[:, 7][np.isfinite(log.gps[:, 7])].astype(int), return_counts=True)
+        print("  GPS fixes       " + ", ".join(f"{fix_name(k)} {n}" for k, n in zip(kinds[::-1], counts[::-1])))
     print(f"  mission         {len(log.mission)} waypoints" if log.mission else "  mission         none")
     print(f"  parameters      {len(log.params)}")
     for line in refused_parameter_lines(log):
@@ -158,7 +170,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         text = "\n".join([format_summary(r) for r in found] + [format_consistency(found[0].get("consistency"))])
         print(printable(text.rstrip(), lines=True))
     if args.json:
-        _write_json(args.json, {"results": results})
+        _write_json(args.json, {"results": [_file_name(r) for r in results]})
     if args.param_out:
         _write_params(args.param_out, results)
     return 0 if all(r["status"] == "ok" for r in results) else 1
@@ -209,6 +221,12 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     from groundstation.jobs.report import format_report, write_csv
     from groundstation.io.mission import read_mission
 
+    if args.plot:
+        from groundstation.jobs.flight_plot import PlotUnavailable, check_plotting
+        try:
+            check_plotting()                # before the work, not after it
+        except PlotUnavailable as e:
+            raise CliError(str(e)) from None
     calibration = _load_calibration(args.calibration) if args.calibration else None
     mission = read_mission(args.mission) if args.mission else None
     values, label = in_force_params(args)
@@ -217,7 +235,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         report, columns = analyze_log(log, calibration=calibration, mission=mission)
     print(printable(format_report(report), lines=True))
     if args.json:
-        _write_json(args.json, report)
+        _write_json(args.json, _file_name(report))
     if args.csv:
         write_csv(args.csv, columns)
     if args.plot:
@@ -242,14 +260,54 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .sim.scenarios import SCENARIOS, simulate
 
     if args.scenario == "fleet":
+        if args.out is None or args.live is not None:
+            raise CliError("simulate fleet writes a folder: give --out DIR (no --live)")
         from groundstation.cli_fleet import cmd_simulate_fleet
         return cmd_simulate_fleet(args)
     if args.scenario not in SCENARIOS:
         raise CliError(f"unknown scenario '{args.scenario}' (choose from {', '.join(SCENARIOS)})")
+    if (args.live is None) == (args.out is None):
+        raise CliError("give --out FILE.tlog (write the log) or --live udpout:HOST:PORT (stream it), one of them")
+    if not 0 < args.speed <= 100:
+        raise CliError("--speed must be in (0, 100]")
+    target = _udpout_target(args.live) if args.live is not None else None
     sim = simulate(args.scenario, seed=args.seed, onboard_calibration=args.onboard_calibration)
+    if target is not None:
+        return _simulate_live(sim, target, args)
     sim.write(args.out)
     print(f"wrote {printable(args.out)} ({len(sim.messages)} messages) and its truth JSON")
     return 0
+
+
+def _udpout_target(url: str) -> tuple[str, int]:
+    """HOST, PORT of ``udpout:HOST:PORT`` (the station listens with ``--connect udpin:...:PORT``)."""
+    kind, _, rest = url.partition(":")
+    host, _, port = rest.rpartition(":")
+    if kind != "udpout" or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise CliError(f"--live {printable(url)}: expected udpout:HOST:PORT, e.g. udpout:127.0.0.1:14550")
+    return host, int(port)
+
+
+def _simulate_live(sim, target: tuple[str, int], args: argparse.Namespace) -> int:
+    """Stream ``sim`` as a live ArduPilot vehicle until Ctrl-C (``groundstation.sim.fake_vehicle``)."""
+    from groundstation.sim.fake_vehicle import FakeVehicle
+
+    host, port = target
+    try:
+        vehicle = FakeVehicle(sim.messages, port, speed=args.speed, host=host, loop=args.loop).start()
+    except OSError as err:
+        raise CliError(f"--live udpout:{host}:{port}: {err.strerror or err}") from None
+    print(f"streaming '{args.scenario}' ({sim.duration_s:.0f} s at x{args.speed:g}) as a live ArduPilot vehicle "
+          f"to udpout:{host}:{port}; it answers parameter reads/writes and the calibration commands. "
+          f"Start the station with: magstation serve --connect udpin:{host}:{port}   (Ctrl-C stops)", flush=True)
+    try:
+        vehicle.finished.wait()
+        print(f"'{args.scenario}' ended; the vehicle still answers (heartbeats, parameters, commands) "
+              "until Ctrl-C", flush=True)
+        while True:
+            time.sleep(3600)
+    finally:
+        vehicle.stop()
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -302,40 +360,66 @@ def _signing_key(args: argparse.Namespace) -> bytes | None:
 
 def _add_link_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("beside another ground station")
-    g.add_argument("--sysid", type=int, metavar="N", help="follow vehicle N (MAVLink system id) when several "
+    g.add_argument("--sysid", type=int, metavar="N", help="follow vehicle N (MAVLink system id, 1-255) when several "
                                                           "share the link (default: the first heard)")
     g.add_argument("--passive", action="store_true",
-                   help="listen only: no heartbeat, stream-rate or parameter requests, no writes")
+                   help="listen only: no heartbeat, stream-rate or parameter requests, no writes (default: off)")
     g.add_argument("--forward", action="append", default=[], metavar="URL",
                    help="pass the vehicle link on to another ground station: udpout:HOST:PORT or "
-                        "tcpin:127.0.0.1:PORT (repeatable); their packets go back to the vehicle")
+                        "tcpin:127.0.0.1:PORT (repeatable; default: none); their packets go back to the vehicle")
     g.add_argument("--signing-key-file", metavar="FILE",
-                   help="MAVLink 2 signing key: 32 bytes, 64 hex digits, or a passphrase (SHA-256, as MAVProxy)")
+                   help="MAVLink 2 signing key: 32 bytes, 64 hex digits, or a passphrase (SHA-256, as MAVProxy); "
+                        "default: no signing")
     g.add_argument("--signing-passphrase-env", metavar="VAR",
-                   help="MAVLink 2 signing with the passphrase in environment variable VAR")
+                   help="MAVLink 2 signing with the passphrase in environment variable VAR (default: no signing)")
+
+
+# what each scenario of `magstation simulate` is (groundstation/sim/scenarios.py)
+SCENARIO_HELP = {
+    "calibration": "80 s handheld rotation dance (the wizard's input)",
+    "static-headings": "the vehicle held still at a series of headings",
+    "mission-clean": "300 s survey mission, no interference",
+    "mission-slow": "150 s mission, a slow ramp of interference (12.5 mG/s)",
+    "mission-fast": "150 s mission, a fast ramp of interference (60 mG/s)",
+    "mission-step": "150 s mission, a 150 mG step for 20 s",
+    "mission-bump": "200 s mission, a 250 mG horizontal bump over 60 s",
+    "mission-motor": "300 s mission, a payload switching 10 A every 10 s",
+    "mission-payload": "150 s mission, a payload on its own lead past the compass",
+    "mission-anomaly": "200 s mission over a magnetised mass on the ground",
+    "gps-outage": "300 s mission, GPS lost from 100 to 180 s",
+    "demo": "the calibration dance, then mission-slow (recordings/demo.tlog)",
+    "fleet": "a folder of logs of many vehicles with known truth (for review)",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
     from groundstation.station.settings import ConnectionLimits   # light: settings only
 
     parser = argparse.ArgumentParser(prog="magstation", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("serve", help="run the ground station (web page + 3-D view)")
+    p = sub.add_parser("serve", help="run the ground station (web page + 3-D view)",
+                       description="Run the ground station: the web page, the 3-D view and the API (/docs). "
+                                   "Without --connect or --replay it replays the bundled demo in a loop.")
     source = p.add_mutually_exclusive_group()
     source.add_argument("--connect", metavar="URL",
-                        help="live link: udpin:0.0.0.0:14550, tcp:HOST:PORT or /dev/ttyUSB0,57600")
+                        help="live link: udpin:0.0.0.0:14550, tcp:HOST:PORT or /dev/ttyUSB0,57600 "
+                             "(default: replay the demo)")
     source.add_argument("--replay", metavar="FILE", help="replay a log (.tlog .bin .ulg .csv)")
-    p.add_argument("--speed", type=float, default=1.0, help="replay speed factor (default 1)")
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8000)
-    p.add_argument("--viser-port", type=int, default=8080)
+    p.add_argument("--speed", type=float, default=1.0, help="replay speed, times real time (default 1)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address the web page listens on (default 127.0.0.1; others need --allow-remote)")
+    p.add_argument("--port", type=int, default=8000, help="TCP port of the web page and API (default 8000)")
+    p.add_argument("--viser-port", type=int, default=8080, help="TCP port of the 3-D view (default 8080)")
     p.add_argument("--allow-remote", action="store_true",
-                   help="remote mode: allow a non-loopback --host; every request then needs the token printed at start")
+                   help="remote mode: allow a non-loopback --host; every request then needs the token printed "
+                        "at start (default: off)")
     p.add_argument("--allowed-host", action="append", default=[], metavar="NAME",
-                   help="a host name or address the station is reached by (Host header), repeatable")
-    p.add_argument("--tls-cert", metavar="CERT.pem", help="serve HTTPS with this certificate (with --tls-key)")
-    p.add_argument("--tls-key", metavar="KEY.pem", help="the certificate's private key")
+                   help="a host name or address the station is reached by (Host header), repeatable "
+                        "(default: the loopback names and --host)")
+    p.add_argument("--tls-cert", metavar="CERT.pem", help="serve HTTPS with this certificate (with --tls-key; "
+                                                         "default: HTTP)")
+    p.add_argument("--tls-key", metavar="KEY.pem", help="the certificate's private key (PEM)")
     limits = ConnectionLimits()
     p.add_argument("--header-timeout", type=float, default=limits.header_timeout_s, metavar="S",
                    help="close a connection whose request line and headers take longer "
@@ -346,27 +430,48 @@ def build_parser() -> argparse.ArgumentParser:
     add_params_options(p)
     p.set_defaults(func=cmd_serve)
 
-    p = sub.add_parser("calibrate", help="magnetometer calibration from one or more logs")
-    p.add_argument("files", nargs="+", metavar="FILE")
-    p.add_argument("--json", metavar="OUT")
-    p.add_argument("--param-out", metavar="FILE.param", help="write the absolute COMPASS_*/CAL_MAG* parameters")
+    p = sub.add_parser("calibrate", help="magnetometer calibration from one or more logs",
+                       description="Fit every compass of each log (hard and soft iron, mG) and check them "
+                                   "against each other and the WMM; exit 1 unless every fit is ok.")
+    p.add_argument("files", nargs="+", metavar="FILE", help="logs (.tlog .bin .ulg .csv) with a rotation dance")
+    p.add_argument("--json", metavar="OUT", help="write the results (offsets mG, matrix, parameters) as JSON "
+                                                 "(default: none)")
+    p.add_argument("--param-out", metavar="FILE.param", help="write the absolute COMPASS_*/CAL_MAG* parameters "
+                                                             "as a .param file (default: none)")
     add_params_options(p)
     p.set_defaults(func=cmd_calibrate)
 
-    p = sub.add_parser("analyze", help="heading, velocity split and interference detection")
-    p.add_argument("file", metavar="FILE")
-    p.add_argument("--calibration", metavar="CAL.json")
-    p.add_argument("--mission", metavar="FILE", help=".waypoints, .plan or a log with a mission")
-    p.add_argument("--json", metavar="OUT")
-    p.add_argument("--csv", metavar="OUT")
-    p.add_argument("--plot", metavar="FILE.png", help="heading difference, field residual, current and alarms")
+    p = sub.add_parser("analyze", help="heading, velocity split and interference detection",
+                       description="Heading check, velocity split and interference detection over one log.")
+    p.add_argument("file", metavar="FILE", help="the log (.tlog .bin .ulg .csv)")
+    p.add_argument("--calibration", metavar="CAL.json",
+                   help="a `calibrate --json` file to correct the field with (default: the log's own)")
+    p.add_argument("--mission", metavar="FILE", help=".waypoints, .plan or a log with a mission "
+                                                     "(default: the log's own mission, if any)")
+    p.add_argument("--json", metavar="OUT", help="write the report as JSON (default: none)")
+    p.add_argument("--csv", metavar="OUT", help="write the per-sample columns as CSV (default: none)")
+    p.add_argument("--plot", metavar="FILE.png",
+                   help="write a PNG: heading difference (deg), field residual (mG), current (A) and alarms "
+                        "against time (s) (default: none)")
     add_params_options(p)
     p.set_defaults(func=cmd_analyze)
 
-    p = sub.add_parser("simulate", help="write a simulated flight as a .tlog (+ truth JSON), or a fleet")
-    p.add_argument("scenario", help="a scenario, or 'fleet' (a folder of logs with known truth)")
-    p.add_argument("--out", required=True, metavar="FILE.tlog|DIR")
-    p.add_argument("--seed", type=int, default=0)
+    scenarios = "\n".join(f"  {name:<16} {text}" for name, text in SCENARIO_HELP.items())
+    p = sub.add_parser("simulate", help="write a simulated flight as a .tlog (+ truth JSON), stream it live, "
+                                        "or write a fleet",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="Simulate a flight with known truth: write it as a .tlog (+ truth JSON) with "
+                                   "--out, or stream it as a live vehicle with --live.\n\nscenarios:\n" + scenarios
+                                   + "\n\nexample: magstation simulate calibration --live udpout:127.0.0.1:14550")
+    p.add_argument("scenario", metavar="SCENARIO", help="one of the scenarios listed above")
+    p.add_argument("--out", metavar="FILE.tlog|DIR", help="write the log here (fleet: a folder)")
+    p.add_argument("--live", metavar="udpout:HOST:PORT",
+                   help="stream the scenario in real time as an ArduPilot vehicle that answers parameter "
+                        "reads/writes and the calibration commands (default: off)")
+    p.add_argument("--speed", type=float, default=1.0, help="--live: times real time (default 1)")
+    p.add_argument("--loop", action="store_true", help="--live: start the scenario again at its end (default: off)")
+    p.add_argument("--seed", type=int, default=0, help="random seed: the vehicle's sensor errors, wind, ... "
+                                                       "(default 0)")
     p.add_argument("--onboard-calibration", action="store_true",
                    help="the vehicle was calibrated on board: it streams the corrected field (default: the raw sensor)")
     add_fleet_simulate_options(p)
@@ -374,9 +479,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_review_parser(sub)
 
-    p = sub.add_parser("info", help="what is in a log")
-    p.add_argument("file", metavar="FILE")
-    p.add_argument("--top", type=int, default=25, help="message types to list")
+    p = sub.add_parser("info", help="what is in a log",
+                       description="What is in a log: duration, sensors and rates, compasses, parameters, messages.")
+    p.add_argument("file", metavar="FILE", help="the log (.tlog .bin .ulg .csv)")
+    p.add_argument("--top", type=int, default=25, help="message types to list, most frequent first (default 25)")
     p.set_defaults(func=cmd_info)
     return parser
 

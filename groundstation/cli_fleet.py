@@ -23,14 +23,14 @@ def add_review_parser(sub) -> None:
     p.add_argument("paths", nargs="+", metavar="PATH", help="log files or folders (searched recursively)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="an existing Dask scheduler (tcp://HOST:PORT); default: a local cluster on loopback")
-    p.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
+    p.add_argument("--workers", type=int, default=2, help="local Dask worker processes (default 2; ignored with --scheduler)")
     p.add_argument("--out", default="magstation-review", metavar="DIR",
                    help="report folder: rows.parquet, report.html (default ./magstation-review)")
     p.add_argument("--db", metavar="FILE", help=f"fleet history (default $MAGSTATION_FLEET_DB or {fleet_db.default_db_path()})")
-    p.add_argument("--airframes", metavar="MAPPING", help="airframe mapping (.json or .csv): identity -> airframe, payload")
-    p.add_argument("--force", action="store_true", help="review logs already in the history again")
+    p.add_argument("--airframes", metavar="MAPPING", help="airframe mapping (.json or .csv): identity -> airframe, payload (default: none)")
+    p.add_argument("--force", action="store_true", help="review logs already in the history again (default: skip them)")
     p.add_argument("--timeout", type=float, default=600.0, metavar="S", help="per-log time limit (default 600 s)")
-    p.add_argument("--memory-limit", default="2GiB", help="per local worker (default 2GiB)")
+    p.add_argument("--memory-limit", default="2GiB", help="memory limit of each local worker, e.g. 2GiB or 512MiB (default 2GiB)")
     add_params_options(p)
     p.set_defaults(func=cmd_review)
 
@@ -111,8 +111,8 @@ def cmd_review(args: argparse.Namespace) -> int:
         import dask.distributed  # noqa: F401
         import pyarrow  # noqa: F401
     except ImportError as err:
-        raise ValueError(f"magstation review needs the fleet extra ({err.name} is missing): "
-                         "pip install 'magstation[fleet]'") from None
+        raise ValueError(f"magstation review needs {err.name}, a dependency of magstation: reinstall it "
+                         "(./run, or pip install -e .)") from None
     from groundstation.jobs.airframes import load_airframes
     from groundstation.jobs.compass_history import analyse_fleet
     from groundstation.jobs.fleet import discover_logs, fleet_client, run_review

@@ -12,11 +12,13 @@ import httpx
 import numpy as np
 import pytest
 
-from conftest import CHROMIUM, CHROMIUM_ARGS, SHARED_DATA, free_tcp_port, wait_until  # noqa: F401  (re-exported)
+from conftest import (CHROMIUM, CHROMIUM_ARGS, REAL_TLOG_PIECE, REAL_ULOG_PIECE, SHARED_DATA,  # noqa: F401  (re-exported)
+                      free_tcp_port, wait_until)
 
 ROOT = Path(__file__).resolve().parent.parent
-REAL_LOG = SHARED_DATA / "dronekit" / "flight_replay_flight.tlog"
-ULOG = SHARED_DATA / "px4-pyulog" / "sample_px4_events.ulg"
+# shipped cuts of the real ArduCopter flight (its seconds 440-700: take-off at ~60 s) and of a PX4 ULog
+REAL_LOG = REAL_TLOG_PIECE
+ULOG = REAL_ULOG_PIECE
 
 # colour classes of the 3-D view (hue ranges in degrees; saturated, not dark): see scene/view.py
 HUES = {"red": (350, 10), "orange": (18, 38), "amber": (40, 55), "green": (95, 150), "cyan": (180, 200),
@@ -30,10 +32,8 @@ def make_recordings(directory: Path) -> Path:
     shutil.copy(ROOT / "recordings" / "demo.tlog", directory / "demo.tlog")
     simulate("calibration", 0).write(directory / "dance.tlog")
     simulate("demo", 1, mission="mission-anomaly").write(directory / "anomaly.tlog")
-    if REAL_LOG.exists():
-        shutil.copy(REAL_LOG, directory / "real.tlog")
-    if ULOG.exists():
-        shutil.copy(ULOG, directory / "events.ulg")
+    shutil.copy(REAL_LOG, directory / "real.tlog")
+    shutil.copy(ULOG, directory / "events.ulg")
     return directory
 
 

@@ -16,11 +16,42 @@ from groundstation.io.mavlink import mavlink2
 
 ARTIFACTS = Path(__file__).resolve().parent / "artifacts"
 # the real public logs: ../shared/data beside the checkout (tests that need them skip without)
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+SHARED_DATA = SHARED / "data"
+# small cuts of two of them shipped with the tests (tests/data/real/README.md: source, cut, licence)
+REAL_TLOG_PIECE = Path(__file__).resolve().parent / "data" / "real" / "dronekit-flight-440-700s.tlog"
+REAL_ULOG_PIECE = Path(__file__).resolve().parent / "data" / "real" / "px4-events-cut.ulg"
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--use-gl=swiftshader", "--enable-unsafe-swiftshader",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
                  "--no-first-run", "--disable-dev-shm-usage"]
+
+
+def _shared_missing(rel: str) -> str | None:
+    """The skip reason when ../shared/<rel> (a file, a folder, or a glob) is absent, else None."""
+    present = any(SHARED.glob(rel)) if any(c in rel for c in "*?[") else (SHARED / rel).exists()
+    return None if present else f"needs ../shared/{rel} (beside the checkout; not shipped)"
+
+
+def shared_path(rel: str) -> Path:
+    """The path of ../shared/<rel> (``data/...`` real logs, ``sitl/...``, ``px4sitl/...`` SITL binaries);
+    the calling test skips with the reason when it is absent.  The one way a test asks for what
+    the repository does not ship (``shared_data`` and ``needs_shared`` for the logs in ../shared/data)."""
+    reason = _shared_missing(rel)
+    if reason:
+        pytest.skip(reason)
+    return SHARED / rel
+
+
+def shared_data(rel: str) -> Path:
+    """The path of ../shared/data/<rel>; the calling test skips with the reason when it is absent."""
+    return shared_path("data/" + rel)
+
+
+def needs_shared(rel: str):
+    """Mark: the test (or module, as `pytestmark`) skips with the reason without ../shared/data/<rel>."""
+    reason = _shared_missing("data/" + rel)
+    return pytest.mark.skipif(reason is not None, reason=reason or "")
 
 
 def free_tcp_port() -> int:

@@ -13,7 +13,7 @@ from estimators.rotations import (rotation_from_vector_rad, wrap_angle_deg, wrap
 from groundstation.io.logs import read_log
 from groundstation.sim.truth import simulate_manoeuvring_flight
 
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, needs_shared
 
 G = 9.80665
 H_NED = np.array([210.0, 25.0, 430.0])             # mG, inclination ~64 deg
@@ -226,7 +226,7 @@ def test_batch_equals_per_sample_when_a_gap_ends_a_rejection_inside_a_block():
     assert gap.sum() > 100 and r.mag_rejected[200:700].any()
 
 
-@pytest.mark.skipif(not any(SHARED_DATA.glob("dronekit/*.tlog")), reason="real logs not present")
+@needs_shared("dronekit/*.tlog")
 def test_batch_equals_per_sample_on_the_real_telemetry_log():
     """The real ArduCopter tlog (IMU at ~2.8 Hz, gaps, corrupt packets): the two forms agree on
     every row."""

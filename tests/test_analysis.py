@@ -14,7 +14,7 @@ from groundstation.jobs.calibrate import calibrate_log
 from groundstation.io.logs import iter_samples, read_log
 from groundstation.samples import FlightLog
 from groundstation.sim.scenarios import simulate
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, shared_data
 
 SEED = 7
 REPORT_KEYS = {"file", "duration_s", "calibration", "declination_deg", "inclination_deg", "field_strength_mG",
@@ -186,9 +186,7 @@ def test_detector_batch_equals_per_sample_on_a_flight(slow, cal):
 
 def test_real_arducopter_telemetry_log():
     """Real ArduCopter flight at Canberra (dronekit example): telemetry-rate IMU (~3 Hz), no mission."""
-    path = SHARED_DATA / "dronekit" / "flight_replay_flight.tlog"
-    if not path.exists():
-        pytest.skip("real log not available")
+    path = shared_data("dronekit/flight_replay_flight.tlog")
     report, cols = analyze_log(read_log(path))
     assert report["declination_deg"] == pytest.approx(12.6, abs=0.5)          # Canberra
     assert report["heading_test"].startswith("off: IMU rate")
@@ -276,9 +274,7 @@ def test_gps_outages_need_the_imu_to_keep_streaming():
 
 def test_real_tlog_telemetry_dropout_is_not_a_gps_outage():
     """The dronekit ArduCopter tlog loses all telemetry for 19 s at 235 s (radio), not only GPS."""
-    path = SHARED_DATA / "dronekit" / "flight_replay_flight.tlog"
-    if not path.exists():
-        pytest.skip("real logs not available")
+    path = shared_data("dronekit/flight_replay_flight.tlog")
     report, _ = analyze_log(read_log(path))
     assert report["navigation"]["gps_outages"] == []
     assert report["navigation"]["ins_gps"].startswith("off: IMU rate")    # telemetry-rate IMU

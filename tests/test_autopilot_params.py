@@ -12,7 +12,7 @@ from groundstation.io.params import (apply_ardupilot, apply_px4, ardupilot_param
                                             px4_rotation, px4_slot, rotation_enum_matrix, unapply_ardupilot,
                                             unapply_onboard_calibration, unapply_px4)
 
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, shared_data
 PX4_LOGS = SHARED_DATA / "px4-pyulog"
 
 
@@ -113,10 +113,8 @@ def test_export_params_and_param_file():
 
 def test_real_px4_log_params():
     pyulog = pytest.importorskip("pyulog")
-    small = PX4_LOGS / "sample_log_small.ulg"
-    events = PX4_LOGS / "sample_px4_events.ulg"
-    if not (small.exists() and events.exists()):
-        pytest.skip("real logs not available")
+    small = shared_data("px4-pyulog/sample_log_small.ulg")
+    events = shared_data("px4-pyulog/sample_px4_events.ulg")
     # sample_log_small: prime magnetometer is calibration slot 1 (CAL_MAG_PRIME == CAL_MAG1_ID).
     ps = pyulog.ULog(str(small), ["vehicle_magnetometer"]).initial_parameters
     assert detect_autopilot(ps) == "px4" and px4_slot(ps) == 1

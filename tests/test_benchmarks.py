@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, needs_shared, shared_data
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -45,8 +45,7 @@ def test_ahrs_benchmark_quick():
     pytest.importorskip("h5py")
     for peer in ("imufusion", "ahrs", "vqf"):
         pytest.importorskip(peer)
-    if not (SHARED_DATA / "broad").exists():
-        pytest.skip("BROAD trials not available")
+    shared_data("broad")
     out = _run("benchmarks/ahrs.py", "--quick", "--jobs", "1")
     row = re.search(r"^02_undisturbed\S*((?:\s+[\d.]+/[\d.]+)+)\s*$", out, re.M)
     assert row, out
@@ -102,7 +101,7 @@ def test_alarm_kinds_benchmark_quick():
     assert "within 15 m: met" in out, out
 
 
-@pytest.mark.skipif(not (SHARED_DATA / "broad").exists(), reason="BROAD trials not available")
+@needs_shared("broad")
 def test_detection_broad_benchmark_quick():
     """benchmarks/detection_broad.py --quick: analyze's detection on real motion (the whole of
     BROAD 09, fast rotation with rests, and the first 60 s of 35, a magnet attached 4 cm from the

@@ -14,7 +14,7 @@ import pytest
 
 from estimators.heading import HeadingChainSettings, run_heading_chain
 from estimators.rotations import dcm_body_to_ned, earth_frame_errors_rad, quaternion_from_dcm
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, shared_data
 
 h5py = pytest.importorskip("h5py")
 TRIAL = SHARED_DATA / "broad" / "02_undisturbed_slow_rotation_B.hdf5"
@@ -24,8 +24,7 @@ ENU_TO_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 
 @pytest.fixture(scope="module")
 def broad():
-    if not TRIAL.exists():
-        pytest.skip("BROAD trial not available")
+    shared_data("broad/" + TRIAL.name)
     with h5py.File(TRIAL, "r") as f:
         d = {k: f[k][:] for k in ("imu_acc", "imu_gyr", "imu_mag", "opt_quat")}
         d["movement"] = np.asarray(f["movement"][:], dtype=bool).ravel()

@@ -155,7 +155,7 @@ def test_tests_and_field_correction_are_shown(shared_station, new_page, artifact
     caveat; the field is autopilot-corrected; on the demo (its own calibration) station-corrected."""
     st = shared_station
     page = new_page()
-    replay(st, "real.tlog", seek=600.0)
+    replay(st, "real.tlog", seek=160.0)
     open_page(page, st)
     page.wait_for_selector("#tests tr[data-test='heading'] .state:has-text('off')")
     assert re.search(r"IMU rate 2\.\d Hz < 10 Hz", page.locator("#tests tr[data-test='heading'] .why").inner_text())

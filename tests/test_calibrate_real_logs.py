@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, needs_shared
 from groundstation.io.logs import read_log
 from groundstation.jobs.calibrate import DEFAULT_SETTINGS, calibrate_compasses, calibrate_log, calibrate_path
 from groundstation.jobs.compass_raw import compass_fields
@@ -18,7 +18,6 @@ from groundstation.samples import CompassTable
 from groundstation.sim.ardupilot import ArduSimConfig, default_compasses, simulate_ardupilot
 from groundstation.sim.ardupilot_flight import FlightPlan
 
-needs_shared = pytest.mark.skipif(not SHARED_DATA.is_dir(), reason="../shared/data not present")
 NAMED = {"ok", "insufficient_coverage", "attitude_depends_on_compass", "insufficient_data", "no_parameters",
          "offsets_out_of_range"}
 
@@ -183,7 +182,7 @@ def test_analyze_reports_every_compass_against_the_wmm(flight):
     assert report["compass_consistency"]["status"] == "ok"
 
 
-@needs_shared
+@needs_shared("dronekit/flight_replay_flight.tlog")
 def test_real_arducopter_tlog_every_compass_named_and_close_to_the_vehicle():
     log = read_log(SHARED_DATA / "dronekit" / "flight_replay_flight.tlog")
     r0, r1 = calibrate_compasses(log)
@@ -200,7 +199,7 @@ def test_real_arducopter_tlog_every_compass_named_and_close_to_the_vehicle():
     assert r0["consistency"]["in_force"]["disagreeing"] == 1
 
 
-@needs_shared
+@needs_shared("px4-pyulog/sample_log_small.ulg")
 def test_real_px4_ulogs_named_statuses_per_instance():
     results = calibrate_compasses(read_log(SHARED_DATA / "px4-pyulog" / "sample_log_small.ulg"))
     assert [(r["compass"], r["device_id"]) for r in results] == [(0, 589858), (1, 592905)]

@@ -20,7 +20,7 @@ from estimators.geomag import earth_field
 from groundstation.jobs.calibrate import calibrate_log, format_summary, write_param_file
 from groundstation.samples import FlightLog
 from groundstation.sim.truth import random_rotation, simulate_ellipsoid_samples
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, shared_data
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = SHARED_DATA
@@ -284,9 +284,7 @@ def test_real_px4_logs_are_insufficient_not_invented():
     pytest.importorskip("pyulog")
     from groundstation.io.logs import read_log
     for name in ("sample_px4_events.ulg", "sample_log_small.ulg"):
-        path = DATA / "px4-pyulog" / name
-        if not path.exists():
-            pytest.skip("real logs not available")
+        path = shared_data("px4-pyulog/" + name)
         r = calibrate_log(read_log(str(path)))
         # Ground/level flight data, 6–31 s: not enough rotation for a 3-D answer, and too few
         # headings for the in-flight fit, whose yaw comes from this compass (PX4's EKF2 fuses it).

@@ -25,7 +25,7 @@ from groundstation.sim.fleet import FleetSettings, Site, plan_fleet, write_fligh
 from groundstation.sim.fleet_score import score_review
 from groundstation.station.routers import fleet as fleet_router
 
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, needs_shared
 
 DAY = 86400.0
 
@@ -146,7 +146,7 @@ def test_rows_of_an_older_job_version_are_reviewed_again(tmp_path):
         assert set(fleet_db.known_hashes(con, only_ok=True, min_row_version=ROW_VERSION)) == {"new"}
 
 
-@pytest.mark.skipif(not (SHARED_DATA / "px4-pyulog" / "sample.ulg").exists(), reason="shared data missing")
+@needs_shared("px4-pyulog/sample.ulg")
 def test_review_row_on_real_logs():
     (r,) = review_log(SHARED_DATA / "px4-pyulog" / "sample.ulg")          # attitude, no magnetometer
     assert r["status"] == "no_mag" and r["autopilot"] == "px4" and r["sysid"] == 1

@@ -13,11 +13,10 @@ from groundstation.io.decode import MavlinkDecoder
 from groundstation.io.logs import iter_samples, read_log
 from groundstation.io.mavlink import mavlink2 as m
 from groundstation.samples import BatterySample, ImuSample, MagSample
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, needs_shared
 
 DATA = Path(__file__).parent / "data"
 SHARED = SHARED_DATA
-needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason="../shared/data not present")
 
 
 def truth_mag_mG(t: np.ndarray) -> np.ndarray:
@@ -205,7 +204,7 @@ def test_iter_samples_is_time_ordered_and_complete():
     assert sum(isinstance(s, MagSample) for s in samples) == len(log.mag)
 
 
-@needs_shared
+@needs_shared("dronekit/flight_replay_flight.tlog")
 def test_real_arducopter_tlog_with_radio_corruption():
     log = read_log(SHARED / "dronekit" / "flight_replay_flight.tlog")
     assert log.autopilot == "ardupilot"
@@ -221,7 +220,7 @@ def test_real_arducopter_tlog_with_radio_corruption():
     assert np.percentile(log.battery[:, 1], 5) < 1.0 and log.battery[:, 1].max() > 10.0
 
 
-@needs_shared
+@needs_shared("px4-pyulog/sample_px4_events.ulg")
 def test_real_px4_ulog_units_and_params():
     log = read_log(SHARED / "px4-pyulog" / "sample_px4_events.ulg")
     assert log.autopilot == "px4"
@@ -232,7 +231,7 @@ def test_real_px4_ulog_units_and_params():
     assert log.start_unix_s is not None and 2020 < 1970 + log.start_unix_s / 31_557_600 < 2030
 
 
-@needs_shared
+@needs_shared("px4-pyulog/sample.ulg")
 def test_real_px4_ulog_without_magnetometer():
     log = read_log(SHARED / "px4-pyulog" / "sample.ulg")
     assert len(log.mag) == 0 and len(log.attitude) > 1000

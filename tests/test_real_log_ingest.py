@@ -7,14 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, needs_shared
 from groundstation.io.logs import read_log
 from groundstation.io.params import params_at
 from groundstation.samples import MAG_CAL_SUCCESS
 from groundstation.sim.ardupilot import ArduSimConfig, simulate_ardupilot
 from groundstation.sim.ardupilot_flight import FlightPlan
 
-needs_shared = pytest.mark.skipif(not SHARED_DATA.is_dir(), reason="../shared/data not present")
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +86,7 @@ def test_tlog_compasses_imus_history_markers_and_command(sim, tlog):
     assert len(log.throttle) > 100 and 0 < log.throttle[:, 1].max() <= 1.0       # VFR_HUD throttle %
 
 
-@needs_shared
+@needs_shared("dronekit/flight_replay_flight.tlog")
 def test_real_arducopter_tlog_two_compasses_device_ids_and_offset_history():
     log = read_log(SHARED_DATA / "dronekit" / "flight_replay_flight.tlog")
     assert [(c.compass, c.source, c.device_id) for c in log.compasses] == [(0, "RAW_IMU", 73225),
@@ -99,7 +98,7 @@ def test_real_arducopter_tlog_two_compasses_device_ids_and_offset_history():
     assert params_at(log.param_history, 0.0)["COMPASS_OFS2_Z"] == -230.0
 
 
-@needs_shared
+@needs_shared("px4-pyulog/sample_log_small.ulg")
 def test_real_px4_ulog_every_sensor_mag_instance_with_device_id():
     log = read_log(SHARED_DATA / "px4-pyulog" / "sample_log_small.ulg")
     comp = {c.compass: c for c in log.compasses}

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, shared_data
 from live_path import live_alarms_and_rows
 from groundstation.io.logs import read_log
 from groundstation.jobs.analyze import analyze_flight, analyze_log
@@ -58,7 +58,7 @@ def _same_alarms(a: list[dict], b: list[dict], tol_s: float = 0.5) -> None:
 @pytest.mark.parametrize("path", [DEMO, REAL], ids=["demo", "real-arducopter"])
 def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
     if not path.exists():
-        pytest.skip("real log not available")
+        shared_data(str(path.relative_to(SHARED_DATA)))
     session, replayed = _replay_to_end(path, tmp_path)
     calibration, line = session.flight.calibration, session.flight.line
     report, columns = session.analysis()               # GET /api/analysis: analyze_log, same settings

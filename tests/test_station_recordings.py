@@ -11,14 +11,14 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from conftest import SHARED_DATA
+from conftest import REAL_ULOG_PIECE
 from groundstation.station.app import create_app
 from groundstation.station.hub import recordings as rec_module
 from groundstation.station.hub.session import Session
 
 ROOT = Path(__file__).resolve().parent.parent
 DEMO = ROOT / "recordings" / "demo.tlog"
-ULOG = SHARED_DATA / "px4-pyulog" / "sample_px4_events.ulg"
+ULOG = REAL_ULOG_PIECE
 
 
 @pytest.fixture
@@ -72,8 +72,6 @@ def test_upload_refuses_wrong_type_mismatch_garbage_and_size(client, folder):
 
 
 def test_upload_ulog_and_info_of_every_recording(client, folder):
-    if not ULOG.exists():
-        pytest.skip("real logs not available")
     r = _upload(client, ULOG.name, ULOG.read_bytes())
     assert r.status_code == 201, r.text
     assert r.json()["autopilot"] == "px4" and r.json()["compasses"] >= 1

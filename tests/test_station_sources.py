@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from conftest import SHARED_DATA, free_tcp_port, free_udp_port, wait_until
+from conftest import REAL_TLOG_PIECE, REAL_ULOG_PIECE, free_tcp_port, free_udp_port, wait_until
 from groundstation.jobs.record import COL
 from groundstation.sim.fake_vehicle import FakeVehicle
 from groundstation.sim.scenarios import simulate
@@ -145,9 +145,7 @@ def test_connect_that_reaches_nothing_stops_nothing(hub, folder, capfd):
 
 def test_downloads_of_a_ulog_replay(hub, folder):
     """A .ulg replay: the session log is the original file; the .tlog route says why it has none."""
-    src = SHARED_DATA / "px4-pyulog" / "sample_px4_events.ulg"
-    if not src.exists():
-        pytest.skip("real logs not available")
+    src = REAL_ULOG_PIECE
     shutil.copy(src, folder / "events.ulg")
     client = TestClient(create_app(hub), base_url="http://127.0.0.1")
     assert client.post("/api/replay/start", json={"recording": "events.ulg", "speed": 20}).status_code == 200
@@ -179,13 +177,10 @@ def test_gps_outage_events_only_when_the_imu_streams(hub, folder):
 def test_tests_state_and_field_correction_on_the_real_log(hub, folder):
     """The real ArduCopter telemetry log: heading test off (2.8 Hz IMU) and said so, the field
     autopilot-corrected (ArduPilot applies COMPASS_OFS), no path test without a line."""
-    src = SHARED_DATA / "dronekit" / "flight_replay_flight.tlog"
-    if not src.exists():
-        pytest.skip("real log not available")
-    shutil.copy(src, folder / "real.tlog")
+    shutil.copy(REAL_TLOG_PIECE, folder / "real.tlog")      # its seconds 440-700
     _replay(hub, folder / "real.tlog")
     hub.replay_pause(True)
-    hub.replay_seek(600.0)
+    hub.replay_seek(160.0)
     t = hub.snapshot()["tests"]
     assert t["heading"]["state"] == "off" and re.match(r"IMU rate 2\.\d Hz < 10 Hz", t["heading"]["why"])
     assert t["field"]["state"] in ("on", "paused") and t["path"]["state"] == "off"

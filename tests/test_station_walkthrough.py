@@ -52,7 +52,7 @@ def test_walkthrough(shared_station, new_page, artifacts):
 
     # 3. seek back: the state of that moment, at once
     click(page, "#pause")
-    _seek(page, 600.0)
+    _seek(page, 200.0)
     _seek(page, 120.0)
     assert page.locator("#v-rp").inner_text() != "— / —"
     assert api(st, "GET", "/api/state")["t_s"] == 120.0

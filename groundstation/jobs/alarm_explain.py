@@ -14,6 +14,7 @@ import numpy as np
 
 from estimators.detection import ned_from_lla
 from estimators.detection_explain import ExplainSettings, explain_alarm
+from groundstation.jobs.words import score_name
 
 __all__ = ["STEP_KEYS", "SCORE_NAMES", "explain_span", "explanation_text", "ExplainHistory"]
 
@@ -61,7 +62,7 @@ def explanation_text(e: dict | None, signal: str = "current_A") -> str:
         what = "current" if signal == "current_A" else "throttle"
         parts.append(f"follows the {what} (r = {e['current_correlation']:.2f})")
     if e.get("tests"):
-        parts.append("tests: " + ", ".join(k.replace("_", " ") for k in e["tests"]))
+        parts.append("tests: " + ", ".join(score_name(k) for k in e["tests"]))
     return "; ".join(parts)
 
 

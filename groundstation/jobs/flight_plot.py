@@ -2,7 +2,7 @@
 
 Panels: heading difference (compass minus gyro-held heading, deg), the field-vector residual
 |r̄| (mG) with its test score, the motor signal (current A or throttle %), and the combined alarms
-as shaded spans on every panel.  matplotlib is imported here only (the ``bench`` extra).
+as shaded spans on every panel.  matplotlib is imported here only.
 """
 from __future__ import annotations
 
@@ -28,6 +28,16 @@ class PlotUnavailable(RuntimeError):
     """matplotlib is not installed."""
 
 
+def check_plotting() -> None:
+    """Raise ``PlotUnavailable`` (one line) when matplotlib cannot be imported: callers check
+    before the analysis, not after it."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise PlotUnavailable("--plot needs matplotlib, a dependency of magstation: reinstall it "
+                              "(./run, or pip install -e .)") from None
+
+
 def plot_flight(fa, alarms: list[dict], path: str, title: str = "") -> None:
     """Write the PNG of a ``FlightAnalysis`` and its combined alarms to ``path``.
 
@@ -39,7 +49,8 @@ def plot_flight(fa, alarms: list[dict], path: str, title: str = "") -> None:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise PlotUnavailable("--plot needs matplotlib: pip install 'magstation[bench]'") from None
+        raise PlotUnavailable("--plot needs matplotlib, a dependency of magstation: reinstall it "
+                              "(./run, or pip install -e .)") from None
     x = fa.x
     t = x["t"]
     residual = np.linalg.norm(x["vector"].residual_mG, axis=1)

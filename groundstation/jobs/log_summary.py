@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from groundstation.jobs.compass_raw import compass_fields
+from groundstation.jobs.words import span_s
 from groundstation.samples import MAG_CAL_SUCCESS, FlightLog
 
 __all__ = ["compass_lines", "refused_parameter_lines", "MAX_CHANGES_LISTED", "REFUSED_PREFIX", "distinct_reports"]
@@ -109,7 +110,7 @@ def compass_lines(log: FlightLog) -> list[str]:
         table = tables[cf.compass]
         dev = f", device {cf.device_id}" if cf.device_id else ""
         lines.append(f"    compass {cf.compass}: {cf.source}, {len(cf.t_s)} samples, {table.rate_hz:.1f} Hz{dev}, "
-                     f"{cf.t_s[0]:.0f}–{cf.t_s[-1]:.0f} s, {_state(table.calibration_applied, cf.status)}"
+                     f"{span_s(cf.t_s[0], cf.t_s[-1])}, {_state(table.calibration_applied, cf.status)}"
                      if len(cf.t_s) else f"    compass {cf.compass}: {cf.source}, no samples")
         if table.source_note:
             lines.append(f"      source: {table.source_note}")

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from groundstation.jobs.words import lat_lon, num, score_name, span_s
+
 __all__ = ["CSV_COLUMNS", "write_csv", "format_report"]
 
 CSV_COLUMNS = ("t_s", "roll_deg", "pitch_deg", "yaw_deg", "mag_heading_deg", "heading_true_deg",
@@ -39,24 +41,25 @@ def _cells(name: str, values) -> list[str]:
 
 def format_report(report: dict) -> str:
     """Human-readable summary of an analyze report."""
-    lines = [f"file: {report.get('file')}  ({report.get('duration_s')} s)"]
+    lines = [f"file: {report.get('file')}  ({num(report.get('duration_s'), '{:.1f}', 's')})"]
     if report.get("declination_deg") is not None:
         lines.append(f"WMM: declination {report['declination_deg']:.2f}°, inclination "
                      f"{report['inclination_deg']:.2f}°, field {report['field_strength_mG']:.1f} mG "
-                     f"(measured median {report.get('measured_field_strength_mG')} mG)")
+                     f"(measured median {num(report.get('measured_field_strength_mG'), unit='mG')})")
     lines.append("calibration: " + (report.get("calibration_in_use")
                                     or ("applied" if report.get("calibration_applied") else "none (raw magnetometer)")))
     lines.append(f"RTK: {'yes' if report.get('rtk') else 'no'};  path test: {report.get('path_test')}")
     lines.append(f"heading test: {report.get('heading_test')};  field test: {report.get('field_test')}")
     if report.get("mission"):
         m = report["mission"]
-        lines.append(f"mission A {m['A']} -> B {m['B']};  max cross-track {report.get('max_cross_track_m')} m")
+        lines.append(f"mission A {lat_lon(*m['A'][:2])} -> B {lat_lon(*m['B'][:2])};  "
+                     f"max cross-track {num(report.get('max_cross_track_m'), unit='m')}")
     nav = report.get("navigation") or {}
     for o in nav.get("gps_outages", []):
-        cmp = "; ".join(f"{law.replace('_', ' ')} median {v['median']}°, max {v['max']}°"
+        cmp = "; ".join(f"{law.replace('_', ' ')} median {num(v['median'])}°, max {num(v['max'])}°"
                         for law, v in (o.get("ins_vs_autopilot_heading_deg") or {}).items() if v)
-        lines.append(f"GPS outage {o['start_s']}–{o['end_s'] if o['end_s'] is not None else 'end'} s "
-                     f"({o['duration_s']} s): " + (f"INS/GPS mode {o['ins_mode']}; heading vs autopilot: {cmp or 'n/a'}"
+        lines.append(f"GPS outage {span_s(o['start_s'], o['end_s'], '{:.1f}')} "
+                     f"({num(o['duration_s'], unit='s')}): " + (f"INS/GPS mode {o['ins_mode']}; heading vs autopilot: {cmp or 'n/a'}"
                                                    if o["ins_mode"] else f"INS/GPS {nav.get('ins_gps')}"))
     motor = report.get("motor_field") or {}
     if motor.get("status") not in (None, "no_motor_signal"):
@@ -65,13 +68,15 @@ def format_report(report: dict) -> str:
     comb = [a for a in report.get("alarms", []) if a["kind"] == "combined"]
     others = [a for a in report.get("alarms", []) if a["kind"] != "combined"]
     lines.append(f"interference detected: {'YES' if report.get('interference_detected') else 'no'}"
-                 + (f" (first alarm at {report['first_alarm_s']} s)" if report.get("first_alarm_s") is not None else ""))
+                 + (f" (first alarm at {num(report['first_alarm_s'], unit='s')})"
+                    if report.get("first_alarm_s") is not None else ""))
     for a in comb:
-        lines.append(f"  ALARM {a['start_s']}–{a['end_s'] if a['end_s'] is not None else 'end'} s, "
-                     f"evidence: {', '.join(a.get('evidence', []))}, peak score {a['peak']}")
+        lines.append(f"  ALARM {span_s(a['start_s'], a['end_s'], '{:.1f}')}, "
+                     f"evidence: {', '.join(score_name(k) for k in a.get('evidence', []))}, "
+                     f"peak score {num(a['peak'])}")
         if a.get("explanation_text"):
             lines.append(f"    {a['explanation_text']}")
     if others:
         lines.append("single-test alarms: " + ", ".join(
-            f"{a['kind']}@{a['start_s']}s" for a in others[:12]) + (" ..." if len(others) > 12 else ""))
+            f"{score_name(a['kind'])} at {num(a['start_s'], unit='s')}" for a in others[:12]) + (" ..." if len(others) > 12 else ""))
     return "\n".join(lines)

@@ -21,6 +21,7 @@ from pathlib import Path
 from fastapi import Depends, FastAPI
 from fastapi.responses import RedirectResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 
 from groundstation.io.errors import IngestError
 from groundstation.paths import RECORDINGS_DIR, WEB_DIR
@@ -58,8 +59,11 @@ def create_app(hub: Session, viser_port: int | None = None, settings: StationSet
         yield
         hub.remove_listener(pusher.notify)
 
-    app = FastAPI(title="MagStation", version="0.1.0", lifespan=lifespan,
-                  description="Magnetometer calibration, heading integrity and flight replay.")
+    # /docs from the Swagger UI files that fastapi-offline ships (served under /static-offline-docs):
+    # the API page renders on a field laptop without internet, no CDN.  No /redoc: its page fetches
+    # its logo from the vendor's CDN, and one API page is enough.
+    app = FastAPIOffline(title="MagStation", version="0.1.0", lifespan=lifespan, redoc_url=None,
+                         description="Magnetometer calibration, heading integrity and flight replay.")
     app.state.hub = hub
     app.state.pusher = pusher
     app.state.viser_port = viser_port

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from groundstation.io.params import format_param_file
+from groundstation.jobs.words import num, span_s, without_status
 
 from .frame import frame_label
 from .settings import DEFAULT_SETTINGS, settings_record
@@ -45,15 +46,15 @@ def error_result(file: str, message: str, status: str = "error") -> dict:
     return result
 
 
-def _num(v, fmt="{:.1f}"):
-    return "n/a" if v is None else fmt.format(v)
+def _num(v, fmt="{:.1f}", unit=""):
+    return num(v, fmt, unit)
 
 
 def _windows_lines(result: dict) -> list[str]:
     lines = []
     for w in result.get("windows") or []:
         mark = "*" if w.get("chosen") else " "
-        lines.append(f"  {mark} window {_num(w['start_s'], '{:.0f}')}-{_num(w['end_s'], '{:.0f}')} s ({w['source']}, "
+        lines.append(f"  {mark} window {span_s(w['start_s'], w['end_s'])} ({w['source']}, "
                      f"{w['samples']} samples, {w.get('model') or '-'}, coverage {_num(w.get('coverage'), '{:.0%}')})"
                      + ("" if w.get("sufficient") else f": {w.get('reason')}"))
     return lines
@@ -63,18 +64,19 @@ def _checks_lines(result: dict) -> list[str]:
     lines = []
     part = result.get("inflight")
     if part:
-        lines.append(f"  in-flight WMM fit: {part['status']}: {part.get('message', '')}")
+        lines.append(f"  in-flight WMM fit: {part['status']}: {without_status(part['status'], part.get('message', ''))}")
     mot = result.get("motor")
     if mot:
         f = [v for v in mot.get("motor_mG_per_unit") or [] if v is not None]
         unit = "A" if mot.get("signal") == "current_A" else "full throttle"
         size = f"{float(np.linalg.norm(f)):.2f} mG per {unit}" if len(f) == 3 else "not determined"
         pct = mot.get("interference_pct")
-        lines.append(f"  motor field: {mot['status']}: {size}" + (f", {pct:.1f} % of the Earth field at "
-                     f"{mot.get('signal_max')}" if pct is not None else ""))
+        at = num(mot.get("signal_max"), "{:.1f}", "A") if unit == "A" else num(mot.get("signal_max"), "{:.0%}", "throttle")
+        lines.append(f"  motor field: {mot['status']}: {size}" + (f", {pct:.1f} % of the Earth field at {at}"
+                                                                   if pct is not None else ""))
     ori = result.get("orientation")
     if ori:
-        lines.append(f"  orientation: {ori['status']}: {ori['message']}")
+        lines.append(f"  orientation: {ori['status']}: {without_status(ori['status'], ori['message'])}")
     rep = result.get("onboard_report")
     if rep and rep.get("difference_mG") is not None:
         lines.append(f"  vehicle's MAG_CAL_REPORT at {rep['t_s']:.0f} s: COMPASS_OFS {rep['COMPASS_OFS']}, "
@@ -93,16 +95,17 @@ def format_summary(result: dict) -> str:
     if result.get("message"):
         lines.append(f"  {result['message']}")
     lines.append(f"  samples {result.get('samples', 0)}, coverage {_num(result.get('coverage'), '{:.0%}')}, "
-                 f"residual RMS {_num(result.get('residual_rms_mG'))} mG"
-                 + (f", data {result['window_s'][0]:.0f}-{result['window_s'][1]:.0f} s" if result.get("window_s") else ""))
-    lines.append(f"  field {_num(result.get('field_strength_mG'))} mG fitted, "
-                 f"{_num(result.get('expected_field_mG'))} mG expected (WMM)")
+                 f"residual RMS {_num(result.get('residual_rms_mG'), unit='mG')}"
+                 + (f", data {span_s(*result['window_s'])}" if result.get("window_s") else ""))
+    lines.append(f"  field {_num(result.get('field_strength_mG'), unit='mG')} fitted, "
+                 f"{_num(result.get('expected_field_mG'), unit='mG')} expected (WMM)")
     if result.get("offsets_mG"):
-        lines.append("  offsets mG  " + "  ".join(f"{v:8.1f}" for v in result["offsets_mG"]))
+        lines.append("  offsets mG  " + "  ".join(f"{_num(v, '{:.1f}'):>8}" for v in result["offsets_mG"]))
         for i, row in enumerate(result["matrix"]):
-            lines.append(("  matrix      " if i == 0 else "              ") + "  ".join(f"{v:8.4f}" for v in row))
+            lines.append(("  matrix      " if i == 0 else "              ")
+                         + "  ".join(f"{_num(v, '{:.4f}'):>8}" for v in row))
     if result.get("misalignment_deg"):
-        lines.append("  misalignment deg " + "  ".join(f"{v:.2f}" for v in result["misalignment_deg"]))
+        lines.append("  misalignment deg " + "  ".join(_num(v, "{:.2f}") for v in result["misalignment_deg"]))
     lines += _windows_lines(result) + _checks_lines(result)
     for key, label in (("ardupilot_params", "ArduPilot"), ("px4_params", "PX4")):
         if result.get(key):
@@ -121,8 +124,9 @@ def format_consistency(table: dict | None) -> str:
             continue
         lines.append(f"  compass consistency ({part['field']}): {part['status']}")
         for p in part["pairs"]:
-            lines.append(f"    {p['a']}-{p['b']}: angle median {_num(p['angle_median_deg'])} deg "
-                         f"(95 % {_num(p['angle_p95_deg'])}), strength diff {_num(p['strength_diff_median_mG'])} mG"
+            lines.append(f"    {p['a']}-{p['b']}: angle median {_num(p['angle_median_deg'], unit='deg')} "
+                         f"(95 % {_num(p['angle_p95_deg'])}), strength diff "
+                         f"{_num(p['strength_diff_median_mG'], unit='mG')}"
                          + ("" if p["ardupilot_consistent"] else "  FAILS ArduPilot's check"))
         if part.get("disagreeing") is not None:
             lines.append(f"    compass {part['disagreeing']} disagrees with the others")

@@ -1,0 +1,91 @@
+"""`magstation simulate SCENARIO --live udpout:HOST:PORT`: a simulated vehicle one command away.
+Both commands of the README's tour as processes on loopback: `magstation serve --connect udpin:...`
+and the live calibration dance; the station's wizard fits it, the accepted parameters are written
+to the simulated vehicle and read back (its PARAM_VALUE echoes), and the station says the field is
+corrected on board.  Truth: the scenario's own (groundstation.sim.scenarios)."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+import httpx
+import pytest
+
+from conftest import free_tcp_port, free_udp_port
+from groundstation.sim.scenarios import simulate
+
+CLI = [sys.executable, "-m", "groundstation.cli"]
+
+
+def _wait(predicate, timeout_s: float, what: str, procs=()):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for p in procs:
+            assert p.poll() is None, f"{p.args[3]} exited {p.returncode}: {p.stdout.read() if p.stdout else ''}"
+        try:
+            value = predicate()
+            if value:
+                return value
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.25)
+    raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+
+
+def _start(args: list[str]) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.Popen(CLI + args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+
+
+def _stop(p: subprocess.Popen) -> str:
+    if p.poll() is None:
+        p.terminate()
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(5)
+    return p.stdout.read() if p.stdout else ""
+
+
+def test_live_errors_are_one_line():
+    for args, words in ((["calibration", "--live", "udpin:127.0.0.1:14550"], "expected udpout:HOST:PORT"),
+                        (["calibration", "--live", "udpout:127.0.0.1:99999"], "expected udpout:HOST:PORT"),
+                        (["calibration"], "give --out FILE.tlog"),
+                        (["nowhere", "--live", "udpout:127.0.0.1:14550"], "unknown scenario 'nowhere'"),
+                        (["calibration", "--live", "udpout:127.0.0.1:14550", "--speed", "0"], "--speed must be")):
+        r = subprocess.run(CLI + ["simulate", *args], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 1 and words in r.stderr and r.stderr.count("\n") == 1, (args, r.stderr)
+
+
+def test_simulate_live_drives_the_station_and_the_wizard():
+    udp, port = free_udp_port(), free_tcp_port()
+    url = f"http://127.0.0.1:{port}"
+    station = _start(["serve", "--connect", f"udpin:127.0.0.1:{udp}", "--port", str(port),
+                      "--viser-port", str(free_tcp_port())])
+    vehicle = None
+    try:
+        _wait(lambda: httpx.get(url + "/api/state", timeout=5).json()["source"]["kind"] == "live", 60,
+              "the station", [station])
+        assert httpx.post(url + "/api/calibration/start", timeout=10).status_code == 200
+        vehicle = _start(["simulate", "calibration", "--live", f"udpout:127.0.0.1:{udp}", "--speed", "6"])
+        first = _wait(lambda: vehicle.stdout.readline(), 60, "the vehicle's first line", [vehicle])
+        assert first.startswith("streaming 'calibration' (") and f"udpin:127.0.0.1:{udp}" in first
+        _wait(lambda: httpx.get(url + "/api/state", timeout=5).json()["source"]["autopilot"] == "ardupilot", 60,
+              "the vehicle's heartbeat", [station, vehicle])
+        cal = _wait(lambda: (lambda c: c if c.get("result") else None)(
+            httpx.get(url + "/api/calibration", timeout=5).json()), 180, "the wizard's fit", [station, vehicle])
+        result = cal["result"]
+        assert result["status"] == "ok", result
+        truth = simulate("calibration", 0).truth["mag"]["offsets_mG"]
+        assert max(abs(a - b) for a, b in zip(result["offsets_mG"], truth)) < 5.0
+        assert httpx.post(url + "/api/calibration/accept", timeout=30).status_code == 200
+        # written and confirmed by the vehicle's PARAM_VALUE echoes: the field is corrected on board now
+        _wait(lambda: httpx.get(url + "/api/state", timeout=5).json()["tests"]["field_correction"]["kind"]
+              == "autopilot", 90, "the vehicle to confirm the parameters", [station, vehicle])
+    finally:
+        out_v = _stop(vehicle) if vehicle is not None else ""
+        out_s = _stop(station)
+    assert "Traceback" not in out_v + out_s, out_v + out_s
