@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import shutil
 import sys
 import tempfile
 import time
@@ -81,6 +82,7 @@ def params_of(p: dict, k: int, key: str) -> list:
 def run_onboard(speedup: float, out: dict) -> None:
     """The vehicle's own calibrator: success run (accept, read back), a forced failure, a cancel."""
     rec = Path(tempfile.mkdtemp(prefix="sitl-bench-onboard-"))
+    out.setdefault("_dirs", []).append(rec)
     sitl = Sitl(2, 14614, model="calibration", speedup=speedup, extra=RIG_PARAMS, limit_s=400).start()
     try:
         session, link = connect(sitl, rec)
@@ -129,12 +131,14 @@ def run_onboard(speedup: float, out: dict) -> None:
             session.close()
     finally:
         sitl.stop(keep=True)
+        out.setdefault("_dirs", []).append(sitl.run_dir)
     out["onboard_bin"] = max(sitl.bin_logs(), key=lambda p: p.stat().st_size, default=None)
 
 
 def run_wizard(speedup: float, out: dict) -> None:
     """The guided wizard on the rig; accept, read back, reboot; the logs kept for scenario 4."""
     rec = Path(tempfile.mkdtemp(prefix="sitl-bench-wizard-"))
+    out.setdefault("_dirs", []).append(rec)
     sitl = Sitl(1, 14613, model="calibration", speedup=speedup, extra=RIG_PARAMS, limit_s=400).start()
     try:
         session, link = connect(sitl, rec)
@@ -182,6 +186,7 @@ def run_wizard(speedup: float, out: dict) -> None:
             session.close()
     finally:
         sitl.stop(keep=True)
+        out.setdefault("_dirs", []).append(sitl.run_dir)
     out["bin"] = max(sitl.bin_logs(), key=lambda p: p.stat().st_size, default=None)   # before the reboot
 
 
@@ -234,6 +239,7 @@ def run_flight(name: str, out: dict) -> None:
     rec = Path(tempfile.mkdtemp(prefix=f"sitl-bench-{name}-"))
     sitl = Sitl(3, 14615, model="quad", speedup=1, extra=extra, limit_s=400).start()
     res: dict = {}
+    out.setdefault("_dirs", []).append(rec)
     try:
         session, link = connect(sitl, rec)
         try:
@@ -277,6 +283,7 @@ def run_flight(name: str, out: dict) -> None:
             session.close()
     finally:
         sitl.stop(keep=True)
+        out.setdefault("_dirs", []).append(sitl.run_dir)
     res["bin"] = max(sitl.bin_logs(), key=lambda p: p.stat().st_size, default=None)
     for kind in ("bin", "tlog"):
         if res.get(kind) is None:
@@ -425,6 +432,8 @@ def main() -> int:
     print_tables(out)
     print_flights(out)
     print_notes(out)
+    for d in out.get("_dirs", []):          # SITL run folders and session recordings, once analysed
+        shutil.rmtree(d, ignore_errors=True)
     return 0
 
 
