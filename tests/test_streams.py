@@ -5,10 +5,8 @@ from __future__ import annotations
 
 import socket
 import time
-from collections import Counter
 from types import SimpleNamespace
 
-import numpy as np
 import pytest
 
 from groundstation.io.decode import MavlinkDecoder, judge_field_unit, HIGHRES_MAG_UNITS
