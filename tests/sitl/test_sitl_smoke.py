@@ -13,7 +13,7 @@ import pytest
 
 from harness import (MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, MISSING, RIG_TRUTH, SITL_BINARY, Sitl, command,
                      rig_tour, station_link, truth_params, uncalibrated_params, wait_for)
-from conftest import station_for
+from sitl_fixtures import start_sitl, station_for  # noqa: F401  (start_sitl is a fixture)
 
 RIG_PARAMS = {**truth_params(), **uncalibrated_params(),
               **{f"SERVO{n}_FUNCTION": 0 for n in (5, 6, 7, 8)}}

@@ -1,16 +1,16 @@
-"""ArduPilot SITL in the loop (see harness.py): fixtures that start ``../shared/sitl/arducopter`` by
-PID on loopback and stop it, and a station session listening for it.  Every test here skips,
-saying why, when the firmware is absent."""
+"""Fixtures of the ArduPilot SITL tests (see harness.py): ``start_sitl`` starts
+``../shared/sitl/arducopter`` by PID on loopback and stops it; ``station_for`` is a station session
+listening for it.  Every test skips, saying why, when the firmware is absent.  (Not a conftest.py:
+a second module named ``conftest`` would shadow tests/conftest.py for every ``from conftest import``.)"""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from harness import MISSING, SITL_BINARY, Sitl, station_link
 
-from harness import MISSING, SITL_BINARY, Sitl, station_link  # noqa: E402
+__all__ = ["start_sitl", "station_for"]
 
 
 @pytest.fixture
