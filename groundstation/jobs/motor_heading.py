@@ -1,13 +1,13 @@
 """The best heading of a whole log: the default AHRS on the field with the motor-current field
 taken out (analyze's CSV attitude, issue 12).
 
-The detector's heading chain (``jobs.inputs.DETECTOR_CHAIN``) follows the magnetometer quickly,
-as its thresholds need; the best estimate is the default AHRS (``estimators.ahrs.AhrsSettings``),
-run again here.  A calibration from the rotation dance is made with the motors off, so in flight
+The detector and the display share one attitude, the default AHRS (``estimators.ahrs.
+AhrsSettings``, ``detection_inputs``' chain); here it runs again on the field with the motor-current
+field removed.  A calibration from the rotation dance is made with the motors off, so in flight
 the field of the motor and battery wires, proportional to the current, turns the compass heading
 by several degrees (7° median on the simulated missions at 12-32 A).  When the log carries the
 battery current and it varies, ``estimators.motor_field.fit_current_field`` finds the field per
-ampere from the tilt of the detector's chain (tilt does not depend on the compass) and the best
+ampere from the tilt of that chain (tilt does not depend on the compass) and the best
 chain runs on the field with f·I removed.  The magnetometer-only heading the detector uses
 (``mag_heading_deg``) stays on the field as measured: the detector has its own motor model.
 """
@@ -18,12 +18,10 @@ import numpy as np
 from estimators.heading import HeadingChainResult, run_heading_chain
 from estimators.motor_field import CurrentFieldFit, fit_current_field
 
-from groundstation.jobs.inputs import hold_last, rounded
+from groundstation.jobs.inputs import MOTOR_TIMEOUT_S, hold_last, rounded
 from groundstation.samples import FlightLog
 
-__all__ = ["CURRENT_TIMEOUT_S", "attitude_chain", "best_heading_chain"]
-
-CURRENT_TIMEOUT_S = 5.0     # a current sample older than this does not describe the field
+__all__ = ["attitude_chain", "best_heading_chain"]
 
 
 def _report(fit: CurrentFieldFit | None, used: bool, message: str = "") -> dict:
@@ -40,7 +38,7 @@ def _current_field(log: FlightLog, x: dict) -> tuple[CurrentFieldFit | None, np.
     battery = np.asarray(log.battery, dtype=float).reshape(-1, 2)
     if not len(battery) or not len(mag_cal) or not len(chain.t_s) or x["policy"].correction == "none":
         return None, np.zeros(0), "no battery current in the log" if not len(battery) else "no field"
-    current = hold_last(battery[:, 0], battery[:, 1:2], mag_cal[:, 0], CURRENT_TIMEOUT_S)[:, 0]
+    current = hold_last(battery[:, 0], battery[:, 1:2], mag_cal[:, 0], MOTOR_TIMEOUT_S)[:, 0]
     valid = np.asarray(chain.valid, bool)[:, None]
     tilt = hold_last(chain.t_s, np.where(valid, np.c_[chain.roll_rad, chain.pitch_rad], np.nan), mag_cal[:, 0], np.inf)
     return fit_current_field(mag_cal[:, 1:4], current, tilt[:, 0], tilt[:, 1]), current, ""
