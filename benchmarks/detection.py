@@ -228,14 +228,22 @@ def population_flight(draw, tmp: Path) -> dict:
     return row
 
 
-def population_run(n_clean: int, n_kind: int, seed: int, kinds=None, log=print) -> list[dict]:
+def population_run(n_clean: int, n_kind: int, seed: int, kinds=None, log=print, out_json: str | None = None) -> list[dict]:
+    """The population's flights, round robin over the kinds (clean first), so a run cut short
+    still covers every kind; with ``out_json`` the rows so far are written after every flight."""
     from groundstation.sim.population import DISTURBANCES, draw_flight
-    plan = [("clean", i) for i in range(n_clean)] + [(k, i) for k in (kinds or DISTURBANCES) for i in range(n_kind)]
+    kinds = DISTURBANCES if kinds is None else kinds
+    plan = [(k, i) for i in range(max(n_clean, n_kind)) for k in ("clean", *kinds)
+            if i < (n_clean if k == "clean" else n_kind)]
     rows = []
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmpd:
         for j, (kind, i) in enumerate(plan):
             rows.append(population_flight(draw_flight(i, seed, kind), Path(tmpd)))
+            if out_json:
+                import json
+                Path(out_json).parent.mkdir(parents=True, exist_ok=True)
+                Path(out_json).write_text(json.dumps(rows, default=str))
             if (j + 1) % 25 == 0:
                 log(f"  {j + 1}/{len(plan)} flights ({time.perf_counter() - t0:.0f} s)", flush=True)
     return rows
@@ -367,15 +375,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--per-kind", type=int, default=50, help="population flights per disturbance kind")
     ap.add_argument("--pop-seed", type=int, default=0, help="the population's seed (fixed per run)")
     ap.add_argument("--json", help="population: write the per-flight rows here")
+    ap.add_argument("--kinds", help="population: only these kinds, comma-separated (clean,fast,slow,step,bump,"
+                    "payload,anomaly), to split one run over processes")
+    ap.add_argument("--merge", nargs="+", metavar="JSON", help="population: print the table and chart of rows "
+                    "written by --json runs (one run split by --kinds) instead of flying")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
-    if a.population is not None:
-        rows = population_run(a.population, a.per_kind, a.pop_seed)
-        sums = print_population(rows, a.pop_seed)
-        if a.json:
+    if a.population is not None or a.merge:
+        if a.merge:
             import json
-            Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-            Path(a.json).write_text(json.dumps(rows, default=str))
+            rows = [r for f in a.merge for r in json.loads(Path(f).read_text())]
+            for r in rows:
+                r["alarms"] = {float(k): v for k, v in r["alarms"].items()}
+        else:
+            kinds = a.kinds.split(",") if a.kinds else None
+            rows = population_run(a.population if (kinds is None or "clean" in kinds) else 0, a.per_kind, a.pop_seed,
+                                  [k for k in kinds if k != "clean"] if kinds else None, out_json=a.json)
+        sums = print_population(rows, a.pop_seed)
         if a.png:
             png = a.png if a.png != ap.get_default("png") else "benchmarks/results/detection_population.png"
             write_population_png(sums, png)

@@ -40,7 +40,6 @@ from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.rotations import dcm_body_to_ned, wrap_angle_rad
 
 from groundstation.io.mavlink import mavlink2
-from groundstation.io.params import apply_ardupilot
 from groundstation.sim import flight_sim as fs
 from groundstation.sim import scenarios as sc
 
