@@ -32,6 +32,7 @@ anomaly the first time the foreign field reaches 20 mG) and the largest heading 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -96,7 +97,9 @@ def _site(rng: np.random.Generator) -> tuple[float, float, float]:
     year = decimal_year_from_unix(sc.START_UNIX_S)
     while True:
         lat, lon = float(rng.uniform(-70.0, 78.0)), float(rng.uniform(-180.0, 180.0))
-        incl = earth_field(lat, lon, 40.0, year).inclination_deg
+        with warnings.catch_warnings():                 # near the magnetic poles the WMM warns
+            warnings.simplefilter("ignore", UserWarning)
+            incl = earth_field(lat, lon, 40.0, year).inclination_deg
         if -60.0 <= incl <= 78.0:
             return lat, lon, float(incl)
 
