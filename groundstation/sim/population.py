@@ -21,7 +21,7 @@ Priors (uniform unless said; every flight is an ArduPilot multirotor calibrated 
 * GPS outages (a third of the flights, 20–120 s), telemetry gaps (a third, 1–3 gaps of 0.5–5 s,
   every message lost);
 * a disturbance of the chosen kind at a random time after the first 45 s: fast ramp (40–100 mG/s
-  for 3–8 s), slow ramp (6–20 mG/s for 15–30 s), step (60–300 mG), bump (100–300 mG over 20–90 s),
+  for 3–8 s), slow ramp (10–25 mG/s for 15–30 s), step (60–300 mG), bump (100–300 mG over 20–90 s),
   payload (6–15 A on its own lead, 3–10 mG/A, switched on and off), fixed anomaly (a magnetised
   mass beside the route, 20–60 mG... 300 mG at the closest pass), in a random sensor direction.
 
@@ -146,7 +146,7 @@ def draw_flight(index: int, seed: int = 0, kind: str = "clean") -> FlightDraw:
             dist = dict(kind="ramp", onset_s=onset, rate_mG_s=float(rng.uniform(40.0, 100.0)),
                         rise_s=float(rng.uniform(3.0, 8.0)), hold_s=float(rng.uniform(5.0, 20.0)), axis=axis)
         elif kind == "slow":
-            dist = dict(kind="ramp", onset_s=onset, rate_mG_s=float(rng.uniform(6.0, 20.0)),
+            dist = dict(kind="ramp", onset_s=onset, rate_mG_s=float(rng.uniform(10.0, 25.0)),
                         rise_s=float(rng.uniform(15.0, 30.0)), hold_s=float(rng.uniform(5.0, 20.0)), axis=axis)
         elif kind == "step":
             dist = dict(kind="step", onset_s=onset, amplitude_mG=float(rng.uniform(60.0, 300.0)),
