@@ -18,6 +18,7 @@ the same pieces, so a log gives the same alarms replayed, streamed live or analy
 """
 from __future__ import annotations
 
+import statistics
 import time
 from dataclasses import dataclass, field
 
@@ -39,9 +40,7 @@ __all__ = ["detection_inputs", "calibration_arrays", "check_calibration", "prima
            "checked_tilt", "TILT_AGREE_DEG",
            "heading_deg", "GPS_TIMEOUT_S", "ATTITUDE_TIMEOUT_S", "RATE_WINDOW", "vector_test_inputs", "earth_prior_mG",
            "motor_signal_table", "MOTOR_TIMEOUT_S"]
-MOTOR_TIMEOUT_S = 2.5        # a current (or throttle) value older than this is not used: the one timeout of
-                             # the motor-field model (detector, heading, explanations); 1-2 Hz current
-                             # telemetry stays held between its samples
+MOTOR_TIMEOUT_S = 2.5        # the one motor-signal timeout (detector, heading): 1-2 Hz current stays held
 
 GPS_TIMEOUT_S = 1.0          # a GPS or magnetometer value older than this is not used
 ATTITUDE_TIMEOUT_S = 0.5     # the autopilot's roll/pitch, for the field inclination and the steep gate
@@ -56,13 +55,9 @@ def heading_deg(heading_rad) -> np.ndarray:
     return np.where(d >= 360.0, 0.0, d)
 
 
-# One attitude (issues 27 and 30): the detector compares the magnetometer heading with the
-# default AHRS (estimators.ahrs.AhrsSettings, gyro biases estimated), the attitude the station
-# shows; the field tests take its tilt, or the autopilot's where ours confirms it
-# (``checked_tilt``), never the autopilot's heading: an autopilot's ATTITUDE drifts open-loop
-# through a GPS outage (20-40° of heading on a held-out simulator) or turns with its own compass.  Where ours cannot
-# be trusted (IMU below ``min_imu_rate_hz``: telemetry-rate IMU, or no gyro) every attitude-based
-# test is off and the report says why.
+# One attitude (issues 27, 30): the detector's reference is the default AHRS, the attitude shown;
+# the field tests take its tilt or the autopilot's where ours confirms it (``checked_tilt``), never
+# the autopilot's heading.  Below ``min_imu_rate_hz`` the attitude-based tests are off and say why.
 MAX_OFFSET_MG = 1e5          # 100 G: far beyond any magnetometer's range
 MAX_MATRIX_CONDITION = 1e3   # a fitted soft-iron matrix is near a rotation times ~1 (ratio <= 2.5)
 MATRIX_SCALE_RANGE = (1e-2, 1e2)
@@ -305,7 +300,8 @@ def imu_rate_hz(t_s: np.ndarray, start: int = 0) -> np.ndarray:
     dt = np.diff(t)
     small = n - start <= 8                                    # a few live steps: plain Python is faster
     for i in range(start, n if small else min(n, RATE_WINDOW + 1)):
-        med[i - start] = _median(dt[max(0, i - RATE_WINDOW):i].tolist())
+        window = dt[max(0, i - RATE_WINDOW):i].tolist()
+        med[i - start] = statistics.median(window) if window else 0.0    # np.median's value, faster on a few
     first = n if small else max(start, RATE_WINDOW + 1)
     if n > first:
         windows = np.lib.stride_tricks.sliding_window_view(dt, RATE_WINDOW)   # windows[k] = dt[k:k+W]
@@ -313,15 +309,6 @@ def imu_rate_hz(t_s: np.ndarray, start: int = 0) -> np.ndarray:
     idx = np.arange(start, n)
     with np.errstate(divide="ignore"):
         return np.where(med > 0, 1.0 / np.maximum(med, 1e-300), np.where(idx == 0, 0.0, np.inf))
-
-
-def _median(values: list[float]) -> float:
-    """np.median of a short list (the same value: the middle one, or the mean of the middle two)."""
-    if not values:
-        return 0.0
-    v = sorted(values)
-    k = len(v)
-    return v[k // 2] if k % 2 else (v[k // 2 - 1] + v[k // 2]) / 2
 
 
 def too_steep(roll_rad, pitch_rad, settings: DetectionSettings):
@@ -345,12 +332,9 @@ TILT_AGREE_DEG = 8.0         # the autopilot's roll/pitch count only this close 
 
 
 def checked_tilt(chain, att_rp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(roll, pitch) [rad] for the field tests: the autopilot's GPS-aided roll and pitch where they
-    are fresh and within TILT_AGREE_DEG of our AHRS's on both axes, else ours.  Our AHRS (no GPS)
-    tilts by 3-5° in a sustained acceleration (the start of a mission leg: 1 m/s² is 5.8° of
-    specific force), which the field-vector test reads as a 30-40 mG residual; an autopilot whose
-    attitude drifts open-loop (GPS outage) or is wrong is caught by ours.  The heading is never the
-    autopilot's."""
+    """(roll, pitch) [rad] for the field tests: the autopilot's GPS-aided roll and pitch where fresh
+    and within TILT_AGREE_DEG of our AHRS's (which tilts 3-5° in a sustained acceleration: a 30-40
+    mG field-vector residual), else ours (an autopilot drifting open-loop is caught)."""
     roll, pitch = np.asarray(chain.roll_rad, dtype=float), np.asarray(chain.pitch_rad, dtype=float)
     ar, ap = np.asarray(att_rp[:, 0], dtype=float), np.asarray(att_rp[:, 1], dtype=float)
     lim = np.radians(TILT_AGREE_DEG)
@@ -450,17 +434,14 @@ def _tests(log_imu_rate: float, n: int, settings: DetectionSettings, legs, g, rt
         heading = "off: no magnetometer data in the log"
     elif not policy.heading_usable:
         heading = policy.field_test
+    elif not n:
+        heading = "off: no IMU data"
     elif log_imu_rate < settings.min_imu_rate_hz:
-        heading = (f"off: IMU rate {log_imu_rate:.1f} Hz < {settings.min_imu_rate_hz:g} Hz: our attitude cannot be "
-                   "trusted" if n else "off: no IMU data")
+        heading = f"off: IMU rate {log_imu_rate:.1f} Hz < {settings.min_imu_rate_hz:g} Hz: our attitude cannot be trusted"
     else:
         heading = "on"
-    if not legs:
-        path = "off: no mission"
-    elif not len(g):
-        path = "off: no GPS position in the log"
-    else:
-        path = "on" if rtk else "untrusted: no RTK fix (fix_type < 5), path deviation never alarms"
+    path = ("off: no mission" if not legs else "off: no GPS position in the log" if not len(g)
+            else "on" if rtk else "untrusted: no RTK fix (fix_type < 5), path deviation never alarms")
     return heading, path
 
 
