@@ -251,3 +251,25 @@ def test_a_population_flight_streams_what_was_drawn(tmp_path):
     assert truth["onset_s"] == 50.0 and truth["end_s"] == pytest.approx(70.0, abs=0.1)
     assert 5.0 < truth["max_heading_turn_deg"] < 90.0
     assert truth["autopilot_yaw_error_max_deg"] > 3.0                           # drifted open-loop
+
+
+def test_population_benchmark_scores_a_drawn_fast_ramp(tmp_path):
+    """benchmarks/detection.py's population path end to end on one drawn fast ramp at a 50 Hz IMU
+    (the latency counted from the truth's onset) and the same settings without it (no alarm)."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import detection as bench
+    from groundstation.sim.population import draw_flight, replace_draw
+    d = replace_draw(draw_flight(3, 2, "fast"), imu_rate_hz=50.0, attitude_rate_hz=50.0, gps_outage=None, gaps=(),
+                     attitude_mode="good", motor_mG_per_A=(0.5, 0.0, 0.5), duration_s=120.0,
+                     disturbance=dict(kind="ramp", onset_s=70.0, rate_mG_s=80.0, rise_s=5.0, hold_s=10.0,
+                                      axis=(0.0, 1.0, 0.0)))
+    row = bench.population_flight(d, tmp_path)
+    clean = bench.population_flight(replace_draw(d, kind="clean", disturbance={}), tmp_path)
+    assert row["tests_on"] and row["onset"] == 70.0 and row["turn_deg"] > 5.0
+    lat = bench._pop_latency(row, 1.0)
+    assert lat is not None and lat < 3.0, row["alarms"][1.0]
+    assert clean["alarms"][1.0] == [] and clean["onset"] is None
+    s = bench.population_summary([row, clean])
+    assert s["clean"]["false_alarms"] == 0 and s["fast"]["on"]["detected5"] == 1
