@@ -7,6 +7,14 @@ the detector with each variant's settings.  Every variant sees the same flights 
     .venv/bin/python benchmarks/detection.py                    # 10 seeds, 5 outage flights, real logs
     .venv/bin/python benchmarks/detection.py --seeds 20 --png out.png
     .venv/bin/python benchmarks/detection.py --quick            # smoke run (1 seed, fast ramp, 1 clean flight)
+    .venv/bin/python benchmarks/detection.py --population 200 --per-kind 50   # issue 30's population
+
+``--population N``: N clean flights and ``--per-kind`` flights of each disturbance kind drawn from
+the wide priors of groundstation/sim/population.py (seed ``--pop-seed``), each end to end through a
+.tlog with no calibration but the vehicle's own; the table at the default thresholds, a sweep of
+every threshold x0.6-1.6 and the ROC-style chart (false alarms per flight-hour vs median latency)
+in benchmarks/results/detection_population.png.  ``--kinds`` and ``--json`` split one run over
+processes, ``--merge`` prints the merged table (docs/detection.md).
 
 Scenarios: fast ramp (60 mG/s), slow ramp (12.5 mG/s), step (150 mG), bump (250 mG over 60 s);
 clean missions with a payload switching 10 A on top of the motor current (mission-motor, >= 8 A
