@@ -453,6 +453,7 @@ class FieldConsistencyResult:
     earth_field_mG: tuple          # h at the end (magnetic NED)
     offset_mG: tuple               # b at the end (body)
     tilt_deg: tuple = (float("nan"), float("nan"))   # δ_x, δ_y at the end: the magnetometer's tilt
+    motor_sd_mG_per_unit: np.ndarray | None = None    # (N, 3) f's standard error at each step (inf: unknown)
 
 
 def field_consistency(t_s, mag_body_mG, roll_rad, pitch_rad, attitude_ok, gyro_rad_s, motor_signal,
@@ -470,7 +471,7 @@ def field_consistency(t_s, mag_body_mG, roll_rad, pitch_rad, attitude_ok, gyro_r
     mag = np.asarray(mag_body_mG, dtype=float).reshape(n, 3).tolist()
     gyro = np.asarray(gyro_rad_s, dtype=float).reshape(n, 3).tolist()
     z, q, st = np.full(n, np.nan), np.full(n, np.nan), np.zeros(n, int)
-    res, mot = np.full((n, 3), np.nan), np.zeros((n, 3))
+    res, mot, msd = np.full((n, 3), np.nan), np.zeros((n, 3)), np.full((n, 3), np.inf)
     tl = t.tolist()
     for i in range(n):
         if fc.prior is None and earth_field_mG is not None and tl[i] >= prior_from_s:
@@ -479,5 +480,6 @@ def field_consistency(t_s, mag_body_mG, roll_rad, pitch_rad, attitude_ok, gyro_r
         z[i], q[i], st[i] = step.z, step.q, step.status
         res[i] = step.residual_mG
         mot[i] = step.motor_mG_per_unit
+        msd[i] = fc.motor.sd
     return FieldConsistencyResult(t, z, q, res, st, mot, fc.noise_mG, tuple(fc.h or (np.nan,) * 3), tuple(fc.b),
-                                  tuple(math.degrees(v) for v in fc.tilt.tilt_rad))
+                                  tuple(math.degrees(v) for v in fc.tilt.tilt_rad), msd)

@@ -17,6 +17,12 @@ Reported, as ArduPilot's compassmot and PX4's mag_compensation.py do:
   battery current by 1000) or in G per unit thrust, CAL_MAG_COMP_TYP = 2 (battery 0) or 1 (thrust);
 * the field norm against the signal (binned medians) before and after removing f·x.
 
+This is the offline calibration product (a raw-field fit against the WMM, like compassmot).  In
+flight the one motor-field model of a calibrated field, serving the detector, the heading and the
+explanations, is the online one learnt from the current's changes with its uncertainty
+(estimators.residual_trackers.MotorFieldTracker, used by estimators.field_consistency and
+groundstation.jobs.motor_heading).
+
 Units: mG, A, throttle 0..1.  Pure numpy.
 """
 from __future__ import annotations
@@ -26,10 +32,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from estimators.field_model import FieldData, corrected_field, nominal_params
-from estimators.rotations import dcm_body_to_ned
 from estimators.wmm_fit import WmmFit, WmmFitSettings, fit_wmm
 
-__all__ = ["MotorFieldFit", "fit_motor_field", "motor_compensation_params", "CurrentFieldFit", "fit_current_field"]
+__all__ = ["MotorFieldFit", "fit_motor_field", "motor_compensation_params"]
 
 
 @dataclass(frozen=True)
@@ -135,92 +140,3 @@ def motor_compensation_params(fit: MotorFieldFit, instance: int = 0, px4_slot: i
     px4 = {f"CAL_MAG{px4_slot}_{a}COMP": float(comp[i]) for i, a in enumerate("XYZ")}
     px4["CAL_MAG_COMP_TYP"] = 2.0 if fit.signal == "current_A" else 1.0
     return {"ardupilot": ap, "px4": px4}
-
-
-# ----------------------------------------------------------------------------- calibrated field
-@dataclass(frozen=True)
-class CurrentFieldFit:
-    """``fit_current_field``: f [mG/A] of a field already calibrated with the motors off.
-    status: ok | no_motor_signal | insufficient_signal_variation | insufficient_data | not_supported."""
-    status: str
-    message: str
-    motor_mG_per_A: np.ndarray          # (3,) body frame; NaN unless status ok
-    motor_sd_mG_per_A: np.ndarray
-    field_down_mG: float                # the levelled field's vertical and horizontal parts, fitted
-    field_horizontal_mG: float
-    n_used: int
-
-
-def fit_current_field(field_body_mG, current_A, roll_rad, pitch_rad, *, min_current_sd_A: float = 1.0,
-                      huber_k: float = 1.345, max_iter: int = 15, max_rel_sd: float = 0.25,
-                      max_mG_per_A: float = 20.0, min_improvement: float = 0.75) -> CurrentFieldFit:
-    """Field per ampere f of a field that is calibrated except for the motor current, yaw-free.
-
-    Model: the levelled field l = R(φ, θ)·(c − f·I) has a constant vertical part H_d and a constant
-    horizontal length H_h whatever the heading, so for each sample
-        r₁ = l_d − H_d,   r₂ = |l_NE| − H_h,
-    and f, H_d, H_h follow by Gauss-Newton with Huber weights (the yaw-free residuals of PX4's
-    mag_compensation.py / ArduPilot's compassmot, without a yaw reference, so an AHRS whose heading
-    the motor field itself turned can supply the tilt).  Only the part of f·I that changes with the
-    current and the heading is observable: the constant part at the mean current is absorbed by the
-    calibration's offsets when the calibration was made with the current on; from a motors-off
-    calibration (the rotation dance) f is the whole motor field.
-    Units: mG, A, rad.  ``ok`` needs the current to vary by ``min_current_sd_A`` (sd), every
-    component's sd below ``max_rel_sd``·|f| (or 0.05 mG/A), |f| ≤ ``max_mG_per_A`` (the
-    motor_limit of WmmFitSettings) and the robust residual scale at most ``min_improvement`` of
-    the one with f = 0: removing f·I must make the levelled field clearly steadier (on the
-    simulated missions it falls to 0.25-0.56 of it; on the real 2.8 Hz dronekit tlog only to 0.83,
-    where the heading against the autopilot's got no better, so that is left alone).
-    """
-    c = np.asarray(field_body_mG, float).reshape(-1, 3)
-    cur = np.asarray(current_A, float).ravel()
-    roll, pitch = np.asarray(roll_rad, float).ravel(), np.asarray(pitch_rad, float).ravel()
-    use = np.all(np.isfinite(c), axis=1) & np.isfinite(cur) & np.isfinite(roll) & np.isfinite(pitch)
-    nan3 = np.full(3, np.nan)
-    fail = lambda status, msg: CurrentFieldFit(status, msg, nan3, nan3.copy(), np.nan, np.nan, int(use.sum()))  # noqa: E731
-    if not use.any():
-        return fail("no_motor_signal", "no samples with both a field and a current")
-    c, cur, roll, pitch = c[use], cur[use], roll[use], pitch[use]
-    if len(cur) < 30:
-        return fail("insufficient_data", f"{len(cur)} samples with a field and a current (need 30)")
-    if float(np.std(cur)) < min_current_sd_A:
-        return fail("insufficient_signal_variation", f"current varies by {np.std(cur):.2f} A (sd) only "
-                    f"(need {min_current_sd_A:g})")
-    R = dcm_body_to_ned(roll, pitch, np.zeros_like(roll))
-    l0 = np.einsum("nij,nj->ni", R, c)
-    f, hd, hh = np.zeros(3), float(np.median(l0[:, 2])), float(np.median(np.hypot(l0[:, 0], l0[:, 1])))
-    RI = R * cur[:, None, None]                         # ∂l/∂f = −I·R
-    scale_without = None                                # robust residual scale with f = 0
-    for _ in range(max_iter):
-        l = l0 - RI @ f
-        lh = np.hypot(l[:, 0], l[:, 1])
-        u = l[:, :2] / np.maximum(lh, 1e-9)[:, None]
-        r = np.r_[l[:, 2] - hd, lh - hh]
-        J = np.zeros((2 * len(l), 5))
-        J[:len(l), :3], J[:len(l), 3] = -RI[:, 2, :], -1.0
-        J[len(l):, :3], J[len(l):, 4] = -np.einsum("nk,nkj->nj", u, RI[:, :2, :]), -1.0
-        scale = 1.4826 * float(np.median(np.abs(r - np.median(r)))) + 1e-9
-        scale_without = scale if scale_without is None else scale_without
-        a = np.abs(r) / scale
-        w = np.where(a <= huber_k, 1.0, huber_k / np.maximum(a, 1e-12))
-        JW = J * w[:, None]
-        N = JW.T @ J
-        step = np.linalg.lstsq(N, -JW.T @ r, rcond=None)[0]
-        f, hd, hh = f + step[:3], hd + step[3], hh + step[4]
-        if np.max(np.abs(step[:3])) < 1e-4:
-            break
-    dof = max(len(r) - 5, 1)
-    sigma2 = float(np.sum(w * r * r) / dof)
-    try:
-        sd = np.sqrt(np.diag(np.linalg.inv(N)) * sigma2)[:3]
-    except np.linalg.LinAlgError:
-        return fail("not_supported", "the current and the attitude do not determine the motor field")
-    msg = (f"motor field {np.round(f, 2).tolist()} mG/A (sd {np.round(sd, 2).tolist()}), "
-           f"{np.linalg.norm(f) * np.max(cur):.0f} mG at {np.max(cur):.1f} A, from {len(cur)} samples")
-    msg += f"; levelled-field residual {scale_without:.1f} -> {scale:.1f} mG"
-    why = ("not determined well enough" if not np.all(sd < np.maximum(max_rel_sd * np.linalg.norm(f), 0.05))
-           else f"over {max_mG_per_A:g} mG/A" if np.linalg.norm(f) > max_mG_per_A
-           else "does not steady the field enough" if scale >= min_improvement * scale_without else "")
-    if why:
-        return CurrentFieldFit("not_supported", f"{msg}: {why} to remove", nan3, sd, hd, hh, len(cur))
-    return CurrentFieldFit("ok", msg, f, sd, hd, hh, len(cur))

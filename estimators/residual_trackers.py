@@ -37,16 +37,30 @@ class MotorFieldTracker:
     least-squares slope per axis, f_k = Σ w z y_k / (Σ w z² + reg) with z = x(t) − x(t − L), the
     weights forgetting with ``memory_s``, each y_k Huber-clipped at ``clip_mG`` around f_k z (a
     disturbance that starts while the current changes does not teach it much).  ``excitation`` is
-    Σ z² Δt [unit² s], how much signal change f has been learned from.  Units: mG, A (or %), s.
+    Σ z² Δt [unit² s], how much signal change f has been learned from.
+    Uncertainty: the weighted least-squares standard error per axis, sd_k = √(s²_k / (Σ w z² + reg))
+    with s²_k = Σ w (y_k − f_k z)² / Σ w the weighted mean square of the (clipped) fit residual, so
+    the noise of the field's change, a lag of the current sensor and a coarse (1-2 Hz, held) current
+    all widen it; ``significant`` (|f| ≥ k |sd|) says whether f should be removed from the field.
+    Units: mG, A (or %), s.
     """
 
     def __init__(self, lag_s: float = 1.0, memory_s: float = 300.0, reg: float = 1.0) -> None:
         self.lag_s, self.memory_s, self.reg = lag_s, memory_s, reg
         self.f = [0.0, 0.0, 0.0]
+        self.sd = [math.inf, math.inf, math.inf]
         self.excitation = 0.0
         self._sxx = 0.0
         self._sxy = [0.0, 0.0, 0.0]
+        self._see = [0.0, 0.0, 0.0]
+        self._sw = 0.0
         self._hist: deque = deque()
+
+    def significant(self, k_sigma: float = 3.0) -> bool:
+        """|f| ≥ k_sigma · |sd|: the motor field is known well enough to be removed."""
+        f2 = self.f[0] ** 2 + self.f[1] ** 2 + self.f[2] ** 2
+        sd2 = self.sd[0] ** 2 + self.sd[1] ** 2 + self.sd[2] ** 2
+        return f2 > 0.0 and f2 >= k_sigma * k_sigma * sd2
 
     def clear_history(self) -> None:
         """Forget the recent samples (after a gap), keep what has been learned."""
@@ -63,12 +77,16 @@ class MotorFieldTracker:
         z = x - old[4]
         w = math.exp(-dt_s / self.memory_s)
         self._sxx = w * self._sxx + z * z * dt_s
+        self._sw = w * self._sw + dt_s
         self.excitation += z * z * dt_s
         for k in range(3):
             pred = self.f[k] * z
             y = _huber(float(u_mG[k]) - old[k + 1], pred, clip_mG)
+            self._see[k] = w * self._see[k] + (y - pred) ** 2 * dt_s
             self._sxy[k] = w * self._sxy[k] + z * y * dt_s
             self.f[k] = self._sxy[k] / (self._sxx + self.reg)
+            if self._sw > 0.0:
+                self.sd[k] = math.sqrt(self._see[k] / self._sw / (self._sxx + self.reg))
 
 
 class TiltTracker:

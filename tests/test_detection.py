@@ -168,3 +168,108 @@ def test_alarm_intervals_merge_and_open_end():
     iv = alarm_intervals(t, f, t)
     assert [(round(a, 2), None if b is None else round(b, 2)) for a, b, *_ in iv] == [(1.0, 2.9), (9.0, None)]
     assert iv[0][2] == pytest.approx(2.9)
+
+
+# ----------------------------------------------------------------------------- one attitude (issue 30)
+def test_the_autopilot_tilt_counts_only_where_ours_confirms_it():
+    """checked_tilt: the autopilot's roll/pitch where within TILT_AGREE_DEG of our AHRS's, ours where
+    it is off by more (an open-loop drift) or missing."""
+    from types import SimpleNamespace
+    from groundstation.jobs.inputs import TILT_AGREE_DEG, checked_tilt
+    ours = SimpleNamespace(roll_rad=np.zeros(4), pitch_rad=np.full(4, 0.1))
+    off = np.radians(TILT_AGREE_DEG + 1.0)
+    att = np.array([[np.radians(2.0), 0.1], [off, 0.1], [np.nan, 0.1], [0.0, 0.1 - off]])
+    roll, pitch = checked_tilt(ours, att)
+    np.testing.assert_allclose(roll, [np.radians(2.0), 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(pitch, [0.1, 0.1, 0.1, 0.1])
+
+
+def test_the_field_tests_never_use_the_autopilot_heading(tmp_path):
+    """The same log with the autopilot's ATTITUDE yaw drifting 0.5°/s (and its roll 15° off for a
+    minute) gives the heading difference and the field-vector score of the untouched log."""
+    from groundstation.io.logs import read_log
+    from groundstation.jobs.inputs import detection_inputs
+    from groundstation.sim.scenarios import simulate
+    log = read_log(simulate("mission-clean", 3, duration_s=70.0, onboard_calibration=True).write(tmp_path / "c.tlog"))
+    ref = detection_inputs(log)
+    att = log.attitude.copy()
+    att[:, 3] += np.radians(0.5) * att[:, 0]
+    late = att[:, 0] > 40.0
+    att[late, 1] += np.radians(15.0)
+    log.attitude = att
+    bad = detection_inputs(log)
+    assert np.isfinite(ref["z_vector"]).mean() > 0.3 and np.isfinite(ref["e"]).mean() > 0.5
+    np.testing.assert_array_equal(bad["e"], ref["e"])
+    early = ref["t"] <= 40.0
+    np.testing.assert_array_equal(bad["z_vector"][early], ref["z_vector"][early])
+    # past 40 s the 15° roll is ours instead of the autopilot's (theirs agreed with ours): the score
+    # stays below the alarm, as on the untouched log
+    assert np.nanmax(bad["z_vector"][~early]) < 1.0 and np.nanmax(ref["z_vector"][~early]) < 1.0
+
+
+# ----------------------------------------------------------------------------- population (issue 30)
+def test_population_draws_are_reproducible_and_inside_the_priors():
+    from groundstation.sim.population import DISTURBANCES, IMU_RATES_HZ, draw_flight
+    draws = [draw_flight(i, 5, kind) for i in range(12) for kind in ("clean", *DISTURBANCES)]
+    assert draw_flight(3, 5, "slow") == draws[3 * 7 + 2]
+    assert draw_flight(3, 6, "slow") != draws[3 * 7 + 2]
+    for d in draws:
+        assert -60.0 <= d.inclination_deg <= 78.0 and 180.0 <= d.duration_s <= 300.0
+        assert np.linalg.norm(d.motor_mG_per_A) <= 10.0 and 0.5 <= d.motor_comp <= 1.0
+        assert d.imu_rate_hz in IMU_RATES_HZ and 0.0 <= d.current_lag_s <= 0.8
+        assert (d.kind == "clean") == (not d.disturbance)
+        if d.attitude_mode == "drift_in_outage":
+            assert d.gps_outage is not None
+    seen = lambda key: {getattr(d, key) for d in draws}  # noqa: E731
+    assert seen("imu_message") == {"RAW_IMU", "SCALED_IMU", "HIGHRES_IMU"}
+    assert seen("attitude_mode") == {"good", "drift_in_outage", "yaw_follows_compass"}
+    assert seen("route") == {"stop-and-go", "survey"}
+    incl = [d.inclination_deg for d in draws]
+    assert min(incl) < -30.0 and max(incl) > 60.0
+
+
+def test_a_population_flight_streams_what_was_drawn(tmp_path):
+    """A drawn flight read back: the drawn IMU message at its rate, the autopilot's COMPASS_MOT
+    (−c·f), the current at its rate, the ATTITUDE yaw drifting through the outage, and the truth's
+    onset and heading turn of a step across the horizontal field."""
+    from groundstation.io.logs import read_log
+    from groundstation.sim.population import draw_flight, replace_draw, write_flight
+    d = draw_flight(0, 1, "step")
+    h = np.array([1.0, 0.0, 0.0])
+    d = replace_draw(d, duration_s=90.0, imu_message="HIGHRES_IMU", imu_rate_hz=25.0, current_rate_hz=2.0,
+                     attitude_mode="drift_in_outage", gps_outage=(40.0, 80.0), gaps=((20.0, 22.0),),
+                     disturbance=dict(kind="step", onset_s=50.0, amplitude_mG=150.0, duration_s=20.0,
+                                      axis=tuple(h)))
+    path, truth = write_flight(d, tmp_path / "p.tlog")
+    log = read_log(path)
+    dt = np.diff(log.imu[:, 0])
+    assert np.median(dt) == pytest.approx(1 / 25.0, rel=0.05)
+    assert dt.max() > 1.9                                                       # the telemetry gap
+    for k, a in enumerate("XYZ"):
+        assert log.params[f"COMPASS_MOT_{a}"] == pytest.approx(-d.motor_comp * d.motor_mG_per_A[k], abs=1e-4)
+    assert np.median(np.diff(log.battery[:, 0])) == pytest.approx(0.5, rel=0.05)
+    assert truth["onset_s"] == 50.0 and truth["end_s"] == pytest.approx(70.0, abs=0.1)
+    assert 5.0 < truth["max_heading_turn_deg"] < 90.0
+    assert truth["autopilot_yaw_error_max_deg"] > 3.0                           # drifted open-loop
+
+
+def test_population_benchmark_scores_a_drawn_fast_ramp(tmp_path):
+    """benchmarks/detection.py's population path end to end on one drawn fast ramp at a 50 Hz IMU
+    (the latency counted from the truth's onset) and the same settings without it (no alarm)."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import detection as bench
+    from groundstation.sim.population import draw_flight, replace_draw
+    d = replace_draw(draw_flight(3, 2, "fast"), imu_rate_hz=50.0, attitude_rate_hz=50.0, gps_outage=None, gaps=(),
+                     attitude_mode="good", motor_mG_per_A=(0.5, 0.0, 0.5), duration_s=120.0,
+                     disturbance=dict(kind="ramp", onset_s=70.0, rate_mG_s=80.0, rise_s=5.0, hold_s=10.0,
+                                      axis=(0.0, 1.0, 0.0)))
+    row = bench.population_flight(d, tmp_path)
+    clean = bench.population_flight(replace_draw(d, kind="clean", disturbance={}), tmp_path)
+    assert row["tests_on"] and row["onset"] == 70.0 and row["turn_deg"] > 5.0
+    lat = bench._pop_latency(row, 1.0)
+    assert lat is not None and lat < 3.0, row["alarms"][1.0]
+    assert clean["alarms"][1.0] == [] and clean["onset"] is None
+    s = bench.population_summary([row, clean])
+    assert s["clean"]["false_alarms"] == 0 and s["fast"]["on"]["detected5"] == 1

@@ -79,16 +79,20 @@ def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
     estimates = ("roll_deg", "pitch_deg", "field_mG", "inclination_deg", "score")
     for name in decisions + estimates:
         np.testing.assert_allclose(live_rows[:, COL[name]], batch_rows[:, COL[name]], atol=1e-6, err_msg=name)
-    # the page shows the default AHRS, analyze's best estimate wherever neither the INS/GPS filter
-    # nor a motor-current field changes it (issue 12), not the detector's faster heading reference
-    assert not report["motor_field"]["removed_from_heading"]
+    # the page shows the default AHRS, analyze's best estimate wherever the INS/GPS filter does not
+    # change it (issue 12); removing the motor-current field turns the heading, and the tilt by
+    # at most 0.01° (the AHRS's field update, measured 0.0035° on the demo)
+    tol = 0.01 if report["motor_field"]["removed_from_heading"] else 1e-6
     plain = columns["ins_mode"] == ""
     # ... analyze's CSV attitude is the offline smoother's there (issue 27), the page the causal AHRS's
     assert set(columns["attitude_source"][plain]) == {"offline"}
     d_roll = np.abs((live_rows[plain, COL["roll_deg"]] - columns["roll_deg"][plain] + 180.0) % 360.0 - 180.0)
     assert np.nanmedian(d_roll) < 1.5 and np.nanpercentile(d_roll, 90) < 6.0   # demo 0.13/0.46, real 0.88/5.3
-    detector_roll = np.where(batch.x["chain"].valid, np.degrees(batch.x["chain"].roll_rad), np.nan)
-    assert np.nanmax(np.abs(live_rows[:, COL["roll_deg"]] - detector_roll)) > 0.05
+    # one attitude (issue 30): the detector's reference is the attitude shown
+    detector_roll = np.degrees(batch.x["chain"].roll_rad)
+    shown = np.isfinite(live_rows[:, COL["roll_deg"]])
+    assert shown.mean() > 0.9
+    np.testing.assert_allclose(live_rows[shown, COL["roll_deg"]], detector_roll[shown], atol=1e-6)
     if path == DEMO:      # the interference episode of the demo and nothing before it; it ends with it
         onset_s, end_s = _demo_interference_s()
         assert len(analyzed) == 1 and onset_s < analyzed[0]["start_s"] < onset_s + 5.0

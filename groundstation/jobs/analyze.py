@@ -236,13 +236,19 @@ def bias_and_rejection(chain, valid: np.ndarray) -> dict:
 
 
 def alarm_list(t: np.ndarray, det, cross_track_m: np.ndarray, settings: DetectionSettings) -> list[dict]:
-    """Every alarm interval of each test alone (the combined decision's: ``FlightAnalysis``)."""
+    """The alarm intervals of each test alone that are evidence of a combined alarm (overlap one;
+    the combined decision's own: ``FlightAnalysis``).  A test alone, uncorroborated, fires far more
+    often than the combined rule on calm flights (real logs: a heading-difference alarm every 3-5 s)
+    and is not shown: where it is significant on its own the combined rule alarms too."""
     dev_h = det.z_heading * settings.sigma_k * det.heading_sigma_deg
+    on = [(a, np.inf if b is None else b) for a, b, *_ in alarm_intervals(t, det.combined)]
     alarms = []
     for kind, flag, value in (("heading_difference", det.heading_alarm, dev_h),
                               ("path_deviation", det.path_alarm, cross_track_m),
                               ("field_anomaly", det.field_alarm, np.fmax(det.z_strength, det.z_inclination))):
         for start, end, peak, _, _ in alarm_intervals(t, flag, value):
+            if not any(a <= (np.inf if end is None else end) and start <= b for a, b in on):
+                continue
             alarms.append({"kind": kind, "start_s": rounded(start, 2), "end_s": rounded(end, 2),
                            "peak": rounded(peak), "unit": ALARM_UNITS[kind]})
     return alarms

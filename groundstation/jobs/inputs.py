@@ -18,6 +18,7 @@ the same pieces, so a log gives the same alarms replayed, streamed live or analy
 """
 from __future__ import annotations
 
+import statistics
 import time
 from dataclasses import dataclass, field
 
@@ -26,8 +27,7 @@ import numpy as np
 from estimators.detection import DetectionSettings, cross_track_m, field_inclination_deg, ned_from_lla
 from estimators.field_consistency import field_consistency
 from estimators.geomag import decimal_year_from_unix, earth_field
-from estimators.ahrs import AhrsSettings
-from estimators.heading import HeadingChainSettings, run_heading_chain
+from estimators.heading import run_heading_chain
 from estimators.rotations import wrap_angle_rad
 
 from groundstation.io.params import ardupilot_never_calibrated, unapply_onboard_calibration
@@ -37,9 +37,10 @@ from groundstation.samples import CompassTable, FlightLog, finite_or_none
 __all__ = ["detection_inputs", "calibration_arrays", "check_calibration", "primary_raw", "primary_field", "mission_legs",
            "cross_track_legs", "hold_last", "Held", "field_reference", "field_policy", "FieldPolicy", "gps_rows",
            "GPS_COLUMNS", "imu_rate_hz", "step_inputs", "StepState", "too_steep", "rotation_rate", "rounded",
+           "checked_tilt", "TILT_AGREE_DEG",
            "heading_deg", "GPS_TIMEOUT_S", "ATTITUDE_TIMEOUT_S", "RATE_WINDOW", "vector_test_inputs", "earth_prior_mG",
            "motor_signal_table", "MOTOR_TIMEOUT_S"]
-MOTOR_TIMEOUT_S = 1.0        # a current (or throttle) value older than this is not used
+MOTOR_TIMEOUT_S = 2.5        # the one motor-signal timeout (detector, heading): 1-2 Hz current stays held
 
 GPS_TIMEOUT_S = 1.0          # a GPS or magnetometer value older than this is not used
 ATTITUDE_TIMEOUT_S = 0.5     # the autopilot's roll/pitch, for the field inclination and the steep gate
@@ -54,16 +55,9 @@ def heading_deg(heading_rad) -> np.ndarray:
     return np.where(d >= 360.0, 0.0, d)
 
 
-# The heading chain the detector compares the magnetometer heading with: the AHRS setting its
-# 5-sigma heading-difference thresholds were set with, a heading that follows the magnetometer
-# within ~5 s, so a heading-dependent deviation (motor field, calibration residue) that changes
-# in a turn settles in the turn's settling time.  The best attitude (analyze's CSV) is the
-# default AHRS, which follows the magnetometer 3x slower (estimators.ahrs.AhrsSettings).  Its
-# heading-axis gyro bias learns in 300 s as before: the field-vector test propagates its heading
-# with this bias through an alarm, and a 60 s bias follows a disturbance of a minute enough to
-# leave the heading degrees off when it ends (alarms on to the end of the flight).
-DETECTOR_CHAIN = HeadingChainSettings(ahrs=AhrsSettings(field_gain_per_s=0.2, mag_recovery_s=5.0, block_s=0.05,
-                                                      bias_heading_time_s=300.0))
+# One attitude (issues 27, 30): the detector's reference is the default AHRS, the attitude shown;
+# the field tests take its tilt or the autopilot's where ours confirms it (``checked_tilt``), never
+# the autopilot's heading.  Below ``min_imu_rate_hz`` the attitude-based tests are off and say why.
 MAX_OFFSET_MG = 1e5          # 100 G: far beyond any magnetometer's range
 MAX_MATRIX_CONDITION = 1e3   # a fitted soft-iron matrix is near a rotation times ~1 (ratio <= 2.5)
 MATRIX_SCALE_RANGE = (1e-2, 1e2)
@@ -310,7 +304,8 @@ def imu_rate_hz(t_s: np.ndarray, start: int = 0) -> np.ndarray:
     dt = np.diff(t)
     small = n - start <= 8                                    # a few live steps: plain Python is faster
     for i in range(start, n if small else min(n, RATE_WINDOW + 1)):
-        med[i - start] = _median(dt[max(0, i - RATE_WINDOW):i].tolist())
+        window = dt[max(0, i - RATE_WINDOW):i].tolist()
+        med[i - start] = statistics.median(window) if window else 0.0    # np.median's value, faster on a few
     first = n if small else max(start, RATE_WINDOW + 1)
     if n > first:
         windows = np.lib.stride_tricks.sliding_window_view(dt, RATE_WINDOW)   # windows[k] = dt[k:k+W]
@@ -318,15 +313,6 @@ def imu_rate_hz(t_s: np.ndarray, start: int = 0) -> np.ndarray:
     idx = np.arange(start, n)
     with np.errstate(divide="ignore"):
         return np.where(med > 0, 1.0 / np.maximum(med, 1e-300), np.where(idx == 0, 0.0, np.inf))
-
-
-def _median(values: list[float]) -> float:
-    """np.median of a short list (the same value: the middle one, or the mean of the middle two)."""
-    if not values:
-        return 0.0
-    v = sorted(values)
-    k = len(v)
-    return v[k // 2] if k % 2 else (v[k // 2 - 1] + v[k // 2]) / 2
 
 
 def too_steep(roll_rad, pitch_rad, settings: DetectionSettings):
@@ -346,6 +332,21 @@ def rounded(x, nd=3):
 
 
 # ----------------------------------------------------------------------------- per IMU step
+TILT_AGREE_DEG = 8.0         # the autopilot's roll/pitch count only this close to ours
+
+
+def checked_tilt(chain, att_rp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(roll, pitch) [rad] for the field tests: the autopilot's GPS-aided roll and pitch where fresh
+    and within TILT_AGREE_DEG of our AHRS's (which tilts 3-5° in a sustained acceleration: a 30-40
+    mG field-vector residual), else ours (an autopilot drifting open-loop is caught)."""
+    roll, pitch = np.asarray(chain.roll_rad, dtype=float), np.asarray(chain.pitch_rad, dtype=float)
+    ar, ap = np.asarray(att_rp[:, 0], dtype=float), np.asarray(att_rp[:, 1], dtype=float)
+    lim = np.radians(TILT_AGREE_DEG)
+    with np.errstate(invalid="ignore"):
+        agree = (np.abs(wrap_angle_rad(ar - roll)) <= lim) & (np.abs(ap - pitch) <= lim)
+    return np.where(agree, ar, roll), np.where(agree, ap, pitch)
+
+
 @dataclass
 class StepState:
     """What the per-step gates carry from one call to the next (the live form calls per sample)."""
@@ -356,27 +357,30 @@ def step_inputs(t, chain, mag_held, att_rp, gps_held, rate_hz, gyro, policy: Fie
                 settings: DetectionSettings, state: StepState) -> dict:
     """The detector's inputs on IMU steps (arrays of any length, one for live).
 
-    chain: object with roll_rad, pitch_rad, yaw_rad, mag_heading_rad, valid arrays (the heading
-    chain on these steps); mag_held (n, 3) calibrated field; att_rp (n, 2) the autopilot's roll and
-    pitch (NaN: use the chain's); gps_held (n, len(GPS_COLUMNS)); rate_hz (n,) IMU rate; gyro (n, 3).
+    chain: object with roll_rad, pitch_rad, yaw_rad, mag_heading_rad, valid arrays (our attitude,
+    the default AHRS, on these steps); mag_held (n, 3) calibrated field; att_rp (n, 2) the
+    autopilot's roll and pitch (``checked_tilt``); gps_held (n, len(GPS_COLUMNS)); rate_hz (n,) IMU
+    rate; gyro (n, 3).  Below ``min_imu_rate_hz`` our attitude
+    is not trusted: the heading and field tests are off there.
     Returns e, d, trusted, strength, incl, heading, yaw_rate (the detector's arguments) and
     field_mG, inclination_deg, heading_on, field_on, steep, rate_hz for display.
     """
     t = np.asarray(t, dtype=float)
     valid = np.asarray(chain.valid, dtype=bool)
-    roll = np.where(np.isfinite(att_rp[:, 0]), att_rp[:, 0], chain.roll_rad)
-    pitch = np.where(np.isfinite(att_rp[:, 1]), att_rp[:, 1], chain.pitch_rad)
+    roll, pitch = checked_tilt(chain, att_rp)
     field_mG = np.linalg.norm(mag_held, axis=1)
     incl = field_inclination_deg(mag_held, roll, pitch)
     last = np.maximum.accumulate(np.concatenate([[state.last_steep_t],
                                                  np.where(too_steep(roll, pitch, settings), t, -np.inf)]))
     state.last_steep_t = float(last[-1])
     steep = t - last[1:] <= settings.turn_settle_s
-    heading_on = (np.asarray(rate_hz) >= settings.min_imu_rate_hz) & policy.heading_usable
+    trusted_rate = np.asarray(rate_hz) >= settings.min_imu_rate_hz
+    heading_on = trusted_rate & policy.heading_usable
     e = np.where(valid & heading_on & ~steep, wrap_angle_rad(chain.mag_heading_rad - chain.yaw_rad), np.nan)
     use_field = ~steep & policy.field_on
+    tilt_ok = use_field & trusted_rate & valid        # the inclination (and so the sector check) needs our tilt
     return dict(e=e, d=gps_held[:, 0], trusted=gps_held[:, 2] == 1.0,
-                strength=np.where(use_field, field_mG, np.nan), incl=np.where(use_field, incl, np.nan),
+                strength=np.where(use_field, field_mG, np.nan), incl=np.where(tilt_ok, incl, np.nan),
                 heading=np.where(valid, chain.yaw_rad, np.nan), yaw_rate=rotation_rate(gyro),
                 field_mG=field_mG, inclination_deg=incl, heading_on=heading_on, field_on=use_field, steep=steep,
                 rate_hz=np.asarray(rate_hz, dtype=float))
@@ -420,11 +424,9 @@ def motor_signal_table(log: FlightLog) -> tuple[np.ndarray, str]:
 
 
 def vector_test_inputs(chain, att_rp: np.ndarray, gyro: np.ndarray, steep: np.ndarray):
-    """(roll, pitch, attitude_ok, gyro bias-corrected) for the field-vector test: the autopilot's
-    roll and pitch when fresh (GPS-aided, it does not tilt in a long acceleration), else the
-    chain's; the chain's gyro bias removed."""
-    roll = np.where(np.isfinite(att_rp[:, 0]), att_rp[:, 0], chain.roll_rad)
-    pitch = np.where(np.isfinite(att_rp[:, 1]), att_rp[:, 1], chain.pitch_rad)
+    """(roll, pitch, attitude_ok, gyro bias-corrected) for the field-vector test: the tilt of
+    ``checked_tilt`` and our attitude's gyro bias removed (its heading is the test's own, ψ_f)."""
+    roll, pitch = checked_tilt(chain, att_rp)
     ok = np.asarray(chain.valid, dtype=bool) & ~np.asarray(steep, dtype=bool)
     return roll, pitch, ok, np.asarray(gyro, dtype=float) - np.asarray(chain.gyro_bias_rad_s, dtype=float)
 
@@ -436,16 +438,14 @@ def _tests(log_imu_rate: float, n: int, settings: DetectionSettings, legs, g, rt
         heading = "off: no magnetometer data in the log"
     elif not policy.heading_usable:
         heading = policy.field_test
+    elif not n:
+        heading = "off: no IMU data"
     elif log_imu_rate < settings.min_imu_rate_hz:
-        heading = f"off: IMU rate {log_imu_rate:.1f} Hz < {settings.min_imu_rate_hz:g} Hz" if n else "off: no IMU data"
+        heading = f"off: IMU rate {log_imu_rate:.1f} Hz < {settings.min_imu_rate_hz:g} Hz: our attitude cannot be trusted"
     else:
         heading = "on"
-    if not legs:
-        path = "off: no mission"
-    elif not len(g):
-        path = "off: no GPS position in the log"
-    else:
-        path = "on" if rtk else "untrusted: no RTK fix (fix_type < 5), path deviation never alarms"
+    path = ("off: no mission" if not legs else "off: no GPS position in the log" if not len(g)
+            else "on" if rtk else "untrusted: no RTK fix (fix_type < 5), path deviation never alarms")
     return heading, path
 
 
@@ -471,7 +471,7 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
     else:
         mag_cal = np.c_[mag[:, :1], policy.apply(mag[:, 1:4])]
     ef, pos = field_reference(log)
-    chain = run_heading_chain(imu, mag_cal, ef.declination_deg if ef else 0.0, DETECTOR_CHAIN)
+    chain = run_heading_chain(imu, mag_cal, ef.declination_deg if ef else 0.0)
     t = chain.t_s
     n = len(t)
     att = np.asarray(log.attitude, dtype=float).reshape(-1, 4)
@@ -495,6 +495,7 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
     heading_test, path_test = _tests(log_rate, n, settings, legs, g, rtk, policy)
     return dict(x, t=t, ef=ef, pos=pos, chain=chain, valid=chain.valid, g=g, gps=gps, gps_held=gps_held,
                 att_held=att_held, d_gps=gps[:, 0] if legs else np.zeros(0), legs=legs, rtk=rtk, policy=policy,
-                path_test=path_test, heading_test=heading_test, field_test=policy.field_test,
+                path_test=path_test, heading_test=heading_test,
+                field_test=heading_test if heading_test.startswith("off: IMU rate") else policy.field_test,
                 imu_rate_hz=log_rate, mag_cal=mag_cal, cal=policy.cal, vector=vector, z_vector=vector.z,
                 motor_held=motor_held, motor_signal=motor_name)

@@ -28,7 +28,7 @@ from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import HeadingChain
 
 from groundstation.jobs.alarm_explain import SCORE_NAMES, ExplainHistory
-from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, DETECTOR_CHAIN, GPS_COLUMNS, GPS_TIMEOUT_S, MOTOR_TIMEOUT_S,
+from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, GPS_COLUMNS, GPS_TIMEOUT_S, MOTOR_TIMEOUT_S,
                                        RATE_WINDOW, FieldPolicy, Held, StepState, earth_prior_mG, field_policy,
                                        gps_rows, imu_rate_hz, mission_legs, step_inputs, vector_test_inputs)
 from groundstation.jobs.navigation import OUTAGE_MIN_S
@@ -59,8 +59,7 @@ class LiveAnalyzer:
         self.start_unix_s = start_unix_s
         self.calibration = calibration
         self.legs = mission_legs(mission)
-        self.chain = HeadingChain(settings=DETECTOR_CHAIN)       # the detector's heading reference
-        self.shown = HeadingChain()                              # the default AHRS: the attitude shown
+        self.chain = HeadingChain()          # the default AHRS: the attitude shown and the detector's reference
         self.detector = InterferenceDetector(self.settings)
         self.earth_field = None
         self.params: dict[str, float] = {}
@@ -106,7 +105,7 @@ class LiveAnalyzer:
         new.earth_field = self.earth_field
         if self.earth_field is not None:
             new.vector = FieldConsistency(self.settings.vector, earth_prior_mG(self.earth_field))
-        new.chain.declination_deg = new.shown.declination_deg = self.chain.declination_deg
+        new.chain.declination_deg = self.chain.declination_deg
         new.explain_history = self.explain_history        # the alarms so far stay explained
         return new
 
@@ -130,7 +129,7 @@ class LiveAnalyzer:
             ef = earth_field(s.lat_deg, s.lon_deg, s.alt_m, decimal_year_from_unix(start + s.t_s))
         except ValueError:
             return
-        self.chain.declination_deg = self.shown.declination_deg = ef.declination_deg
+        self.chain.declination_deg = ef.declination_deg
         self.earth_field = ef
         if self.vector is None:
             self.vector = FieldConsistency(self.settings.vector, None)
@@ -164,7 +163,6 @@ class LiveAnalyzer:
             if np.all(np.isfinite(m)):
                 self._mag.update(s.t_s, m)
                 self.chain.update_mag(s.t_s, m)
-                self.shown.update_mag(s.t_s, m)
         elif isinstance(s, GpsSample):
             if self.earth_field is None:
                 self._start(s)
@@ -190,7 +188,7 @@ class LiveAnalyzer:
         gyro = np.asarray(s.gyro_rad_s, dtype=float)
         accel = np.asarray(s.accel_mps2, dtype=float)
         st = self.chain.update_imu(s.t_s, gyro, accel)
-        sh = self.shown.update_imu(s.t_s, gyro, accel)
+        sh = st                              # one attitude: the one shown is the detector's
         t = st.t_s
         return (t, st.roll_rad, st.pitch_rad, st.yaw_rad, st.mag_heading_rad, st.heading_true_rad, bool(st.valid),
                 gyro, self._mag.at(t)[0], self._att.at(t)[0], self._gps.at(t)[0], self.chain.declination_deg,

@@ -1,15 +1,18 @@
 """The best heading of a whole log: the default AHRS on the field with the motor-current field
 taken out (analyze's CSV attitude, issue 12).
 
-The detector's heading chain (``jobs.inputs.DETECTOR_CHAIN``) follows the magnetometer quickly,
-as its thresholds need; the best estimate is the default AHRS (``estimators.ahrs.AhrsSettings``),
-run again here.  A calibration from the rotation dance is made with the motors off, so in flight
-the field of the motor and battery wires, proportional to the current, turns the compass heading
-by several degrees (7° median on the simulated missions at 12-32 A).  When the log carries the
-battery current and it varies, ``estimators.motor_field.fit_current_field`` finds the field per
-ampere from the tilt of the detector's chain (tilt does not depend on the compass) and the best
-chain runs on the field with f·I removed.  The magnetometer-only heading the detector uses
-(``mag_heading_deg``) stays on the field as measured: the detector has its own motor model.
+One motor-field model (issue 30): the field per ampere f the field-vector test learns online from
+the current's changes (``estimators.residual_trackers.MotorFieldTracker``, inside
+``estimators.field_consistency``), with its standard error, serves the detector, the alarm
+explanations (the test's residual has f·Δx removed) and this heading.  A calibration from the
+rotation dance is made with the motors off, so in flight the field of the motor and battery
+wires, proportional to the current, turns the compass heading by several degrees (7° median on the
+simulated missions at 12-32 A).  Here the default AHRS (``estimators.ahrs.AhrsSettings``, the
+detector's own attitude) runs again on the field with f(t)·I(t) removed, f as learned up to each
+step (causal: the live station could do the same) and only where it is significant
+(|f| ≥ MOTOR_SIGNIFICANT_SIGMA |sd|).  The current is held with the one motor-signal timeout
+(``jobs.inputs.MOTOR_TIMEOUT_S``).  The magnetometer-only heading the detector uses
+(``mag_heading_deg``) stays on the field as measured: the detector has the model inside its test.
 """
 from __future__ import annotations
 
@@ -17,34 +20,33 @@ import numpy as np
 
 from estimators.attitude_smoother import smooth_heading_chain
 from estimators.heading import HeadingChainResult, run_heading_chain
-from estimators.motor_field import CurrentFieldFit, fit_current_field
 
-from groundstation.jobs.inputs import hold_last, rounded
+from groundstation.jobs.inputs import MOTOR_TIMEOUT_S, hold_last, rounded
 from groundstation.samples import FlightLog
 
-__all__ = ["CURRENT_TIMEOUT_S", "attitude_chain", "best_heading_chain"]
+__all__ = ["attitude_chain", "best_heading_chain", "motor_field_steps", "MOTOR_SIGNIFICANT_SIGMA"]
 
-CURRENT_TIMEOUT_S = 5.0     # a current sample older than this does not describe the field
-
-
-def _report(fit: CurrentFieldFit | None, used: bool, message: str = "") -> dict:
-    if fit is None:
-        return {"status": "no_motor_signal", "message": message, "removed_from_heading": False}
-    vec = lambda v: [rounded(a, 3) for a in np.asarray(v, float)]  # noqa: E731
-    return {"status": fit.status, "message": fit.message, "removed_from_heading": used,
-            "mG_per_A": vec(fit.motor_mG_per_A), "sd_mG_per_A": vec(fit.motor_sd_mG_per_A), "samples": fit.n_used}
+MOTOR_SIGNIFICANT_SIGMA = 3.0      # f is removed once |f| is this many standard errors
 
 
-def _current_field(log: FlightLog, x: dict) -> tuple[CurrentFieldFit | None, np.ndarray, str]:
-    """(fit or None, current at the magnetometer samples [A], why None)."""
-    chain, mag_cal = x["chain"], x["mag_cal"]
-    battery = np.asarray(log.battery, dtype=float).reshape(-1, 2)
-    if not len(battery) or not len(mag_cal) or not len(chain.t_s) or x["policy"].correction == "none":
-        return None, np.zeros(0), "no battery current in the log" if not len(battery) else "no field"
-    current = hold_last(battery[:, 0], battery[:, 1:2], mag_cal[:, 0], CURRENT_TIMEOUT_S)[:, 0]
-    valid = np.asarray(chain.valid, bool)[:, None]
-    tilt = hold_last(chain.t_s, np.where(valid, np.c_[chain.roll_rad, chain.pitch_rad], np.nan), mag_cal[:, 0], np.inf)
-    return fit_current_field(mag_cal[:, 1:4], current, tilt[:, 0], tilt[:, 1]), current, ""
+def motor_field_steps(x: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(f (N, 3) [mG per unit], sd (N, 3), significant (N,)) on the IMU steps of ``detection_inputs``
+    output ``x``: the field-vector test's motor field as learned up to each step."""
+    vec = x["vector"]
+    f = np.asarray(vec.motor_mG_per_unit, dtype=float).reshape(-1, 3)
+    sd = vec.motor_sd_mG_per_unit
+    sd = np.full_like(f, np.inf) if sd is None else np.asarray(sd, dtype=float).reshape(-1, 3)
+    with np.errstate(invalid="ignore"):
+        sig = np.linalg.norm(f, axis=1) >= MOTOR_SIGNIFICANT_SIGMA * np.linalg.norm(sd, axis=1)
+    return f, sd, sig & np.isfinite(sd).all(axis=1) & (np.linalg.norm(f, axis=1) > 0)
+
+
+def _report(status: str, message: str, used: bool, f=None, sd=None, n: int = 0) -> dict:
+    out = {"status": status, "message": message, "removed_from_heading": used}
+    if f is not None:
+        vec = lambda v: [rounded(a, 3) for a in np.asarray(v, float)]  # noqa: E731
+        out.update({"mG_per_A": vec(f), "sd_mG_per_A": vec(sd), "samples": int(n)})
+    return out
 
 
 def attitude_chain(log: FlightLog, field: np.ndarray, declination_deg: float,
@@ -58,16 +60,36 @@ def attitude_chain(log: FlightLog, field: np.ndarray, declination_deg: float,
 
 def best_heading_chain(log: FlightLog, x: dict, shown: HeadingChainResult,
                        offline: bool = False) -> tuple[HeadingChainResult, dict]:
-    """(the default AHRS on the field with the motor-current field removed when it is found, else
+    """(the default AHRS on the field with the significant motor-current field removed, else
     ``shown``, the default AHRS on the field as measured; report["motor_field"]).  ``x``:
-    detection_inputs of the log (its mag_cal, chain and WMM).  ``offline``: the offline smoother
-    instead of the causal AHRS (a finished log's best estimate)."""
-    fit, current, why = _current_field(log, x)
+    detection_inputs of the log (its mag_cal, field-vector test and WMM).  ``offline``: the offline
+    smoother instead of the causal AHRS (a finished log's best estimate)."""
     ef = x["ef"]
     decl = ef.declination_deg if ef else 0.0
-    if fit is None or fit.status != "ok":
-        return (attitude_chain(log, x["mag_cal"], decl, True) if offline else shown), _report(fit, False, why)
-    field = x["mag_cal"].copy()
-    have = np.isfinite(current)
-    field[have, 1:4] -= np.outer(current[have], fit.motor_mG_per_A)
-    return attitude_chain(log, field, decl, offline), _report(fit, True, why)
+    if offline:
+        shown = attitude_chain(log, x["mag_cal"], decl, True)
+    battery = np.asarray(log.battery, dtype=float).reshape(-1, 2)
+    mag_cal = x["mag_cal"]
+    if x["policy"].correction == "none" or not len(mag_cal):
+        return shown, _report("no_motor_signal", "no field", False)
+    if x.get("motor_signal") != "current_A" or not len(battery):
+        return shown, _report("no_motor_signal", "no battery current that varies in the log", False)
+    t = np.asarray(x["t"], dtype=float)
+    f, sd, sig = motor_field_steps(x)
+    if not len(t) or not sig.any():
+        last = (f[-1], sd[-1]) if len(f) else (np.full(3, np.nan), np.full(3, np.inf))
+        return shown, _report("not_significant", f"motor field {np.round(last[0], 2).tolist()} mG/A not "
+                              f"significant (sd {np.round(last[1], 2).tolist()}; the field-vector test learns it from "
+                              "the current's changes at IMU rates >= 10 Hz)", False, *last)
+    current = hold_last(battery[:, 0], battery[:, 1], mag_cal[:, 0], MOTOR_TIMEOUT_S)
+    f_mag = hold_last(t, np.where(sig[:, None], f, 0.0), mag_cal[:, 0], np.inf)
+    use = np.isfinite(current) & np.all(np.isfinite(f_mag), axis=1)
+    field = mag_cal.copy()
+    field[use, 1:4] -= f_mag[use] * current[use, None]
+    k = int(np.flatnonzero(sig)[-1])
+    i_max = float(np.nanmax(battery[:, 1]))
+    msg = (f"motor field {np.round(f[k], 2).tolist()} mG/A (sd {np.round(sd[k], 2).tolist()}), "
+           f"{np.linalg.norm(f[k]) * i_max:.0f} mG at {i_max:.1f} A; significant from "
+           f"{t[np.flatnonzero(sig)[0]]:.1f} s, removed from {int(use.sum())} field samples")
+    return (attitude_chain(log, field, decl, offline),
+            _report("ok" if sig[-1] else "not_significant", msg, True, f[k], sd[k], int(use.sum())))

@@ -63,6 +63,9 @@ def tests_snapshot(row: np.ndarray | None, policy: FieldPolicy, line: dict | Non
                                                    f"learned over the first {s.learn_s:g} s")
     if not policy.field_on:
         fld = _state("off", policy.field_test.removeprefix("off: "))
+    elif row is not None and row[COL["heading_on"]] < 0.5:        # telemetry-rate IMU: our tilt is not trusted
+        rate = finite_or_none(row[COL["imu_rate_hz"]]) or 0.0
+        fld = _state("off", f"IMU rate {rate:.1f} Hz < {s.min_imu_rate_hz:g} Hz: the field tests need our attitude")
     else:
         fld = pause if steep else _state("on", "field strength and inclination against their values learned per "
                                                "heading sector")
