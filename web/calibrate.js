@@ -41,6 +41,8 @@ function renderControl(w) {
   show("discard-confirm", !!lose);
   $("discard-text").textContent = lose ? lose + " " + ({ start: "Start over?", redo: "Redo?", reset: "Reset?" }[discardAsked]) : "";
   $("instruction").textContent = w.instruction;
+  const hc = w.heading_check && w.heading_check.result;
+  $("instruction").classList.toggle("failed", !!hc && hc.verdict === "fail");
   const b = w.banner;
   show("banner", !!b);
   if (b) { $("banner").className = "cal-banner " + b.level; $("banner").textContent = b.text; }
@@ -123,6 +125,11 @@ function compassRow(c, w) {
 function renderCompasses(w) {
   show("compass-card", w.compasses.length > 0 && w.mode !== "fixed_yaw");
   if (!w.compasses.length) return;
+  // during the dance the steps fill the left column: the compasses go under the sphere (at
+  // 1280x720 they were cut off below the steps), and back beside the result once it is in
+  const running = w.state === "running", card = $("compass-card");
+  const home = running ? $("panel-mid") : $("panel-left");
+  if (card.parentElement !== home) home.insertBefore(card, running ? $("onboard-card") : null);
   const done = w.compasses.some((c) => c.result);
   const head = done ? "<tr><th>Use</th><th>#</th><th>Result</th><th>Fitness mG</th><th>Heading</th><th>Orientation</th><th>Field</th></tr>" :
     "<tr><th>Use</th><th>#</th><th>Samples</th><th title='directions of this compass&#39;s own corrected field (its live fit); the sphere counts the directions from the attitude'>Own coverage</th><th colspan='3'></th></tr>";
@@ -254,12 +261,12 @@ function render(s) {
 
 // Whose calibration corrects the heading, and where it is applied.
 function inUseText(w) {
-  if (w.in_use === "station") return "this station's (applied by the station)";
+  if (w.in_use === "station") return "this station's";
   if (w.onboard && w.onboard.state === "accepted") return "the vehicle's own calibrator's";
   if (w.mode === "fixed_yaw" && w.fixed_yaw) return "the vehicle's (calibrated at a known heading)";
   const pw = w.param_write;
   if ((pw && pw.state === "written") || (w.result && w.result.status === "ok" && w.state === "accepted"))
-    return "this station's, written to the vehicle (the vehicle applies it)";
+    return "this station's, in the vehicle";
   return "the vehicle's";
 }
 

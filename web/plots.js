@@ -60,6 +60,7 @@ function drawPlot(canvas, series, opts) {
   g.strokeStyle = "#d6dbe1"; g.fillStyle = "#4b5561"; g.lineWidth = 1;
   const yt = (opts.yTicks || niceTicks)(lo, hi, ph > 90 ? 4 : 3);
   canvas.dataset.yticks = yt.map((k) => k.label).join(" ");
+  canvas.dataset.yrange = lo.toFixed(1) + " " + hi.toFixed(1);
   g.textAlign = "right"; g.textBaseline = "middle";
   for (const k of yt) { const y = Y(k.value); g.beginPath(); g.moveTo(L, y); g.lineTo(L + pw, y); g.stroke(); g.fillText(k.label, L - 4, y); }
   g.textAlign = "center"; g.textBaseline = "top";

@@ -48,7 +48,7 @@ ROUTE_MAX_CROSS = 2.0              # cross-track drawn at most this far from the
 ROUTE_MIN_SPAN_M = 20.0            # a hover's GPS noise is not blown up
 CROSS_UNITS_PER_M = 0.3            # cross-track exaggeration against a preset line
 FLIGHT_BOX = (np.array([0.0, 0.0, 0.2]), np.array([2.0, 4.4, 0.4]))
-FLIGHT_VEHICLE_SCALE = 0.3          # the model ~6 % of the route's width (full size it hid a fifth of it)
+FLIGHT_VEHICLE_SCALE = 0.4          # the model ~8 % of the route's width (full size it hid a fifth of it)
 ELEVATION_DEG = {"calibration": 22.0, "flight": 55.0}
 VEHICLE_ORANGE = (240, 130, 20)
 NOSE_RED = (170, 20, 20)
@@ -102,9 +102,10 @@ class Scene:
         self.crafts["flight"][0].visible = False
         self.craft, self.vehicle, self.ghost = self.crafts["calibration"]
         self.vehicle_label = sc.add_label("/craft/label", "vehicle", position=(0, 0, 1.3), anchor="bottom-center")
-        # above the vehicle's own label: below the vehicle it met the raw cloud's label in a narrow view
-        self.ghost_label = sc.add_label("/craft/ghost_label", "grey ghost: autopilot attitude",
-                                        position=(0, 0, 1.75), anchor="bottom-center", visible=False)
+        # above the vehicle's own label, running right from its left end: below the vehicle it met the
+        # raw cloud's label, centred it ran off the left edge of a narrow view
+        self.ghost_label = sc.add_label("/craft/ghost_label", "grey: autopilot's attitude",
+                                        position=(0, 0.8, 1.9), anchor="bottom-left", visible=False)
         empty = np.zeros((1, 3), dtype=np.float32)
         self.cal_nodes = [
             sc.add_label("/cal_label", "raw field + fitted ellipsoid", position=tuple(CAL_CENTER + RAW_LABEL_AT),

@@ -54,9 +54,8 @@ def _after_write(w) -> str | None:
             return (f"Done. Heading check: {r['message']}. The new calibration is in use; see the deviation card.")
         if verdict == "fail":
             return (f"Heading check failed: {r['message']}, more than {HEADING_CHECK_MAX_ERROR_DEG:.0f}° off. Do not "
-                    "fly on this compass: check that the bearing is true (not magnetic) and the nose points along it, "
-                    "that the compass orientation (COMPASS_ORIENT) matches its mounting, and that no metal or "
-                    "cable is near; then measure again or redo the calibration.")
+                    "fly on this compass. Check the bearing is true (not magnetic) and the nose is on it, the compass "
+                    "orientation matches its mounting, no metal is near; then measure again or redo the dance.")
         return f"Heading check incomplete: {r.get('message')}. Try again."
     if rb is not None:
         if rb["state"] in ("sent", "waiting"):
