@@ -313,9 +313,13 @@ def test_wizard_on_a_vehicle_reads_right(station, new_page, http, shots):
             assert box["y"] + box["height"] <= 720, box            # not cut off below the steps
             page.screenshot(path=str(shots / "vehicle_dance.png"))
         wait_js(page, "!document.getElementById('result-card').hidden", 120_000)
+        w = ok(http.get("/api/calibration"))
+        assert w["result"]["status"] == "ok", w["result"]
+        wait_js(page, "!document.getElementById('accept').disabled")
         page.wait_for_timeout(500)
         assert page.evaluate(primaries) == 1, page.evaluate(
-            "[...document.querySelectorAll('button')].map(b => [b.id, b.className, b.disabled, b.offsetParent === null])")
+            "[...document.querySelectorAll('button')].filter(b => b.offsetParent !== null)"
+            ".map(b => [b.id, b.className, b.disabled])")
         assert not page.locator("#start").evaluate("b => b.classList.contains('primary')")
         assert "ArduPilot doubles the limit for non-primary compasses" in page.locator("#consistency").inner_text()
         page.screenshot(path=str(shots / "vehicle_result.png"))
