@@ -280,6 +280,28 @@ def test_vehicles_calibrator_instruction_follows_its_progress():
     assert "hold the vehicle still" in w.snapshot()["instruction"]
 
 
+def test_vehicles_calibrator_page_shows_its_progress_not_our_steps(station, new_page, http, shots):
+    """In the vehicle's-calibrator mode the page shows the vehicle's progress (instruction, its card)
+    and not our X/Y/Z steps, whose 'turn about X' would contradict it."""
+    from groundstation.sim.fake_vehicle import FakeVehicle
+    from groundstation.sim.vehicle_streams import guided_dance_attitude, make_hardware, pack_stream, three_compasses
+
+    msgs = pack_stream(guided_dance_attitude(), make_hardware(three_compasses()))
+    port = free_udp_port()
+    ok(http.post("/api/source", json={"connect": f"udpin:127.0.0.1:{port}"}))
+    page = new_page()
+    open_page(page, station, "/calibrate.html")
+    with FakeVehicle(msgs, port, speed=4.0):
+        wait_js(page, "document.getElementById('status').textContent.includes('link up')")
+        page.locator("#modes input[value='onboard']").dispatch_event("click")
+        page.locator("#start").dispatch_event("click")
+        wait_js(page, "document.getElementById('instruction').textContent.startsWith(\"The vehicle's calibrator: \")", 90_000)
+        assert page.locator("#steps-card").is_hidden()
+        assert not page.locator("#onboard-card").is_hidden()
+        page.screenshot(path=str(shots / "onboard_running.png"))
+    assert page.errors == []
+
+
 # ------------------------------------------------------------------------------ wizard on a (fake) vehicle
 def test_wizard_on_a_vehicle_reads_right(station, new_page, http, shots):
     """Three compasses on a fake vehicle, the whole guided run at 1280x720: the early live field is

@@ -72,7 +72,9 @@ function renderWrite(pw) {
 }
 
 function renderSteps(w) {
-  show("steps-card", w.mode !== "fixed_yaw" && (w.state === "running" || w.state === "idle"));
+  // the vehicle's calibrator keeps its own count (its card and the blue sections): our X/Y/Z steps
+  // beside its instruction would contradict it
+  show("steps-card", w.mode === "guided" && (w.state === "running" || w.state === "idle"));
   const cur = ORDER.indexOf(w.step);
   const target = w.turn_target_deg - w.settings.turn_tolerance_deg;
   document.querySelectorAll("#steps li").forEach((li) => {
@@ -127,7 +129,7 @@ function renderCompasses(w) {
   if (!w.compasses.length) return;
   // during the dance the steps fill the left column: the compasses go under the sphere (at
   // 1280x720 they were cut off below the steps), and back beside the result once it is in
-  const running = w.state === "running", card = $("compass-card");
+  const running = w.state === "running" && w.mode === "guided", card = $("compass-card");
   const home = running ? $("panel-mid") : $("panel-left");
   if (card.parentElement !== home) home.insertBefore(card, running ? $("onboard-card") : null);
   const done = w.compasses.some((c) => c.result);
