@@ -14,14 +14,40 @@ function fmtDate(unix) {
   return unix ? new Date(unix * 1000).toISOString().slice(0, 10) : "—";
 }
 
-// Heading axis: 0..360 when the headings in view go round, else their own range (at least 20 deg).
+// Headings for the plot, unwrapped: the first series (the attitude heading) continues across 0/360
+// instead of jumping, every other one is drawn within ±180° of it (its own unwrap where the first
+// has no value); the axis spans what is in view and its labels are read mod 360.
+function unwrapHeadings(series) {
+  const near = (v, r) => v + 360 * Math.round((r - v) / 360);
+  let ref = null;
+  const first = series[0].y.map((v) => (v === null || v === undefined ? null : (ref = ref === null ? v : near(v, ref))));
+  return series.map((s, k) => {
+    if (k === 0) return Object.assign({}, s, { y: first });
+    let prev = null, r = null;
+    return Object.assign({}, s, { y: s.y.map((v, i) => {
+      if (first[i] !== null) r = first[i];
+      if (v === null || v === undefined) return null;
+      prev = near(v, first[i] !== null ? first[i] : (prev !== null ? prev : (r !== null ? r : v)));
+      return prev;
+    }) });
+  });
+}
+
+// Heading axis: the unwrapped headings' own range (at least 20 deg), never a fixed 0..360.
 function headingRange(series) {
   const v = series.flatMap((s) => s.y).filter((x) => x !== null && x !== undefined);
   if (!v.length) return { ymin: 0, ymax: 360 };
   const lo = Math.min(...v), hi = Math.max(...v);
-  if (hi - lo > 180) return { ymin: 0, ymax: 360 };
   const pad = Math.max(5, (20 - (hi - lo)) / 2);
-  return { ymin: Math.max(0, lo - pad), ymax: Math.min(360, hi + pad) };
+  return { ymin: lo - pad, ymax: hi + pad };
+}
+
+// Ticks of a heading axis: steps that read well mod 360 (5..90 deg), labels in [0, 360).
+function headingTicks(lo, hi, count) {
+  const step = [5, 10, 15, 30, 45, 90, 180].find((s) => (hi - lo) / s <= count + 1) || 180;
+  const ticks = [];
+  for (let v = Math.ceil(lo / step) * step; v <= hi; v += step) ticks.push({ value: v, label: String(((v % 360) + 360) % 360) });
+  return ticks;
 }
 
 function fmtSize(bytes) {
@@ -190,7 +216,8 @@ async function refreshPlots() {
     { label: "autopilot", color: "#555", y: S.ap_heading_deg, wrap: true },
     { label: "GPS course", color: "#1a9a3a", y: S.course_deg, wrap: true, dots: true },
   ];
-  drawPlot($("plot-heading"), headings, Object.assign(headingRange(headings), common));
+  const unwrapped = unwrapHeadings(headings);
+  drawPlot($("plot-heading"), unwrapped, Object.assign(headingRange(unwrapped), { yTicks: headingTicks }, common));
   drawPlot($("plot-field"), [{ label: "measured", color: "#8a3ab9", y: S.field_mG }],
     Object.assign({ refs: [{ label: "WMM", color: "#1a9a3a", value: p.wmm.field_mG }] }, common));
   drawPlot($("plot-incl"), [{ label: "measured", color: "#8a3ab9", y: S.inclination_deg }],
@@ -200,12 +227,19 @@ async function refreshPlots() {
   drawPlot($("plot-xt"), [{ label: "cross-track", color: "#222", y: S.cross_track_m }], common);
 }
 
+// An upload is stored as upload-YYYYmmdd-HHMMSS-<its own name>: the list shows its own name (the
+// stored one in the row's tooltip), so uploads do not all read "upload-2026…".
+function shortName(name) {
+  const m = /^upload-\d{8}-\d{6}(?:_\d+)?-(.+)$/.exec(name);
+  return m ? `<span class="up">↑</span> ${escapeHtml(m[1])}` : escapeHtml(name);
+}
+
 async function loadRecordings() {
   const list = await api("GET", "/api/recordings/info");
   if (!list.some((r) => r.name === selected)) selected = list.length ? list[0].name : null;
   const tb = $("recordings").querySelector("tbody");
   const html = list.map((r) => `<tr data-name="${escapeHtml(r.name)}" class="${r.name === selected ? "selected" : ""}${r.error ? " bad" : ""}"
-    title="${escapeHtml(r.error || (r.autopilot || "") + " " + r.name)}"><td>${escapeHtml(r.name)}</td>
+    title="${escapeHtml(r.error || (r.autopilot || "") + " " + r.name)}"><td>${shortName(r.name)}</td>
     <td>${r.recording ? "recording…" : (r.duration_s === null ? "—" : fmt(r.duration_s / 60, 1) + " min")}</td>
     <td>${fmtDate(r.start_unix_s)}</td><td>${fmtSize(r.size_bytes)}</td>
     <td>${escapeHtml(r.error ? "unreadable" : (r.vehicle || "—"))}</td><td>${r.compasses === null ? "—" : r.compasses}</td></tr>`).join("");
@@ -237,6 +271,7 @@ $("upload").onchange = guarded("source-error", async () => {
     if (!res.ok) throw new Error(data.detail || res.statusText);
     selected = data.name;
     $("upload-status").textContent = "stored as " + data.name;
+    $("upload-status").title = data.name;
     await loadRecordings();
   } catch (e) { $("upload-status").textContent = ""; throw e; } finally { $("upload").value = ""; }
 });

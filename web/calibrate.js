@@ -4,6 +4,8 @@
 const $ = (id) => document.getElementById(id);
 const ORDER = ["x", "y", "z", "tumble", "done"];
 let last = null, sectionCentres = null, rebootAsked = false;
+let modeChosen = false;        // the operator picked a mode after a run: the radios are theirs until the next run
+let discardAsked = null;       // "start" | "reset" | "redo" waiting for the operator's yes
 
 function vec(v, d = 1) { return v ? "[" + v.map((x) => fmt(x, d)).join(", ") + "]" : "—"; }
 function show(id, on) { $(id).hidden = !on; }
@@ -14,9 +16,33 @@ function setHtml(id, html) { if (lastHtml[id] !== html) { lastHtml[id] = html; $
 function pct(f) { return Math.floor(100 * (f || 0)) + " %"; }     // floored: never shows a target reached early
 function cap(s) { return s ? s[0].toUpperCase() + s.slice(1) : s; }
 
+// What Start/Reset would throw away (null: nothing worth asking about).
+function wouldLose(w) {
+  const pw = w.param_write;
+  if (pw && pw.state === "written" || w.reboot || w.heading_check)
+    return "The calibration is written to the vehicle (it keeps it); this page forgets the result" +
+      (w.reboot ? ", the reboot" : "") + (w.heading_check ? ", the heading check" : "") + ".";
+  if (w.result && w.result.status === "ok") return "The result is not written to the vehicle: it is lost (Export parameters keeps a copy).";
+  return null;
+}
+
 function renderControl(w) {
-  document.querySelectorAll("#modes input").forEach((r) => { r.disabled = w.state === "running"; if (w.state !== "idle") r.checked = r.value === w.mode; });
+  const running = w.state === "running";
+  if (running) modeChosen = false;
+  document.querySelectorAll("#modes input").forEach((r) => {
+    r.disabled = running;
+    if (w.state !== "idle" && !modeChosen) r.checked = r.value === w.mode;
+  });
+  const again = w.state !== "idle" && !running;
+  $("start").textContent = again ? "Start over" : "Start";
+  $("start").classList.toggle("primary", w.state === "idle");      // one primary action at a time
+  const lose = discardAsked ? wouldLose(w) : null;
+  if (discardAsked && !lose) discardAsked = null;
+  show("discard-confirm", !!lose);
+  $("discard-text").textContent = lose ? lose + " " + ({ start: "Start over?", redo: "Redo?", reset: "Reset?" }[discardAsked]) : "";
   $("instruction").textContent = w.instruction;
+  const hc = w.heading_check && w.heading_check.result;
+  $("instruction").classList.toggle("failed", !!hc && hc.verdict === "fail");
   const b = w.banner;
   show("banner", !!b);
   if (b) { $("banner").className = "cal-banner " + b.level; $("banner").textContent = b.text; }
@@ -25,8 +51,9 @@ function renderControl(w) {
   setHtml("warnings", w.warnings.map((t) => `<div>⚠ ${escapeHtml(t)}</div>`).join(""));
   $("start").disabled = w.state === "running";
   $("finish").disabled = w.state !== "running" || w.mode === "fixed_yaw";
+  const primary = w.compasses.find((c) => c.index === 0);
   $("live-fit").textContent = w.state === "idle" || w.mode === "fixed_yaw" ? "" : w.samples + " samples" +
-    (w.live_field_mG ? " · live field " + fmt(w.live_field_mG, 0) + " mG" : "") +
+    (w.live_field_mG ? (primary && primary.trusted ? " · live field " : " · preliminary field ") + fmt(w.live_field_mG, 0) + " mG" : "") +
     (w.expected_field_mG ? " · WMM " + fmt(w.expected_field_mG, 0) + " mG" : "");
   renderWrite(w.param_write);
 }
@@ -46,7 +73,9 @@ function renderWrite(pw) {
 }
 
 function renderSteps(w) {
-  show("steps-card", w.mode !== "fixed_yaw" && (w.state === "running" || w.state === "idle"));
+  // the vehicle's calibrator keeps its own count (its card and the blue sections): our X/Y/Z steps
+  // beside its instruction would contradict it
+  show("steps-card", w.mode === "guided" && (w.state === "running" || w.state === "idle"));
   const cur = ORDER.indexOf(w.step);
   const target = w.turn_target_deg - w.settings.turn_tolerance_deg;
   document.querySelectorAll("#steps li").forEach((li) => {
@@ -57,7 +86,7 @@ function renderSteps(w) {
     let frac, text;
     if (step === "tumble") {
       frac = w.coverage / w.coverage_target;
-      text = "directions " + pct(w.coverage) + " of " + pct(w.coverage_target);
+      text = "sphere " + pct(w.coverage) + " seen (the step needs " + pct(w.coverage_target) + ")";
     } else {
       const d = w.progress_deg[step];
       frac = d / target;
@@ -79,7 +108,8 @@ function compassRow(c, w) {
   const inc = `<input type="checkbox" data-compass="${c.index}" ${c.included ? "checked" : ""} title="include in the result">`;
   if (!r) {
     return `<tr><td>${inc}</td><td>${c.index + 1}</td><td>${c.samples}</td><td>${c.coverage === null ? "—" : pct(c.coverage)}</td>` +
-      `<td colspan="3" class="muted">${c.live_field_mG ? "live field " + fmt(c.live_field_mG, 0) + " mG" : "collecting…"}</td></tr>`;
+      `<td colspan="3" class="muted">${!c.live_field_mG ? "collecting…" : (c.trusted ? "live field " + fmt(c.live_field_mG, 0) + " mG" :
+        "preliminary fit " + fmt(c.live_field_mG, 0) + " mG (settles with more turns)")}</td></tr>`;
   }
   const pass = r.pass ? `<span class="good">pass</span>` : `<span class="error">fail</span>`;
   const o = r.orientation;
@@ -98,13 +128,22 @@ function compassRow(c, w) {
 function renderCompasses(w) {
   show("compass-card", w.compasses.length > 0 && w.mode !== "fixed_yaw");
   if (!w.compasses.length) return;
+  // during the dance the steps fill the left column: the compasses go under the sphere (at
+  // 1280x720 they were cut off below the steps), and back beside the result once it is in
+  const running = w.state === "running" && w.mode === "guided", card = $("compass-card");
+  const home = running ? $("panel-mid") : $("panel-left");
+  if (card.parentElement !== home) home.insertBefore(card, running ? $("onboard-card") : null);
   const done = w.compasses.some((c) => c.result);
   const head = done ? "<tr><th>Use</th><th>#</th><th>Result</th><th>Fitness mG</th><th>Heading</th><th>Orientation</th><th>Field</th></tr>" :
-    "<tr><th>Use</th><th>#</th><th>Samples</th><th>Coverage</th><th colspan='3'></th></tr>";
+    "<tr><th>Use</th><th>#</th><th>Samples</th><th title='directions of this compass&#39;s own corrected field (its live fit); the sphere counts the directions from the attitude'>Own coverage</th><th colspan='3'></th></tr>";
   setHtml("compass-table", head + w.compasses.map((c) => compassRow(c, w)).join(""));
   $("fitness").value = w.fitness_level;
   const k = w.consistency;
-  setHtml("consistency", k ? `<div class="${k.status === "ok" ? "good" : "error"}">${escapeHtml(k.text)}</div>` : "");
+  const limits = w.compasses.filter((c) => c.result && c.result.fitness_threshold_mG).map((c) => c.result.fitness_threshold_mG);
+  const note = done && limits.length > 1 && Math.max(...limits) > Math.min(...limits) ?
+    `<div class="muted">Fitness limits: compass 1 ≤ ${fmt(Math.min(...limits), 0)} mG (the level chosen), the others ≤ ` +
+    `${fmt(Math.max(...limits), 0)} mG: ArduPilot doubles the limit for non-primary compasses.</div>` : "";
+  setHtml("consistency", note + (k ? `<div class="${k.status === "ok" ? "good" : "error"}">${escapeHtml(k.text)}</div>` : ""));
 }
 
 function renderCoverage(w) {
@@ -112,7 +151,7 @@ function renderCoverage(w) {
   const ob = w.onboard;
   let sections = null;
   if (ob && ob.compasses.length && sectionCentres) sections = ob.compasses[0].sections || [];
-  $("coverage-text").textContent = w.state === "idle" ? "" : pct(w.coverage) + " of the sphere" +
+  $("coverage-text").textContent = w.state === "idle" ? "" : pct(w.coverage) + " of the sphere, from the attitude" +
     (sections ? " · vehicle's calibrator: " + sections.length + " of 80 sections (blue)" : "");
   drawSphere($("sphere"), w.coverage_cells, w.current_direction, sections, sectionCentres);
 }
@@ -143,7 +182,7 @@ function renderResult(w, vehicleAutopilot) {
   $("result-message").textContent = r.status === "ok" ? (r.consistency_warning || "") : (r.message || "");
   const px4 = (vehicleAutopilot || w.result.autopilot || "ardupilot") === "px4";
   const rows = [`<tr><th>#</th><th>Offsets b (mG)</th><th>${px4 ? "CAL_MAGn_x/y/zOFF (G)" : "COMPASS_OFSn_X/Y/Z"}</th>` +
-    `<th>${px4 ? "CAL_MAGn_ROT" : "ORIENTn"}</th><th>Coverage</th></tr>`];
+    `<th>${px4 ? "CAL_MAGn_ROT" : "ORIENTn"}</th><th>Own coverage</th></tr>`];
   w.compasses.filter((c) => c.included && c.result && c.result.status === "ok").forEach((c) => {
     const res = c.result, ap = px4 ? res.px4_params : res.ardupilot_params, k = c.index;
     const n = k ? String(k + 1) : "";
@@ -152,13 +191,15 @@ function renderResult(w, vehicleAutopilot) {
     const o = res.orientation;
     rows.push(`<tr><td>${k + 1}</td><td>${vec(res.offsets_mG, 1)}</td><td>${vec(ofs, px4 ? 4 : 1)}</td>` +
       `<td>${rot === undefined ? "unchanged" : fmt(rot, 0) + (o && o.detected_name ? " " + o.detected_name : "")}</td>` +
-      `<td title="directions of the final fit (it needs 25 %)">${pct(res.coverage)}</td></tr>`);
+      `<td title="directions of this compass's own corrected field in the final fit (it needs 25 %); the sphere counts them from the attitude">${pct(res.coverage)}</td></tr>`);
   });
   setHtml("result-table", rows.join(""));
   const pw = w.param_write;
   $("accept").disabled = r.status !== "ok" || (pw && ["checking", "writing", "written"].includes(pw.state));
   $("accept").textContent = pw && pw.state === "failed" ? "Retry the write" : "Accept and write";
   $("export").disabled = r.status !== "ok";
+  const obAcceptable = w.onboard && w.onboard.state === "reported";     // one primary action at a time
+  $("accept").classList.toggle("primary", !$("accept").disabled && !obAcceptable);
 }
 
 function renderAfter(w) {
@@ -178,7 +219,7 @@ function renderAfter(w) {
   let html = "";
   if (hc && hc.result) {
     const r = hc.result;
-    html = `<div class="${r.ok ? (Math.abs(r.error_deg) <= 3 ? "good" : "warn") : "error"}">${escapeHtml(r.message || "")}</div>` +
+    html = `<div class="${r.verdict === "pass" ? "good" : "error"}">${r.verdict === "fail" ? "✖ too far off: " : ""}${escapeHtml(r.message || "")}</div>` +
       (r.ok ? `<div class="muted small">compass ${fmt(r.heading_deg, 1)}° ± ${fmt(r.spread_deg, 1)}° over ${r.samples} samples` +
         (r.distance_m ? `, walk ${fmt(r.distance_m, 1)} m (max ${fmt(r.off_line_m, 1)} m off the line)` : "") + "</div>" : "");
   } else if (measuring) html = `<div class="muted">measuring… ${hc.samples} samples${hc.kind === "walk" ? ", " + fmt(hc.distance_m, 1) + " m" : ""}</div>`;
@@ -210,8 +251,8 @@ function renderFixed(w) {
 
 function render(s) {
   last = s;
-  $("status").textContent = linkText(s) + (s.wizard.in_use ? " — calibration in use: " + (s.wizard.in_use === "vehicle" ? "the vehicle's" : "this station's") : "");
   const w = s.wizard;
+  $("status").textContent = linkText(s) + (w.in_use ? " — calibration in use: " + inUseText(w) : "");
   renderControl(w); renderSteps(w); renderCompasses(w); renderCoverage(w); renderOnboard(w);
   renderResult(w, s.source.autopilot); renderAfter(w); renderFixed(w);
   show("deviation-card", !!w.deviation);
@@ -222,15 +263,41 @@ function render(s) {
   }
 }
 
+// Whose calibration corrects the heading, and where it is applied.
+function inUseText(w) {
+  if (w.in_use === "station") return "this station's";
+  if (w.onboard && w.onboard.state === "accepted") return "the vehicle's own calibrator's";
+  if (w.mode === "fixed_yaw" && w.fixed_yaw) return "the vehicle's (calibrated at a known heading)";
+  const pw = w.param_write;
+  if ((pw && pw.state === "written") || (w.result && w.result.status === "ok" && w.state === "accepted"))
+    return "this station's, in the vehicle";
+  return "the vehicle's";
+}
+
 function guarded(fn) {
   return async () => { $("cal-error").textContent = ""; try { await fn(); } catch (e) { $("cal-error").textContent = e.message; } };
 }
 const mode = () => document.querySelector("#modes input:checked").value;
 const num = (id) => { const v = parseFloat($(id).value); if (Number.isNaN(v)) throw new Error("enter a number of degrees"); return v; };
-$("start").onclick = guarded(() => api("POST", "/api/calibration/start", { mode: mode() }));
+const ACTIONS = {
+  start: () => api("POST", "/api/calibration/start", { mode: mode() }),
+  reset: () => api("POST", "/api/calibration/reset"),
+  redo: async () => { await api("POST", "/api/calibration/reset"); await api("POST", "/api/calibration/start", { mode: mode() }); },
+};
+// Start over, Reset and Redo ask first when they would throw a result or a written state away.
+function asking(action) {
+  return guarded(async () => {
+    if (last && wouldLose(last.wizard)) { discardAsked = action; render(last); return; }
+    await ACTIONS[action]();
+  });
+}
+$("start").onclick = asking("start");
+$("reset").onclick = asking("reset");
+$("redo").onclick = asking("redo");
+$("discard-yes").onclick = guarded(async () => { const a = discardAsked; discardAsked = null; if (a) await ACTIONS[a](); });
+$("discard-no").onclick = () => { discardAsked = null; if (last) render(last); };
+document.querySelectorAll("#modes input").forEach((r) => { r.onchange = () => { modeChosen = true; }; });
 $("finish").onclick = guarded(() => api("POST", "/api/calibration/finish"));
-$("reset").onclick = guarded(() => api("POST", "/api/calibration/reset"));
-$("redo").onclick = guarded(async () => { await api("POST", "/api/calibration/reset"); await api("POST", "/api/calibration/start", { mode: mode() }); });
 $("accept").onclick = guarded(() => api("POST", "/api/calibration/accept", { which: "ours" }));
 $("ob-accept").onclick = guarded(() => api("POST", "/api/calibration/accept", { which: "vehicle" }));
 $("ob-cancel").onclick = guarded(() => api("POST", "/api/calibration/onboard/cancel"));

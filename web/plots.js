@@ -31,7 +31,7 @@ function runs(t, y, wrap) {
   return out;
 }
 
-// series: [{label, color, y: [...], wrap, dots, dash}]; opts: {t, t0, t1, ymin, ymax, alarms, refs}
+// series: [{label, color, y: [...], wrap, dots, dash}]; opts: {t, t0, t1, ymin, ymax, alarms, refs, yTicks}
 function drawPlot(canvas, series, opts) {
   const dpr = window.devicePixelRatio || 1, w = canvas.clientWidth, h = canvas.clientHeight;
   if (!w || !h) return;
@@ -58,8 +58,9 @@ function drawPlot(canvas, series, opts) {
     if (x1 > x0) g.fillRect(x0, T, x1 - x0, ph);
   }
   g.strokeStyle = "#d6dbe1"; g.fillStyle = "#4b5561"; g.lineWidth = 1;
-  const yt = niceTicks(lo, hi, ph > 90 ? 4 : 3);
+  const yt = (opts.yTicks || niceTicks)(lo, hi, ph > 90 ? 4 : 3);
   canvas.dataset.yticks = yt.map((k) => k.label).join(" ");
+  canvas.dataset.yrange = lo.toFixed(1) + " " + hi.toFixed(1);
   g.textAlign = "right"; g.textBaseline = "middle";
   for (const k of yt) { const y = Y(k.value); g.beginPath(); g.moveTo(L, y); g.lineTo(L + pw, y); g.stroke(); g.fillText(k.label, L - 4, y); }
   g.textAlign = "center"; g.textBaseline = "top";

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections import deque
 from dataclasses import replace
 from typing import Protocol
 
@@ -29,10 +30,13 @@ from groundstation.station.wizard.compass import compass_index
 from groundstation.station.wizard.fit import raw_in_result_frame
 from groundstation.station.wizard.results import consistency_of, unapply_function
 from groundstation.station.wizard.onboard import OnboardCalibration
+from groundstation.station.wizard.texts import heading_check_verdict
 
 __all__ = ["CalibrationControl", "Hub"]
 
 _M = mavlink2
+DANCE_CLOUD_S = 90.0            # the station's view of a replayed dance: the raw field of this long
+DANCE_CLOUD_POINTS = 6000
 
 
 class Hub(Protocol):
@@ -55,6 +59,9 @@ class CalibrationControl:
         self._hub = hub
         self.wizard = CalibrationWizard()
         self.after = AfterWrite(self)
+        # the first compass's raw field as received while the wizard is idle: t_s, x, y, z (mG)
+        self._recent_mag: deque = deque(maxlen=DANCE_CLOUD_POINTS)
+        self._recent_instance: int | None = None
 
     # ------------------------------------------------------------------ helpers
     def live_link(self, why: str):
@@ -76,12 +83,25 @@ class CalibrationControl:
         w.on_sample(s)
         if isinstance(s, MagSample) and compass_index(s.instance) == 0:
             self.after.on_compass0(s)
+            self._keep_recent(s)
         elif isinstance(s, GpsSample):
             self.after.on_gps(s)
 
     def on_param(self, name: str, value: float) -> None:
         """A PARAM_VALUE the parameter cache accepted: the wizard's re-reads and change checks."""
         wizard_on_param(self, name, value)
+
+    def _keep_recent(self, s: MagSample) -> None:
+        if self.wizard.state != "idle":
+            return
+        if self._recent_instance is None:
+            self._recent_instance = s.instance       # RAW_IMU and SCALED_IMU both carry compass 0: keep one
+        if s.instance != self._recent_instance or not all(math.isfinite(v) for v in s.mag_body_mG):
+            return
+        recent = self._recent_mag
+        if recent and s.t_s < recent[-1][0]:         # a seek or a loop: the field of another moment
+            recent.clear()
+        recent.append((s.t_s, *s.mag_body_mG))
 
     def on_link(self, up: bool, t_s: float) -> None:
         text = self.wizard.on_link(up, t_s)
@@ -162,6 +182,8 @@ class CalibrationControl:
         """A new source: the wizard starts over, silently (lock held; nothing is sent, the old
         link is gone)."""
         self.wizard.reset()
+        self._recent_mag.clear()
+        self._recent_instance = None
 
     def unwritten_result(self) -> bool:
         """A good result not on a vehicle yet (not accepted, or its write failed, had no link or is
@@ -300,6 +322,9 @@ class CalibrationControl:
             snap["warnings"] = snap["warnings"] + [
                 f"{trust['refused'] + trust['values_refused']} parameter value(s) refused (not from the vehicle, or "
                 "not a possible value): " + (trust["last"] or next(iter(trust["values_refused_names"].values()), ""))]
+        hc = snap.get("heading_check")
+        if hc is not None and hc.get("result") is not None:
+            hc["result"] = dict(hc["result"], verdict=heading_check_verdict(hc["result"]))
         ob = snap.get("onboard")
         if ob is not None:
             from groundstation.station.wizard.onboard import compare
@@ -307,10 +332,27 @@ class CalibrationControl:
                 c["compare"] = compare((c.get("report") or None), self.wizard.results.get(c["index"]))
         return snap
 
-    def scene_data(self) -> dict:
+    def _dance_cloud(self) -> dict:
+        """A recorded dance while the wizard is idle: the first compass's raw field of the last
+        DANCE_CLOUD_S, with the fit of the log's own calibration when the log's field had no
+        offsets applied (else the view centres the cloud itself)."""
+        pts = np.asarray(self._recent_mag, float).reshape(-1, 4)
+        pts = pts[pts[:, 0] >= pts[-1, 0] - DANCE_CLOUD_S, 1:4] if len(pts) else np.empty((0, 3))
+        fit = None
+        cal = getattr(self._hub, "log_calibration", None) or {}
+        in_force = ((cal.get("corrections") or {}).get("offsets_in_force_end_mG")) or [None]
+        if cal.get("status") == "ok" and all(v is not None and abs(v) < 1e-6 for v in in_force):
+            fit = {"offsets_mG": cal["offsets_mG"], "matrix": cal["matrix"], "field_mG": cal.get("field_strength_mG")}
+        return {"cloud": pts, "fit": fit, "calibrating": True, "coverage": None, "dance_replay": True}
+
+    def scene_data(self, dancing: bool = False) -> dict:
         """The wizard's arrays for the 3-D view (copies): the first compass's cloud and fit, and
-        the directions covered."""
+        the directions covered.  ``dancing``: the vehicle shown is being turned over (a replayed
+        calibration dance); with the wizard idle the view shows that dance's field instead of
+        the route."""
         w = self.wizard
+        if w.state == "idle" and dancing and len(self._recent_mag) >= 50:
+            return self._dance_cloud()
         track = w.tracks.get(0)
         res = w.results.get(0) if w.results else None
         fit = None

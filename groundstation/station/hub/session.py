@@ -432,7 +432,15 @@ class Session(SessionViews):
         with self._lock:
             pending = self.sources.pending
             self._wizard_for_link = pending[1] if pending is not None else None
+            running = self.wizard.state == "running"
             self.calibration.start(mode)
+            r = self.sources.replay
+            if r is not None and not running and mode != "fixed_yaw" and self.flight.review is not None:
+                # a recording cannot follow the steps: it plays its dance from the start, in order,
+                # as a vehicle turned by hand would (started mid-log, step 1 met the tumble instead)
+                self.replay_seek(0.0)
+                r.resume()
+                self.event("replay rewound to the start for the calibration: the wizard follows the recorded dance")
 
     def wizard_reset(self) -> None:
         self.calibration.reset()

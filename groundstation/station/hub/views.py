@@ -20,6 +20,8 @@ from groundstation.station.hub.sources import ConflictError, NotFoundError, Sess
 __all__ = ["SessionViews", "EVENTS_SHOWN"]
 
 EVENTS_SHOWN = 15
+DANCE_WINDOW_S = 20.0          # the replayed vehicle was turned past DANCE_TILT_DEG this recently: a dance
+DANCE_TILT_DEG = 60.0
 
 
 class SessionViews:
@@ -73,10 +75,15 @@ class SessionViews:
             route = flight.route().copy()
             origin = flight.origin()
             alarm = flight.alarm_snapshot()
+            rows = flight.rows()
+            recent = rows[rows[:, COL["t_s"]] >= rows[-1, COL["t_s"]] - DANCE_WINDOW_S] if len(rows) else rows
+            tilts = np.abs(recent[:, [COL["roll_deg"], COL["pitch_deg"]]]) if len(recent) else np.zeros((0, 2))
+            # a flying vehicle does not roll or pitch past 60°: a dance (turned over by hand) does
+            dancing = self.sources.kind == "replay" and bool(np.any(np.nan_to_num(tilts) > DANCE_TILT_DEG))
             return {
                 "att": (rad("roll_deg"), rad("pitch_deg"), rad("heading_deg")),
                 "ap_att": (rad("ap_roll_deg"), rad("ap_pitch_deg"), rad("ap_heading_deg")),
-                **self.calibration.scene_data(),      # cloud, fit, calibrating, coverage
+                **self.calibration.scene_data(dancing),      # cloud, fit, calibrating, coverage
                 "route": _route_ne(route, origin),
                 "anomalies": _places_ne(flight.anomaly_places(), origin),
                 "line": flight.line,

@@ -48,7 +48,7 @@ ROUTE_MAX_CROSS = 2.0              # cross-track drawn at most this far from the
 ROUTE_MIN_SPAN_M = 20.0            # a hover's GPS noise is not blown up
 CROSS_UNITS_PER_M = 0.3            # cross-track exaggeration against a preset line
 FLIGHT_BOX = (np.array([0.0, 0.0, 0.2]), np.array([2.0, 4.4, 0.4]))
-FLIGHT_VEHICLE_SCALE = 0.35
+FLIGHT_VEHICLE_SCALE = 0.4          # the model ~8 % of the route's width (full size it hid a fifth of it)
 ELEVATION_DEG = {"calibration": 22.0, "flight": 55.0}
 VEHICLE_ORANGE = (240, 130, 20)
 NOSE_RED = (170, 20, 20)
@@ -95,16 +95,17 @@ class Scene:
         self.server.initial_camera.position = tuple(pos)
         self.server.initial_camera.look_at = tuple(look)
         self.grid = sc.add_grid("/ground", width=12, height=8, cell_size=1.0, position=(0, 0, -1.0))
-        self.craft = sc.add_frame("/craft", show_axes=False, position=tuple(CAL_VEHICLE_AT))
-        self.vehicle = sc.add_frame("/craft/vehicle", axes_length=1.0, axes_radius=0.025)
-        sc.add_box("/craft/vehicle/body", color=VEHICLE_ORANGE, dimensions=(1.6, 0.5, 0.18))
-        sc.add_box("/craft/vehicle/arms", color=(60, 60, 60), dimensions=(0.12, 2.0, 0.06))
-        sc.add_box("/craft/vehicle/nose", color=NOSE_RED, dimensions=(0.3, 0.3, 0.22), position=(0.85, 0, 0))
-        self.ghost = sc.add_frame("/craft/ghost", show_axes=False, visible=False)
-        sc.add_box("/craft/ghost/body", color=(200, 200, 200), dimensions=(1.6, 0.5, 0.15), opacity=0.35)
+        # two models (viser 1.x frames have no scale): full size beside the calibration cloud, and
+        # FLIGHT_VEHICLE_SCALE of it on the route, so the vehicle marks its place without hiding the route
+        self.crafts = {"calibration": self._add_craft(sc, "/craft", 1.0, CAL_VEHICLE_AT),
+                       "flight": self._add_craft(sc, "/flight_craft", FLIGHT_VEHICLE_SCALE, (0.0, 0.0, 0.3))}
+        self.crafts["flight"][0].visible = False
+        self.craft, self.vehicle, self.ghost = self.crafts["calibration"]
         self.vehicle_label = sc.add_label("/craft/label", "vehicle", position=(0, 0, 1.3), anchor="bottom-center")
-        self.ghost_label = sc.add_label("/craft/ghost_label", "grey ghost: autopilot attitude",
-                                        position=(0, 0, -1.2), anchor="top-center", visible=False)
+        # above the vehicle's own label, running right from its left end: below the vehicle it met the
+        # raw cloud's label, centred it ran off the left edge of a narrow view
+        self.ghost_label = sc.add_label("/craft/ghost_label", "grey: autopilot's attitude",
+                                        position=(0, 0.8, 1.9), anchor="bottom-left", visible=False)
         empty = np.zeros((1, 3), dtype=np.float32)
         self.cal_nodes = [
             sc.add_label("/cal_label", "raw field + fitted ellipsoid", position=tuple(CAL_CENTER + RAW_LABEL_AT),
@@ -132,6 +133,20 @@ class Scene:
                                           anchor="bottom-center", visible=False)
         self.line_labels = [sc.add_label(f"/line_{k}", k, position=(0, 0, 0), anchor="bottom-center", visible=False)
                             for k in ("A", "B")]
+
+    @staticmethod
+    def _add_craft(sc, name: str, k: float, at) -> tuple:
+        """Vehicle model (orange body, grey arms, dark red nose, axes) and the autopilot's ghost,
+        ``k`` times full size: (frame, vehicle, ghost)."""
+        frame = sc.add_frame(name, show_axes=False, position=tuple(at))
+        vehicle = sc.add_frame(f"{name}/vehicle", axes_length=1.0 * k, axes_radius=0.025 * k)
+        sc.add_box(f"{name}/vehicle/body", color=VEHICLE_ORANGE, dimensions=(1.6 * k, 0.5 * k, 0.18 * k))
+        sc.add_box(f"{name}/vehicle/arms", color=(60, 60, 60), dimensions=(0.12 * k, 2.0 * k, 0.06 * k))
+        sc.add_box(f"{name}/vehicle/nose", color=NOSE_RED, dimensions=(0.3 * k, 0.3 * k, 0.22 * k),
+                   position=(0.85 * k, 0, 0))
+        ghost = sc.add_frame(f"{name}/ghost", show_axes=False, visible=False)
+        sc.add_box(f"{name}/ghost/body", color=(200, 200, 200), dimensions=(1.6 * k, 0.5 * k, 0.15 * k), opacity=0.35)
+        return frame, vehicle, ghost
 
     # ------------------------------------------------------------------------------ cameras
     def _on_connect(self, client: viser.ClientHandle) -> None:
@@ -184,28 +199,29 @@ class Scene:
             self.route.visible = self.line.visible = self.anomalies.visible = self.anomaly_label.visible = False
             for label in self.line_labels:
                 label.visible = False
-            self.craft.position = tuple(CAL_VEHICLE_AT)
-            self.craft.scale = 1.0
             north = 0.0
         else:
             north = self._update_route(d["route"], d["line"], d["origin"], d["anomalies"])
-            self.craft.scale = FLIGHT_VEHICLE_SCALE
+        self.crafts["calibration"][0].visible = calibrating
+        self.crafts["flight"][0].visible = not calibrating
         self._update_attitude(d["att"], d["ap_att"], north)
 
     def _update_attitude(self, att, ap, north_rad: float) -> None:
         frame = yaw_wxyz(north_rad)
+        _, vehicle, ghost = self.crafts[self.activity]
         ok = all(map(math.isfinite, att))
         if ok:
-            self.vehicle.wxyz = quat_mul(frame, attitude_wxyz(*att))
+            vehicle.wxyz = quat_mul(frame, attitude_wxyz(*att))
         differs = False
         if all(map(math.isfinite, ap)):
-            self.ghost.wxyz = quat_mul(frame, attitude_wxyz(*ap))
+            ghost.wxyz = quat_mul(frame, attitude_wxyz(*ap))
             differs = not ok or max(abs(math.remainder(a - b, 2 * math.pi)) for a, b in zip(ap, att)) > math.radians(2)
-        self.ghost.visible = differs
+        ghost.visible = differs
         self.ghost_label.visible = differs and self.activity == "calibration"
 
     def _update_cloud(self, cloud: np.ndarray, fit: dict | None, calibrating: bool) -> None:
-        key = (len(cloud), None if fit is None else (tuple(fit["offsets_mG"]), fit["field_mG"]), calibrating)
+        key = (len(cloud), tuple(cloud[-1]) if len(cloud) else None,       # a sliding window keeps its length
+               None if fit is None else (tuple(fit["offsets_mG"]), fit["field_mG"]), calibrating)
         if key == self._cloud_key:      # nothing new: do not resend the points
             return
         self._cloud_key = key
@@ -248,11 +264,11 @@ class Scene:
             self._route_key = key
             self._route_frame = self._draw_route(route, line, origin)
             self._draw_anomalies(anomalies_ne, self._route_frame)
-        frame = self._route_frame
+        frame, craft = self._route_frame, self.crafts["flight"][0]
         if frame is not None and len(route):
-            self.craft.position = tuple(frame.to_viser(route[-1:, 1:3])[0] + [0, 0, 0.3])
+            craft.position = tuple(frame.to_viser(route[-1:, 1:3])[0] + [0, 0, 0.1])
         else:
-            self.craft.position = (0.0, 0.0, 0.3)
+            craft.position = (0.0, 0.0, 0.1)
         return frame.north_angle_rad if frame is not None else 0.0
 
     def _draw_route(self, route: np.ndarray, line: dict | None, origin) -> RouteFrame | None:

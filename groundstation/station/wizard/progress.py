@@ -4,7 +4,9 @@ Between two attitude samples the body turns by ΔR = R_prevᵀ · R_now (R = C_b
 rotation vector φ (log map, ``estimators.rotations.rotation_to_vector_deg``) is in the body
 frame, so φ_k is the angle turned about body axis k.  The step's progress is |Σ φ_k| over the
 step: a full turn about X gives 360°; wobbling back and forth cancels; a turn about another axis
-adds nothing; held still the attitude does not change, so nothing creeps (the sum of the
+adds nothing, and an increment whose rotation axis is more than 45° off the step's axis
+(|φ_k| < 0.7 |φ|) is not counted, so a tumble or a turn about a tilted axis does not creep the
+step's counter up and down; held still the attitude does not change, so nothing creeps (the sum of the
 increments telescopes to the change of attitude).  Near pitch ±90° the Euler angles of ATTITUDE
 stop defining roll and yaw separately, so there the gyro's turn between the two attitude samples is
 used; without ATTITUDE messages the gyro is integrated throughout (signed, so noise averages out).
@@ -25,6 +27,7 @@ __all__ = ["AxisProgress"]
 ATTITUDE_STALE_S = 1.0      # no ATTITUDE for this long: integrate the gyro instead
 FLUSH_EVERY = 10            # attitude samples counted per vectorised pass
 GIMBAL_PITCH_RAD = math.radians(80.0)
+AXIS_SHARE = 0.7            # an increment counts when its rotation axis is within 45° of the step's
 
 
 def _small_rotations_deg(rel: np.ndarray) -> np.ndarray:
@@ -124,7 +127,9 @@ class AxisProgress:
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
             return
         if self.axis is not None:
-            self.net_deg[self.axis] += (x, y, z)[self.axis]
+            along = (x, y, z)[self.axis]
+            if abs(along) >= AXIS_SHARE * math.sqrt(x * x + y * y + z * z):
+                self.net_deg[self.axis] += along
         self._recent.append((t_s, math.sqrt(x * x + y * y + z * z)))
         while self._recent and self._recent[0][0] < t_s - self.still_window_s:
             self._recent.popleft()

@@ -1,9 +1,14 @@
 """What the page says: the step instructions, the instruction of each phase, the live warnings."""
 from __future__ import annotations
 
+from groundstation.station.wizard.coverage import field_unit_ned, next_pose
 from groundstation.station.wizard.quality import field_hypothesis
 
-__all__ = ["STEP_TEXT", "instruction", "live_warnings"]
+__all__ = ["STEP_TEXT", "instruction", "live_warnings", "HEADING_CHECK_MAX_ERROR_DEG", "heading_check_verdict"]
+
+# A heading check further off than this fails: a good calibration leaves a few degrees (the deviation
+# card of a clean dance stays within ±3°); 5° is where a pilot's heading hold visibly crabs.
+HEADING_CHECK_MAX_ERROR_DEG = 5.0
 
 STEP_TEXT = {
     "x": {"short": "X (roll it over)",
@@ -27,6 +32,13 @@ def _walk_for_course(hc) -> str:
             "then press Calibrate with the GPS course.")
 
 
+def heading_check_verdict(result: dict | None) -> str | None:
+    """"pass" (within HEADING_CHECK_MAX_ERROR_DEG), "fail" (measured, further off), None (no measurement)."""
+    if not result or not result.get("ok") or result.get("error_deg") is None:
+        return None
+    return "pass" if abs(result["error_deg"]) <= HEADING_CHECK_MAX_ERROR_DEG else "fail"
+
+
 def _after_write(w) -> str | None:
     pw, rb, hc = w.param_write, w.reboot, w.heading_check
     if hc is not None and w.mode == "fixed_yaw" and (w.fixed_yaw is None or w.fixed_yaw.state != "done"):
@@ -37,8 +49,13 @@ def _after_write(w) -> str | None:
             return ("Heading check: hold the vehicle pointed at the bearing…" if hc.kind == "bearing" else
                     f"Heading check: walk the vehicle straight ahead ({hc.snapshot()['distance_m']:.0f} m so far), "
                     "then press Stop walk.")
-        if r.get("ok"):
+        verdict = heading_check_verdict(r)
+        if verdict == "pass":
             return (f"Done. Heading check: {r['message']}. The new calibration is in use; see the deviation card.")
+        if verdict == "fail":
+            return (f"Heading check failed: {r['message']}, more than {HEADING_CHECK_MAX_ERROR_DEG:.0f}° off. Do not "
+                    "fly on this compass. Check the bearing is true (not magnetic) and the nose is on it, the compass "
+                    "orientation matches its mounting, no metal is near; then measure again or redo the dance.")
         return f"Heading check incomplete: {r.get('message')}. Try again."
     if rb is not None:
         if rb["state"] in ("sent", "waiting"):
@@ -74,7 +91,27 @@ def _mode_text(w) -> str | None:
         ob = w.onboard
         if ob.state in ("starting", "refused"):
             return ob.message[0].upper() + ob.message[1:] + "."
+        if ob.state == "running" and not w.paused:
+            return _onboard_progress(w)
     return None
+
+
+def _onboard_progress(w) -> str:
+    """The vehicle's calibrator decides when it has enough: the instruction follows its progress
+    (MAG_CAL_PROGRESS completion and sections), not our X/Y/Z steps."""
+    ob = w.onboard
+    done = {k: c.get("completion_pct", 0) for k, c in sorted(ob.compasses.items())}
+    if not done:
+        return ("The vehicle's calibrator is running: turn the vehicle slowly, about every axis in turn, "
+                "until it reports its progress.")
+    least = min(done.values())
+    each = ", ".join(f"compass {k + 1} {v} %" for k, v in done.items())
+    if least >= 100 or all(c.get("report") is not None for c in ob.compasses.values()):
+        return f"The vehicle's calibrator has what it needs ({each}): hold the vehicle still while it fits."
+    pose = next_pose(w.cells, field_unit_ned(w.field_ned_mG))
+    how = (f"{pose['text'][0].upper()}{pose['text'][1:]}" if pose is not None and least >= 25 else
+           "Turn the vehicle slowly through every orientation: roll it over, pitch it over, yaw it round")
+    return f"The vehicle's calibrator: {least} % ({each}). {how}, until every compass reaches 100 %."
 
 
 def instruction(w, pose: dict | None = None) -> str:
