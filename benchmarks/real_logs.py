@@ -67,6 +67,7 @@ class Row:
     target_mG: float | None
     seconds: float
     named: bool = True               # the status names its reason (targets: ok, or a reason; never no_data with data)
+    sd: np.ndarray | None = None     # our stated 1σ per axis (mG)
     versus: tuple[float, float] | None = None   # peer rows: (our error mG on the same file, our seconds)
 
     @property
@@ -84,7 +85,7 @@ class Row:
             return f"ours {self.versus[0]:.1f} mG in {self.versus[1]:.1f} s: {'PASS' if ok else 'FAIL'}"
         if not self.named:
             return "FAIL"
-        if self.target_mG is None or self.status != "ok":
+        if self.target_mG is None or self.status not in ("ok", "weak"):
             return "named" if self.status != "ok" else "-"
         return "PASS" if self.err_mG is not None and self.err_mG <= self.target_mG else "FAIL"
 
@@ -165,21 +166,54 @@ def run_magfit(path: Path, mag: int = 1, reduce: int = 1, timeout_s: float = 180
 
 # ------------------------------------------------------------------------------------ rows
 
-def real_rows() -> list[Row]:
+def real_log_names() -> list[str]:
+    """The known real logs and every other log file under ../shared/data (any a later crawl adds)."""
+    names = list(REAL_LOGS)
+    if SHARED.is_dir():
+        for p in sorted(SHARED.rglob("*")):
+            rel = str(p.relative_to(SHARED))
+            if p.is_file() and p.suffix.lower() in (".bin", ".tlog", ".ulg", ".log", ".px4log") and rel not in names:
+                names.append(rel)
+    return names
+
+
+def _sd(r: dict) -> np.ndarray | None:
+    sd = r.get("offsets_sd_mG")
+    return None if not sd or None in sd else np.asarray(sd, float)
+
+
+def real_rows(magfit_reduce: int | None = 1) -> list[Row]:
+    """Ours on every real log, against the offsets the vehicle had in force at the end; magfit_WMM on
+    every ArduPilot log beside it (it reads DataFlash MAG/ATT/BAT; on a telemetry log it says why not)."""
     rows = []
-    for name in REAL_LOGS:
+    for name in real_log_names():
         path = SHARED / name
         if not path.is_file():
             rows.append(Row(name, None, "missing", "", None, "", None, None, 0.0))
             continue
-        log, results, dt = calibrate_file(path)
+        try:
+            log, results, dt = calibrate_file(path)
+        except Exception as e:  # an unreadable log is a row, not a crash
+            rows.append(Row(name, None, f"unreadable: {e}", "", None, "", None, None, 0.0))
+            continue
+        first = None
         for r in results:
             corr = r.get("corrections") or {}
             end = corr.get("offsets_in_force_end_mG")
             ref = -np.asarray(end, float) if end and None not in end else None
             target = 20.0 if name.startswith("dronekit") else None
             rows.append(Row(name, r["compass"], r["status"], r.get("method") or "-", ours_ofs(r),
-                            "vehicle's offsets in force", ref, target, dt, named(r)))
+                            "vehicle's offsets in force", ref, target, dt, named(r), _sd(r)))
+            first = rows[-1] if first is None else first
+        if magfit_reduce is not None and log.autopilot == "ardupilot" and first is not None:
+            mf = run_magfit(path, 1, magfit_reduce)
+            versus = (first.err_mG if first.err_mG is not None else float("inf"), first.seconds)
+            if "error" in mf:
+                rows.append(Row(name, 0, f"error: {mf['error']}", f"magfit_WMM --reduce {magfit_reduce}", None,
+                                first.ref_name, None, None, mf.get("runtime_s", 0.0), versus=versus))
+            else:
+                rows.append(Row(name, 0, "ok", f"magfit_WMM --reduce {magfit_reduce}", mf["ofs"], first.ref_name,
+                                first.ref, None, mf["runtime_s"], versus=versus))
     return rows
 
 
@@ -212,7 +246,7 @@ def flight_rows(seed: int, tmp: Path, layouts, magfit_reduce: int | None, log_ra
         for r in results:
             k = r["compass"]
             rows.append(Row(f"sim {seed} flight {kind}", k, r["status"], r.get("method") or "-", ours_ofs(r),
-                            "truth", truth_ofs(sim, k), 5.0, dt, named(r)))
+                            "truth", truth_ofs(sim, k), 5.0, dt, named(r), _sd(r)))
             mot = r.get("motor") or {}
             if kind == "tlog" and mot.get("status") == "ok":
                 f = np.asarray(sim.truth["compasses"][k]["motor_mG_per_A"], float)
@@ -246,14 +280,17 @@ def _vec(v) -> str:
 
 
 def format_rows(rows: list[Row]) -> str:
-    head = ("| log | compass | status | method | COMPASS_OFS ours | reference | reference COMPASS_OFS | max Δ mG | "
-            "target mG | verdict | s |")
-    lines = [head, "|" + "---|" * 11]
+    head = ("| log | compass | status | method | COMPASS_OFS ours | our 1σ mG | reference | reference COMPASS_OFS | "
+            "max Δ mG | Δ within 1σ | target mG | verdict | s |")
+    lines = [head, "|" + "---|" * 13]
     for r in rows:
         err = "-" if r.err_mG is None else f"{r.err_mG:.1f}"
+        sd = "-" if r.sd is None else "[" + ", ".join(f"{x:.1f}" for x in r.sd) + "]"
+        within = "-" if r.sd is None or r.ours is None or r.ref is None else \
+            f"{int(np.sum(np.abs(r.ours - r.ref) <= r.sd))}/3"
         lines.append(f"| {r.log} | {'-' if r.compass is None else r.compass} | {r.status} | {r.method} | {_vec(r.ours)} | "
-                     f"{r.ref_name} | {_vec(r.ref)} | {err} | {'-' if r.target_mG is None else f'{r.target_mG:g}'} | "
-                     f"{r.verdict} | {r.seconds:.1f} |")
+                     f"{sd} | {r.ref_name} | {_vec(r.ref)} | {err} | {within} | "
+                     f"{'-' if r.target_mG is None else f'{r.target_mG:g}'} | {r.verdict} | {r.seconds:.1f} |")
     return "\n".join(lines)
 
 
@@ -267,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     seeds = [1] if (a.quick or a.smoke) else list(range(1, a.seeds + 1))
     reduce = None if (a.no_magfit or a.smoke) else (10 if a.quick else a.magfit_reduce)
-    rows, motor = ([] if a.smoke else real_rows()), []
+    rows, motor = ([] if a.smoke else real_rows(None if a.no_magfit else (10 if a.quick else 1))), []
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         for s in seeds:

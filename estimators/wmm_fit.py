@@ -76,8 +76,9 @@ class WmmFitSettings:
     min_heading_spread_deg: float = 1.0
     min_heading_coverage: float = 4 / 12          # of 12 30-degree heading sectors, among the used samples
     max_answer_sd_mG: float = 150.0               # worst-axis 1σ beyond this: unobservable, no answer
-    max_heading_imbalance: float = 0.6            # above: soft iron held at nominal (its prior in the 1σ)
-    cell_weighting: bool | None = None            # sphere cells, rare directions weighted up; None: when soft iron is held
+    max_heading_imbalance: float = 0.9            # above: soft iron held at nominal (its prior in the 1σ)
+    cell_weighting: bool | None = False           # sphere cells, rare directions weighted up (None: when soft iron is
+                                                  # held).  Off: measured to add bias here (docs/inflight-calibration.md)
     jackknife_blocks: int = 8                     # contiguous time blocks for the jackknife 1σ (0: none)
     sphere_bands: int = 8                         # equal-area cells: bands of equal Δz × sectors per band
     sphere_sectors: int = 10
@@ -199,14 +200,13 @@ def _heading_coverage(yaw_rad: np.ndarray, sectors: int = 12) -> float:
 
 
 def heading_imbalance(yaw_rad: np.ndarray) -> float:
-    """max(|mean e^{iψ}|, |mean e^{2iψ}|) over the samples: 1 when one heading (first harmonic) or one
-    line flown both ways (second harmonic: the soft-iron/offset degeneracy) carries the flight, 0 for
-    headings spread evenly (a square, three legs at 120°, full turns)."""
+    """|mean e^{2iψ}| over the samples: 1 when one line flown both ways (or one heading) carries the
+    flight, the degeneracy of the offsets with the soft-iron terms in the second harmonic of the
+    heading; 0 for headings spread evenly (a square, three legs at 120°, full turns).  The real
+    dronekit flight (mostly one heading, turns all round): 0.76; simulated A–B missions: 0.9998."""
     y = np.asarray(yaw_rad, float)
     y = y[np.isfinite(y)]
-    if len(y) == 0:
-        return 1.0
-    return float(max(abs(np.mean(np.exp(1j * y))), abs(np.mean(np.exp(2j * y)))))
+    return float(abs(np.mean(np.exp(2j * y)))) if len(y) else 1.0
 
 
 def _options(model: str, active: np.ndarray, s: WmmFitSettings) -> SolverOptions:
@@ -456,7 +456,7 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
     if few:     # one heading (line) dominates: the soft-iron terms would trade against the offsets (measured
         # on simulated A–B missions: 1σ covered the error 5 times in 12 with them fitted, 11 in 12 held)
         notes.append(f"one heading line dominates the flight (imbalance {imbalance:.2f}): soft iron held at "
-                     "nominal, its uncertainty included in the offsets' 1σ, sphere cells weighted")
+                     "nominal, its uncertainty included in the offsets' 1σ")
     forced, auto = _term_masks(replace(s, fit_diagonal=False, fit_offdiagonal=False) if few else s,
                                use_motor, motor_forced)
     sig = signal if use_motor else np.zeros(n)

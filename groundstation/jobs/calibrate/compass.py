@@ -166,6 +166,13 @@ def calibrate_compass(log: FlightLog, cf: CompassField, ctx: LogContext, setting
     if not valid.any():
         r.update(status="no_data", message="; ".join(["no finite magnetometer samples"] + notes))
         return r, None
+    logged = np.asarray(cf.logged_mG, float)
+    fin = np.all(np.isfinite(logged), axis=1)
+    if fin.any() and not np.any(logged[fin]):
+        r.update(status="no_data", recommended=False, recommendation="no answer: no compass data",
+                 message=f"no compass data: this compass reads 0 in all {int(fin.sum())} samples "
+                         "(not fitted; disabled, unplugged or not logged)")
+        return r, None
     step = window_step(log, cf, ctx, settings)
     r["windows"] = window_dicts(step.search, cf.t_s)
     cal = _from_window(r, step, cf) if step.search.chosen is not None else None
