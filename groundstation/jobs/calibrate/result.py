@@ -93,7 +93,7 @@ def format_summary(result: dict) -> str:
     head = f"{result.get('file')}" + (f" compass {comp}" if comp is not None else "")
     if result.get("device_id"):
         head += f" (device {result['device_id']})"
-    frame = f", {frame_label(result)}" if result.get("relative_to") and result.get("status") == "ok" else ""
+    frame = f", {frame_label(result)}" if result.get("relative_to") and result.get("status") in ("ok", "weak") else ""
     lines = [f"{head}: {result.get('status')}" + (f" [{result['method']}]" if result.get("method") else "") + frame]
     if result.get("recommendation"):
         lines.append(f"  {result['recommendation']}")
