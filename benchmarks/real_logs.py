@@ -273,6 +273,103 @@ def _magfit_row(sim, seed: int, kind: str, path: Path, reduce: int, ours: Row) -
                mf["ofs"], "truth", truth_ofs(sim, 0), None, mf["runtime_s"], versus=versus)
 
 
+# ------------------------------------------------------------------------------------ SITL
+
+SITL = ROOT.parent / "shared" / "sitl"
+SITL_TRUTH_OFS = {0: np.array([120.0, -80.0, 60.0]), 1: np.array([5.0, 13.0, -18.0]), 2: np.array([5.0, 13.0, -18.0])}
+
+
+def record_sitl(tmp: Path, circle_s: float = 150.0, speedup: int = 5, port: int = 14690,
+                timeout_s: float = 600.0) -> tuple[Path | None, str]:
+    """Fly ArduPilot SITL (../shared/sitl, instance -I 9, MAVLink to udp 127.0.0.1:``port``): take off
+    to 30 m, circle (every heading) for ``circle_s`` s of vehicle time, land.  Compass 1 has
+    SIM_MAG1_OFS = (120, −80, 60) mG and COMPASS_OFS = (1, 1, 1) in force (uncalibrated), compasses
+    2 and 3 the defaults (5, 13, −18) both ways; the truth is COMPASS_OFSn = SIM_MAGn_OFS.
+    Returns (the DataFlash .BIN, note)."""
+    from pymavlink import mavutil
+    binary = SITL / "arducopter"
+    if not binary.is_file():
+        return None, "no ../shared/sitl/arducopter"
+    run = tmp / "sitl"
+    run.mkdir(exist_ok=True)
+    t = SITL_TRUTH_OFS[0]
+    (run / "truth.parm").write_text(f"SIM_MAG1_OFS_X {t[0]}\nSIM_MAG1_OFS_Y {t[1]}\nSIM_MAG1_OFS_Z {t[2]}\n"
+                                    "COMPASS_OFS_X 1\nCOMPASS_OFS_Y 1\nCOMPASS_OFS_Z 1\nARMING_CHECK 0\n"
+                                    "CIRCLE_RADIUS 3000\nCIRCLE_RATE 15\n")
+    cmd = [str(binary), "--model", "quad", "--speedup", str(speedup), "-w", "-I", "9",
+           "--defaults", f"{SITL / 'copter.parm'},{run / 'truth.parm'}", "--home", "-35.3632,149.1652,584,0",
+           "--serial0", f"udpclient:127.0.0.1:{port}"]
+    proc = subprocess.Popen(cmd, cwd=run, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + timeout_s
+    try:
+        m = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}")
+        if m.wait_heartbeat(timeout=60) is None:
+            return None, "SITL sent no heartbeat"
+        m.mav.request_data_stream_send(m.target_system, m.target_component, mavutil.mavlink.MAV_DATA_STREAM_ALL, 4, 1)
+
+        def boot_s() -> float:
+            msg = m.recv_match(type="ATTITUDE", blocking=True, timeout=5)
+            return -1.0 if msg is None else msg.time_boot_ms / 1000.0
+
+        def wait_until(cond, limit_s: float) -> bool:
+            t0 = boot_s()
+            while time.monotonic() < deadline:
+                if cond():
+                    return True
+                if boot_s() - t0 > limit_s:
+                    return False
+            return False
+
+        def armed() -> bool:
+            hb = m.recv_match(type="HEARTBEAT", blocking=True, timeout=5)
+            return hb is not None and bool(hb.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+
+        def try_arm() -> bool:
+            m.set_mode("GUIDED")
+            m.arducopter_arm()
+            return armed() or armed()
+
+        if not wait_until(try_arm, 180):
+            return None, "SITL would not arm in GUIDED within 180 s"
+        m.mav.command_long_send(m.target_system, m.target_component, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF,
+                                0, 0, 0, 0, 0, 0, 0, 30)
+
+        def high() -> bool:
+            g = m.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=5)
+            return g is not None and g.relative_alt > 25_000
+
+        if not wait_until(high, 90):
+            return None, "SITL did not climb to 25 m"
+        m.set_mode("CIRCLE")
+        wait_until(lambda: False, circle_s)
+        m.set_mode("LAND")
+        wait_until(lambda: not armed(), 120)
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    logs = sorted((run / "logs").glob("*.BIN"))
+    return (logs[-1], "") if logs else (None, "SITL wrote no .BIN")
+
+
+def sitl_rows(tmp: Path, magfit_reduce: int | None) -> list[Row]:
+    path, note = record_sitl(tmp)
+    if path is None:
+        return [Row("SITL circle flight .BIN", None, f"not recorded: {note}", "", None, "", None, None, 0.0)]
+    log, results, dt = calibrate_file(path)
+    rows = [Row("SITL circle flight .BIN", r["compass"], r["status"], r.get("method") or "-", ours_ofs(r),
+                "SIM_MAG_OFS", SITL_TRUTH_OFS.get(r["compass"]), 5.0, dt, named(r), _sd(r)) for r in results]
+    if magfit_reduce is not None and rows:
+        mf = run_magfit(path, 1, magfit_reduce)
+        versus = (rows[0].err_mG if rows[0].err_mG is not None else float("inf"), rows[0].seconds)
+        rows.append(Row("SITL circle flight .BIN", 0, "ok" if "ofs" in mf else f"error: {mf.get('error')}",
+                        f"magfit_WMM --reduce {magfit_reduce}", mf.get("ofs"), "SIM_MAG_OFS", SITL_TRUTH_OFS[0], None,
+                        mf.get("runtime_s", 0.0), versus=versus))
+    return rows
+
+
 # ------------------------------------------------------------------------------------ table
 
 def _vec(v) -> str:
@@ -301,13 +398,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--magfit-reduce", type=int, default=4, help="magfit_WMM --reduce (1: every record)")
     ap.add_argument("--no-magfit", action="store_true")
+    ap.add_argument("--sitl", action="store_true", help="also record and fit an ArduPilot SITL circle flight")
+    ap.add_argument("--no-sim", action="store_true", help="real logs (and --sitl) only")
     a = ap.parse_args(argv)
     seeds = [1] if (a.quick or a.smoke) else list(range(1, a.seeds + 1))
     reduce = None if (a.no_magfit or a.smoke) else (10 if a.quick else a.magfit_reduce)
     rows, motor = ([] if a.smoke else real_rows(None if a.no_magfit else (10 if a.quick else 1))), []
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        for s in seeds:
+        if a.sitl:
+            rows += sitl_rows(tmp, reduce if reduce is not None else None)
+        for s in ([] if a.no_sim else seeds):
             rows += dance_rows(s, tmp)
             fr, mr = flight_rows(s, tmp, ("timeus_instance",) if a.smoke else LAYOUTS, reduce,
                                  log_rate_hz=4.0 if a.smoke else 10.0)

@@ -221,7 +221,7 @@ def _initial_offsets(data: FieldData, M: np.ndarray) -> np.ndarray:
 
 
 def _fit_terms(data: FieldData, model: str, p0: np.ndarray, auto: np.ndarray, forced: np.ndarray,
-               s: WmmFitSettings) -> tuple[Solution, np.ndarray]:
+               s: WmmFitSettings, held: np.ndarray | None = None) -> tuple[Solution, np.ndarray]:
     """Fit with forced + auto terms; drop auto elements whose posterior sd is not well below the
     prior sd; clamp to bounds.  Returns the final solution and the active mask."""
     prior = _options(model, forced | auto, s).prior_sd
@@ -249,8 +249,7 @@ def _fit_terms(data: FieldData, model: str, p0: np.ndarray, auto: np.ndarray, fo
     # the covariance stated is the marginal over every candidate term: a term held at nominal because
     # the data barely constrain it still trades against the offsets within its prior (measured on
     # simulated A–B missions: the conditional covariance covered the true error 0 times in 4)
-    every = forced | auto
-    every[:9] = True                        # soft iron always enters the stated uncertainty, within its prior
+    every = forced | auto | (np.zeros(12, bool) if held is None else held)   # + terms the fit chose to hold
     marginal = solve(data, sol.params, p0, replace(_options(model, every, s), max_iter=0))
     cov = _with_jackknife(marginal.covariance, data, sol, active, p0, model, s)
     return replace(sol, covariance=cov), active
@@ -459,6 +458,8 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
                      "nominal, its uncertainty included in the offsets' 1σ")
     forced, auto = _term_masks(replace(s, fit_diagonal=False, fit_offdiagonal=False) if few else s,
                                use_motor, motor_forced)
+    wanted_f, wanted_a = _term_masks(s, use_motor, motor_forced)
+    held = (wanted_f | wanted_a) & ~(forced | auto)     # held by this fit's choice: their prior enters the 1σ
     sig = signal if use_motor else np.zeros(n)
 
     cover = [0.0]
@@ -470,7 +471,7 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
 
     model = "vector" if s.yaw_source == "independent" else "yaw_free"
     data = data_for(ok)
-    sol, active = _fit_terms(data, model, p0, auto, forced, s)
+    sol, active = _fit_terms(data, model, p0, auto, forced, s, held)
     cin = None if corrected_in_force_mG is None else np.asarray(corrected_in_force_mG, float).reshape(-1, 3)[ok]
     slope, disagree = _yaw_checks(data, sol.params, cin, s)
     notes.append(f"attitude yaw vs fitted heading: {disagree:.1f} deg RMS"
@@ -483,7 +484,7 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
             return _failed("insufficient_data", f"{int(ok.sum())} samples left after the course check", n, rej, s)
         data = data_for(ok)
     if model == "vector" and gps_vel_ne_mps is not None:
-        sol, active = _fit_terms(data, model, p0, auto, forced, s)     # refit without the gated samples
+        sol, active = _fit_terms(data, model, p0, auto, forced, s, held)     # refit without the gated samples
     cin_used = None if corrected_in_force_mG is None else np.asarray(corrected_in_force_mG, float).reshape(-1, 3)[ok]
     return _result(sol, active, model, (slope, disagree), data, n, rej, notes, s,
                    _heading_change(data, sol.params, cin_used), cover[0])
