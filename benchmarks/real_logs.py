@@ -159,7 +159,9 @@ def run_magfit(path: Path, mag: int = 1, reduce: int = 1, timeout_s: float = 180
     m = re.search(r"New: Vector3\(([-\d.]+), ([-\d.]+), ([-\d.]+)\).*cmot: Vector3\(([-\d.]+), ([-\d.]+), ([-\d.]+)\)",
                   out.stdout)
     if not m:
-        return {"error": (out.stderr.strip().splitlines() or ["no result"])[-1][:120], "runtime_s": dt}
+        failed = re.search(r"Fit failed: (.*)", out.stdout)
+        why = failed.group(1) if failed else (out.stderr.strip().splitlines() or ["no result"])[-1]
+        return {"error": why[:120], "runtime_s": dt}
     v = np.array([float(x) for x in m.groups()])
     return {"ofs": v[:3], "cmot": v[3:], "runtime_s": dt}
 
