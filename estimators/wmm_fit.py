@@ -28,7 +28,16 @@ field is predicted, so offsets are observable from ordinary flight (the idea of 
   yaw is independent and accurate (GPS yaw, EK3_SRC1_YAW) asks for "independent": the full-vector
   residual, with the GPS-course gate.
 
-Statuses: ok | attitude_depends_on_compass | insufficient_data | no_attitude | no_expected_field |
+An answer with its quality (issue 28): the offsets' covariance is marginal over the terms held at
+nominal by this fit's choice, each variance raised to its jackknife variance (time blocks, heading
+sectors); a flight dominated by one line flown both ways (``heading_imbalance`` > 0.9) holds soft
+iron at nominal with its prior in the 1σ.  ``recommended`` when the worst 1σ ≤ ``max_offset_sd_mG``;
+else status "weak" (offsets, 1σ, the reason and the flight that would pin them down); refused only
+when unobservable (< ``min_heading_coverage`` of the headings, 1σ > ``max_answer_sd_mG``).
+``heading_change_deg``: the new calibration's heading against the corrections in force.  Sphere
+cells (``sphere_cell_weights``, off by default: measured to add error here, docs/inflight-calibration.md).
+
+Statuses: ok | weak | attitude_depends_on_compass | insufficient_data | no_attitude | no_expected_field |
 offsets_out_of_range.  Units: mG, rad, A (or throttle 0..1), m/s.  Pure numpy.
 """
 from __future__ import annotations
