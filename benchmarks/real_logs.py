@@ -67,6 +67,7 @@ class Row:
     target_mG: float | None
     seconds: float
     named: bool = True               # the status names its reason (targets: ok, or a reason; never no_data with data)
+    sd: np.ndarray | None = None     # our stated 1σ per axis (mG)
     versus: tuple[float, float] | None = None   # peer rows: (our error mG on the same file, our seconds)
 
     @property
@@ -84,7 +85,7 @@ class Row:
             return f"ours {self.versus[0]:.1f} mG in {self.versus[1]:.1f} s: {'PASS' if ok else 'FAIL'}"
         if not self.named:
             return "FAIL"
-        if self.target_mG is None or self.status != "ok":
+        if self.target_mG is None or self.status not in ("ok", "weak"):
             return "named" if self.status != "ok" else "-"
         return "PASS" if self.err_mG is not None and self.err_mG <= self.target_mG else "FAIL"
 
@@ -158,28 +159,63 @@ def run_magfit(path: Path, mag: int = 1, reduce: int = 1, timeout_s: float = 180
     m = re.search(r"New: Vector3\(([-\d.]+), ([-\d.]+), ([-\d.]+)\).*cmot: Vector3\(([-\d.]+), ([-\d.]+), ([-\d.]+)\)",
                   out.stdout)
     if not m:
-        return {"error": (out.stderr.strip().splitlines() or ["no result"])[-1][:120], "runtime_s": dt}
+        failed = re.search(r"Fit failed: (.*)", out.stdout)
+        why = failed.group(1) if failed else (out.stderr.strip().splitlines() or ["no result"])[-1]
+        return {"error": why[:120], "runtime_s": dt}
     v = np.array([float(x) for x in m.groups()])
     return {"ofs": v[:3], "cmot": v[3:], "runtime_s": dt}
 
 
 # ------------------------------------------------------------------------------------ rows
 
-def real_rows() -> list[Row]:
+def real_log_names() -> list[str]:
+    """The known real logs and every other log file under ../shared/data (any a later crawl adds)."""
+    names = list(REAL_LOGS)
+    if SHARED.is_dir():
+        for p in sorted(SHARED.rglob("*")):
+            rel = str(p.relative_to(SHARED))
+            if p.is_file() and p.suffix.lower() in (".bin", ".tlog", ".ulg", ".log", ".px4log") and rel not in names:
+                names.append(rel)
+    return names
+
+
+def _sd(r: dict) -> np.ndarray | None:
+    sd = r.get("offsets_sd_mG")
+    return None if not sd or None in sd else np.asarray(sd, float)
+
+
+def real_rows(magfit_reduce: int | None = 1) -> list[Row]:
+    """Ours on every real log, against the offsets the vehicle had in force at the end; magfit_WMM on
+    every ArduPilot log beside it (it reads DataFlash MAG/ATT/BAT; on a telemetry log it says why not)."""
     rows = []
-    for name in REAL_LOGS:
+    for name in real_log_names():
         path = SHARED / name
         if not path.is_file():
             rows.append(Row(name, None, "missing", "", None, "", None, None, 0.0))
             continue
-        log, results, dt = calibrate_file(path)
+        try:
+            log, results, dt = calibrate_file(path)
+        except Exception as e:  # an unreadable log is a row, not a crash
+            rows.append(Row(name, None, f"unreadable: {e}", "", None, "", None, None, 0.0))
+            continue
+        first = None
         for r in results:
             corr = r.get("corrections") or {}
             end = corr.get("offsets_in_force_end_mG")
             ref = -np.asarray(end, float) if end and None not in end else None
             target = 20.0 if name.startswith("dronekit") else None
             rows.append(Row(name, r["compass"], r["status"], r.get("method") or "-", ours_ofs(r),
-                            "vehicle's offsets in force", ref, target, dt, named(r)))
+                            "vehicle's offsets in force", ref, target, dt, named(r), _sd(r)))
+            first = rows[-1] if first is None else first
+        if magfit_reduce is not None and log.autopilot == "ardupilot" and first is not None:
+            mf = run_magfit(path, 1, magfit_reduce)
+            versus = (first.err_mG if first.err_mG is not None else float("inf"), first.seconds)
+            if "error" in mf:
+                rows.append(Row(name, 0, f"error: {mf['error']}", f"magfit_WMM --reduce {magfit_reduce}", None,
+                                first.ref_name, None, None, mf.get("runtime_s", 0.0), versus=versus))
+            else:
+                rows.append(Row(name, 0, "ok", f"magfit_WMM --reduce {magfit_reduce}", mf["ofs"], first.ref_name,
+                                first.ref, None, mf["runtime_s"], versus=versus))
     return rows
 
 
@@ -212,7 +248,7 @@ def flight_rows(seed: int, tmp: Path, layouts, magfit_reduce: int | None, log_ra
         for r in results:
             k = r["compass"]
             rows.append(Row(f"sim {seed} flight {kind}", k, r["status"], r.get("method") or "-", ours_ofs(r),
-                            "truth", truth_ofs(sim, k), 5.0, dt, named(r)))
+                            "truth", truth_ofs(sim, k), 5.0, dt, named(r), _sd(r)))
             mot = r.get("motor") or {}
             if kind == "tlog" and mot.get("status") == "ok":
                 f = np.asarray(sim.truth["compasses"][k]["motor_mG_per_A"], float)
@@ -239,6 +275,103 @@ def _magfit_row(sim, seed: int, kind: str, path: Path, reduce: int, ours: Row) -
                mf["ofs"], "truth", truth_ofs(sim, 0), None, mf["runtime_s"], versus=versus)
 
 
+# ------------------------------------------------------------------------------------ SITL
+
+SITL = ROOT.parent / "shared" / "sitl"
+SITL_TRUTH_OFS = {0: np.array([120.0, -80.0, 60.0]), 1: np.array([5.0, 13.0, -18.0]), 2: np.array([5.0, 13.0, -18.0])}
+
+
+def record_sitl(tmp: Path, circle_s: float = 150.0, speedup: int = 5, port: int = 14690,
+                timeout_s: float = 600.0) -> tuple[Path | None, str]:
+    """Fly ArduPilot SITL (../shared/sitl, instance -I 9, MAVLink to udp 127.0.0.1:``port``): take off
+    to 30 m, circle (every heading) for ``circle_s`` s of vehicle time, land.  Compass 1 has
+    SIM_MAG1_OFS = (120, −80, 60) mG and COMPASS_OFS = (1, 1, 1) in force (uncalibrated), compasses
+    2 and 3 the defaults (5, 13, −18) both ways; the truth is COMPASS_OFSn = SIM_MAGn_OFS.
+    Returns (the DataFlash .BIN, note)."""
+    from pymavlink import mavutil
+    binary = SITL / "arducopter"
+    if not binary.is_file():
+        return None, "no ../shared/sitl/arducopter"
+    run = tmp / "sitl"
+    run.mkdir(exist_ok=True)
+    t = SITL_TRUTH_OFS[0]
+    (run / "truth.parm").write_text(f"SIM_MAG1_OFS_X {t[0]}\nSIM_MAG1_OFS_Y {t[1]}\nSIM_MAG1_OFS_Z {t[2]}\n"
+                                    "COMPASS_OFS_X 1\nCOMPASS_OFS_Y 1\nCOMPASS_OFS_Z 1\nARMING_CHECK 0\n"
+                                    "CIRCLE_RADIUS 3000\nCIRCLE_RATE 15\n")
+    cmd = [str(binary), "--model", "quad", "--speedup", str(speedup), "-w", "-I", "9",
+           "--defaults", f"{SITL / 'copter.parm'},{run / 'truth.parm'}", "--home", "-35.3632,149.1652,584,0",
+           "--serial0", f"udpclient:127.0.0.1:{port}"]
+    proc = subprocess.Popen(cmd, cwd=run, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + timeout_s
+    try:
+        m = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}")
+        if m.wait_heartbeat(timeout=60) is None:
+            return None, "SITL sent no heartbeat"
+        m.mav.request_data_stream_send(m.target_system, m.target_component, mavutil.mavlink.MAV_DATA_STREAM_ALL, 4, 1)
+
+        def boot_s() -> float:
+            msg = m.recv_match(type="ATTITUDE", blocking=True, timeout=5)
+            return -1.0 if msg is None else msg.time_boot_ms / 1000.0
+
+        def wait_until(cond, limit_s: float) -> bool:
+            t0 = boot_s()
+            while time.monotonic() < deadline:
+                if cond():
+                    return True
+                if boot_s() - t0 > limit_s:
+                    return False
+            return False
+
+        def armed() -> bool:
+            hb = m.recv_match(type="HEARTBEAT", blocking=True, timeout=5)
+            return hb is not None and bool(hb.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+
+        def try_arm() -> bool:
+            m.set_mode("GUIDED")
+            m.arducopter_arm()
+            return armed() or armed()
+
+        if not wait_until(try_arm, 180):
+            return None, "SITL would not arm in GUIDED within 180 s"
+        m.mav.command_long_send(m.target_system, m.target_component, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF,
+                                0, 0, 0, 0, 0, 0, 0, 30)
+
+        def high() -> bool:
+            g = m.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=5)
+            return g is not None and g.relative_alt > 25_000
+
+        if not wait_until(high, 90):
+            return None, "SITL did not climb to 25 m"
+        m.set_mode("CIRCLE")
+        wait_until(lambda: False, circle_s)
+        m.set_mode("LAND")
+        wait_until(lambda: not armed(), 120)
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    logs = sorted((run / "logs").glob("*.BIN"))
+    return (logs[-1], "") if logs else (None, "SITL wrote no .BIN")
+
+
+def sitl_rows(tmp: Path, magfit_reduce: int | None) -> list[Row]:
+    path, note = record_sitl(tmp)
+    if path is None:
+        return [Row("SITL circle flight .BIN", None, f"not recorded: {note}", "", None, "", None, None, 0.0)]
+    log, results, dt = calibrate_file(path)
+    rows = [Row("SITL circle flight .BIN", r["compass"], r["status"], r.get("method") or "-", ours_ofs(r),
+                "SIM_MAG_OFS", SITL_TRUTH_OFS.get(r["compass"]), 5.0, dt, named(r), _sd(r)) for r in results]
+    if magfit_reduce is not None and rows:
+        mf = run_magfit(path, 1, magfit_reduce)
+        versus = (rows[0].err_mG if rows[0].err_mG is not None else float("inf"), rows[0].seconds)
+        rows.append(Row("SITL circle flight .BIN", 0, "ok" if "ofs" in mf else f"error: {mf.get('error')}",
+                        f"magfit_WMM --reduce {magfit_reduce}", mf.get("ofs"), "SIM_MAG_OFS", SITL_TRUTH_OFS[0], None,
+                        mf.get("runtime_s", 0.0), versus=versus))
+    return rows
+
+
 # ------------------------------------------------------------------------------------ table
 
 def _vec(v) -> str:
@@ -246,14 +379,17 @@ def _vec(v) -> str:
 
 
 def format_rows(rows: list[Row]) -> str:
-    head = ("| log | compass | status | method | COMPASS_OFS ours | reference | reference COMPASS_OFS | max Δ mG | "
-            "target mG | verdict | s |")
-    lines = [head, "|" + "---|" * 11]
+    head = ("| log | compass | status | method | COMPASS_OFS ours | our 1σ mG | reference | reference COMPASS_OFS | "
+            "max Δ mG | Δ within 1σ | target mG | verdict | s |")
+    lines = [head, "|" + "---|" * 13]
     for r in rows:
         err = "-" if r.err_mG is None else f"{r.err_mG:.1f}"
+        sd = "-" if r.sd is None else "[" + ", ".join(f"{x:.1f}" for x in r.sd) + "]"
+        within = "-" if r.sd is None or r.ours is None or r.ref is None else \
+            f"{int(np.sum(np.abs(r.ours - r.ref) <= r.sd))}/3"
         lines.append(f"| {r.log} | {'-' if r.compass is None else r.compass} | {r.status} | {r.method} | {_vec(r.ours)} | "
-                     f"{r.ref_name} | {_vec(r.ref)} | {err} | {'-' if r.target_mG is None else f'{r.target_mG:g}'} | "
-                     f"{r.verdict} | {r.seconds:.1f} |")
+                     f"{sd} | {r.ref_name} | {_vec(r.ref)} | {err} | {within} | "
+                     f"{'-' if r.target_mG is None else f'{r.target_mG:g}'} | {r.verdict} | {r.seconds:.1f} |")
     return "\n".join(lines)
 
 
@@ -264,13 +400,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--magfit-reduce", type=int, default=4, help="magfit_WMM --reduce (1: every record)")
     ap.add_argument("--no-magfit", action="store_true")
+    ap.add_argument("--sitl", action="store_true", help="also record and fit an ArduPilot SITL circle flight")
+    ap.add_argument("--no-sim", action="store_true", help="real logs (and --sitl) only")
     a = ap.parse_args(argv)
     seeds = [1] if (a.quick or a.smoke) else list(range(1, a.seeds + 1))
     reduce = None if (a.no_magfit or a.smoke) else (10 if a.quick else a.magfit_reduce)
-    rows, motor = ([] if a.smoke else real_rows()), []
+    rows, motor = ([] if a.smoke else real_rows(None if a.no_magfit else (10 if a.quick else 1))), []
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        for s in seeds:
+        if a.sitl:
+            rows += sitl_rows(tmp, reduce if reduce is not None else None)
+        for s in ([] if a.no_sim else seeds):
             rows += dance_rows(s, tmp)
             fr, mr = flight_rows(s, tmp, ("timeus_instance",) if a.smoke else LAYOUTS, reduce,
                                  log_rate_hz=4.0 if a.smoke else 10.0)

@@ -54,6 +54,7 @@ class FieldData:
     yaw_rad: np.ndarray
     motor_signal: np.ndarray    # (N,) A or throttle 0..1 (zeros when unused)
     field_ned_mG: np.ndarray    # (3,)
+    weight: np.ndarray | None = None    # (N,) prior per-sample weights (mean 1; e.g. sphere cells), None = 1
 
     def tilt(self) -> np.ndarray:
         """Ry(θ)Rx(φ) per sample (N,3,3); computed once (the solver asks for it every iteration)."""
@@ -211,7 +212,9 @@ def solve(data: FieldData, p_init: np.ndarray, p0: np.ndarray, opts: SolverOptio
     lam = lam_all[act]
     p = np.array(p_init, float)
     r, J = residuals(p, data, opts.model, True)
+    prior_w = np.ones(len(r)) if data.weight is None else np.asarray(data.weight, float)
     w, inl, sigma = _weights(r, np.ones(len(r), bool), opts.huber_k, opts.outlier_sigma)
+    w = w * prior_w
     converged, it = False, 0
     for it in range(1, opts.max_iter + 1):
         A = J[:, :, act].reshape(-1, int(act.sum()))
@@ -235,6 +238,7 @@ def solve(data: FieldData, p_init: np.ndarray, p0: np.ndarray, opts: SolverOptio
         p = trial
         r, J = residuals(p, data, opts.model, True)
         w, inl, sigma = _weights(r, inl, opts.huber_k, opts.outlier_sigma)
+        w = w * prior_w
         if np.max(np.abs(step)) < 1e-4:
             converged = True
             break
@@ -245,7 +249,11 @@ def solve(data: FieldData, p_init: np.ndarray, p0: np.ndarray, opts: SolverOptio
     rho = _lag1(np.mean(r[inl], axis=1)) if np.any(inl) else 0.0
     cov = np.zeros((12, 12))
     try:
-        cov_a = np.linalg.inv(info) * (1.0 + rho) / (1.0 - rho)
+        cov_a = np.linalg.inv(info)
+        if data.weight is not None:     # weights that are not inverse variances: the sandwich H⁻¹ (JᵀW²J + Λ) H⁻¹
+            w2 = np.repeat(w * prior_w, r.shape[1])
+            cov_a = cov_a @ ((A * w2[:, None]).T @ A / max(sig_c, 1e-9) ** 2 + np.diag(lam)) @ cov_a
+        cov_a = cov_a * (1.0 + rho) / (1.0 - rho)
         cov[np.ix_(act, act)] = cov_a
     except np.linalg.LinAlgError:
         cov[np.ix_(act, act)] = np.inf

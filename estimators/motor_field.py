@@ -113,7 +113,8 @@ def fit_motor_field(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG,
     x_max = float(np.max(x_all[use]))
     H = float(np.linalg.norm(field_ned_mG))
     at_max = float(np.linalg.norm(f) * x_max)
-    status, notes = fit.status, [fit.message]
+    # the motor field is judged by its own sd; offsets that are only "weak" (not recommended) do not void it
+    status, notes = ("ok" if fit.status == "weak" else fit.status), [fit.message]
     if "f_x" not in fit.fitted or np.any(sd > s.supported_ratio * s.motor_prior_sd_mG_per_unit):
         status = "insufficient_signal_variation"
         notes.append(f"motor field sd {np.round(sd, 2).tolist()} mG per unit: the {signal} does not vary enough")

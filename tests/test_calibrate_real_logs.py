@@ -18,7 +18,7 @@ from groundstation.samples import CompassTable
 from groundstation.sim.ardupilot import ArduSimConfig, default_compasses, simulate_ardupilot
 from groundstation.sim.ardupilot_flight import FlightPlan
 
-NAMED = {"ok", "insufficient_coverage", "attitude_depends_on_compass", "insufficient_data", "no_parameters",
+NAMED = {"ok", "weak", "insufficient_coverage", "attitude_depends_on_compass", "insufficient_data", "no_parameters",
          "offsets_out_of_range"}
 
 
@@ -188,14 +188,19 @@ def test_real_arducopter_tlog_every_compass_named_and_close_to_the_vehicle():
     r0, r1 = calibrate_compasses(log)
     assert (r0["device_id"], r1["device_id"]) == (73225, 131594)
     # compass 0: no dance in this flight; the in-flight fit lands within 20 mG of the offsets the
-    # vehicle had in force (learnt by the vehicle during this log)
-    assert (r0["status"], r0["method"]) == ("ok", "wmm_inflight"), r0["message"]
+    # vehicle had in force (learnt by the vehicle during this log).  2.7 Hz telemetry: the jackknife
+    # puts its 1σ above 5 mG, so it is an answer marked not recommended, its error within 2σ per axis
+    assert (r0["status"], r0["method"], r0["recommended"]) == ("weak", "wmm_inflight", False), r0["message"]
+    assert r0["recommendation"].startswith("not recommended") and "full yaw turns" in r0["recommendation"]
     vehicle = np.asarray(r0["corrections"]["offsets_in_force_end_mG"])      # b, as offsets_mG
-    assert np.max(np.abs(np.asarray(r0["offsets_mG"]) - vehicle)) < 20.0
+    err = np.abs(np.asarray(r0["offsets_mG"]) - vehicle)
+    assert np.max(err) < 20.0 and np.all(err <= 2 * np.asarray(r0["offsets_sd_mG"]))
+    assert r0["heading_change_deg"]["max"] > 1.0 and np.asarray(r0["offsets_covariance_mG2"]).shape == (3, 3)
     assert r0["corrections"]["changes"] and len(r0["corrections"]["changes"]) >= 3
     assert "2015" in r0["message"]                                  # the WMM date caveat
     # compass 1 (COMPASS_USE2 = 0): a named reason, and the consistency table names it
-    assert r1["status"] in NAMED - {"ok"} and r1["offsets_mG"] is None
+    assert r1["status"] in NAMED - {"ok"} and not r1["recommended"] and r1["recommendation"]
+    assert (r1["offsets_mG"] is None) == (r1["status"] != "weak")
     assert r0["consistency"]["in_force"]["disagreeing"] == 1
 
 

@@ -153,7 +153,9 @@ def test_review_row_on_real_logs():
     rows = review_log(SHARED_DATA / "dronekit" / "flight_replay_flight.tlog")     # RAW_IMU and SCALED_IMU2
     assert [r["compass"] for r in rows] == [0, 1] and {r["compasses"] for r in rows} == {2}
     assert len({r["log_hash"] for r in rows}) == 1 and len({r["device_id"] for r in rows}) == 2
-    assert all(r["fit_status"] == "ok" and r["fit_ofs_x_mG"] is not None for r in rows)    # in-flight WMM fit
+    # in-flight WMM fit: compass 1 (unused by the vehicle) is an answer with its 1σ, not recommended
+    assert all(r["fit_status"] in ("ok", "weak") and r["fit_ofs_x_mG"] is not None for r in rows)
+    assert rows[0]["fit_status"] == "ok"
     r = rows[0]
     assert r["status"] == "ok" and r["autopilot"] == "ardupilot" and r["motor_status"] == "ok"
     assert r["corrupt_packets"] > 1000 and "corrupt" in r["warnings"]       # the radio link's damage, counted

@@ -48,7 +48,8 @@ def test_a_trustworthy_yaw_rescues_a_flight_with_too_few_headings():
     kw = dict(corrected_in_force_mG=cin, nominal_matrix=np.linalg.inv(d["A"]), motor_signal=d["current"],
               settings=WmmFitSettings(fit_diagonal=False, fit_offdiagonal=False))
     auto = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED, **kw)
-    assert auto.status in ("attitude_depends_on_compass", "insufficient_data")     # the yaw is never trusted unasked
+    # the yaw is never trusted unasked: a weak answer at best, never recommended
+    assert auto.status in ("weak", "attitude_depends_on_compass", "insufficient_data") and not auto.recommended
     assert "yaw_source 'independent'" in auto.message
     kw["settings"] = WmmFitSettings(fit_diagonal=False, fit_offdiagonal=False, yaw_source="independent")
     good = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED, **kw)   # e.g. a GPS-compass yaw
@@ -56,16 +57,19 @@ def test_a_trustworthy_yaw_rescues_a_flight_with_too_few_headings():
     np.testing.assert_allclose(good.offsets_mG, d["b"], atol=3.0)
 
 
-def test_too_few_headings_with_compass_yaw_is_attitude_depends_on_compass():
+def test_too_few_headings_with_compass_yaw_is_a_weak_answer_not_recommended():
     d = level_flight(seed=2, headings_deg=(30, 210), n=600)          # out and back on one line
     stale = d["b"] + np.array([25.0, -20.0, 5.0])
     cin = d["raw"] - stale
     yaw = compass_heading_rad(cin, d["roll"], d["pitch"], H_NED)
     r = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], yaw, H_NED, corrected_in_force_mG=cin,
                 settings=WmmFitSettings(fit_diagonal=False, fit_offdiagonal=False),
-                nominal_matrix=np.linalg.inv(d["A"]), motor_signal=None)
-    assert r.status == "attitude_depends_on_compass", r.message
+                nominal_matrix=np.linalg.inv(d["A"]), motor_signal=d["current"])
+    # an answer with its uncertainty, not recommended, naming the yaw's dependence and the flight to fly
+    assert r.status == "weak" and not r.recommended, r.message
+    assert "yaw may follow this compass" in r.reason and "full yaw turns" in r.reason
     assert np.max(r.offsets_sd_mG) > 5.0 and r.heading_coverage < 0.5
+    assert np.all(np.abs(r.offsets_mG - d["b"]) < 2.5 * r.offsets_sd_mG + 1.0)     # its 1σ means something
 
 
 def test_gates_and_outliers():

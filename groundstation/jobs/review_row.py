@@ -43,7 +43,7 @@ from groundstation.samples import FlightLog
 __all__ = ["ReviewSettings", "REVIEW_CALIBRATE", "review_log", "file_hash", "vehicle_identity", "compass_row",
            "alarm_fields", "ROW_VERSION"]
 
-ROW_VERSION = 3
+ROW_VERSION = 4      # 4: weak in-flight fits (offsets with their 1σ) carry their offsets
 _UID_TEXT = re.compile(r"^\S+\s+([0-9A-Fa-f]{8}\s+[0-9A-Fa-f]{8}\s+[0-9A-Fa-f]{8})\s*$")
 
 # The calibrate job as the review runs it: the in-flight WMM fit estimates the offsets (and the motor
@@ -219,7 +219,7 @@ def _fit_fields(result: dict, in_force_mG: np.ndarray) -> dict:
            "fit_heading_coverage": fit.get("heading_coverage"), "fit_residual_rms_mG": fit.get("residual_rms_mG")}
     if result.get("method") == "window":
         out.update(ellipsoid_status=result["status"], **_vector("ellipsoid_ofs", result["offsets_mG"] or [None] * 3))
-    if fit.get("status") == "ok":
+    if fit.get("status") in ("ok", "weak"):      # weak: offsets with their 1σ, not recommended (drift uses "ok")
         ofs = np.array(fit["offsets_mG"], float)
         out.update(_vector("fit_ofs", ofs))
         out.update(_vector("fit_ofs_sd", fit["offsets_sd_mG"], nd=3))

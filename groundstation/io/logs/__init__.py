@@ -41,6 +41,9 @@ def read_log(path: str | os.PathLike, progress: Callable[[float], None] | None =
     need the field say so."""
     path = Path(path)
     reader = READERS.get(path.suffix.lower())
+    if path.suffix.lower() == ".px4log":
+        raise IngestError(f"{path.name}: old PX4 .px4log (sdlog2) logs are not read; convert it with PX4's "
+                          "sdlog2_dump.py to CSV, or log with PX4 v1.5 or later (.ulg)")
     if reader is None:
         raise IngestError(f"{path.name}: unknown log type '{path.suffix}' "
                           f"(supported: {', '.join(READERS)})")

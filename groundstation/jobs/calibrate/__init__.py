@@ -11,8 +11,8 @@ Pipeline per compass (compass.py): raw field with the corrections in force at ea
 un-applied (jobs.compass_raw) -> calibration windows (markers or rotation segmentation) -> else
 the in-flight fit against the WMM -> motor field -> orientation check -> ArduPilot / PX4
 parameters named after the instance.  Bad data never raise: they give a status and a message
-(ok | insufficient_coverage | no_data | attitude_depends_on_compass | offsets_out_of_range |
-error; a log without its corrections in force gives a relative fit, status ok).
+(ok | weak: offsets with their 1σ, not recommended | insufficient_coverage | no_data |
+attitude_depends_on_compass | offsets_out_of_range | error; a log without its corrections in force gives a relative fit, status ok).
 """
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ from groundstation.samples import FlightLog, finite_or_none
 from .checks import orientation_dict, orientation_reference, orientation_step, reorient
 from .context import LogContext, onboard_report
 from .frame import LOG_RAW_UNKNOWN_STATUSES, corrections_record
-from .inflight import flight_inputs, inflight_step, motor_dict, motor_step, wmm_dict
+from .inflight import flight_inputs, heading_change, inflight_step, motor_dict, motor_step, offsets_covariance, wmm_dict
 from .result import empty_result
 from .settings import CalibrateSettings, settings_record
 from .windows import misalignment, window_dicts, window_step
@@ -78,7 +78,9 @@ def _from_inflight(r: dict, fit, cf: CompassField) -> tuple:
     r.update(method="wmm_inflight", window_s=[round(float(used[0]), 2), round(float(used[-1]), 2)],
              samples=int(fit.n_used), coverage=round(float(fit.heading_coverage), 3),
              field_strength_mG=finite_or_none(np.nanmedian(np.linalg.norm(cal, axis=1))),
-             residual_rms_mG=finite_or_none(fit.residual_rms_mG), offsets_sd_mG=_vec(fit.offsets_sd_mG, 2))
+             residual_rms_mG=finite_or_none(fit.residual_rms_mG), offsets_sd_mG=_vec(fit.offsets_sd_mG, 2),
+             recommended=bool(fit.recommended), recommendation=fit.reason, offsets_covariance_mG2=offsets_covariance(fit),
+             heading_change_deg=heading_change(fit))
     return np.asarray(fit.offsets_mG, float), np.asarray(fit.matrix, float)
 
 
@@ -165,6 +167,13 @@ def calibrate_compass(log: FlightLog, cf: CompassField, ctx: LogContext, setting
     if not valid.any():
         r.update(status="no_data", message="; ".join(["no finite magnetometer samples"] + notes))
         return r, None
+    logged = np.asarray(cf.logged_mG, float)
+    fin = np.all(np.isfinite(logged), axis=1)
+    if fin.any() and not np.any(logged[fin]):
+        r.update(status="no_data", recommended=False, recommendation="no answer: no compass data",
+                 message=f"no compass data: this compass reads 0 in all {int(fin.sum())} samples "
+                         "(not fitted; disabled, unplugged or not logged)")
+        return r, None
     step = window_step(log, cf, ctx, settings)
     r["windows"] = window_dicts(step.search, cf.t_s)
     cal = _from_window(r, step, cf) if step.search.chosen is not None else None
@@ -172,12 +181,25 @@ def calibrate_compass(log: FlightLog, cf: CompassField, ctx: LogContext, setting
     wmm = inflight_step(cf, x, ctx, settings) if x is not None else None
     r["inflight"] = wmm_dict(wmm, cf.t_s) if wmm is not None else None
     motor = _motor(r, log, cf, x, ctx, settings)
-    if cal is None and motor is not None and motor.wmm is not None and motor.wmm.status == "ok":
+    used = None
+    if cal is not None:
+        r.update(recommended=True, recommendation=f"recommended: fitted on a calibration window "
+                 f"(coverage {r['coverage']:.0%})")
+    elif motor is not None and motor.wmm is not None and motor.wmm.status == "ok":
+        used = motor.wmm
         cal = _from_inflight(r, motor.wmm, cf)
-    elif cal is None and wmm is not None and wmm.status == "ok":
+    elif wmm is not None and wmm.status in ("ok", "weak"):
+        used = wmm          # weak: an answer with its 1σ, marked not recommended (status "weak")
         cal = _from_inflight(r, wmm, cf)
         motor = None if wmm is None or "f_x" not in wmm.fitted else motor
-    return _finish(r, log, cf, ctx, settings, step, wmm, motor, cal, notes)
+    r, cal = _finish(r, log, cf, ctx, settings, step, wmm, motor, cal, notes)
+    if cal is None:
+        r.update(recommended=False, recommendation=r.get("recommendation") or (wmm.reason if wmm is not None else
+                 "no answer: " + r["message"].split("; ")[0]))
+    elif used is not None and used.status == "weak":
+        r["status"] = "weak"            # not a calibration to use: the station and review take status "ok" only
+        return r, None
+    return r, cal
 
 
 def _body_matrix(r: dict, log: FlightLog, cf: CompassField, ctx: LogContext, settings: CalibrateSettings, step,

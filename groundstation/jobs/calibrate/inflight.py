@@ -14,7 +14,8 @@ from groundstation.samples import FlightLog
 from .context import LogContext, attitude_for, gps_velocity_for
 from .settings import CalibrateSettings
 
-__all__ = ["FlightInputs", "flight_inputs", "inflight_step", "motor_step", "wmm_dict", "motor_dict"]
+__all__ = ["FlightInputs", "flight_inputs", "inflight_step", "motor_step", "wmm_dict", "motor_dict", "offsets_covariance",
+           "heading_change"]
 
 
 @dataclass(frozen=True)
@@ -87,7 +88,21 @@ def wmm_dict(fit: WmmFit, t_s: np.ndarray) -> dict:
             "fitted": list(fit.fitted), "residual_rms_mG": _r(fit.residual_rms_mG), "samples": fit.n_used,
             "rejected": {k: int(v) for k, v in fit.rejected.items()},
             "heading_coverage": _r(fit.heading_coverage, 3), "yaw_dependence": _r(fit.yaw_dependence, 3),
-            "yaw_disagreement_deg": _r(fit.yaw_disagreement_deg)}
+            "yaw_disagreement_deg": _r(fit.yaw_disagreement_deg), "recommended": bool(fit.recommended),
+            "recommendation": fit.reason, "offsets_covariance_mG2": offsets_covariance(fit),
+            "heading_change_deg": heading_change(fit), "sphere_coverage": _r(fit.sphere_coverage, 3)}
+
+
+def offsets_covariance(fit: WmmFit) -> list | None:
+    """The offsets' 3×3 covariance [mG²] (marginal over the terms held at nominal), None when no fit."""
+    c = np.asarray(fit.covariance, float)[:3, :3]
+    return [_vec(row, 2) for row in c] if np.all(np.isfinite(c)) else None
+
+
+def heading_change(fit: WmmFit) -> dict | None:
+    """How much the new calibration would turn the heading against the corrections in force [deg]."""
+    rms, worst = fit.heading_change_deg
+    return None if not np.isfinite(worst) else {"rms": _r(rms), "max": _r(worst)}
 
 
 def motor_dict(fit: MotorFieldFit, compass: int, px4_slot: int | None, sensor_to_body: np.ndarray | None = None) -> dict:

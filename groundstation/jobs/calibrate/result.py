@@ -6,7 +6,10 @@ parameters come from), samples, offsets_mG (b of m_cal = C (m_raw − b)), offse
 relative_to ("raw": absolute, the parameters to write; "corrections": relative to the corrections
 in force recorded in corrections_in_force; "unknown": relative to corrections nobody knows — see
 frame.py), corrections_in_force (o, N and the autopilot's parameters of the log), field_strength_mG,
-expected_field_mG (WMM), residual_rms_mG, coverage (of the chosen window's
+expected_field_mG (WMM), residual_rms_mG, recommended (true / false: write these parameters or not), recommendation (why, in
+words, or what flight would make the offsets observable), offsets_covariance_mG2 (3×3, of an in-flight
+fit), heading_change_deg ({rms, max}: how far the new calibration turns the heading against the
+corrections in force), coverage (of the chosen window's
 direction cells, or the heading coverage of an in-flight fit), misalignment_deg, condition_number,
 ardupilot_params / px4_params (names follow the instance: COMPASS_OFS2_X, CAL_MAG1_XOFF, motor
 COMPASS_MOT*, orientation COMPASS_ORIENT* when found), corrections (what the autopilot had in
@@ -36,7 +39,9 @@ def empty_result(source: str, compass: int = 0) -> dict:
             "expected_field_mG": None, "residual_rms_mG": None, "coverage": 0.0, "misalignment_deg": None,
             "condition_number": None, "ardupilot_params": {}, "px4_params": {}, "corrections": None,
             "windows": [], "onboard_report": None, "inflight": None, "motor": None, "orientation": None,
-            "consistency": None, "relative_to": None, "corrections_in_force": None, "settings": settings_record(DEFAULT_SETTINGS)}
+            "consistency": None, "relative_to": None, "corrections_in_force": None, "recommended": None,
+            "recommendation": None, "offsets_covariance_mG2": None, "heading_change_deg": None,
+            "settings": settings_record(DEFAULT_SETTINGS)}
 
 
 def error_result(file: str, message: str, status: str = "error") -> dict:
@@ -90,8 +95,10 @@ def format_summary(result: dict) -> str:
     head = f"{result.get('file')}" + (f" compass {comp}" if comp is not None else "")
     if result.get("device_id"):
         head += f" (device {result['device_id']})"
-    frame = f", {frame_label(result)}" if result.get("relative_to") and result.get("status") == "ok" else ""
+    frame = f", {frame_label(result)}" if result.get("relative_to") and result.get("status") in ("ok", "weak") else ""
     lines = [f"{head}: {result.get('status')}" + (f" [{result['method']}]" if result.get("method") else "") + frame]
+    if result.get("recommendation"):
+        lines.append(f"  {result['recommendation']}")
     if result.get("message"):
         lines.append(f"  {result['message']}")
     lines.append(f"  samples {result.get('samples', 0)}, coverage {_num(result.get('coverage'), '{:.0%}')}, "
@@ -101,6 +108,8 @@ def format_summary(result: dict) -> str:
                  f"{_num(result.get('expected_field_mG'), unit='mG')} expected (WMM)")
     if result.get("offsets_mG"):
         lines.append("  offsets mG  " + "  ".join(f"{_num(v, '{:.1f}'):>8}" for v in result["offsets_mG"]))
+        if result.get("offsets_sd_mG") and None not in result["offsets_sd_mG"]:
+            lines.append("  1σ mG      " + "  ".join(f"{_num(v, '{:.1f}'):>8}" for v in result["offsets_sd_mG"]))
         for i, row in enumerate(result["matrix"]):
             lines.append(("  matrix      " if i == 0 else "              ")
                          + "  ".join(f"{_num(v, '{:.4f}'):>8}" for v in row))
