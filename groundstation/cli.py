@@ -206,13 +206,17 @@ def _load_calibration(path: str) -> dict:
     if not isinstance(candidates, list):
         raise CliError(f"{path}: 'results' must be a list of calibration objects")
     for result in candidates:     # "no_parameters": an older calibrate's relative fit
-        if isinstance(result, dict) and result.get("status") in ("ok", "no_parameters") \
-                and result.get("offsets_mG") is not None:
-            try:
-                check_calibration(result)
-            except ValueError as err:
-                raise CliError(f"{path}: unusable calibration: {err}") from err
-            return result
+        if not isinstance(result, dict) or result.get("status") not in ("ok", "no_parameters"):
+            continue
+        if result.get("offsets_mG") is None:
+            if result.get("status") == "ok":
+                raise CliError(f"{path}: unusable calibration: offsets_mG missing")
+            continue
+        try:
+            check_calibration(result)
+        except ValueError as err:
+            raise CliError(f"{path}: unusable calibration: {err}") from err
+        return result
     raise CliError(f"{path}: holds no calibration with status 'ok'")
 
 

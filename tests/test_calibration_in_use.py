@@ -267,7 +267,7 @@ def test_analyze_params_make_the_log_raw_known(logs, tmp_path, capsys):
     assert main(["analyze", str(logs["fast-raw"]), "--calibration", str(cal), "--params", str(pfile),
                  "--json", str(out)]) == 0
     report = json.loads(out.read_text())
-    assert report["calibration_in_use"] == "absolute: absolute calibration applied to the raw field"
+    assert report["calibration_in_use"] == "absolute calibration applied to the raw field"
     assert logs["onset_s"] < report["first_alarm_s"] < logs["onset_s"] + 5.0
     assert main(["analyze", str(logs["fast-raw"]), "--calibration", str(cal), "--json", str(out)]) == 0
     assert "right only if the vehicle was never calibrated" in json.loads(out.read_text())["calibration_in_use"]

@@ -218,7 +218,7 @@ def test_good_calibration_json_is_used(tmp_path, capsys):
     path = tmp_path / "cal.json"
     path.write_text(json.dumps({"results": [GOOD_CAL]}))
     assert main(["analyze", str(DATA / "reference.tlog"), "--calibration", str(path)]) == 0
-    assert "calibration: applied" in capsys.readouterr().out
+    assert "calibration: absolute calibration applied to the raw field" in capsys.readouterr().out
 
 
 # ------------------------------------------------------------------------------ terminal output

@@ -27,7 +27,7 @@ from estimators.ins_gps import MODE_NAMES
 from groundstation.jobs.alarm_explain import STEP_KEYS, explain_span, explanation_text
 from groundstation.jobs.compass_report import compass_summaries
 from groundstation.jobs.flight_plot import vector_test_status
-from groundstation.jobs.calibrate.frame import for_log, frame_label, relative_to
+from groundstation.jobs.calibrate.frame import for_log, relative_to
 from groundstation.jobs.inputs import calibration_arrays, detection_inputs, heading_deg, primary_field, rounded
 from groundstation.jobs.motor_heading import attitude_chain, best_heading_chain
 from groundstation.jobs.navigation import ins_runs
@@ -168,8 +168,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "calibration": calibration if calibration else None,
         "calibration_applied": cal is not None,
         "calibration_relative_to": relative_to(calibration) if cal is not None else None,
-        "calibration_in_use": (f"{frame_label(calibration)}: {x['calibration_note']}" if cal is not None
-                               else x["policy"].note),
+        "calibration_in_use": x["calibration_note"] if cal is not None else x["policy"].note,
         "declination_deg": rounded(ef.declination_deg) if ef else None,
         "inclination_deg": rounded(ef.inclination_deg) if ef else None,
         "field_strength_mG": rounded(ef.field_strength_mG, 1) if ef else None,
