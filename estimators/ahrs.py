@@ -113,6 +113,8 @@ class AhrsSettings:
     rest_filter_s: float = 1.0               # that low-pass of the block means
     acc_norm_tol_mps2: float = 1.0           # | |x1| − g | above this: tilt held on the gyro
     acc_reject_deg: float = 10.0             # x1 this far from x2: tilt held on the gyro
+    acc_sustained_deg: float = 6.0           # x1 this far from x2 ...
+    acc_sustained_s: float = 0.5             # ... this long in a row (a sustained acceleration): likewise
     acc_recovery_s: float = 5.0              # held this long: use the accelerometer until recovered
     field_norm_tol: float = 0.0557             # strength departs from the reference by this fraction
     field_dip_tol_deg: float = 3.41           # dip departs from the reference by this much

@@ -59,7 +59,9 @@ class Supervisor:
         self.ref_dip = math.radians(expected_field.inclination_deg) if expected_field else 0.0
         self.lp_w: list | None = None
         self.lp_f: list | None = None
+        self.sus_t = 0.0                             # time x1 has been over acc_sustained_deg from x2 [s]
         self._cos_acc = math.cos(math.radians(s.acc_reject_deg))
+        self._cos_sus = math.cos(math.radians(s.acc_sustained_deg))
         self._psi_max = math.radians(s.mag_reject_deg)
         self._dip_tol = math.radians(s.field_dip_tol_deg)
         self._g2, self._a2 = s.rest_gyro_rad_s ** 2, s.rest_acc_mps2 ** 2
@@ -172,7 +174,7 @@ class Supervisor:
         s = self.s
         zero = (0.0, 0.0, 0.0)
         if b.reinit_gravity or not b.gravity_init:
-            self.acc_trig, self.acc_recovering, self.var_g = 0.0, False, ACCEPT
+            self.acc_trig, self.acc_recovering, self.var_g, self.sus_t = 0.0, False, ACCEPT, 0.0
             return zero
         used = self.var_g == ACCEPT
         a0, a1, a2 = b.fast_end
@@ -183,8 +185,13 @@ class Supervisor:
             return zero
         u1 = (a0 / n1, a1 / n1, a2 / n1)
         u2 = (c0 / n2, c1 / n2, c2 / n2)
-        bad = (u1[0] * u2[0] + u1[1] * u2[1] + u1[2] * u2[2] < self._cos_acc
-               or abs(n1 - s.gravity_mps2) > s.acc_norm_tol_mps2)
+        cos12 = u1[0] * u2[0] + u1[1] * u2[1] + u1[2] * u2[2]
+        # a sustained acceleration (the second detector): x1 more than acc_sustained_deg from x2 for
+        # acc_sustained_s in a row; with k2 > k1 a 0.5 g step peaks at ~7° of x1-x2 angle, under the
+        # immediate acc_reject_deg, while the oscillating translations of BROAD's trial 15 stay shorter
+        self.sus_t = self.sus_t + T if cos12 < self._cos_sus else 0.0
+        bad = (cos12 < self._cos_acc or abs(n1 - s.gravity_mps2) > s.acc_norm_tol_mps2
+               or self.sus_t >= s.acc_sustained_s)
         self.acc_trig = trig = self._trigger(self.acc_trig, bad, T, s.acc_recovery_s)
         if trig >= s.acc_recovery_s:
             self.acc_recovering = True
