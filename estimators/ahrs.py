@@ -52,7 +52,9 @@ Information Fusion 91:187, 2023).  Beyond the seeds:
    block-mean field when it is accepted (``rest_field_time_s``), so tilt and heading settle within
    a hold of a few seconds instead of over the motion time constants; the rest low-pass restarts
    from the block after every block that is not still, so a hold after a move is seen after
-   ``rest_time_s``; a block whose |f̄| departs from g by ``acc_norm_tol_mps2`` is not still.
+   ``rest_time_s``; a block whose |f̄| departs from g by ``acc_norm_tol_mps2``, or whose f̄ is
+   more than ``rest_dir_deg`` from the gyro-tracked tilt x2 (a steady acceleration turns f without
+   the gyro turning), is not still.
    In motion the tilt-axes bias path learns only in quasi-static blocks (specific-force spread
    under ``bias_acc_spread_mps2``, | |f̄| − g | under ``bias_acc_norm_mps2``), the role of VQF's
    motion bias estimation being trusted only when the accelerometer is.
@@ -119,6 +121,7 @@ class AhrsSettings:
     rest_acc_mps2: float = 0.425               # specific-force spread inside a block below this
     rest_gyro_drift_rad_s: float = math.radians(0.3)  # block-mean gyro off its low-pass below this
     rest_acc_drift_mps2: float = 0.1         # block-mean f off its low-pass below this (~0.6° of tilt)
+    rest_dir_deg: float = 5.0               # block-mean f within this of the tilt (x2) to be still
     rest_filter_s: float = 1.0               # that low-pass of the block means
     acc_norm_tol_mps2: float = 1.0           # | |x1| − g | above this: tilt held on the gyro
     acc_reject_deg: float = 10.0             # x1 this far from x2: tilt held on the gyro

@@ -64,6 +64,7 @@ class Supervisor:
         self.sus_t = 0.0                             # time x1 has been over acc_sustained_deg from x2 [s]
         self._cos_acc = math.cos(math.radians(s.acc_reject_deg))
         self._cos_sus = math.cos(math.radians(s.acc_sustained_deg))
+        self._cos_rest_dir = math.cos(math.radians(s.rest_dir_deg))
         self._psi_max = math.radians(s.mag_reject_deg)
         self._dip_tol = math.radians(s.field_dip_tol_deg)
         self._g2, self._a2 = s.rest_gyro_rad_s ** 2, s.rest_acc_mps2 ** 2
@@ -139,9 +140,11 @@ class Supervisor:
         """Still: the gyro and specific-force spread inside the block (vibration, shocks), |f̄| within
         ``acc_norm_tol_mps2`` of g (a steady acceleration is not rest), and the
         drift of the block means from their low-pass (a slow rotation about a horizontal axis turns
-        the specific force) under the thresholds; at rest after ``rest_time_s`` still (VQF's rest
-        detection on block means).  A slow turn about the vertical below ``bias_max_rad_s`` is not
-        seen: a platform yawing slowly while otherwise still is taken for a gyro bias."""
+        the specific force) under the thresholds, and f̄ within ``rest_dir_deg`` of the gyro-tracked
+        tilt x2 (a specific force that turned without the gyro turning is a steady acceleration); at
+        rest after ``rest_time_s`` still (VQF's rest detection on block means).  A slow turn about
+        the vertical below ``bias_max_rad_s`` is not seen: a platform yawing slowly while otherwise
+        still is taken for a gyro bias."""
         if not (b.gyro_n and b.force_n):
             self.rest_t, self.at_rest, self.acc_quiet = 0.0, False, False
             return
@@ -158,6 +161,10 @@ class Supervisor:
         still = (b.gyro_sq / ng - (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) < self._g2
                  and f_spread2 < self._a2 and abs(math.sqrt(f2) - s.gravity_mps2) < s.acc_norm_tol_mps2
                  and max(abs(w[0]), abs(w[1]), abs(w[2])) < s.bias_max_rad_s)
+        c = b.gravity_end
+        cn = math.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]) * math.sqrt(f2)
+        if b.gravity_init and cn > 0.0:      # f̄ turned away from the gyro-tracked tilt: not gravity
+            still = still and (f[0] * c[0] + f[1] * c[1] + f[2] * c[2]) / cn > self._cos_rest_dir
         k = self._k_rest_lp
         for x, lp, lim2 in ((w, self.lp_w, self._gd2), (f, self.lp_f, self._ad2)):
             d0, d1, d2 = x[0] - lp[0], x[1] - lp[1], x[2] - lp[2]
