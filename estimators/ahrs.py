@@ -102,8 +102,9 @@ class AhrsSettings:
     settle within a hold); the gravity stages (k2 > k1) and the quasi-static gating of the
     tilt-bias path carry BROAD's fast translation; the tighter field tests (5.6 %, 3.4°, 5.4°) and
     the new-field acceptance counted while turning carry the magnet trials.  The sustained and
-    knock tests of the acceleration rejection never fire on BROAD (identical figures) and hold a
-    sustained 0.5 g from 1.2 s in and a 2 g knock from rest (tests/test_ahrs.py).
+    knock tests of the acceleration rejection and the rest direction test change nothing on BROAD
+    (identical figures); they hold a sustained 0.5 g from 1.2 s in and a 2 g knock from rest, and
+    keep a sustained 0.3 g from being taken for rest (tests/test_ahrs.py).
     A 0.1 s block keeps the batch chain near 300k IMU samples/s."""
     gravity_gain_per_s: float = 0.459          # k1: accelerometer → first gravity stage
     gravity_smoothing_per_s: float = 0.817     # k2: first → second stage (tilt)
