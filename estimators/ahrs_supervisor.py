@@ -59,7 +59,12 @@ class Supervisor:
         self.ref_dip = math.radians(expected_field.inclination_deg) if expected_field else 0.0
         self.lp_w: list | None = None
         self.lp_f: list | None = None
+        self.knock = self.reset_x1 = False            # a knock from rest is being held; x1 := x2 due
+        self.knock_t = 0.0                           # time since the knock [s]
+        self.sus_t = 0.0                             # time x1 has been over acc_sustained_deg from x2 [s]
         self._cos_acc = math.cos(math.radians(s.acc_reject_deg))
+        self._cos_sus = math.cos(math.radians(s.acc_sustained_deg))
+        self._cos_rest_dir = math.cos(math.radians(s.rest_dir_deg))
         self._psi_max = math.radians(s.mag_reject_deg)
         self._dip_tol = math.radians(s.field_dip_tol_deg)
         self._g2, self._a2 = s.rest_gyro_rad_s ** 2, s.rest_acc_mps2 ** 2
@@ -85,8 +90,9 @@ class Supervisor:
         T = b.duration_s
         if round(T, 9) != self._T:             # block durations repeat up to round-off
             self._gains(round(T, 9))
+        was_rest = self.at_rest
         self._rest(b, T)
-        r_g = self._gravity(b, T)
+        r_g = self._gravity(b, T, was_rest)
         psi, up = self._field(b, T)
         bx, by, bz = self.bias
         if self.at_rest and b.gyro_n:
@@ -107,6 +113,9 @@ class Supervisor:
             v[0] = c * vx - sn * (ty * vz - tz * vy) + d * tx
             v[1] = c * vy - sn * (tz * vx - tx * vz) + d * ty
             v[2] = c * vz - sn * (tx * vy - ty * vx) + d * tz
+        if self.reset_x1:                                  # the knock is over: x1 restarts from x2
+            self.reset_x1 = False
+            b.fast_end[:] = b.gravity_end
         if self.at_rest:
             self._pull_at_rest(b)
         return b.fast_end, b.gravity_end, b.field_end
@@ -131,9 +140,11 @@ class Supervisor:
         """Still: the gyro and specific-force spread inside the block (vibration, shocks), |f̄| within
         ``acc_norm_tol_mps2`` of g (a steady acceleration is not rest), and the
         drift of the block means from their low-pass (a slow rotation about a horizontal axis turns
-        the specific force) under the thresholds; at rest after ``rest_time_s`` still (VQF's rest
-        detection on block means).  A slow turn about the vertical below ``bias_max_rad_s`` is not
-        seen: a platform yawing slowly while otherwise still is taken for a gyro bias."""
+        the specific force) under the thresholds, and f̄ within ``rest_dir_deg`` of the gyro-tracked
+        tilt x2 (a specific force that turned without the gyro turning is a steady acceleration); at
+        rest after ``rest_time_s`` still (VQF's rest detection on block means).  A slow turn about
+        the vertical below ``bias_max_rad_s`` is not seen: a platform yawing slowly while otherwise
+        still is taken for a gyro bias."""
         if not (b.gyro_n and b.force_n):
             self.rest_t, self.at_rest, self.acc_quiet = 0.0, False, False
             return
@@ -150,6 +161,10 @@ class Supervisor:
         still = (b.gyro_sq / ng - (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) < self._g2
                  and f_spread2 < self._a2 and abs(math.sqrt(f2) - s.gravity_mps2) < s.acc_norm_tol_mps2
                  and max(abs(w[0]), abs(w[1]), abs(w[2])) < s.bias_max_rad_s)
+        c = b.gravity_end
+        cn = math.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]) * math.sqrt(f2)
+        if b.gravity_init and cn > 0.0:      # f̄ turned away from the gyro-tracked tilt: not gravity
+            still = still and (f[0] * c[0] + f[1] * c[1] + f[2] * c[2]) / cn > self._cos_rest_dir
         k = self._k_rest_lp
         for x, lp, lim2 in ((w, self.lp_w, self._gd2), (f, self.lp_f, self._ad2)):
             d0, d1, d2 = x[0] - lp[0], x[1] - lp[1], x[2] - lp[2]
@@ -164,15 +179,18 @@ class Supervisor:
         trig = trig + T if bad else trig - self.s.recovery_ratio * T
         return min(max(trig, 0.0), limit)
 
-    def _gravity(self, b: BlockSums, T: float) -> tuple:
-        """Acceleration rejection on the low-passed stages: a sustained acceleration shows as |x1|
-        departing from g or x1 turning away from x2; then x2 holds on the gyro.  Returns the
+    def _gravity(self, b: BlockSums, T: float, was_rest: bool) -> tuple:
+        """Acceleration rejection on the low-passed stages: an acceleration shows as |x1| departing
+        from g or x1 turning away from x2 (at once over ``acc_reject_deg``, or over
+        ``acc_sustained_deg`` for ``acc_sustained_s``), a knock right after rest as the block's RMS
+        |f| departing from g; then x2 holds on the gyro.  Returns the
         tilt-bias measurement r = x̂2 × x̂1 (times k2 in ``_gains``; zero when not usable): the
         second stage lags the first by β⊥/k2 under a residual bias β."""
         s = self.s
         zero = (0.0, 0.0, 0.0)
         if b.reinit_gravity or not b.gravity_init:
-            self.acc_trig, self.acc_recovering, self.var_g = 0.0, False, ACCEPT
+            self.acc_trig, self.acc_recovering, self.var_g, self.sus_t = 0.0, False, ACCEPT, 0.0
+            self.knock = False
             return zero
         used = self.var_g == ACCEPT
         a0, a1, a2 = b.fast_end
@@ -183,8 +201,24 @@ class Supervisor:
             return zero
         u1 = (a0 / n1, a1 / n1, a2 / n1)
         u2 = (c0 / n2, c1 / n2, c2 / n2)
-        bad = (u1[0] * u2[0] + u1[1] * u2[1] + u1[2] * u2[2] < self._cos_acc
-               or abs(n1 - s.gravity_mps2) > s.acc_norm_tol_mps2)
+        cos12 = u1[0] * u2[0] + u1[1] * u2[1] + u1[2] * u2[2]
+        # a sustained acceleration (the second detector): x1 more than acc_sustained_deg from x2 for
+        # acc_sustained_s in a row; with k2 > k1 a 0.5 g step peaks at ~7° of x1-x2 angle, under the
+        # immediate acc_reject_deg, while the oscillating translations of BROAD's trial 15 stay shorter
+        self.sus_t = self.sus_t + T if cos12 < self._cos_sus else 0.0
+        # a knock on a body at rest (the third detector): the block's RMS |f| (rotation-invariant)
+        # departs from g by over acc_knock_mps2 right after rest; x2 holds until a block is back
+        # within acc_knock_end_mps2 (at most acc_knock_hold_s), then x1, which low-passed the knock,
+        # restarts from x2 (``close``) instead of handing the knock's residue to the tilt
+        dev = abs(math.sqrt(b.force_sq / b.force_n) - s.gravity_mps2) if b.force_n else 0.0
+        if was_rest and dev > s.acc_knock_mps2:
+            self.knock, self.knock_t = True, 0.0
+        elif self.knock:
+            self.knock_t += T
+        if self.knock and (dev < s.acc_knock_end_mps2 or self.knock_t >= s.acc_knock_hold_s):
+            self.knock, self.reset_x1 = False, True
+        bad = (cos12 < self._cos_acc or abs(n1 - s.gravity_mps2) > s.acc_norm_tol_mps2
+               or self.sus_t >= s.acc_sustained_s or self.knock)
         self.acc_trig = trig = self._trigger(self.acc_trig, bad, T, s.acc_recovery_s)
         if trig >= s.acc_recovery_s:
             self.acc_recovering = True
