@@ -220,13 +220,19 @@ def test_station_reads_vehicle_params_on_link_up(tmp_path):
     session = Session(tmp_path, record_live=False)
     session.connect(f"udpin:127.0.0.1:{port}")
     fv = FakeVehicle(rotation_dance_messages(turn_s=1.0, tumble_s=1.0), port,
-                     params={"COMPASS_OFS_X": 12.5, "COMPASS_DIA_X": 1.02}).start()
+                     params={"COMPASS_OFS_X": 12.5, "COMPASS_DIA_X": 1.02})
+    fv.hold_before = 0          # heartbeats first (as ArduPilot): link up and vehicle found in one packet
+    fv.start()
     try:
         assert wait_for(lambda: session.params.get("COMPASS_OFS_X") == 12.5, timeout=5)
         assert session.params.get("COMPASS_DIA_X") == pytest.approx(1.02)
+        time.sleep(1.0)                         # a second download would have been asked by now
+        texts = [e["text"] for e in session.snapshot()["events"]]
     finally:
         fv.stop()
         session.close()
+    assert any(t.startswith("link up") for t in texts) and any("following vehicle" in t for t in texts), texts
+    assert fv.param_lists == 1, (fv.param_lists, texts)   # once at connect: not on link up and again on vehicle found
 
 
 def test_gps_fix_lost_and_back_events(tmp_path):

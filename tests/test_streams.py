@@ -120,6 +120,7 @@ def test_stale_data_reboot_and_outgoing_packets_recorded(tmp_path):
     enc, parser = m.MAVLink(None, srcSystem=1, srcComponent=1), m.MAVLink(None)
     parser.robust_parsing = True
     requests: list[float] = []
+    asked: list[int] = []                       # the message ids of the SET_MESSAGE_INTERVAL requests
     samples: list = []
     boot_ms, t_start = 100_000, time.monotonic()
     last_hb = 0.0
@@ -142,7 +143,9 @@ def test_stale_data_reboot_and_outgoing_packets_recorded(tmp_path):
                 for msg in parser.parse_buffer(veh.recv(4096)) or []:
                     if msg.get_type() == "COMMAND_LONG" and msg.command == 511:
                         requests.append(now - t_start)
-                        ack = m.MAVLink_command_ack_message(511, 0, 0, 0, 255, 0)
+                        asked.append(int(msg.param1))
+                        denied = int(msg.param1) == m.MAVLINK_MSG_ID_SENSOR_OFFSETS    # as ArduPilot 4.7
+                        ack = m.MAVLink_command_ack_message(511, 2 if denied else 0, 0, 0, 255, 0)
                         veh.sendto(bytes(ack.pack(enc)), ("127.0.0.1", port))
         except (BlockingIOError, m.MAVError):
             pass
@@ -165,10 +168,14 @@ def test_stale_data_reboot_and_outgoing_packets_recorded(tmp_path):
         while time.monotonic() < end:
             step(True)
         assert link.stale_reason is None
+        rows = {r["name"]: r for r in link.streams_snapshot()["messages"]}
     finally:
         veh.close()
         link.close()
         recorder.close()
+    # asked after the connect, the stale data and the reboot; the refused SENSOR_OFFSETS only once
+    assert asked.count(m.MAVLINK_MSG_ID_ATTITUDE) >= 3 and asked.count(m.MAVLINK_MSG_ID_SENSOR_OFFSETS) == 1, asked
+    assert rows["SENSOR_OFFSETS"]["state"] == "not available" and "denied" in rows["SENSOR_OFFSETS"]["why"]
     kinds = [(s.kind, s.text) for s in samples if isinstance(s, StatusSample)]
     assert any(k == "live_data" and t.startswith("no attitude data") for k, t in kinds)
     assert any(k == "live_data" and t == "live data resumed" for k, t in kinds)

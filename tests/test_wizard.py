@@ -315,3 +315,35 @@ def test_px4_vehicle_with_an_old_calibration_refitted_and_written(tmp_path):
     for name, value in sent.items():
         assert fv.params[name] == pytest.approx(value, abs=1e-6 * max(1.0, abs(value)))
     assert session.snapshot()["calibration_in_use"]          # the vehicle's, now
+
+
+def test_compass_1_follows_raw_imu_even_when_scaled_imu_is_heard_first():
+    """Another station has SCALED_IMU streamed at a low rate (here reading 300 mG off, so that a
+    wrong choice shows in the offsets) and its first packet comes before RAW_IMU's: the wizard keeps
+    the lowest source of compass 1 (RAW_IMU, instance 0), the live analysis' rule."""
+    from groundstation.io.mavlink import mavlink2 as m
+
+    hw = make_hardware(three_compasses())
+    msgs, n_raw = [], 0
+    for unix, msg in pack_stream(guided_dance_attitude(), hw):
+        if msg.get_type() == "RAW_IMU":
+            if n_raw % 5 == 0:
+                msgs.append((unix - 0.001, m.MAVLink_scaled_imu_message(
+                    msg.time_usec // 1000, msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro,
+                    msg.xmag + 300, msg.ymag - 300, msg.zmag + 300)))
+            n_raw += 1
+        msgs.append((unix, msg))
+    assert msgs[0][1].get_type() == "SCALED_IMU"
+    w = CalibrationWizard()
+    w.start()
+
+    def step(_t):
+        if w.state == "running" and w.ready():
+            w.finish("ardupilot", PARAMS)
+
+    feed(w, msgs, until=lambda t: w.state == "result", on_step=step)
+    assert w.state == "result" and w.tracks[0].instance == 0
+    # RAW_IMU's rate (that of SCALED_IMU2 for compass 2), not a fifth of it
+    assert len(w.tracks[0].mag.view()) >= 0.95 * len(w.tracks[1].mag.view()) > 1000
+    p = w.result["ardupilot_params"]
+    np.testing.assert_allclose([p[f"COMPASS_OFS_{a}"] for a in "XYZ"], -hw.compasses[0].offsets_mG, atol=3.0)

@@ -43,6 +43,13 @@ def compass_of_source(instance: int) -> int:
     return instance - 10 if instance >= 10 else instance
 
 
+def preferred_source(current: int | None, instance: int) -> int:
+    """The source kept of those carrying one compass (or IMU) live: the lowest instance heard
+    (RAW_IMU 0 before SCALED_IMU 10 before HIGHRES_IMU 20+id), whichever came first; the rule
+    of the live analysis (jobs.live.LiveAnalyzer.accepts), the wizard and the dance cloud."""
+    return int(instance) if current is None or int(instance) < current else current
+
+
 def source_name(instance: int) -> str:
     instance = int(instance)
     return SOURCE_NAMES.get(instance, f"HIGHRES_IMU[{instance - 20}]" if instance >= 20 else f"source {instance}")

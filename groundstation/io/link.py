@@ -461,6 +461,7 @@ class LiveLink:
     def _request_streams(self, now: float, names: list[str]) -> None:
         """SET_MESSAGE_INTERVAL for each of ``names`` at its own rate (STREAMS)."""
         self._streams_requested_at = now
+        names = self.streams.to_ask(names)
         autopilot = self.decoder.autopilot
         specs = {s.name: s for s in STREAMS}
         sent = []

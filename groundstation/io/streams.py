@@ -92,10 +92,23 @@ class StreamTracker:
         self._unanswered: list[str] = []
         self.fallback_sent_unix: float | None = None
         self.any_ack = False
+        # optional messages this vehicle refused (name -> MAV_RESULT): asked once, never again (each
+        # request of SENSOR_OFFSETS makes ArduPilot 4.7 post "No ap_message for mavlink id (150)")
+        self.unavailable: dict[str, int] = {}
 
     def restart(self) -> None:
-        """Forget requests and arrivals (a reboot: the vehicle's stream rates are back to its defaults)."""
+        """Forget requests and arrivals (a reboot: the vehicle's stream rates are back to its
+        defaults); the optional messages it refused stay refused."""
+        unavailable, old = self.unavailable, self.streams
         self.__init__()
+        self.unavailable = unavailable
+        for name in unavailable:
+            st = self.streams[name]
+            st.requested_unix, st.tries, st.ack = old[name].requested_unix, old[name].tries, old[name].ack
+
+    def to_ask(self, names) -> list[str]:
+        """``names`` less the optional messages this vehicle already refused."""
+        return [n for n in names if n not in self.unavailable]
 
     def requested(self, names, unix: float) -> None:
         for name in names:
@@ -109,7 +122,10 @@ class StreamTracker:
         if not self._unanswered:
             return None
         name = self._unanswered.pop(0)
-        self.streams[name].ack = int(result)
+        st = self.streams[name]
+        st.ack = int(result)
+        if st.spec.optional and st.ack != 0:
+            self.unavailable[name] = st.ack
         return name
 
     def seen(self, name: str, unix: float) -> None:

@@ -27,6 +27,7 @@ from estimators.field_consistency import FieldConsistency
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import HeadingChain
 
+from groundstation.io.decode import preferred_source
 from groundstation.jobs.alarm_explain import SCORE_NAMES, ExplainHistory
 from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, GPS_COLUMNS, GPS_TIMEOUT_S, MOTOR_TIMEOUT_S,
                                        RATE_WINDOW, FieldPolicy, Held, StepState, earth_prior_mG, field_policy,
@@ -115,9 +116,7 @@ class LiveAnalyzer:
     def accepts(self, s: Sample) -> bool:
         if isinstance(s, (MagSample, ImuSample)):
             kind = type(s).__name__
-            primary = self._primary.get(kind)
-            if primary is None or s.instance < primary:
-                self._primary[kind] = primary = s.instance
+            self._primary[kind] = primary = preferred_source(self._primary.get(kind), s.instance)
             return s.instance == primary
         return True
 

@@ -73,6 +73,7 @@ class FakeVehicle:
         self.send_times: list[float] = []   # time.monotonic() of each simulation message sent
         self.record_send_times = False
         self.param_sets: list[tuple[str, float]] = []
+        self.param_lists = 0                     # PARAM_REQUEST_LIST received (whole-table downloads)
         self.commands: list[tuple[int, tuple]] = []       # (command, params) received
         self.calibrator = OnboardCalibrator()
         self.last_corrected: dict[int, np.ndarray] = {}   # compass -> last reported field (mG)
@@ -283,6 +284,7 @@ class FakeVehicle:
             if name in self.params:
                 self._param_value(name)
         elif kind == "PARAM_REQUEST_LIST":
+            self.param_lists += 1
             for name in sorted(self.params):
                 self._param_value(name)
         elif kind == "COMMAND_LONG":

@@ -155,6 +155,21 @@ def station_link(session, timeout_s: float = 30.0):
     raise TimeoutError("the station never heard the SITL vehicle")
 
 
+def station_for(sitl: Sitl, recordings: Path, timeout_s: float = 40.0):
+    """A station session listening on the SITL's UDP port (udpin on loopback), following it
+    (raises RuntimeError with the end of the SITL's output when it is never heard)."""
+    from groundstation.station.hub.session import Session
+
+    session = Session(recordings)
+    session.connect(f"udpin:127.0.0.1:{sitl.port}")
+    try:
+        station_link(session, timeout_s=timeout_s)
+    except TimeoutError:
+        session.close()
+        raise RuntimeError(f"the station never heard SITL (pid {sitl.pid}): {sitl.output()[-500:]}") from None
+    return session
+
+
 def command(session, cmd: int, *params: float) -> None:
     """COMMAND_LONG through the station (as its pages send them)."""
     link = station_link(session)

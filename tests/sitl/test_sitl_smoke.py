@@ -5,6 +5,7 @@ One calibration-rig run (three compasses with known offsets and soft iron, ``har
 serves the stream, onboard-calibration and recording tests; a quad run the reboot test."""
 from __future__ import annotations
 
+import shutil
 import time
 from collections import Counter
 
@@ -62,7 +63,13 @@ def rig_run(tmp_path_factory):
         finally:
             session.close()
     finally:
-        sitl.stop()
+        sitl.stop(keep=True)
+    try:                                   # the firmware's own .BIN of the run (LOG_DISARMED 1)
+        from groundstation.io.logs import read_log
+        bins = sitl.bin_logs()
+        seen["bin"] = read_log(max(bins, key=lambda p: p.stat().st_size)) if bins else None
+    finally:
+        shutil.rmtree(sitl.run_dir, ignore_errors=True)
     return seen
 
 
@@ -102,6 +109,21 @@ def test_onboard_calibrator_seen_per_compass_accepted_and_read_back(rig_run):
         assert np.allclose(c["report"]["ofs_mG"], truth, atol=1.0), (c["index"], c["report"]["ofs_mG"], truth)
     assert rig_run["param_write"]["state"] == "written"
     assert rig_run["read_back"] is not None
+
+
+def test_dataflash_bin_has_the_onboard_calibration_commands_and_the_saved_offsets(rig_run):
+    """ArduPilot 4.7's .BIN logs no calibration report: the start and the accept are MAVC records
+    (read as events) and the accepted offsets PARM records, equal to the reports the station saw."""
+    log = rig_run["bin"]
+    assert log is not None and rig_run["onboard"]["state"] == "reported"
+    kinds = [e.kind for e in log.mag_cal]
+    assert kinds == ["start", "accept"] and log.mag_cal[0].mask == 0, kinds     # mask 0: every compass
+    t_accept = log.mag_cal[1].t_s
+    for c in rig_run["onboard"]["compasses"]:
+        name = "COMPASS_OFS" + ("" if c["index"] == 0 else str(c["index"] + 1))
+        saved = [[v for t, n, v in log.param_history if n == f"{name}_{a}" and t >= t_accept - 1.0] for a in "XYZ"]
+        assert all(saved), (name, saved)
+        assert np.allclose([v[-1] for v in saved], c["report"]["ofs_mG"], atol=0.05), (name, saved)
 
 
 def test_session_tlog_has_both_directions_one_report_each_and_the_right_magnetometer_unit(rig_run):

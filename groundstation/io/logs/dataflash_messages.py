@@ -15,14 +15,14 @@ from __future__ import annotations
 import math
 from typing import Callable
 
-from ..decode import MAV_CMD_NAV_WAYPOINT
-from ...samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, MagSample, MissionSample, ParamSample,
-                        Sample, StatusSample, ThrottleSample)
+from ..decode import MAG_CAL_COMMANDS, MAV_CMD_NAV_WAYPOINT
+from ...samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, MagCalSample, MagSample, MissionSample,
+                        ParamSample, Sample, StatusSample, ThrottleSample)
 
 __all__ = ["DataFlashDecoder", "WANTED", "THROTTLE_PRIORITY"]
 
 WANTED = {"MAG", "MAG2", "MAG3", "IMU", "IMU2", "IMU3", "ATT", "GPS", "PARM", "CMD", "BAT", "BATT", "CURR",
-          "CTUN", "RCOU", "MSG"}
+          "CTUN", "RCOU", "MSG", "MAVC"}
 THROTTLE_PRIORITY = ("CTUN", "CURR", "RCOU")     # best throttle source first
 _SPLIT = {"MAG": 0, "MAG2": 1, "MAG3": 2, "IMU": 0, "IMU2": 1, "IMU3": 2}
 
@@ -58,7 +58,7 @@ class DataFlashDecoder:
             "MAG": self._mag, "MAG2": self._mag, "MAG3": self._mag, "IMU": self._imu, "IMU2": self._imu,
             "IMU3": self._imu, "ATT": self._att, "GPS": self._gps, "PARM": self._parm, "CMD": self._cmd,
             "BAT": self._bat, "BATT": self._bat, "CURR": self._curr, "CTUN": self._ctun, "RCOU": self._rcou,
-            "MSG": self._msg,
+            "MSG": self._msg, "MAVC": self._mavc,
         }
 
     # ------------------------------------------------------------------ time
@@ -151,6 +151,16 @@ class DataFlashDecoder:
         if None not in pwm:
             self.throttle["RCOU"].append((t, min(max((sum(pwm) / 4.0 - 1000.0) / 1000.0, 0.0), 1.0)))
         return []
+
+    def _mavc(self, m, mtype: str, t: float) -> list[Sample]:
+        """MAVC: a MAVLink command the vehicle received (Cmd, P1..P4, Res = MAV_RESULT).  ArduPilot
+        4.7 logs its onboard calibration only this way (no MAG_CAL_REPORT-like record; the accepted
+        values are PARM records): DO_START/ACCEPT/CANCEL_MAG_CAL it accepted (Res 0) are events."""
+        kind = MAG_CAL_COMMANDS.get(int(m.Cmd))
+        if kind is None or int(m.Res) != 0:
+            return []
+        mask = int(m.P1) if kind == "start" and math.isfinite(m.P1) else 0
+        return [MagCalSample(t, kind, -1, mask)]
 
     def _msg(self, m, mtype: str, t: float) -> list[Sample]:
         return [StatusSample(t, "statustext", str(m.Message))]

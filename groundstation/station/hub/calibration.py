@@ -19,6 +19,7 @@ from typing import Protocol
 
 import numpy as np
 
+from groundstation.io.decode import preferred_source
 from groundstation.io.mavlink import mavlink2
 from groundstation.samples import GpsSample, MagSample, Sample
 from groundstation.station.hub.after_write import AfterWrite
@@ -94,8 +95,10 @@ class CalibrationControl:
     def _keep_recent(self, s: MagSample) -> None:
         if self.wizard.state != "idle":
             return
-        if self._recent_instance is None:
-            self._recent_instance = s.instance       # RAW_IMU and SCALED_IMU both carry compass 0: keep one
+        keep = preferred_source(self._recent_instance, s.instance)   # RAW_IMU and SCALED_IMU both carry compass 1
+        if keep != self._recent_instance:
+            self._recent_instance = keep
+            self._recent_mag.clear()
         if s.instance != self._recent_instance or not all(math.isfinite(v) for v in s.mag_body_mG):
             return
         recent = self._recent_mag

@@ -155,7 +155,8 @@ class Session(SessionViews):
             self.vehicle.autopilot = s.text
         elif s.kind == "link":
             up = s.text.startswith("link up")
-            if up and getattr(self.sources.link, "sysid", None) is not None:   # else once a vehicle is found
+            # the first download is on "vehicle_found" (the same batch may hold both); again when restored
+            if up and self.sources.link_state == "lost" and getattr(self.sources.link, "sysid", None) is not None:
                 self.vehicle.request_params(self.sources.link)
             if up and self.sources.link_state == "lost":
                 self.event("link restored: " + s.text, "info")

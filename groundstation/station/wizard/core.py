@@ -22,6 +22,7 @@ import numpy as np
 
 from estimators.calibration import coverage_cells
 from estimators.geomag import decimal_year_from_unix, earth_field
+from groundstation.io.decode import preferred_source
 from groundstation.samples import AttitudeSample, GpsSample, ImuSample, MagSample, Sample, finite_or_none
 from groundstation.station.tables import GrowingTable
 from groundstation.station.wizard.compass import MAX_POINTS, CompassTrack, compass_index
@@ -155,18 +156,20 @@ class CalibrationWizard:
         if k is None or not all(math.isfinite(v) for v in s.mag_body_mG):
             return
         track = self.tracks.get(k)
-        if track is None:
+        if track is None or preferred_source(track.instance, s.instance) != track.instance:
+            # RAW_IMU, SCALED_IMU and HIGHRES_IMU may all carry compass 1: keep the lowest heard
+            # (the live analysis' rule), starting over when it comes after another one
             track = self.tracks[k] = CompassTrack(k, s.instance, self.settings)
+            self.latest_mag.pop(k, None)
         if s.instance != track.instance:
-            return                       # RAW_IMU and SCALED_IMU both carry compass 0: keep one
+            return
         recent = self.latest_mag.setdefault(k, deque(maxlen=RECENT_MAG_SAMPLES))
         recent.append(np.asarray(s.mag_body_mG, float))
         if self._collecting():
             track.on_mag(s.t_s, s.mag_body_mG)
 
     def _on_imu(self, s: ImuSample) -> None:
-        if self._imu_instance is None or s.instance < self._imu_instance:
-            self._imu_instance = s.instance
+        self._imu_instance = preferred_source(self._imu_instance, s.instance)
         if s.instance != self._imu_instance or not self._collecting():
             return
         g = np.asarray(s.gyro_rad_s, float)
