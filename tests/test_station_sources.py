@@ -87,8 +87,9 @@ def test_new_source_starts_clean(hub, folder):
     _replay(hub, folder / "demo.tlog")
     hub.replay_pause(True)
     hub.replay_seek(170.0)
-    hub.wizard_start()
     assert hub.snapshot()["line"] is not None and hub.snapshot()["alarm"]["active"]
+    hub.wizard_start()            # (on a replay it rewinds to the log's dance: issue 31)
+    assert hub.snapshot()["wizard"]["state"] != "idle"
     _replay(hub, folder / "dance.tlog")
     s = hub.snapshot()
     assert s["line"] is None and s["alarm_count"] == 0 and not s["alarm"]["active"]
