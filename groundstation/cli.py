@@ -8,9 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import sys
-import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator
@@ -19,29 +17,15 @@ from groundstation.io.params import ardupilot_never_calibrated
 from groundstation.io.errors import IngestError
 from groundstation.io.logs import read_log
 from groundstation.samples import FlightLog
-from groundstation.cli_fleet import add_fleet_simulate_options, add_params_options, add_review_parser
+from groundstation.cli_common import CliError, printable
+from groundstation.cli_fleet import add_params_options, add_review_parser
+from groundstation.cli_simulate import add_simulate_parser
 
 from groundstation.paths import RECORDINGS_DIR
 DEMO_RECORDING = RECORDINGS_DIR / "demo.tlog"
 
 
-class CliError(Exception):
-    """A user-facing failure: printed as one line, exit code 1."""
-
-
 MAX_CALIBRATION_BYTES = 10 << 20
-# control characters (C0, DEL, C1), bidi/zero-width controls, lone surrogates (undecodable file names)
-_UNPRINTABLE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e\u2066-\u2069\ud800-\udfff]")
-
-
-def printable(text: object, *, lines: bool = False) -> str:
-    """``text`` safe for a terminal: control characters from files (escape sequences, BEL,
-    bidi overrides) shown as \\xNN / \\uNNNN instead of acted on; newlines kept only when ``lines``."""
-    def escape(found: re.Match) -> str:
-        c = found.group()
-        return f"\\x{ord(c):02x}" if ord(c) < 0x100 else f"\\u{ord(c):04x}"
-    text = _UNPRINTABLE.sub(escape, str(text))
-    return text if lines else text.replace("\n", "\\n").replace("\t", " ")
 
 
 @contextmanager
@@ -194,7 +178,7 @@ def _write_params(path: str, results: list[dict]) -> None:
 def _load_calibration(path: str) -> dict:
     """The first calibration with status 'ok' in a `calibrate --json` file (or a bare result),
     checked (``check_calibration``).  Raises CliError (one line) otherwise."""
-    from groundstation.jobs.inputs import check_calibration
+    from groundstation.jobs.calibration_check import check_calibration
 
     try:
         if Path(path).stat().st_size > MAX_CALIBRATION_BYTES:
@@ -258,60 +242,6 @@ def _plot(path: str, log, calibration, mission, report: dict) -> None:
     except OSError as e:
         raise CliError(f"cannot write {path}: {e.strerror or e}") from None
     print(f"wrote {path}")
-
-
-def cmd_simulate(args: argparse.Namespace) -> int:
-    from .sim.scenarios import SCENARIOS, simulate
-
-    if args.scenario == "fleet":
-        if args.out is None or args.live is not None:
-            raise CliError("simulate fleet writes a folder: give --out DIR (no --live)")
-        from groundstation.cli_fleet import cmd_simulate_fleet
-        return cmd_simulate_fleet(args)
-    if args.scenario not in SCENARIOS:
-        raise CliError(f"unknown scenario '{args.scenario}' (choose from {', '.join(SCENARIOS)})")
-    if (args.live is None) == (args.out is None):
-        raise CliError("give --out FILE.tlog (write the log) or --live udpout:HOST:PORT (stream it), one of them")
-    if not 0 < args.speed <= 100:
-        raise CliError("--speed must be in (0, 100]")
-    target = _udpout_target(args.live) if args.live is not None else None
-    sim = simulate(args.scenario, seed=args.seed, onboard_calibration=args.onboard_calibration)
-    if target is not None:
-        return _simulate_live(sim, target, args)
-    sim.write(args.out)
-    print(f"wrote {printable(args.out)} ({len(sim.messages)} messages) and its truth JSON")
-    return 0
-
-
-def _udpout_target(url: str) -> tuple[str, int]:
-    """HOST, PORT of ``udpout:HOST:PORT`` (the station listens with ``--connect udpin:...:PORT``)."""
-    kind, _, rest = url.partition(":")
-    host, _, port = rest.rpartition(":")
-    if kind != "udpout" or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise CliError(f"--live {printable(url)}: expected udpout:HOST:PORT, e.g. udpout:127.0.0.1:14550")
-    return host, int(port)
-
-
-def _simulate_live(sim, target: tuple[str, int], args: argparse.Namespace) -> int:
-    """Stream ``sim`` as a live ArduPilot vehicle until Ctrl-C (``groundstation.sim.fake_vehicle``)."""
-    from groundstation.sim.fake_vehicle import FakeVehicle
-
-    host, port = target
-    try:
-        vehicle = FakeVehicle(sim.messages, port, speed=args.speed, host=host, loop=args.loop).start()
-    except OSError as err:
-        raise CliError(f"--live udpout:{host}:{port}: {err.strerror or err}") from None
-    print(f"streaming '{args.scenario}' ({sim.duration_s:.0f} s at x{args.speed:g}) as a live ArduPilot vehicle "
-          f"to udpout:{host}:{port}; it answers parameter reads/writes and the calibration commands. "
-          f"Start the station with: magstation serve --connect udpin:{host}:{port}   (Ctrl-C stops)", flush=True)
-    try:
-        vehicle.finished.wait()
-        print(f"'{args.scenario}' ended; the vehicle still answers (heartbeats, parameters, commands) "
-              "until Ctrl-C", flush=True)
-        while True:
-            time.sleep(3600)
-    finally:
-        vehicle.stop()
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -378,24 +308,6 @@ def _add_link_options(p: argparse.ArgumentParser) -> None:
                    help="MAVLink 2 signing with the passphrase in environment variable VAR (default: no signing)")
 
 
-# what each scenario of `magstation simulate` is (groundstation/sim/scenarios.py)
-SCENARIO_HELP = {
-    "calibration": "80 s handheld rotation dance (the wizard's input)",
-    "static-headings": "the vehicle held still at a series of headings",
-    "mission-clean": "300 s survey mission, no interference",
-    "mission-slow": "150 s mission, a slow ramp of interference (12.5 mG/s)",
-    "mission-fast": "150 s mission, a fast ramp of interference (60 mG/s)",
-    "mission-step": "150 s mission, a 150 mG step for 20 s",
-    "mission-bump": "200 s mission, a 250 mG horizontal bump over 60 s",
-    "mission-motor": "300 s mission, a payload switching 10 A every 10 s",
-    "mission-payload": "150 s mission, a payload on its own lead past the compass",
-    "mission-anomaly": "200 s mission over a magnetised mass on the ground",
-    "gps-outage": "300 s mission, GPS lost from 100 to 180 s",
-    "demo": "the calibration dance, then mission-slow (recordings/demo.tlog)",
-    "fleet": "a folder of logs of many vehicles with known truth (for review)",
-}
-
-
 def build_parser() -> argparse.ArgumentParser:
     from groundstation.station.settings import ConnectionLimits   # light: settings only
 
@@ -460,26 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_params_options(p)
     p.set_defaults(func=cmd_analyze)
 
-    scenarios = "\n".join(f"  {name:<16} {text}" for name, text in SCENARIO_HELP.items())
-    p = sub.add_parser("simulate", help="write a simulated flight as a .tlog (+ truth JSON), stream it live, "
-                                        "or write a fleet",
-                       formatter_class=argparse.RawDescriptionHelpFormatter,
-                       description="Simulate a flight with known truth: write it as a .tlog (+ truth JSON) with "
-                                   "--out, or stream it as a live vehicle with --live.\n\nscenarios:\n" + scenarios
-                                   + "\n\nexample: magstation simulate calibration --live udpout:127.0.0.1:14550")
-    p.add_argument("scenario", metavar="SCENARIO", help="one of the scenarios listed above")
-    p.add_argument("--out", metavar="FILE.tlog|DIR", help="write the log here (fleet: a folder)")
-    p.add_argument("--live", metavar="udpout:HOST:PORT",
-                   help="stream the scenario in real time as an ArduPilot vehicle that answers parameter "
-                        "reads/writes and the calibration commands (default: off)")
-    p.add_argument("--speed", type=float, default=1.0, help="--live: times real time (default 1)")
-    p.add_argument("--loop", action="store_true", help="--live: start the scenario again at its end (default: off)")
-    p.add_argument("--seed", type=int, default=0, help="random seed: the vehicle's sensor errors, wind, ... "
-                                                       "(default 0)")
-    p.add_argument("--onboard-calibration", action="store_true",
-                   help="the vehicle was calibrated on board: it streams the corrected field (default: the raw sensor)")
-    add_fleet_simulate_options(p)
-    p.set_defaults(func=cmd_simulate)
+    add_simulate_parser(sub)
 
     add_review_parser(sub)
 

@@ -39,7 +39,8 @@ def add_params_options(p: argparse.ArgumentParser) -> None:
     """--params / --assume-uncalibrated: the corrections in force when a log holds none."""
     g = p.add_argument_group("parameters in force when the log has none")
     g.add_argument("--params", metavar="FILE.param",
-                   help="the vehicle's parameters (Mission Planner NAME,VALUE; MAVProxy/QGC NAME VALUE; QGC export)")
+                   help="the vehicle's parameters (Mission Planner NAME,VALUE; MAVProxy/QGC NAME VALUE; QGC export) "
+                        "(default: none; a log without its own compass parameters then has unknown corrections)")
     g.add_argument("--assume-uncalibrated", action="store_true",
                    help="the vehicle was never calibrated: the autopilot's default compass parameters in force")
 

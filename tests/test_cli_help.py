@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from groundstation.cli import SCENARIO_HELP, build_parser
+from groundstation.cli import build_parser
+from groundstation.cli_simulate import SCENARIO_HELP
 from groundstation.sim.scenarios import SCENARIOS
 
 

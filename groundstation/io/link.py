@@ -1,7 +1,6 @@
 """Live MAVLink links (UDP/TCP/serial through pymavlink) as a typed sample stream."""
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from collections import deque
@@ -12,12 +11,12 @@ from .endpoints import Endpoint, open_endpoint, parse_connection_string, validat
 from .mavlink import mavlink2
 from .roster import SystemRoster, is_signed_packet
 from .streams import IMU_MESSAGES, STREAMS, StreamTracker
+from .udp_datagrams import parse_each_datagram_alone
 from ..samples import Sample, StatusSample
 
 __all__ = ["LiveLink", "LinkOptions", "STREAMS", "Endpoint", "parse_connection_string", "validate_connection_string",
            "open_endpoint"]
 
-UDP_RECEIVE_BUFFER_BYTES = 4 << 20
 NO_HEARTBEAT_FOLLOW_S = 3.0      # without an autopilot heartbeat, follow the busiest system after this
 MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN = 246
 STALE_AFTER_S = 1.0              # no IMU message this long while heartbeats arrive: the data is stale
@@ -25,66 +24,6 @@ HEARTBEAT_GAP_S = 2.5            # the vehicle's 1 Hz heartbeat missing this lon
 REBOOT_GAP_S = 1.2               # ... this long once the vehicle acknowledged a reboot command
 REREQUEST_EVERY_S = 2.0          # stale streams are asked again at most this often
 BOOT_BACK_S = 1.0                # the vehicle's time_boot_ms going back more than this: it rebooted
-
-
-def _parse_each_datagram_alone(conn) -> None:
-    """UDP carries whole MAVLink packets in each datagram (one or several), so every datagram is
-    parsed on its own: bytes left over from one (garbage, or a packet cut short) must not be joined
-    to the next, or a good packet would be read as the tail of a bad one and lost to its CRC.
-    pymavlink's mavudp keeps one byte buffer across datagrams; this replaces its recv_msg for the
-    link (serial/TCP are byte streams and keep pymavlink's parser as it is)."""
-    from pymavlink import mavutil
-
-    if not isinstance(conn, mavutil.mavudp):
-        return
-    try:    # room for ~1 s of a busy link while the station is held up (capped by net.core.rmem_max)
-        conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER_BYTES)
-    except OSError:
-        pass
-    conn.port = _AddressRecordingSocket(conn.port)
-    parser = conn.mav
-    pending: deque = deque()
-
-    def forget_partial() -> None:
-        parser.buf = bytearray()
-        parser.buf_index = 0
-        parser.expected_length = mavlink2.HEADER_LEN_V1 + 2
-        parser.have_prefix_error = False
-
-    def recv_msg():
-        while not pending:
-            conn.pre_message()
-            data = conn.recv()
-            if not data:
-                return None
-            if conn.first_byte:
-                conn.auto_mavlink_version(data)
-            forget_partial()        # what the last datagram left (garbage, a cut-short packet)
-            for m in parser.parse_buffer(data) or ():
-                m._src_addr = conn.port.last_from      # who sent it (the link's param_guard asks)
-                pending.append(m)
-        msg = pending.popleft()
-        conn.post_message(msg)
-        return msg
-
-    conn.recv_msg = recv_msg
-
-
-class _AddressRecordingSocket:
-    """A UDP socket that remembers the address of the last datagram it received (pymavlink's
-    mavudp keeps no per-datagram address in udpin mode); everything else is the socket's."""
-
-    def __init__(self, sock) -> None:
-        self._sock = sock
-        self.last_from = None
-
-    def recvfrom(self, *args):
-        data, addr = self._sock.recvfrom(*args)
-        self.last_from = addr
-        return data, addr
-
-    def __getattr__(self, name):
-        return getattr(self._sock, name)
 
 
 @dataclass(frozen=True)
@@ -138,7 +77,7 @@ class LiveLink:
             self._relay_id, self.mav = forwarder.open_vehicle(endpoint.text, listen_any=listen_any)
         else:
             self._relay_id, self.mav = None, open_endpoint(endpoint)
-        _parse_each_datagram_alone(self.mav)
+        parse_each_datagram_alone(self.mav)
         self.recorder = recorder
         self._lock_writes(self.mav)
         self.signing = None

@@ -28,7 +28,8 @@ from groundstation.jobs.alarm_explain import STEP_KEYS, explain_span, explanatio
 from groundstation.jobs.compass_report import compass_summaries
 from groundstation.jobs.flight_plot import vector_test_status
 from groundstation.jobs.calibrate.frame import for_log, relative_to
-from groundstation.jobs.inputs import calibration_arrays, detection_inputs, heading_deg, primary_field, rounded
+from groundstation.jobs.calibration_check import calibration_arrays
+from groundstation.jobs.inputs import detection_inputs, heading_deg, primary_field, rounded
 from groundstation.jobs.motor_heading import attitude_chain, best_heading_chain
 from groundstation.jobs.navigation import ins_runs
 from groundstation.jobs.record import COL, AlarmTracker, record_rows

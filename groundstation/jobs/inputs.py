@@ -31,10 +31,11 @@ from estimators.heading import run_heading_chain
 from estimators.rotations import wrap_angle_rad
 
 from groundstation.io.params import ardupilot_never_calibrated, unapply_onboard_calibration
+from groundstation.jobs.calibration_check import calibration_arrays
 from groundstation.jobs.compass_raw import compass_field
 from groundstation.samples import CompassTable, FlightLog, finite_or_none
 
-__all__ = ["detection_inputs", "calibration_arrays", "check_calibration", "primary_raw", "primary_field", "mission_legs",
+__all__ = ["detection_inputs", "primary_raw", "primary_field", "mission_legs",
            "cross_track_legs", "hold_last", "Held", "field_reference", "field_policy", "FieldPolicy", "gps_rows",
            "GPS_COLUMNS", "imu_rate_hz", "step_inputs", "StepState", "too_steep", "rotation_rate", "rounded",
            "checked_tilt", "TILT_AGREE_DEG",
@@ -55,52 +56,6 @@ def heading_deg(heading_rad) -> np.ndarray:
     return np.where(d >= 360.0, 0.0, d)
 
 
-# One attitude (issues 27, 30): the detector's reference is the default AHRS, the attitude shown;
-# the field tests take its tilt or the autopilot's where ours confirms it (``checked_tilt``), never
-# the autopilot's heading.  Below ``min_imu_rate_hz`` the attitude-based tests are off and say why.
-MAX_OFFSET_MG = 1e5          # 100 G: far beyond any magnetometer's range
-MAX_MATRIX_CONDITION = 1e3   # a fitted soft-iron matrix is near a rotation times ~1 (ratio <= 2.5)
-MATRIX_SCALE_RANGE = (1e-2, 1e2)
-
-
-def check_calibration(calibration: dict) -> tuple[np.ndarray, np.ndarray]:
-    """(offsets_mG (3,), matrix (3, 3)) of a calibration object (``m_cal = matrix (m_raw - offsets)``).
-
-    Raises:
-        ValueError: saying what is wrong: offsets or matrix missing, not three / 3x3 numbers, not
-            finite, offsets beyond MAX_OFFSET_MG, matrix singular or of absurd scale.
-    """
-    off, mat = calibration.get("offsets_mG"), calibration.get("matrix")
-    if off is None:
-        raise ValueError("the calibration has no offsets_mG")
-    if mat is None:
-        raise ValueError("the calibration has no matrix")
-    try:
-        off = np.asarray(off, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError("offsets_mG must be three numbers") from None
-    try:
-        mat = np.asarray(mat, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError("matrix must be 3x3 numbers") from None
-    if off.shape != (3,):
-        raise ValueError("offsets_mG must be three numbers")
-    if mat.shape != (3, 3):
-        raise ValueError("matrix must be 3x3 numbers")
-    if not (np.all(np.isfinite(off)) and np.all(np.isfinite(mat))):
-        raise ValueError("offsets_mG and matrix must be finite numbers")
-    if np.max(np.abs(off)) > MAX_OFFSET_MG:
-        raise ValueError(f"offsets_mG beyond +-{MAX_OFFSET_MG:g} mG are not a magnetometer's")
-    sv = np.linalg.svd(mat, compute_uv=False)
-    if sv[-1] <= sv[0] / MAX_MATRIX_CONDITION or sv[0] == 0:
-        raise ValueError(f"matrix is singular (singular values {', '.join(f'{v:.3g}' for v in sv)}): "
-                         "it would map every field onto a plane or a point")
-    if not MATRIX_SCALE_RANGE[0] <= sv[-1] <= sv[0] <= MATRIX_SCALE_RANGE[1]:
-        raise ValueError(f"matrix scale {sv[-1]:.3g}..{sv[0]:.3g} is outside "
-                         f"{MATRIX_SCALE_RANGE[0]:g}..{MATRIX_SCALE_RANGE[1]:g}")
-    return off, mat
-
-
 def primary_field(log: FlightLog):
     """The primary compass (jobs.compass_raw.CompassField) on the rows of ``log.mag``."""
     mag = np.asarray(log.mag, dtype=float).reshape(-1, 4)
@@ -113,16 +68,6 @@ def primary_field(log: FlightLog):
 def primary_raw(log: FlightLog) -> np.ndarray:
     """The primary compass's raw field (N,3), corrections in force un-applied (``primary_field``)."""
     return primary_field(log).raw_mG
-
-
-def calibration_arrays(calibration: dict | None) -> tuple[np.ndarray, np.ndarray] | None:
-    """``check_calibration``'s arrays, or None when there is no usable calibration."""
-    if not calibration:
-        return None
-    try:
-        return check_calibration(calibration)
-    except ValueError:
-        return None
 
 
 # ----------------------------------------------------------------------------- the field
@@ -335,6 +280,9 @@ def rounded(x, nd=3):
 TILT_AGREE_DEG = 8.0         # the autopilot's roll/pitch count only this close to ours
 
 
+# One attitude (issues 27, 30): the detector's reference is the default AHRS, the attitude shown;
+# the field tests take its tilt or the autopilot's where ours confirms it (``checked_tilt``), never
+# the autopilot's heading.  Below ``min_imu_rate_hz`` the attitude-based tests are off and say why.
 def checked_tilt(chain, att_rp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(roll, pitch) [rad] for the field tests: the autopilot's GPS-aided roll and pitch where fresh
     and within TILT_AGREE_DEG of our AHRS's (which tilts 3-5° in a sustained acceleration: a 30-40

@@ -45,7 +45,7 @@ class InUseError(SessionError):
 
 def _checked(cal: dict, what: str) -> dict:
     from groundstation.jobs.calibrate.frame import compact
-    from groundstation.jobs.inputs import check_calibration
+    from groundstation.jobs.calibration_check import check_calibration
 
     try:
         check_calibration(cal)
@@ -286,7 +286,7 @@ class CalibrationInUse:
         if hub.sources.kind != "live":
             return cal
         from groundstation.jobs.calibrate.frame import for_log, from_params
-        from groundstation.jobs.inputs import check_calibration
+        from groundstation.jobs.calibration_check import check_calibration
         own = from_params(hub.vehicle.params, hub.vehicle.autopilot)
         b, C = check_calibration(cal)
         a = for_log(b, C, cal, "ok" if own is not None else "no_parameters",
