@@ -160,7 +160,8 @@ def test_signed_write_through_the_forwarding_process_and_signed_packets_pass_unc
                          params={"CAL_MAG0_XOFF": 0.0}, signing_key=key, require_signing=True).start()
         try:
             assert wait_until(lambda: hub.snapshot()["source"]["link"] == "up", 10, 0.02)
-            confirmed, failed, _ = hub.vehicle.write_params(hub.sources.link, {"CAL_MAG0_XOFF": 12.5},
+            # PX4 offsets are in gauss: 0.125 G (a value beyond +-3 G is refused as impossible)
+            confirmed, failed, _ = hub.vehicle.write_params(hub.sources.link, {"CAL_MAG0_XOFF": 0.125},
                                                             progress=lambda c: None, tries=2, timeout_s=1.0)
             forwarded = sink.packets()
             signing = hub.snapshot()["vehicles"]["signing"]
@@ -168,7 +169,7 @@ def test_signed_write_through_the_forwarding_process_and_signed_packets_pass_unc
             fv.stop()
             hub.close()
         sink.sock.close()
-    assert confirmed == ["CAL_MAG0_XOFF"] and failed == [] and fv.params["CAL_MAG0_XOFF"] == 12.5
+    assert confirmed == ["CAL_MAG0_XOFF"] and failed == [] and fv.params["CAL_MAG0_XOFF"] == 0.125
     assert fv.refused_unsigned == 0 and signing["good"] > 10 and signing["unsigned"] == 0, signing
     assert forwarded and all(is_signed_packet(p) for p in forwarded)     # the vehicle's signatures kept
 
