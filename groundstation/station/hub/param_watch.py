@@ -180,8 +180,8 @@ def wizard_on_param(control, name: str, value: float) -> None:
     """A PARAM_VALUE the cache accepted (hub lock held): a re-read answer, or a change of a
     correction parameter during the dance, which stops the step and re-reads."""
     w, hub = control.wizard, control._hub
-    if w.state not in ("running", "result"):
-        return
+    if w.state not in ("running", "result") or w.mode == "fixed_yaw":
+        return      # fixed-yaw: the vehicle's own MAV_CMD_FIXED_MAG_CAL_YAW writes its offsets
     change = w.param_check.on_value(name, value)
     if change is None or w.state != "running" or w.param_check.purpose is not None:
         return
