@@ -56,9 +56,11 @@ def test_walkthrough(shared_station, new_page, artifacts):
     _seek(page, 120.0)
     assert page.locator("#v-rp").inner_text() != "— / —"
     assert api(st, "GET", "/api/state")["t_s"] == 120.0
-    png, px = view_pixels_until(page, {"violet": 50, "orange": 50})
+    # the real flight's route and the vehicle; in flight the vehicle is drawn at 0.4 of the
+    # calibration model's size (issue 31: scaled to the route), 19-45 px here at 1280x720
+    png, px = view_pixels_until(page, {"violet": 50, "orange": 10})
     (artifacts / "walkthrough_3_real_seek.png").write_bytes(png)
-    assert px["violet"][0] >= 50 and px["orange"][0] >= 50, px      # the real flight's route and the vehicle
+    assert px["violet"][0] >= 50 and px["orange"][0] >= 10, px
 
     # 4. the calibration page; back to the station: a connect while the replay runs waits for
     #    the vehicle's first packet; stopped, the station listens for the vehicle
