@@ -144,7 +144,7 @@ function renderVehicle(s) {
   $("v-field").textContent = fmt(v.field_mG, 0, " mG") + " / " + fmt(v.inclination_deg, 1, "°");
   $("v-cal").textContent = CORRECTION_TEXT[t.field_correction.kind] || t.field_correction.kind;
   $("v-cal").title = t.field_correction.note;
-  $("v-pos").textContent = v.lat_deg === null ? "—" : fmt(v.lat_deg, 6) + ", " + fmt(v.lon_deg, 6) + " / fix " + v.fix_type;
+  $("v-pos").textContent = v.lat_deg === null ? "—" : fmt(v.lat_deg, 6) + ", " + fmt(v.lon_deg, 6) + " / " + (v.fix_name || "fix " + v.fix_type);
   const untrusted = t.heading.state === "off" && t.field_correction.kind !== "none" && s.source.kind !== "none";
   $("heading-caveat").hidden = !untrusted;
   $("heading-caveat").textContent = untrusted ? "⚠ Heading test off: " + t.heading.why + "." : "";

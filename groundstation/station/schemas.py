@@ -67,6 +67,7 @@ class Vehicle(BaseModel):
     lat_deg: float | None
     lon_deg: float | None
     fix_type: int
+    fix_name: str = "no GPS"     # MAVLink GPS_FIX_TYPE by name (groundstation.jobs.words.fix_name)
 
 
 class InterferenceTest(BaseModel):

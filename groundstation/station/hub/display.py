@@ -13,6 +13,7 @@ from estimators.detection import DetectionSettings
 
 from groundstation.jobs.inputs import FieldPolicy
 from groundstation.jobs.record import COL
+from groundstation.jobs.words import fix_name
 from groundstation.samples import finite_or_none
 
 __all__ = ["vehicle_snapshot", "tests_snapshot", "plot_data", "PLOT_SERIES", "PLOT_MAX_POINTS"]
@@ -34,6 +35,7 @@ def vehicle_snapshot(row: np.ndarray | None) -> dict:
     out = {key: (None if row is None else finite_or_none(row[COL[col]])) for key, col in VEHICLE_FIELDS.items()}
     fix = None if row is None else finite_or_none(row[COL["fix_type"]])
     out["fix_type"] = int(fix) if fix is not None else 0
+    out["fix_name"] = fix_name(out["fix_type"])
     return out
 
 
@@ -75,8 +77,8 @@ def tests_snapshot(row: np.ndarray | None, policy: FieldPolicy, line: dict | Non
     elif fix is None:
         path = _state("off", "no recent GPS fix")
     elif fix < s.rtk_min_fix:
-        path = _state("untrusted", f"GPS fix type {int(fix)}: the path test needs RTK (fix type {s.rtk_min_fix} or "
-                                   "more) and never alarms without it")
+        path = _state("untrusted", f"GPS {fix_name(fix)}: the path test needs RTK ({fix_name(s.rtk_min_fix)} or "
+                                   "better) and never alarms without it")
     else:
         path = _state("on", f"alarm {s.path_threshold_m:g} m off the preset line")
     return {"heading": heading, "field": fld, "path": path, "field_correction": field}

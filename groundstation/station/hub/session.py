@@ -225,7 +225,7 @@ class Session(SessionViews):
             snap["vehicles"] = self.vehicles()
             stale = getattr(self.sources.link, "stale_reason", None) if self.sources.kind == "live" else None
             if stale:
-                snap["vehicle"] = {k: (0 if k == "fix_type" else None) for k in snap["vehicle"]}
+                snap["vehicle"] = {k: {"fix_type": 0, "fix_name": "no GPS"}.get(k) for k in snap["vehicle"]}
             snap["vehicle"]["no_data"] = f"no attitude data: {stale}" if stale else None
             return snap
 
