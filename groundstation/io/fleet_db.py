@@ -247,15 +247,7 @@ def calibration_in_force(con: sqlite3.Connection, airframe: str, unix_s: float |
     args: tuple = (airframe, int(compass))
     if unix_s is not None:
         sql, args = sql + " AND unix_s <= ?", args + (float(unix_s),)
-    row = con.execute(sql + " ORDER BY unix_s DESC, id DESC LIMIT 1", args).fetchone()
-    if row is None:
-        return None
-    out = dict(row)
-    try:
-        out["calibration"] = json.loads(out.pop("calibration_json"))
-    except ValueError:
-        return None
-    return out
+    return _with_calibration(con.execute(sql + " ORDER BY unix_s DESC, id DESC LIMIT 1", args).fetchone())
 
 
 def set_in_use(con: sqlite3.Connection, airframe: str, source: str, label: str, calibration: dict | None,
@@ -275,6 +267,12 @@ def get_in_use(con: sqlite3.Connection, airframe: str) -> dict | None:
         row = con.execute("SELECT * FROM in_use WHERE airframe = ?", (airframe,)).fetchone()
     except sqlite3.OperationalError:           # a read-only older history without the table
         return None
+    return _with_calibration(row)
+
+
+def _with_calibration(row) -> dict | None:
+    """A row with a ``calibration_json`` column as a dict with ``calibration`` parsed; None when
+    there is no row or its JSON does not parse."""
     if row is None:
         return None
     out = dict(row)
