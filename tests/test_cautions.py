@@ -15,12 +15,11 @@ import pytest
 
 from estimators.calibration import estimate_misalignment
 from estimators.rotations import dcm_body_to_ned, rotation_from_vector_rad
-from groundstation.sim.fake_autopilot import default_params
 from groundstation.sim.vehicle_streams import guided_dance_attitude, make_hardware, pack_stream, three_compasses
 from groundstation.station.wizard import CalibrationWizard
 from groundstation.station.wizard.aftercheck import deviation_card
 
-from test_wizard import feed
+from test_wizard import dance_result
 
 SEEDS = range(8)
 
@@ -29,16 +28,7 @@ def _dance(hw, seed: int = 0, edit=None) -> CalibrationWizard:
     msgs = pack_stream(guided_dance_attitude(), hw, seed=seed)
     if edit is not None:
         msgs = edit(msgs)
-    w = CalibrationWizard()
-    w.start()
-
-    def step(_t):
-        if w.state == "running" and w.ready():
-            w.finish("ardupilot", default_params("ardupilot", 3))
-
-    feed(w, msgs, until=lambda t: w.state == "result", on_step=step)
-    assert w.state == "result"
-    return w
+    return dance_result(msgs)
 
 
 def _misaligned(deg_xyz, k: int = 0):

@@ -7,11 +7,9 @@ import numpy as np
 import pytest
 
 from groundstation.io.params import (apply_ardupilot, apply_px4, ardupilot_params_from_calibration, wmm_scale)
-from groundstation.sim.fake_autopilot import default_params
 from groundstation.sim.vehicle_streams import guided_dance_attitude, make_hardware, pack_stream, three_compasses
-from groundstation.station.wizard import CalibrationWizard
 
-from test_wizard import feed
+from test_wizard import dance_result
 
 
 def test_wmm_scale_follows_fix_radius_and_its_limits():
@@ -37,17 +35,7 @@ def test_scale_goes_into_the_soft_iron_matrix():
 def dance_unmounted():
     """A guided dance of three compasses with soft iron of determinant ≠ 1 (0.99–1.01 · WMM)."""
     hw = make_hardware(three_compasses())
-    msgs = pack_stream(guided_dance_attitude(), hw, seed=5)
-    w = CalibrationWizard()
-    w.start()
-
-    def step(_t):
-        if w.state == "running" and w.ready():
-            w.finish("ardupilot", default_params("ardupilot", 3))
-
-    feed(w, msgs, until=lambda t: w.state == "result", on_step=step)
-    assert w.state == "result"
-    return w, hw
+    return dance_result(pack_stream(guided_dance_attitude(), hw, seed=5)), hw
 
 
 def test_wizard_export_corrects_to_the_wmm_and_matches_the_true_soft_iron(dance_unmounted):

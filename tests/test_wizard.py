@@ -35,6 +35,21 @@ def feed(w: CalibrationWizard, messages, speed: float = 1.0, until=None, on_step
             return
 
 
+def dance_result(messages) -> CalibrationWizard:
+    """A guided wizard fed ``messages`` and finished (ArduPilot, three compasses' default
+    parameters) as soon as it is ready: in state "result"."""
+    w = CalibrationWizard()
+    w.start()
+
+    def step(_t):
+        if w.state == "running" and w.ready():
+            w.finish("ardupilot", default_params("ardupilot", 3))
+
+    feed(w, messages, until=lambda t: w.state == "result", on_step=step)
+    assert w.state == "result"
+    return w
+
+
 @pytest.fixture(scope="module")
 def dance_three_mounted():
     """The guided dance of a vehicle whose compasses 1 and 2 are mounted at YAW_90 and ROLL_180
