@@ -176,14 +176,30 @@ def print_table(res: dict, n_seeds: int) -> None:
         print(f"{v}: {'all targets met' if ok else 'TARGETS NOT MET'}")
 
 
-def write_png(res: dict, path: str) -> None:
-    """Latency (median fast and slow ramp) against false alarms, one point per variant."""
+def _pyplot():
+    """matplotlib.pyplot on the Agg backend, or None (said) when it cannot be imported."""
     try:
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        print("matplotlib is not installed (pip install '.[bench]'): no chart written")
+        print("matplotlib cannot be imported: no chart written")
+        return None
+    return plt
+
+
+def _save(plt, fig, path: str) -> None:
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    print(f"wrote {path}")
+
+
+def write_png(res: dict, path: str) -> None:
+    """Latency (median fast and slow ramp) against false alarms, one point per variant."""
+    plt = _pyplot()
+    if plt is None:
         return
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     for (v, r), mark in zip(res["variants"].items(), "osD^"):
@@ -198,11 +214,7 @@ def write_png(res: dict, path: str) -> None:
     ax.set_ylabel("median first-alarm latency [s]")
     ax.set_title("Interference detection: latency vs false alarms")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    print(f"wrote {path}")
+    _save(plt, fig, path)
 
 
 # ----------------------------------------------------------------------------- population (issue 30)
@@ -338,12 +350,8 @@ def print_population(rows: list[dict], seed: int) -> dict:
 def write_population_png(sums: dict, path: str) -> None:
     """ROC-style: false alarms per flight-hour (clean population) against median latency, one
     point per threshold scale, for the fast and slow ramps."""
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed (pip install '.[bench]'): no chart written")
+    plt = _pyplot()
+    if plt is None:
         return
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     for case, color in (("fast", "tab:red"), ("slow", "tab:blue")):
@@ -363,11 +371,7 @@ def write_population_png(sums: dict, path: str) -> None:
     ax.set_ylabel("median first-alarm latency [s]")
     ax.set_title("Population: false alarms vs latency (threshold scale)")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    print(f"wrote {path}")
+    _save(plt, fig, path)
 
 
 def main(argv: list[str] | None = None) -> int:
