@@ -4,12 +4,12 @@ autopilot's range are refused and counted (live cache, logs, `info`); a real cha
 vehicle's compass corrections during the dance stops the step and re-reads."""
 from __future__ import annotations
 
-import math
 import socket
 import subprocess
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -127,19 +127,31 @@ def _dance(hw):
     return pack_stream(guided_dance_attitude(rate_hz=12.5), hw, seed=2)
 
 
-def test_spoofed_param_value_during_a_guided_dance_writes_nothing_wrong(tmp_path):
-    hw = make_hardware(three_compasses())
+@contextmanager
+def _dancing(tmp_path, hw, speed: float):
+    """(session, vehicle, port): a station listening on loopback, a fake vehicle whose stream
+    waits until the station knows its parameters, the guided wizard started and fed > 100
+    samples of the dance; both stopped afterwards."""
     session = Session(tmp_path, record_live=False)
     port = free_udp_port()
     session.connect(f"udpin:127.0.0.1:{port}")
-    fv = FakeVehicle(_dance(hw), port, speed=8.0, params=_vehicle_params())
-    fv.hold_before = 40                          # the stream waits until the station knows the parameters
+    fv = FakeVehicle(_dance(hw), port, speed=speed, params=_vehicle_params())
+    fv.hold_before = 40
     fv.start()
     try:
         assert wait_until(lambda: session.params.get("COMPASS_OFS_X") == pytest.approx(-119.9, abs=1e-3), 10)
         session.wizard_start()
         fv.release()
         assert wait_until(lambda: session.snapshot()["wizard"]["samples"] > 100, 20)
+        yield session, fv, port
+    finally:
+        fv.stop()
+        session.close()
+
+
+def test_spoofed_param_value_during_a_guided_dance_writes_nothing_wrong(tmp_path):
+    hw = make_hardware(three_compasses())
+    with _dancing(tmp_path, hw, 8.0) as (session, fv, port):
         _spoof(port, "COMPASS_OFS_X", 300.0)
         for bad in ABSURD:                        # from the vehicle's own address: refused for their value
             fv._sock.sendto(bytes(mavlink2.MAVLink_param_value_message(b"COMPASS_OFS_Y", bad, 9, 1, 0)
@@ -164,26 +176,13 @@ def test_spoofed_param_value_during_a_guided_dance_writes_nothing_wrong(tmp_path
         assert wait_until(lambda: session.snapshot()["wizard"]["param_write"]["state"] not in ("checking", "writing"),
                           20)
         pw = session.snapshot()["wizard"]["param_write"]
-    finally:
-        fv.stop()
-        session.close()
     assert pw["state"] == "written", pw
     np.testing.assert_allclose([fv.params[f"COMPASS_OFS_{a}"] for a in "XYZ"], -hw.compasses[0].offsets_mG, atol=3.0)
 
 
 def test_real_change_during_the_dance_stops_the_step_and_rereads(tmp_path):
     hw = make_hardware(three_compasses())
-    session = Session(tmp_path, record_live=False)
-    port = free_udp_port()
-    session.connect(f"udpin:127.0.0.1:{port}")
-    fv = FakeVehicle(_dance(hw), port, speed=4.0, params=_vehicle_params())
-    fv.hold_before = 40
-    fv.start()
-    try:
-        assert wait_until(lambda: session.params.get("COMPASS_OFS_X") == pytest.approx(-119.9, abs=1e-3), 10)
-        session.wizard_start()
-        fv.release()
-        assert wait_until(lambda: session.snapshot()["wizard"]["samples"] > 100, 20)
+    with _dancing(tmp_path, hw, 4.0) as (session, fv, _):
         other = new_encoder(254, 190)            # another ground station writes to the vehicle
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.sendto(bytes(mavlink2.MAVLink_param_set_message(1, 1, b"COMPASS_OFS_X", 250.0, 9).pack(other)),
@@ -191,9 +190,6 @@ def test_real_change_during_the_dance_stops_the_step_and_rereads(tmp_path):
         assert wait_until(lambda: any("calibration restarted" in e["text"] for e in session.events), 15)
         events = [e["text"] for e in session.events]
         w = session.snapshot()["wizard"]
-    finally:
-        fv.stop()
-        session.close()
     assert any("compass parameter changed during the dance: COMPASS_OFS_X -119.9 -> 250" in e for e in events), events
     assert w["state"] == "running" and w["step"] == "x"                      # the dance starts again
     assert "COMPASS_OFS_X -119.9 -> 250" in w["banner"]["text"]
