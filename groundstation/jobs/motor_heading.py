@@ -66,19 +66,21 @@ def best_heading_chain(log: FlightLog, x: dict, shown: HeadingChainResult,
     smoother instead of the causal AHRS (a finished log's best estimate)."""
     ef = x["ef"]
     decl = ef.declination_deg if ef else 0.0
-    if offline:
-        shown = attitude_chain(log, x["mag_cal"], decl, True)
     battery = np.asarray(log.battery, dtype=float).reshape(-1, 2)
     mag_cal = x["mag_cal"]
+
+    def as_measured() -> HeadingChainResult:      # the smoother only where it is the answer
+        return attitude_chain(log, mag_cal, decl, True) if offline else shown
+
     if x["policy"].correction == "none" or not len(mag_cal):
-        return shown, _report("no_motor_signal", "no field", False)
+        return as_measured(), _report("no_motor_signal", "no field", False)
     if x.get("motor_signal") != "current_A" or not len(battery):
-        return shown, _report("no_motor_signal", "no battery current that varies in the log", False)
+        return as_measured(), _report("no_motor_signal", "no battery current that varies in the log", False)
     t = np.asarray(x["t"], dtype=float)
     f, sd, sig = motor_field_steps(x)
     if not len(t) or not sig.any():
         last = (f[-1], sd[-1]) if len(f) else (np.full(3, np.nan), np.full(3, np.inf))
-        return shown, _report("not_significant", f"motor field {np.round(last[0], 2).tolist()} mG/A not "
+        return as_measured(), _report("not_significant", f"motor field {np.round(last[0], 2).tolist()} mG/A not "
                               f"significant (sd {np.round(last[1], 2).tolist()}; the field-vector test learns it from "
                               "the current's changes at IMU rates >= 10 Hz)", False, *last)
     current = hold_last(battery[:, 0], battery[:, 1], mag_cal[:, 0], MOTOR_TIMEOUT_S)
