@@ -30,7 +30,7 @@ from groundstation.jobs.flight_plot import vector_test_status
 from groundstation.jobs.calibrate.frame import for_log, relative_to
 from groundstation.jobs.calibration_check import calibration_arrays
 from groundstation.jobs.inputs import detection_inputs, heading_deg, primary_field, rounded
-from groundstation.jobs.motor_heading import attitude_chain, best_heading_chain
+from groundstation.jobs.motor_heading import best_heading_chain
 from groundstation.jobs.navigation import ins_runs
 from groundstation.jobs.record import COL, AlarmTracker, record_rows
 from groundstation.samples import FlightLog
@@ -117,7 +117,7 @@ def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: lis
     det = detect(x["t"], x["e"], x["d"], x["trusted"], x["strength"], x["incl"], x["heading"], x["yaw_rate"],
                  ef.field_strength_mG if ef else np.nan, ef.inclination_deg if ef else np.nan, settings,
                  z_vector=x["z_vector"])
-    shown = attitude_chain(log, x["mag_cal"], ef.declination_deg if ef else 0.0)
+    shown = x["chain"]          # one attitude (issue 30): the detector's reference is the AHRS shown
     rows = record_rows(x["t"], x["chain"], x, ef.declination_deg if ef else 0.0, det.combined, det.trigger,
                        detector_score(det.z_heading, det.z_path, det.z_field, det.z_vector), attitude=shown)
     return FlightAnalysis(x, det, rows, settings, shown)
