@@ -84,6 +84,35 @@ RUNNERS = {CAUSAL: lambda tr: _ours(tr, False), OFFLINE: lambda tr: _ours(tr, Tr
            OFFLINE_VQF: run_offline_vqf}
 
 
+def _yes(ok: bool) -> str:
+    return "yes" if ok else "no"
+
+
+def print_variant(variant: str, infos: list[dict], rows: list[dict]) -> None:
+    """One field variant: the per-flight table, mean and median, and the issue-27 comparisons."""
+    print(f"\nfield {variant}: heading / inclination RMS [deg] from {SCORE_FROM_S:g} s, BROAD's metric")
+    print(f"{'seed':>4s} {'incl':>6s} {'bias':>5s} {'route':>11s} {'resid mG/A':>10s} " +
+          " ".join(f"{c:>13s}" for c in COLUMNS))
+    for info, row in zip(infos, rows):
+        print(f"{info['seed']:4d} {info['incl']:6.1f} {info['bias']:5.2f} {info['route']:>11s} "
+              f"{info['motor']:10.2f} " + " ".join(f"{row[c][0]:6.2f}/{row[c][1]:<6.2f}" for c in COLUMNS))
+    mean = {c: [float(np.mean([r[c][j] for r in rows])) for j in (0, 1)] for c in COLUMNS}
+    med = {c: [float(np.median([r[c][j] for r in rows])) for j in (0, 1)] for c in COLUMNS}
+    print(f"{'mean':>40s} " + " ".join(f"{mean[c][0]:6.2f}/{mean[c][1]:<6.2f}" for c in COLUMNS))
+    print(f"{'median':>40s} " + " ".join(f"{med[c][0]:6.2f}/{med[c][1]:<6.2f}" for c in COLUMNS))
+    for ours, peer in ((CAUSAL, VQF), (OFFLINE, OFFLINE_VQF)):
+        k = [sum(r[ours][j] <= r[peer][j] + TOLERANCE_DEG for r in rows) for j in (0, 1)]
+        print(f"  {sum(k)} of {2 * len(rows)} flight-metrics: {ours} at or below {peer} (+{TOLERANCE_DEG} deg): "
+              f"heading {k[0]} of {len(rows)}, inclination {k[1]} of {len(rows)}")
+    m = {c: f"{mean[c][0]:.3f}/{mean[c][1]:.3f}" for c in COLUMNS}
+    print(f"  causal means below VQF's: {_yes(all(mean[CAUSAL][j] < mean[VQF][j] for j in (0, 1)))} "
+          f"({m[CAUSAL]} vs {m[VQF]})")
+    print(f"  offline mean inclination below offlineVQF's: {_yes(mean[OFFLINE][1] < mean[OFFLINE_VQF][1])} "
+          f"({mean[OFFLINE][1]:.3f} vs {mean[OFFLINE_VQF][1]:.3f})")
+    print(f"  offline mean heading below ours causal: {_yes(mean[OFFLINE][0] < mean[CAUSAL][0])} "
+          f"({mean[OFFLINE][0]:.3f} vs {mean[CAUSAL][0]:.3f})")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=24, help="flights (seeds 0..N-1; default 24)")
@@ -104,27 +133,7 @@ def main(argv=None) -> int:
         for v, tr in zip(VARIANTS, trials):
             scores[v].append({c: score_deg(RUNNERS[c](tr), tr) for c in COLUMNS})
     for v in VARIANTS:
-        print(f"\nfield {v}: heading / inclination RMS [deg] from {SCORE_FROM_S:g} s, BROAD's metric")
-        print(f"{'seed':>4s} {'incl':>6s} {'bias':>5s} {'route':>11s} {'resid mG/A':>10s} " +
-              " ".join(f"{c:>13s}" for c in COLUMNS))
-        for info, row in zip(infos, scores[v]):
-            print(f"{info['seed']:4d} {info['incl']:6.1f} {info['bias']:5.2f} {info['route']:>11s} "
-                  f"{info['motor']:10.2f} " + " ".join(f"{row[c][0]:6.2f}/{row[c][1]:<6.2f}" for c in COLUMNS))
-        mean = {c: [float(np.mean([r[c][j] for r in scores[v]])) for j in (0, 1)] for c in COLUMNS}
-        med = {c: [float(np.median([r[c][j] for r in scores[v]])) for j in (0, 1)] for c in COLUMNS}
-        print(f"{'mean':>40s} " + " ".join(f"{mean[c][0]:6.2f}/{mean[c][1]:<6.2f}" for c in COLUMNS))
-        print(f"{'median':>40s} " + " ".join(f"{med[c][0]:6.2f}/{med[c][1]:<6.2f}" for c in COLUMNS))
-        n = 2 * len(scores[v])
-        k = sum(r[CAUSAL][j] <= r[VQF][j] + TOLERANCE_DEG for r in scores[v] for j in (0, 1))
-        k_off = sum(r[OFFLINE][j] <= r[OFFLINE_VQF][j] + TOLERANCE_DEG for r in scores[v] for j in (0, 1))
-        print(f"  {k} of {n} flight-metrics: ours causal at or below VQF (+{TOLERANCE_DEG} deg); "
-              f"{k_off} of {n}: ours offline at or below offlineVQF")
-        print(f"  causal means below VQF's: {'yes' if all(mean[CAUSAL][j] < mean[VQF][j] for j in (0, 1)) else 'no'}"
-              f" ({mean[CAUSAL][0]:.3f}/{mean[CAUSAL][1]:.3f} vs {mean[VQF][0]:.3f}/{mean[VQF][1]:.3f}); "
-              f"offline mean inclination below offlineVQF's: "
-              f"{'yes' if mean[OFFLINE][1] < mean[OFFLINE_VQF][1] else 'no'} "
-              f"({mean[OFFLINE][1]:.3f} vs {mean[OFFLINE_VQF][1]:.3f}); offline mean heading below ours causal: "
-              f"{'yes' if mean[OFFLINE][0] < mean[CAUSAL][0] else 'no'} ({mean[OFFLINE][0]:.3f} vs {mean[CAUSAL][0]:.3f})")
+        print_variant(v, infos, scores[v])
     print(f"\nbenchmark wall time {time.perf_counter() - t0:.0f} s")
     return 0
 
