@@ -5,7 +5,7 @@
 alarm state at each fix, the GPS outages and the markers of the replay timeline.  The replay
 then only moves a cursor over it (``FlightState.show_until``), so what the page shows at any
 time is what analyze reports up to that time, and seeking anywhere is a search, not a re-run.
-Built outside the hub lock (about a second for an hour of 50 Hz data).
+Built outside the hub lock (a few seconds for an hour of 50 Hz data).
 
 The log is finished, so the attitude shown (roll, pitch, heading and the velocity split by it) is
 analyze's CSV attitude (``jobs.analyze.finished_log_attitude``: the offline smoother over the whole
