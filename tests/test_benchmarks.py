@@ -56,6 +56,19 @@ def test_ahrs_benchmark_quick():
     assert re.search(r"^\d+ of 2 trial metrics: ours causal at or below VQF default", out, re.M), out
 
 
+def test_ahrs_population_benchmark_quick():
+    """The held-out AHRS check (benchmarks/ahrs_population.py) on two simulated 60 s flights: the
+    truth and every filter's frames agree (a frame or declination slip would be tens of degrees)."""
+    pytest.importorskip("vqf")
+    out = _run("benchmarks/ahrs_population.py", "--quick")
+    rows = re.findall(r"^\s+0\s+[\d.-]+\s+[\d.]+\s+\S+\s+[\d.]+((?:\s+[\d.]+/[\d.]+){4})\s*$", out, re.M)
+    assert len(rows) == 2, out                                # seed 0, both field variants
+    for row in rows:
+        (c_h, c_i), (o_h, o_i), (v_h, v_i), _ = [tuple(map(float, c.split("/"))) for c in row.split()]
+        assert c_h < 3.0 and o_h < 3.0 and v_h < 8.0 and max(c_i, o_i, v_i) < 3.0, out   # measured 1.53/0.79, 0.19/0.75, 4.9/4.3
+    assert re.search(r"^  \d+ of 4 flight-metrics: ours causal at or below VQF", out, re.M), out
+
+
 def test_ingest_benchmark_small_log():
     out = _run("benchmarks/ingest.py", "--minutes", "0.5", "--repeats", "1")
     rows = {m.group(1): m for m in re.finditer(r"^\| ([^|]+?) \| [\d.]+ \| ([\d.]+) \| (\d+)", out, re.M)}

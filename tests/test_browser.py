@@ -118,6 +118,9 @@ def test_seek_rebuilds_the_review(shared_station, new_page):
     page.wait_for_selector("#replay-time:has-text('60.0 /')")
     page.wait_for_selector("#alarm-count:has-text('0')")
     assert page.locator("#v-rp").inner_text() != "— / —" and "mission" in page.locator("#line-text").inner_text()
+    # a replayed log is finished: the attitude shown is the offline smoother's, and the page says so
+    assert _state(st)["vehicle"]["attitude_source"] == "offline"
+    assert page.locator("#v-att-src").inner_text().startswith("offline smoother")
     assert len(api(st, "GET", "/api/alarms")) == 0
     assert 0 < st.scene.route_points_shown and st.session.scene_data()["route"][-1, 0] <= 60.0
     marker = page.locator("#timeline .marker.alarm")

@@ -20,7 +20,7 @@ from groundstation.io import fleet_db
 from groundstation.jobs.airframes import load_airframes, resolve_airframe
 from groundstation.jobs.compass_history import DriftSettings, analyse_fleet, record_calibration, refresh_alerts
 from groundstation.jobs.fleet import discover_logs, run_job_with_timeout
-from groundstation.jobs.review_row import ROW_VERSION, alarm_fields, review_log
+from groundstation.jobs.review_row import ATTITUDE_ALARMS, ATTITUDE_RESIDUALS, ROW_VERSION, alarm_fields, review_log
 from groundstation.sim.fleet import FleetSettings, Site, plan_fleet, write_flight
 from groundstation.sim.fleet_score import score_review
 from groundstation.station.routers import fleet as fleet_router
@@ -95,6 +95,8 @@ def test_review_row_fields(one_flight):
     assert abs(r["strength_resid_mG"]) < 60 and r["wmm_strength_mG"] == pytest.approx(489, abs=3)
     assert len(r["log_hash"]) == 64 and r["review_s"] > 0 and r["row_version"] == ROW_VERSION
     assert r["fit_model"] == "yaw_free" and r["compass_source"] and r["fit_heading_coverage"] > 0.9
+    # which attitude each part used: alarms on the causal AHRS, residuals on the autopilot's ATTITUDE
+    assert r["attitude_source"] == f"{ATTITUDE_ALARMS}; {ATTITUDE_RESIDUALS}"
 
 
 def test_review_row_for_bad_files_is_an_error_row_not_an_exception(tmp_path):

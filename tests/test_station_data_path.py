@@ -62,6 +62,7 @@ def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
     session, replayed = _replay_to_end(path, tmp_path)
     calibration, line = session.flight.calibration, session.flight.line
     report, columns = session.analysis()               # GET /api/analysis: analyze_log, same settings
+    review_rows = session.flight.review.rows
     session.close()
     analyzed = [a for a in report["alarms"] if a["kind"] == "combined"]
     live, live_rows = live_alarms_and_rows(path, tmp_path / "live", calibration, line)
@@ -79,11 +80,16 @@ def test_replay_live_and_analyze_give_the_same_alarms(path, tmp_path):
     estimates = ("roll_deg", "pitch_deg", "field_mG", "inclination_deg", "score")
     for name in decisions + estimates:
         np.testing.assert_allclose(live_rows[:, COL[name]], batch_rows[:, COL[name]], atol=1e-6, err_msg=name)
-    # the page shows the causal default AHRS; analyze's CSV, wherever the INS/GPS filter does not
-    # run, the offline smoother of the same AHRS (issue 27)
+    # the live page shows the causal default AHRS; analyze's CSV, wherever the INS/GPS filter does
+    # not run, the offline smoother of the same AHRS (issue 27) ...
     plain = columns["ins_mode"] == ""
-    # ... analyze's CSV attitude is the offline smoother's there (issue 27), the page the causal AHRS's
     assert set(columns["attitude_source"][plain]) == {"offline"}
+    # ... and the replay (the review of the finished log) shows analyze's CSV attitude, nothing else
+    for name, csv in (("roll_deg", "roll_deg"), ("pitch_deg", "pitch_deg"), ("heading_deg", "heading_true_deg"),
+                      ("v_forward_mps", "v_forward_mps"), ("v_lateral_mps", "v_lateral_mps")):
+        np.testing.assert_allclose(review_rows[:, COL[name]], columns[csv], atol=1e-9, equal_nan=True, err_msg=name)
+    for name in decisions:          # while every decision of the replay is the live link's and analyze's
+        np.testing.assert_array_equal(review_rows[:, COL[name]], batch_rows[:, COL[name]], err_msg=name)
     d_roll = np.abs((live_rows[plain, COL["roll_deg"]] - columns["roll_deg"][plain] + 180.0) % 360.0 - 180.0)
     assert np.nanmedian(d_roll) < 1.5 and np.nanpercentile(d_roll, 90) < 6.0   # demo 0.13/0.46, real 0.88/5.3
     # one attitude (issue 30): the detector's reference is the attitude shown

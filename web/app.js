@@ -133,9 +133,15 @@ function render(s) {
     `<div class="${e.level}">${fmt(e.t_s, 1)} s  ${escapeHtml(e.text)}</div>`).join("");
 }
 
+const ATTITUDE_SOURCE_TEXT = {
+  offline: "offline smoother (whole log, forward + backward; alarms use the causal AHRS)",
+  causal: "causal AHRS",
+};
+
 function renderVehicle(s) {
   const v = s.vehicle, t = s.tests;
   $("v-rp").textContent = fmt(v.roll_deg, 1, "°") + " / " + fmt(v.pitch_deg, 1, "°");
+  $("v-att-src").textContent = ATTITUDE_SOURCE_TEXT[v.attitude_source] || "—";
   $("v-hdg").textContent = fmtHeading(v.heading_att_deg) + " / " + fmtHeading(v.heading_mag_deg);
   $("v-aphdg").textContent = fmtHeading(v.ap_yaw_deg);
   $("v-course").textContent = (v.course_deg === null ? "— (not moving)" : fmtHeading(v.course_deg)) + " / " + fmt(v.speed_mps, 1, " m/s");

@@ -60,7 +60,7 @@ ROW_COLUMNS: tuple[tuple[str, str], ...] = tuple([
     ("wmm_strength_mG", "REAL"), ("wmm_inclination_deg", "REAL"), ("wmm_declination_deg", "REAL"),
     ("strength_resid_mG", "REAL"), ("inclination_resid_deg", "REAL"),
     ("alarm_count", "INTEGER"), ("alarm_kinds", "TEXT"), ("first_alarm_s", "REAL"), ("alarm_evidence", "TEXT"),
-    ("alarm_intervals_s", "TEXT"), ("calibration_used", "TEXT"),
+    ("alarm_intervals_s", "TEXT"), ("calibration_used", "TEXT"), ("attitude_source", "TEXT"),
     ("heading_vs_autopilot_rms_deg", "REAL"), ("heading_vs_autopilot_max_deg", "REAL"), ("compass_spread_deg", "REAL"),
     ("max_cross_track_m", "REAL"), ("rtk", "INTEGER"),
     ("mag_rate_hz", "REAL"), ("imu_rate_hz", "REAL"), ("att_rate_hz", "REAL"), ("gps_rate_hz", "REAL"),

@@ -36,7 +36,7 @@ from groundstation.jobs.record import COL, AlarmTracker, record_rows
 from groundstation.samples import FlightLog
 
 __all__ = ["analyze_log", "analyze_flight", "FlightAnalysis", "detector_score", "explanation_text",
-           "calibration_for_log"]
+           "calibration_for_log", "finished_log_attitude"]
 
 
 def detector_score(z_heading, z_path, z_field, z_vector=np.nan) -> np.ndarray:
@@ -136,8 +136,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
     hdg = lambda a: np.where(valid, heading_deg(a), np.nan)  # noqa: E731
     declination = ef.declination_deg if ef else 0.0
     nav, runs = ins_runs(log, x["mag_cal"], declination, x["imu_rate_hz"], settings)
-    best_chain, motor = best_heading_chain(log, x, fa.attitude, offline=True)   # the whole log: offline
-    best = best_attitude(t, best_chain, valid, runs, declination)
+    best, best_chain, motor = finished_log_attitude(log, fa, runs)
     v_fwd, v_lat = split_velocity(gps[:, 5], gps[:, 6], np.radians(best["heading_true_deg"]))
     columns = {
         "t_s": t,
@@ -147,9 +146,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "v_forward_mps": v_fwd, "v_lateral_mps": v_lat,
         "cross_track_m": d, "alarm": det.combined.astype(int),
         **bias_and_rejection(best_chain, valid), "ins_mode": best["ins_mode"],
-        # the attitude columns: the offline smoother, or causal where the INS/GPS filter runs
-        "attitude_source": np.where((best["ins_mode"] == "") & (best_chain.estimator == "offline"),
-                                    "offline", "causal").astype(object),
+        "attitude_source": best["attitude_source"],
     }
 
     alarms = alarm_list(t, det, d, settings) + fa.combined_alarms()
@@ -204,6 +201,25 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
 
 ALARM_UNITS = {"heading_difference": "deg", "path_deviation": "m",
                "field_anomaly": "score (strength or inclination deviation / threshold)"}
+
+
+def finished_log_attitude(log: FlightLog, fa: FlightAnalysis, runs: list) -> tuple[dict, HeadingChainResult, dict]:
+    """The attitude of a finished log, as analyze's CSV and the station's review of a log show it:
+    (``best_attitude``'s dict plus ``attitude_source`` per step, the heading chain it came from,
+    report["motor_field"]).  The offline smoother over the whole log (the future is known) on the
+    field with the significant motor field removed (``best_heading_chain``), the INS/GPS filter's
+    attitude where it runs (``runs``: ``jobs.navigation.ins_runs``).  ``attitude_source`` is
+    "offline" (the smoother) or "causal" (a causal filter: the INS/GPS one there, or the causal
+    AHRS when the smoother could not run).  The detector's decisions stay on the causal AHRS
+    (``fa.x["chain"]``): live = replay = analyze."""
+    x = fa.x
+    ef = x["ef"]
+    declination = ef.declination_deg if ef else 0.0
+    chain, motor = best_heading_chain(log, x, fa.attitude, offline=True)
+    best = best_attitude(x["t"], chain, x["valid"], runs, declination)
+    best["attitude_source"] = np.where((best["ins_mode"] == "") & (chain.estimator == "offline"),
+                                       "offline", "causal").astype(object)
+    return best, chain, motor
 
 
 def best_attitude(t: np.ndarray, chain, valid: np.ndarray, runs: list, declination_deg: float) -> dict:

@@ -5,7 +5,8 @@ the detector's decision on some IMU steps into rows of RECORD_COLUMNS; analyze (
 once), the station's replay (the same rows, read up to the replay cursor) and the live view (one
 row per IMU sample, ``groundstation.jobs.live``) all build their rows with it, and all list
 their alarms with ``AlarmTracker`` over the rows.  So the page, the report and the live link
-show the same numbers and the same alarms for the same samples.
+show the same numbers and the same alarms for the same samples; only the attitude columns of a
+replay are the finished log's (``station.hub.review.finished_rows``: analyze's CSV attitude).
 
 Units as the column names say; headings true, in [0, 360); cross-track signed (+ right of the
 preset line's A->B); flags 0/1; NaN where unknown.

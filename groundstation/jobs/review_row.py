@@ -9,6 +9,10 @@ force, ``jobs.calibrate``'s in-flight WMM fit (``estimators.wmm_fit``) and motor
 (``estimators.motor_field``) — with the review's settings, ``REVIEW_CALIBRATE`` — the window fit
 when the log holds a calibration dance, and field strength / inclination / heading residuals
 against the WMM and the autopilot's yaw.
+
+``attitude_source`` says which attitude each part used: the alarms are analyze's, decided on the
+causal default AHRS (the live station's, ``ATTITUDE_ALARMS``); the field and heading residuals use
+the autopilot's own ATTITUDE (``ATTITUDE_RESIDUALS``), the reference they are compared against.
 """
 from __future__ import annotations
 
@@ -41,9 +45,11 @@ from groundstation.jobs.inputs import field_reference, rounded
 from groundstation.samples import FlightLog
 
 __all__ = ["ReviewSettings", "REVIEW_CALIBRATE", "review_log", "file_hash", "vehicle_identity", "compass_row",
-           "alarm_fields", "ROW_VERSION"]
+           "alarm_fields", "ROW_VERSION", "ATTITUDE_ALARMS", "ATTITUDE_RESIDUALS"]
 
 ROW_VERSION = 4      # 4: weak in-flight fits (offsets with their 1σ) carry their offsets
+ATTITUDE_ALARMS = "alarms: causal AHRS (the live detector's)"
+ATTITUDE_RESIDUALS = "residuals: autopilot ATTITUDE"
 _UID_TEXT = re.compile(r"^\S+\s+([0-9A-Fa-f]{8}\s+[0-9A-Fa-f]{8}\s+[0-9A-Fa-f]{8})\s*$")
 
 # The calibrate job as the review runs it: the in-flight WMM fit estimates the offsets (and the motor
@@ -246,7 +252,10 @@ def compass_row(log: FlightLog, cf: CompassField, ctx, report: dict, settings: R
     result = _calibrate(log, cf, ctx, settings) if result is None else result
     out.update(_fit_fields(result, in_force))
     if ctx.field is None or len(log.attitude) < 2:
+        why = "no WMM field" if ctx.field is None else "no autopilot ATTITUDE"
+        out["attitude_source"] = f"{ATTITUDE_ALARMS}; residuals: none ({why})"
         return out
+    out["attitude_source"] = f"{ATTITUDE_ALARMS}; {ATTITUDE_RESIDUALS}"
     t = cf.t_s
     at = attitude_for(log, t)
     m_c = np.array(cf.in_force_mG, float)

@@ -68,6 +68,10 @@ class Vehicle(BaseModel):
     lon_deg: float | None
     fix_type: int
     fix_name: str = "no GPS"     # MAVLink GPS_FIX_TYPE by name (groundstation.jobs.words.fix_name)
+    attitude_source: Literal["offline", "causal"] | None = Field(
+        None, description="roll, pitch and attitude heading: 'offline' = the offline smoother over the whole "
+                          "replayed log (forward and backward AHRS), 'causal' = the causal AHRS (live; the "
+                          "INS/GPS filter around a replay's GPS outages). Alarms always use the causal AHRS")
 
 
 class InterferenceTest(BaseModel):

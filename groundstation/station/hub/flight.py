@@ -238,6 +238,15 @@ class FlightState:
         rows = self.rows()
         return rows[-1] if len(rows) else None
 
+    def attitude_source(self) -> str | None:
+        """Which estimate the attitude of the last row shown is: "offline" (a replayed log's
+        smoother, ``hub.review``) or "causal" (the live link's AHRS, a replay's INS/GPS stretch)."""
+        r = self.review
+        if r is not None:
+            src = r.attitude_source
+            return str(src[self.n_shown - 1]) if src is not None and 0 < self.n_shown <= len(src) else None
+        return "causal" if self._rows.n else None
+
     def route(self) -> np.ndarray:
         """GPS fixes shown so far: [t_s, lat_deg, lon_deg, fix_type, alarm]."""
         if self.review is not None:

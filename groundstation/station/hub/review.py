@@ -5,7 +5,14 @@
 alarm state at each fix, the GPS outages and the markers of the replay timeline.  The replay
 then only moves a cursor over it (``FlightState.show_until``), so what the page shows at any
 time is what analyze reports up to that time, and seeking anywhere is a search, not a re-run.
-Built outside the hub lock (about a second for an hour of 50 Hz data).
+Built outside the hub lock (a few seconds for an hour of 50 Hz data).
+
+The log is finished, so the attitude shown (roll, pitch, heading and the velocity split by it) is
+analyze's CSV attitude (``jobs.analyze.finished_log_attitude``: the offline smoother over the whole
+log, the INS/GPS filter's around GPS outages), and ``Review.attitude_source`` says per step which
+("offline" or "causal"; the vehicle panel's ``attitude_source``).  Every decision (alarms,
+evidence, scores, test states) stays the causal one of ``analyze_flight``: a replay alarms where
+the live link and analyze do.
 """
 from __future__ import annotations
 
@@ -13,13 +20,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from groundstation.jobs.analyze import FlightAnalysis, analyze_flight
+from estimators.heading import split_velocity
+
+from groundstation.jobs.analyze import FlightAnalysis, analyze_flight, finished_log_attitude
 from groundstation.jobs.inputs import FieldPolicy
-from groundstation.jobs.navigation import OUTAGE_MIN_S, gps_outages
+from groundstation.jobs.navigation import OUTAGE_MIN_S, gps_outages, ins_runs
 from groundstation.jobs.record import COL, evidence_text
 from groundstation.samples import FlightLog
 
-__all__ = ["Review", "build_review", "line_mission"]
+__all__ = ["Review", "build_review", "finished_rows", "line_mission"]
 
 SEGMENT_GAP_S = 2.0          # a gap in all the data this long is a telemetry dropout on the timeline
 
@@ -49,12 +58,13 @@ class Review:
     explain_steps: dict | None = None     # per-step inputs of the alarm explanations (jobs.alarm_explain)
     motor_signal: str = "none"
     calibration_note: str | None = None   # how the calibration was applied to this log (jobs.calibrate.frame)
+    attitude_source: np.ndarray | None = None   # per row: "offline" (smoother) or "causal" (module docstring)
 
 
 def build_review(log: FlightLog, calibration: dict | None, line: dict | None) -> Review:
     """Analyse a whole log for replay (see module docstring)."""
     fa: FlightAnalysis = analyze_flight(log, calibration, line_mission(line))
-    rows = fa.rows
+    rows, source = finished_rows(log, fa)
     g = np.asarray(log.gps, dtype=float).reshape(-1, 8)
     alarm_at_fix = np.zeros(len(g))
     if len(rows) and len(g):
@@ -63,13 +73,34 @@ def build_review(log: FlightLog, calibration: dict | None, line: dict | None) ->
     gps = np.c_[g[:, 0], g[:, 1], g[:, 2], g[:, 7], alarm_at_fix] if len(g) else np.zeros((0, 5))
     review = Review(rows=rows, gps=gps, policy=fa.x["policy"], earth_field=fa.x["ef"],
                     calibration=calibration, line=line, explain_steps=fa.explain_steps(),
-                    motor_signal=fa.x.get("motor_signal", "none"), calibration_note=fa.x.get("calibration_note"))
+                    motor_signal=fa.x.get("motor_signal", "none"), calibration_note=fa.x.get("calibration_note"),
+                    attitude_source=source)
     _outages(review, log)
     review.markers += [{"t_s": a["start_s"], "end_s": a["end_s"], "kind": "alarm",
                         "label": "interference alarm: " + evidence_text(a["evidence"])} for a in fa.combined_alarms()]
     review.markers += _gaps(log) + _messages(log)
     review.markers.sort(key=lambda m: m["t_s"])
     return review
+
+
+def finished_rows(log: FlightLog, fa: FlightAnalysis) -> tuple[np.ndarray, np.ndarray]:
+    """(analyze_flight's record rows with the finished log's attitude in roll_deg, pitch_deg,
+    heading_deg, v_forward_mps and v_lateral_mps, attitude_source per row); the other columns,
+    every decision among them, are analyze_flight's as they are."""
+    x = fa.x
+    ef = x["ef"]
+    _, runs = ins_runs(log, x["mag_cal"], ef.declination_deg if ef else 0.0, x["imu_rate_hz"], fa.settings)
+    best, _, _ = finished_log_attitude(log, fa, runs)
+    rows = fa.rows.copy()
+    if not len(rows):
+        return rows, np.zeros(0, dtype=object)
+    heading = best["heading_true_deg"]
+    g = x["gps_held"]
+    fwd, lat = split_velocity(g[:, 5], g[:, 6], np.radians(heading))
+    for name, v in (("roll_deg", best["roll_deg"]), ("pitch_deg", best["pitch_deg"]), ("heading_deg", heading),
+                    ("v_forward_mps", fwd), ("v_lateral_mps", lat)):
+        rows[:, COL[name]] = v
+    return rows, best["attitude_source"]
 
 
 def _outages(review: Review, log: FlightLog) -> None:

@@ -43,7 +43,7 @@ class SessionViews:
                 "replay": src.replay_snapshot(),
                 "analysing": src.kind == "replay" and flight.review is None,
                 "reorder_delay_s": round(flight.reorder.delay_s, 2),
-                "vehicle": vehicle_snapshot(row),
+                "vehicle": dict(vehicle_snapshot(row), attitude_source=flight.attitude_source()),
                 "alarm": flight.alarm_snapshot(),
                 "alarm_count": len(flight.tracker.alarms),
                 "line": flight.line,
