@@ -156,16 +156,24 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.json:
         _write_json(args.json, {"results": [_file_name(r) for r in results]})
     if args.param_out:
-        _write_params(args.param_out, results)
+        _write_params(args.param_out, results, args.accept_weak)
     return 0 if all(r["status"] == "ok" for r in results) else 1
 
 
-def _write_params(path: str, results: list[dict]) -> None:
-    """Every absolute result's parameters in one .param file (a relative result has none to write)."""
+def _write_params(path: str, results: list[dict], accept_weak: bool = False) -> None:
+    """Every absolute result's parameters in one .param file (a relative result has none to write).
+    A weak (not recommended) answer is refused in one line unless ``accept_weak``."""
+    weak = [r for r in results if r.get("relative_to") == "raw" and (r.get("status") == "weak" or (
+        r.get("status") == "ok" and r.get("recommended") is False))]
+    if weak and not accept_weak:
+        r = weak[0]
+        raise CliError(f"not writing {path}: compass {r.get('compass')} of {r.get('file')} is not recommended "
+                       f"({(r.get('recommendation') or r.get('status') or '').split(';')[0]}); "
+                       "give --accept-weak to write it with its stated 1σ")
     values: dict[str, float] = {}
     for r in results:
         ap = r.get("autopilot") or "ardupilot"
-        if r.get("status") == "ok" and r.get("relative_to") == "raw":
+        if r.get("status") in (("ok", "weak") if accept_weak else ("ok",)) and r.get("relative_to") == "raw":
             values.update(r.get("px4_params" if ap == "px4" else "ardupilot_params") or {})
     if not values:
         raise CliError("no absolute calibration to write as parameters: the fit is relative to corrections in "
@@ -354,6 +362,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                  "(default: none)")
     p.add_argument("--param-out", metavar="FILE.param", help="write the absolute COMPASS_*/CAL_MAG* parameters "
                                                              "as a .param file (default: none)")
+    p.add_argument("--accept-weak", action="store_true", help="with --param-out: also write answers marked "
+                                                               "`recommended: no` (weak, with their 1σ); default: refuse")
     add_params_options(p)
     p.set_defaults(func=cmd_calibrate)
 
