@@ -141,13 +141,17 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from groundstation.jobs.calibrate import calibrate_compasses, error_result, format_consistency, format_summary
+    from dataclasses import replace
+
+    from groundstation.jobs.calibrate import (DEFAULT_SETTINGS, calibrate_compasses, error_result, format_consistency,
+                                              format_summary)
 
     values, label = in_force_params(args)
+    settings = replace(DEFAULT_SETTINGS, attitude_source=args.attitude)
     results = []
     for file in args.files:
         try:
-            found = calibrate_compasses(with_params(load_log(file), values, label))    # one result per compass
+            found = calibrate_compasses(with_params(load_log(file), values, label), settings)    # one result per compass
         except IngestError as err:
             found = [error_result(file, str(err))]
         results += found
@@ -362,6 +366,9 @@ def build_parser() -> argparse.ArgumentParser:
                                                  "(default: none)")
     p.add_argument("--param-out", metavar="FILE.param", help="write the absolute COMPASS_*/CAL_MAG* parameters "
                                                              "as a .param file (default: none)")
+    p.add_argument("--attitude", metavar="SOURCE", default="auto",
+                   help="attitude for the in-flight fit: ATT, AHR2 (DCM), XKF1 (EKF3), NKF1 (EKF2), ATTITUDE, "
+                        "vehicle_attitude or ahrs (ours, from the IMU) (default: auto, the one that fits best)")
     p.add_argument("--accept-weak", action="store_true", help="with --param-out: also write answers marked "
                                                                "`recommended: no` (weak, with their 1σ); default: refuse")
     add_params_options(p)
