@@ -571,18 +571,20 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
 
 def heldout_residual_mG(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, attitude_rate_deg_s=None,
                         motor_signal=None, nominal_matrix=None, settings: WmmFitSettings = WmmFitSettings(),
-                        blocks: int = 8) -> tuple[float, int]:
+                        block_samples: int = 20) -> tuple[float, int]:
     """How well an attitude source explains a compass: the held-out residual of the in-flight fit.
 
-    Two-fold cross-validation over ``blocks`` interleaved time blocks (even blocks fit, odd blocks
-    judged, and back): each half is fitted with ``fit_wmm`` (no jackknife) and the residual
+    Two-fold cross-validation over interleaved time blocks of ``block_samples`` samples (even blocks
+    fit, odd blocks judged, and back; short blocks so that each half flies the headings of the
+    whole): each half is fitted with ``fit_wmm`` (no jackknife, no observability refusal: the
+    score asks how consistent the data are, not whether the offsets are pinned down) and the residual
     r = m − A(h + f·x) − b (estimators.field_model.residuals, the fit's model) is taken on the other
     half's samples that pass the same gates.  Returns (RMS |r| [mG] over the held-out samples with
     |r| below 5 × their median, samples judged); (NaN, 0) when a half cannot be fitted.  A held-out
     residual does not reward a source for the terms it lets the fit bend to (unlike the residual
     after the fit), and an attitude that is late, noisy or wrong in tilt shows in it directly.
     """
-    s = replace(settings, jackknife_blocks=0)
+    s = replace(settings, jackknife_blocks=0, min_heading_coverage=0.0, max_answer_sd_mG=float("inf"))
     raw = np.asarray(mag_raw_mG, float).reshape(-1, 3)
     n = len(raw)
     cols = [np.asarray(a, float).ravel() for a in (roll_rad, pitch_rad, yaw_rad)]
@@ -591,9 +593,9 @@ def heldout_residual_mG(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned
     t = np.asarray(t_s, float).ravel()
     rate = None if attitude_rate_deg_s is None else np.asarray(attitude_rate_deg_s, float).ravel()
     sig = None if motor_signal is None else np.asarray(motor_signal, float).ravel()
-    if n < 2 * blocks or any(len(c) != n for c in cols):
+    if n < 4 * block_samples or any(len(c) != n for c in cols):
         return float("nan"), 0
-    fold = ((np.arange(n) * blocks) // n) % 2
+    fold = (np.arange(n) // max(1, int(block_samples))) % 2
     ok, _ = _gate(t, raw, *cols, rate, s)
     errs = []
     for k in (0, 1):

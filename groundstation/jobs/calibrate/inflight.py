@@ -19,6 +19,8 @@ __all__ = ["FlightInputs", "flight_inputs", "inflight_step", "motor_step", "wmm_
 
 AHRS_SOURCE = "ahrs"                # our AHRS (estimators.ahrs_batch) on the log's IMU and field
 AHRS_MIN_IMU_RATE_HZ = 10.0         # slower IMU logs (telemetry) do not carry the rotation between samples
+SCORE_MARGIN = 0.05                 # another source replaces the log's own attitude when its score is this much lower
+MIN_SCORED_FRACTION = 0.7           # a source is scored on at least this fraction of the best-covered one's samples
 
 
 @dataclass(frozen=True)
@@ -80,7 +82,9 @@ def log_attitude_name(log: FlightLog) -> str:
 
 def _ahrs_attitude(log: FlightLog) -> np.ndarray | None:
     """Our AHRS (estimators.ahrs_batch.run_ahrs) on the log's IMU and primary field as the autopilot
-    corrected it, at ≤ 20 Hz; None when the IMU is logged slower than AHRS_MIN_IMU_RATE_HZ."""
+    corrected it, at ≤ 20 Hz: roll and pitch from its gravity stage (gyro and accelerometer), the
+    yaw from the field (it needs one to start; the yaw-free fit uses the yaw only to sort samples
+    into heading sectors).  None when the IMU is logged slower than AHRS_MIN_IMU_RATE_HZ."""
     imu = np.asarray(log.imu, float).reshape(-1, 7)
     if len(imu) < 100 or len(log.mag) < 10:
         return None
@@ -92,8 +96,8 @@ def _ahrs_attitude(log: FlightLog) -> np.ndarray | None:
     res = run_ahrs(imu, np.asarray(log.mag, float))
     step = max(1, int(rate // 20))
     keep = res.valid[::step]
-    table = np.column_stack([res.t_s, res.roll_rad, res.pitch_rad, res.yaw_rad])[::step]
-    return table[keep] if keep.sum() >= 2 else None
+    table = np.column_stack([res.t_s, res.roll_rad, res.pitch_rad, res.yaw_rad])[::step][keep]
+    return table if len(table) >= 2 else None
 
 
 def attitude_sources(log: FlightLog, with_ahrs: bool = True) -> dict[str, np.ndarray]:
@@ -134,29 +138,50 @@ def choose_attitude(log: FlightLog, fields: list[CompassField], ctx: LogContext,
         return replace(ctx, attitude=sources[name], attitude_source=name,
                        attitude_choice={"chosen": name, "forced": True, "scores": {}, "note": f"{name}, as asked"})
     scores: dict[str, float | None] = {}
+    counts: dict[str, int] = {}
     base = next((f for f in fields if f.compass == log.primary_compass), fields[0] if fields else None)
     if base is not None and len(sources) > 1:
         for name, table in sources.items():
             probe = replace(ctx, attitude=table)
             x = flight_inputs(log, base, settings.inflight_max_samples, probe)
-            score = float("nan")
+            score, counts[name] = float("nan"), 0
             if x is not None:
                 i = x.idx
-                score, _ = heldout_residual_mG(base.t_s[i], base.raw_mG[i], x.roll, x.pitch, x.yaw, _field(x, probe),
+                score, counts[name] = heldout_residual_mG(base.t_s[i], base.raw_mG[i], x.roll, x.pitch, x.yaw, _field(x, probe),
                                                attitude_rate_deg_s=x.rate_deg_s, motor_signal=x.signal,
                                                nominal_matrix=base.nominal_matrix, settings=settings.wmm)
             scores[name] = round(score, 2) if np.isfinite(score) else None
-    finite = {k: v for k, v in scores.items() if v is not None}
-    chosen = min(finite, key=finite.get) if finite else default
+    # a source is compared on (nearly) as many samples as the best-covered one: a source whose rate
+    # gate drops the hard samples must not win on the easy ones
+    most = max(counts.values(), default=0)
+    finite = {k: v for k, v in scores.items() if v is not None and counts.get(k, 0) >= MIN_SCORED_FRACTION * most}
+    # best score first (the log's own attitude unless another is clearly better); the first whose fit of
+    # the primary compass gives an answer (ok / weak) is taken: a consistent attitude whose headings
+    # leave the offsets unobservable is no use
+    order = sorted(finite, key=lambda k: finite[k] * (1.0 if k == default else 1.0 + SCORE_MARGIN))
+    chosen = order[0] if order else default
+    unanswered = []
+    for name in order if len(order) > 1 else []:
+        x = flight_inputs(log, base, settings.inflight_max_samples, replace(ctx, attitude=sources[name]))
+        if x is not None and inflight_step(base, x, ctx, settings).status in ("ok", "weak"):
+            chosen = name
+            break
+        unanswered.append(name)
+    else:
+        chosen = order[0] if order else default
     if len(sources) == 1:
         note = f"{chosen}, the only attitude in the log"
     elif not finite:
         note = f"{chosen}: no source could be scored (too few usable samples)"
     else:
-        note = (f"{chosen}: the smallest held-out residual of compass {base.compass}'s fit ("
-                + ", ".join(f"{k} {v:.1f} mG" if v is not None else f"{k} -" for k, v in scores.items()) + ")")
+        note = (f"{chosen}: the smallest held-out residual of compass {base.compass}'s fit"
+                + (f" among those giving an answer ({', '.join(unanswered)} did not)" if unanswered else "")
+                + "".join(f"; {k} judged on too few samples" for k, v in scores.items() if v is not None and k not in finite)
+                + " ("
+                + ", ".join(f"{k} {v:.2f} mG on {counts[k]} samples" if v is not None else f"{k} -"
+                            for k, v in scores.items()) + ")")
     return replace(ctx, attitude=sources[chosen], attitude_source=chosen,
-                   attitude_choice={"chosen": chosen, "forced": False, "scores": scores, "note": note})
+                   attitude_choice={"chosen": chosen, "forced": False, "scores": scores, "samples": counts, "note": note})
 
 
 def inflight_step(cf: CompassField, x: FlightInputs, ctx: LogContext, settings: CalibrateSettings) -> WmmFit:
