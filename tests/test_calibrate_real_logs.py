@@ -290,3 +290,22 @@ def test_dataflash_reader_keeps_every_attitude_estimator(tmp_path, monkeypatch):
         assert len(table) == 50, name                               # XKF1 core 1 (roll 40) left out
         np.testing.assert_allclose(np.degrees(table[:, 1:]), [[roll, pitch, yaw]] * 50, atol=0.01)
     np.testing.assert_allclose(np.degrees(log.attitude[0, 1:]), [10, -5, 90], atol=0.01)
+
+
+def test_inflight_inputs_carry_the_wmm_at_each_sample(flight):
+    """The fit's field is the WMM at each sample's GPS position, altitude and date (not one point)."""
+    from estimators.geomag import decimal_year_from_unix, earth_field
+    from groundstation.jobs.calibrate.context import log_context
+    from groundstation.jobs.calibrate.inflight import flight_inputs
+    _, log, _ = flight
+    cf = compass_fields(log)[0]
+    ctx = log_context(log)
+    x = flight_inputs(log, cf, 1500, ctx)
+    assert x.field_ned_mG.shape == (len(x.idx), 3) and np.isfinite(x.field_ned_mG).all()
+    t = cf.t_s[x.idx]
+    k = len(t) // 2
+    g = log.gps[np.argmin(np.abs(log.gps[:, 0] - t[k]))]
+    assert log.start_unix_s is not None                             # the simulated tlog is dated
+    year = decimal_year_from_unix(log.start_unix_s + t[k])
+    np.testing.assert_allclose(x.field_ned_mG[k], earth_field(g[1], g[2], g[3], year).field_ned_mG, atol=0.5)
+    assert flight_inputs(log, cf, 1500).field_ned_mG is None         # without ctx: the caller's one field
