@@ -296,8 +296,8 @@ def record_sitl(tmp: Path, circle_s: float = 150.0, speedup: int = 5, port: int 
     """Fly ArduPilot SITL (../shared/sitl, instance -I ``SITL_INSTANCE``, MAVLink to udp
     127.0.0.1:``port``): take off to 30 m, circle (every heading) for ``circle_s`` s of vehicle
     time, land.  Compass 1 has SIM_MAG1_OFS = (120, −80, 60) mG and COMPASS_OFS = (1, 1, 1) in force
-    (uncalibrated), compasses 2 and 3 the defaults (5, 13, −18) both ways; the truth is COMPASS_OFSn
-    = SIM_MAGn_OFS.  The telemetry received (4 Hz streams and the parameter list) is kept as a .tlog.
+    (uncalibrated; COMPASS_USE = 0, the EKF takes compass 2), compasses 2 and 3 the defaults (5, 13, −18) both ways;
+    the truth is COMPASS_OFSn = SIM_MAGn_OFS.  The telemetry received (4 Hz streams and the parameter list) is kept as a .tlog.
     Returns (the DataFlash .BIN, note, the .tlog)."""
     from pymavlink import mavutil
     binary = SITL / "arducopter"
@@ -308,6 +308,7 @@ def record_sitl(tmp: Path, circle_s: float = 150.0, speedup: int = 5, port: int 
     t = SITL_TRUTH_OFS[0]
     (run / "truth.parm").write_text(f"SIM_MAG1_OFS_X {t[0]}\nSIM_MAG1_OFS_Y {t[1]}\nSIM_MAG1_OFS_Z {t[2]}\n"
                                     "COMPASS_OFS_X 1\nCOMPASS_OFS_Y 1\nCOMPASS_OFS_Z 1\nARMING_CHECK 0\n"
+                                    "COMPASS_USE 0\n"
                                     "CIRCLE_RADIUS 3000\nCIRCLE_RATE 15\n")
     cmd = [str(binary), "--model", "quad", "--speedup", str(speedup), "-w", "-I", str(SITL_INSTANCE),
            "--defaults", f"{SITL / 'copter.parm'},{run / 'truth.parm'}", "--home", "-35.3632,149.1652,584,0",
@@ -342,9 +343,19 @@ def record_sitl(tmp: Path, circle_s: float = 150.0, speedup: int = 5, port: int 
             msg = m.recv_match(type="ATTITUDE", blocking=True, timeout=5)
             return -1.0 if msg is None else msg.time_boot_ms / 1000.0
 
+        last_rc = [0.0]
+
+        def hold_throttle() -> None:
+            """Throttle stick at mid (RC_CHANNELS_OVERRIDE, 2 Hz): CIRCLE takes the climb rate from it,
+            and SITL's idle stick (1000) made the vehicle descend into the ground (measured)."""
+            if time.monotonic() - last_rc[0] > 0.5:
+                last_rc[0] = time.monotonic()
+                m.mav.rc_channels_override_send(m.target_system, m.target_component, 0, 0, 1500, 0, 0, 0, 0, 0)
+
         def wait_until(cond, limit_s: float) -> bool:
             t0 = boot_s()
             while time.monotonic() < deadline:
+                hold_throttle()
                 if cond():
                     return True
                 if boot_s() - t0 > limit_s:
