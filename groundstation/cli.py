@@ -171,9 +171,9 @@ def _write_params(path: str, results: list[dict], accept_weak: bool = False) -> 
         r.get("status") == "ok" and r.get("recommended") is False))]
     if weak and not accept_weak:
         r = weak[0]
+        why = (r.get("recommendation") or r.get("status") or "").split(";")[0].removeprefix("not recommended: ")
         raise CliError(f"not writing {path}: compass {r.get('compass')} of {r.get('file')} is not recommended "
-                       f"({(r.get('recommendation') or r.get('status') or '').split(';')[0]}); "
-                       "give --accept-weak to write it with its stated 1σ")
+                       f"({why}); give --accept-weak to write it with its stated 1σ")
     values: dict[str, float] = {}
     for r in results:
         ap = r.get("autopilot") or "ardupilot"
