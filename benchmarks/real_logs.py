@@ -32,6 +32,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import re  # noqa: E402
+import struct  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -179,6 +180,11 @@ def real_log_names() -> list[str]:
     return names
 
 
+def _att(r: dict) -> str:
+    """The attitude source the in-flight fit used, for the method column."""
+    return f" ({r['attitude_source']})" if r.get("method") == "wmm_inflight" and r.get("attitude_source") else ""
+
+
 def _sd(r: dict) -> np.ndarray | None:
     sd = r.get("offsets_sd_mG")
     return None if not sd or None in sd else np.asarray(sd, float)
@@ -204,7 +210,7 @@ def real_rows(magfit_reduce: int | None = 1) -> list[Row]:
             end = corr.get("offsets_in_force_end_mG")
             ref = -np.asarray(end, float) if end and None not in end else None
             target = 20.0 if name.startswith("dronekit") else None
-            rows.append(Row(name, r["compass"], r["status"], r.get("method") or "-", ours_ofs(r),
+            rows.append(Row(name, r["compass"], r["status"], (r.get("method") or "-") + _att(r), ours_ofs(r),
                             "vehicle's offsets in force", ref, target, dt, named(r), _sd(r)))
             first = rows[-1] if first is None else first
         if magfit_reduce is not None and log.autopilot == "ardupilot" and first is not None:
@@ -281,41 +287,75 @@ SITL = ROOT.parent / "shared" / "sitl"
 SITL_TRUTH_OFS = {0: np.array([120.0, -80.0, 60.0]), 1: np.array([5.0, 13.0, -18.0]), 2: np.array([5.0, 13.0, -18.0])}
 
 
-def record_sitl(tmp: Path, circle_s: float = 150.0, speedup: int = 5, port: int = 14690,
-                timeout_s: float = 600.0) -> tuple[Path | None, str]:
-    """Fly ArduPilot SITL (../shared/sitl, instance -I 9, MAVLink to udp 127.0.0.1:``port``): take off
-    to 30 m, circle (every heading) for ``circle_s`` s of vehicle time, land.  Compass 1 has
-    SIM_MAG1_OFS = (120, −80, 60) mG and COMPASS_OFS = (1, 1, 1) in force (uncalibrated), compasses
-    2 and 3 the defaults (5, 13, −18) both ways; the truth is COMPASS_OFSn = SIM_MAGn_OFS.
-    Returns (the DataFlash .BIN, note)."""
+SITL_INSTANCE = 5          # -I 5: SITL's own ports + 50; our MAVLink listener on loopback UDP below
+SITL_PORT = 14655
+
+
+def record_sitl(tmp: Path, circle_s: float = 150.0, speedup: int = 5, port: int = SITL_PORT,
+                timeout_s: float = 600.0) -> tuple[Path | None, str, Path | None]:
+    """Fly ArduPilot SITL (../shared/sitl, instance -I ``SITL_INSTANCE``, MAVLink to udp
+    127.0.0.1:``port``): take off to 30 m, circle (every heading) for ``circle_s`` s of vehicle
+    time, land.  Compass 1 has SIM_MAG1_OFS = (120, −80, 60) mG and COMPASS_OFS = (1, 1, 1) in force
+    (uncalibrated; COMPASS_USE = 0, the EKF takes compass 2), compasses 2 and 3 the defaults (5, 13, −18) both ways;
+    the truth is COMPASS_OFSn = SIM_MAGn_OFS.  The telemetry received (4 Hz streams and the parameter list) is kept as a .tlog.
+    Returns (the DataFlash .BIN, note, the .tlog)."""
     from pymavlink import mavutil
     binary = SITL / "arducopter"
     if not binary.is_file():
-        return None, "no ../shared/sitl/arducopter"
+        return None, "no ../shared/sitl/arducopter", None
     run = tmp / "sitl"
     run.mkdir(exist_ok=True)
     t = SITL_TRUTH_OFS[0]
     (run / "truth.parm").write_text(f"SIM_MAG1_OFS_X {t[0]}\nSIM_MAG1_OFS_Y {t[1]}\nSIM_MAG1_OFS_Z {t[2]}\n"
                                     "COMPASS_OFS_X 1\nCOMPASS_OFS_Y 1\nCOMPASS_OFS_Z 1\nARMING_CHECK 0\n"
+                                    "COMPASS_USE 0\n"
                                     "CIRCLE_RADIUS 3000\nCIRCLE_RATE 15\n")
-    cmd = [str(binary), "--model", "quad", "--speedup", str(speedup), "-w", "-I", "9",
+    cmd = [str(binary), "--model", "quad", "--speedup", str(speedup), "-w", "-I", str(SITL_INSTANCE),
            "--defaults", f"{SITL / 'copter.parm'},{run / 'truth.parm'}", "--home", "-35.3632,149.1652,584,0",
            "--serial0", f"udpclient:127.0.0.1:{port}"]
     proc = subprocess.Popen(cmd, cwd=run, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + timeout_s
     try:
         m = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}")
+        # pymavlink's UDP link does not write its logfile: each message is kept here, stamped with the
+        # vehicle's clock (time_boot_ms / time_usec since boot, else the last seen): at --speedup N the
+        # wall clock runs N times slower than the flight, and a real ground station sees real time
+        tlog_file = open(run / "telemetry.tlog", "wb")
+        t0_us, boot_us = int(time.time() * 1e6), [0]
+
+        def keep(msg) -> None:
+            if msg.get_type() == "BAD_DATA":
+                return
+            ms, us = getattr(msg, "time_boot_ms", None), getattr(msg, "time_usec", None)
+            if ms is not None:
+                boot_us[0] = max(boot_us[0], int(ms) * 1000)
+            elif us is not None and 0 < us < 10 ** 11:        # µs since boot, not a UNIX time
+                boot_us[0] = max(boot_us[0], int(us))
+            tlog_file.write(struct.pack(">Q", t0_us + boot_us[0]) + msg.get_msgbuf())
+
+        m.mav.set_callback(keep)
         if m.wait_heartbeat(timeout=60) is None:
-            return None, "SITL sent no heartbeat"
+            return None, "SITL sent no heartbeat", None
         m.mav.request_data_stream_send(m.target_system, m.target_component, mavutil.mavlink.MAV_DATA_STREAM_ALL, 4, 1)
+        m.param_fetch_all()
 
         def boot_s() -> float:
             msg = m.recv_match(type="ATTITUDE", blocking=True, timeout=5)
             return -1.0 if msg is None else msg.time_boot_ms / 1000.0
 
+        last_rc = [0.0]
+
+        def hold_throttle() -> None:
+            """Throttle stick at mid (RC_CHANNELS_OVERRIDE, 2 Hz): CIRCLE takes the climb rate from it,
+            and SITL's idle stick (1000) made the vehicle descend into the ground (measured)."""
+            if time.monotonic() - last_rc[0] > 0.5:
+                last_rc[0] = time.monotonic()
+                m.mav.rc_channels_override_send(m.target_system, m.target_component, 0, 0, 1500, 0, 0, 0, 0, 0)
+
         def wait_until(cond, limit_s: float) -> bool:
             t0 = boot_s()
             while time.monotonic() < deadline:
+                hold_throttle()
                 if cond():
                     return True
                 if boot_s() - t0 > limit_s:
@@ -332,7 +372,7 @@ def record_sitl(tmp: Path, circle_s: float = 150.0, speedup: int = 5, port: int 
             return armed() or armed()
 
         if not wait_until(try_arm, 180):
-            return None, "SITL would not arm in GUIDED within 180 s"
+            return None, "SITL would not arm in GUIDED within 180 s", None
         m.mav.command_long_send(m.target_system, m.target_component, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF,
                                 0, 0, 0, 0, 0, 0, 0, 30)
 
@@ -341,28 +381,37 @@ def record_sitl(tmp: Path, circle_s: float = 150.0, speedup: int = 5, port: int 
             return g is not None and g.relative_alt > 25_000
 
         if not wait_until(high, 90):
-            return None, "SITL did not climb to 25 m"
+            return None, "SITL did not climb to 25 m", None
         m.set_mode("CIRCLE")
         wait_until(lambda: False, circle_s)
         m.set_mode("LAND")
         wait_until(lambda: not armed(), 120)
+        m.param_fetch_all()          # the parameters once more at the end, as a ground station would
+        wait_until(lambda: False, 5)
     finally:
+        if "tlog_file" in locals():
+            tlog_file.close()
         proc.terminate()
         try:
             proc.wait(timeout=20)
         except subprocess.TimeoutExpired:
             proc.kill()
     logs = sorted((run / "logs").glob("*.BIN"))
-    return (logs[-1], "") if logs else (None, "SITL wrote no .BIN")
+    tlog = run / "telemetry.tlog"
+    return (logs[-1], "", tlog if tlog.is_file() else None) if logs else (None, "SITL wrote no .BIN", None)
 
 
 def sitl_rows(tmp: Path, magfit_reduce: int | None) -> list[Row]:
-    path, note = record_sitl(tmp)
+    path, note, tlog = record_sitl(tmp)
     if path is None:
         return [Row("SITL circle flight .BIN", None, f"not recorded: {note}", "", None, "", None, None, 0.0)]
-    log, results, dt = calibrate_file(path)
-    rows = [Row("SITL circle flight .BIN", r["compass"], r["status"], r.get("method") or "-", ours_ofs(r),
-                "SIM_MAG_OFS", SITL_TRUTH_OFS.get(r["compass"]), 5.0, dt, named(r), _sd(r)) for r in results]
+    rows = []
+    for label, p in (("SITL circle flight .BIN", path), ("SITL circle flight telemetry .tlog", tlog)):
+        if p is None:
+            continue
+        log, results, dt = calibrate_file(p)
+        rows += [Row(label, r["compass"], r["status"], (r.get("method") or "-") + _att(r), ours_ofs(r),
+                     "SIM_MAG_OFS", SITL_TRUTH_OFS.get(r["compass"]), 5.0, dt, named(r), _sd(r)) for r in results]
     if magfit_reduce is not None and rows:
         mf = run_magfit(path, 1, magfit_reduce)
         versus = (rows[0].err_mG if rows[0].err_mG is not None else float("inf"), rows[0].seconds)

@@ -53,7 +53,7 @@ class FieldData:
     pitch_rad: np.ndarray
     yaw_rad: np.ndarray
     motor_signal: np.ndarray    # (N,) A or throttle 0..1 (zeros when unused)
-    field_ned_mG: np.ndarray    # (3,)
+    field_ned_mG: np.ndarray    # (3,) one field for every sample, or (N,3) the WMM at each sample (along the flight)
     weight: np.ndarray | None = None    # (N,) prior per-sample weights (mean 1; e.g. sphere cells), None = 1
 
     def tilt(self) -> np.ndarray:
@@ -64,13 +64,23 @@ class FieldData:
     def _tilt(self) -> np.ndarray:
         return dcm_body_to_ned(self.roll_rad, self.pitch_rad, np.zeros_like(self.roll_rad))
 
+    def field_rows(self) -> np.ndarray:
+        """The NED field at each sample (N,3), whether one field or one per sample was given."""
+        return np.broadcast_to(np.asarray(self.field_ned_mG, float), (len(self.roll_rad), 3))
+
+    def subset(self, keep: np.ndarray) -> "FieldData":
+        H = np.asarray(self.field_ned_mG, float)
+        return FieldData(self.mag_raw_mG[keep], self.roll_rad[keep], self.pitch_rad[keep], self.yaw_rad[keep],
+                         self.motor_signal[keep], H if H.ndim == 1 else H[keep],
+                         None if self.weight is None else self.weight[keep])
+
     def expected_body_mG(self) -> np.ndarray:
         return self._expected_body
 
     @cached_property
     def _expected_body(self) -> np.ndarray:
         C = dcm_body_to_ned(self.roll_rad, self.pitch_rad, self.yaw_rad)
-        return np.einsum("nji,j->ni", C, self.field_ned_mG)
+        return np.einsum("nji,nj->ni", C, self.field_rows())
 
 
 @dataclass(frozen=True)
@@ -132,12 +142,12 @@ def _nuisance_heading(p: np.ndarray, data: FieldData) -> tuple[np.ndarray, np.nd
     With T = Ry(θ)Rx(φ) and α = ψ − declination, h(ψ) = Tᵀ[H_h cos α, −H_h sin α, H_d], so
     r(α) = z − u cos α − v sin α with z = m − b − A f x − A Tᵀ[0, 0, H_d], u = A Tᵀe_x H_h,
     v = −A Tᵀe_y H_h.  Start: α = atan2(z·v, z·u) (exact for orthogonal A), then three Newton steps."""
-    H = np.asarray(data.field_ned_mG, float)
-    hh, decl = float(np.hypot(H[0], H[1])), float(np.arctan2(H[1], H[0]))
+    H = data.field_rows()                                    # (N,3): one field, or the WMM along the flight
+    hh, decl = np.hypot(H[:, 0], H[:, 1]), np.arctan2(H[:, 1], H[:, 0])
     A = distortion_from_params(p)
     AT = np.einsum("ij,nkj->nik", A, data.tilt())            # A Tᵀ  (N,3,3)
-    z = data.mag_raw_mG - p[:3] - data.motor_signal[:, None] * (A @ p[9:12]) - AT[:, :, 2] * H[2]
-    u, v = AT[:, :, 0] * hh, -AT[:, :, 1] * hh
+    z = data.mag_raw_mG - p[:3] - data.motor_signal[:, None] * (A @ p[9:12]) - AT[:, :, 2] * H[:, 2:3]
+    u, v = AT[:, :, 0] * hh[:, None], -AT[:, :, 1] * hh[:, None]
     a = np.arctan2(np.sum(z * v, 1), np.sum(z * u, 1))
     for _ in range(3):
         c, s = np.cos(a), np.sin(a)
@@ -147,7 +157,7 @@ def _nuisance_heading(p: np.ndarray, data: FieldData) -> tuple[np.ndarray, np.nd
         hess = np.sum(d1 * d1, 1) + np.sum(e * (u * c[:, None] + v * s[:, None]), 1)
         a = a - np.where(hess > 1e-9, g / np.where(hess > 1e-9, hess, 1.0), 0.0)
     c, s = np.cos(a), np.sin(a)
-    lv = np.column_stack([hh * c, -hh * s, np.full(len(a), H[2])])
+    lv = np.column_stack([hh * c, -hh * s, H[:, 2]])
     h = np.einsum("nji,nj->ni", data.tilt(), lv)
     d1 = u * s[:, None] - v * c[:, None]
     q = d1 / np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), 1e-12)

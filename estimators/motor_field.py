@@ -107,11 +107,12 @@ def fit_motor_field(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG,
     p = nominal_params(fit.matrix, fit.offsets_mG)
     p[9:12] = f
     zeros = np.zeros(int(use.sum()))
-    dummy = FieldData(raw[use], zeros, zeros, zeros, x_all[use], np.asarray(field_ned_mG, float))
+    Hf = np.asarray(field_ned_mG, float)
+    dummy = FieldData(raw[use], zeros, zeros, zeros, x_all[use], Hf.ravel() if Hf.size == 3 else Hf[use])
     c_without = corrected_field(p, dummy)
     c_with = c_without + x_all[use, None] * f
     x_max = float(np.max(x_all[use]))
-    H = float(np.linalg.norm(field_ned_mG))
+    H = float(np.mean(np.linalg.norm(Hf.reshape(-1, 3), axis=1)))
     at_max = float(np.linalg.norm(f) * x_max)
     # the motor field is judged by its own sd; offsets that are only "weak" (not recommended) do not void it
     status, notes = ("ok" if fit.status == "weak" else fit.status), [fit.message]

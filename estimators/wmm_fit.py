@@ -47,10 +47,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from estimators.field_model import (PARAM_NAMES, FieldData, Solution, SolverOptions, corrected_field,
-                                    matrix_from_params, nominal_params, solve)
+                                    matrix_from_params, nominal_params, residuals, solve)
 from estimators.rotations import dcm_body_to_ned, wrap_angle_rad
 
-__all__ = ["WmmFitSettings", "WmmFit", "fit_wmm", "compass_heading_rad", "sphere_cell_index", "sphere_cell_weights", "heading_imbalance",
+__all__ = ["WmmFitSettings", "WmmFit", "fit_wmm", "heldout_residual_mG", "course_check", "straight_and_fast", "compass_heading_rad", "sphere_cell_index", "sphere_cell_weights", "heading_imbalance",
            "FLY_FOR_HEADINGS"]
 
 
@@ -67,6 +67,9 @@ class WmmFitSettings:
     course_min_speed_mps: float = 4.0
     max_course_turn_deg_s: float = 5.0
     max_course_disagreement_deg: float = 30.0
+    course_check_min_speed_mps: float = 5.0       # the GPS-course check of the heading change (course_check)
+    course_check_max_roll_deg: float = 10.0
+    course_check_min_samples: int = 20
     offset_limit_mG: float = 1800.0
     diag_limits: tuple[float, float] = (0.8, 1.2)
     offdiag_limit: float = 0.2
@@ -119,6 +122,7 @@ class WmmFit:
     reason: str = ""                          # why (not) recommended, or what flight would make it observable
     heading_change_deg: tuple[float, float] = (float("nan"), float("nan"))   # (RMS, max |Δψ|) new vs in force
     sphere_coverage: float = 0.0              # fraction of the sphere cells holding a used field direction
+    course: dict | None = None                # course_check of the heading change (None: no GPS velocity or in-force field)
     settings: WmmFitSettings = field(default_factory=WmmFitSettings)
 
 
@@ -165,26 +169,84 @@ def compass_heading_rad(corrected_mG: np.ndarray, roll_rad, pitch_rad, field_ned
     l = Ry(θ)Rx(φ) c,  ψ = atan2(−l_y, l_x) + atan2(H_E, H_N)."""
     T = dcm_body_to_ned(np.asarray(roll_rad, float), np.asarray(pitch_rad, float), np.zeros(np.shape(roll_rad)))
     lv = np.einsum("nij,nj->ni", T, np.asarray(corrected_mG, float))
-    H = np.asarray(field_ned_mG, float)
-    return wrap_angle_rad(np.arctan2(-lv[:, 1], lv[:, 0]) + np.arctan2(H[1], H[0]))
+    H = np.asarray(field_ned_mG, float)          # (3,) or (N,3)
+    return wrap_angle_rad(np.arctan2(-lv[:, 1], lv[:, 0]) + np.arctan2(H[..., 1], H[..., 0]))
+
+
+def straight_and_fast(t_s, vel_ne_mps, min_speed_mps: float, max_turn_deg_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(mask, GPS course rad): samples moving faster than ``min_speed_mps`` on a steady course (its
+    rate of change, by central differences over the fast samples, below ``max_turn_deg_s``)."""
+    v = np.asarray(vel_ne_mps, float).reshape(-1, 2)
+    speed = np.hypot(v[:, 0], v[:, 1])
+    fast = np.isfinite(speed) & (speed >= min_speed_mps)
+    course = np.arctan2(v[:, 1], v[:, 0])
+    if fast.sum() < 3:
+        return np.zeros(len(speed), bool), course
+    tc, cc = np.asarray(t_s, float)[fast], np.unwrap(course[fast])
+    turn = np.full(len(speed), np.inf)
+    if np.all(np.diff(tc) > 0):
+        turn[fast] = np.degrees(np.abs(np.gradient(cc, tc)))
+    return fast & (turn <= max_turn_deg_s), course
 
 
 def _course_disagrees(t_s, yaw_rad, vel_ne_mps, s: WmmFitSettings) -> np.ndarray:
     """True where moving straight and fast while the attitude heading is far from the GPS course."""
-    v = np.asarray(vel_ne_mps, float).reshape(-1, 2)
-    speed = np.hypot(v[:, 0], v[:, 1])
-    fast = np.isfinite(speed) & (speed >= s.course_min_speed_mps)
-    out = np.zeros(len(speed), bool)
-    if fast.sum() < 3:
-        return out
-    course = np.arctan2(v[:, 1], v[:, 0])
-    tc, cc = np.asarray(t_s, float)[fast], np.unwrap(course[fast])
-    turn = np.full(len(speed), np.inf)
-    if len(tc) >= 2 and np.all(np.diff(tc) > 0):
-        turn[fast] = np.degrees(np.abs(np.gradient(cc, tc)))
-    straight = fast & (turn <= s.max_course_turn_deg_s)
+    straight, course = straight_and_fast(t_s, vel_ne_mps, s.course_min_speed_mps, s.max_course_turn_deg_s)
+    out = np.zeros(len(course), bool)
     diff = np.degrees(np.abs(wrap_angle_rad(np.asarray(yaw_rad, float) - course)))
     out[straight] = diff[straight] > s.max_course_disagreement_deg
+    return out
+
+
+def course_check(t_s, heading_new_rad, heading_old_rad, vel_ne_mps, roll_rad,
+                 s: WmmFitSettings = WmmFitSettings()) -> dict:
+    """The GPS course over ground as an independent yaw reference, to check a heading change.
+
+    In straight, level (|roll| < ``course_check_max_roll_deg``), fast (> ``course_check_min_speed_mps``)
+    flight the heading minus the course is the crab angle (wind, a vehicle that does not face its way),
+    roughly constant, so a compass error shows as the spread of δ = ψ − course about its circular
+    mean.  For the compass heading with the corrections in force (old) and with the new calibration
+    (new): mean and RMS spread of δ [deg]; ``slope``: of (course − ψ_old) on (ψ_new − ψ_old), both
+    less their means: ≈ 1 when the course confirms the fitted heading change, ≈ 0 when it does not
+    see it (NaN when the heading change does not vary).  Needs ≥ ``course_check_min_samples``
+    samples in ≥ 2 of 12 course sectors (one course cannot tell a compass error from crab).
+    Returns a JSON-ready dict with ``status`` ok | too_little_straight_flight, and ``verdict``."""
+    t = np.asarray(t_s, float).ravel()
+    straight, course = straight_and_fast(t, vel_ne_mps, s.course_check_min_speed_mps, s.max_course_turn_deg_s)
+    new, old = np.asarray(heading_new_rad, float).ravel(), np.asarray(heading_old_rad, float).ravel()
+    use = straight & (np.abs(np.degrees(np.asarray(roll_rad, float).ravel())) < s.course_check_max_roll_deg) \
+        & np.isfinite(new) & np.isfinite(old)
+    sectors = len(np.unique((np.mod(course[use], 2 * np.pi) / (2 * np.pi) * 12).astype(int)))
+    out: dict = {"samples": int(use.sum()), "course_sectors": sectors, "min_speed_mps": s.course_check_min_speed_mps}
+    if use.sum() < s.course_check_min_samples or sectors < 2:
+        out.update(status="too_little_straight_flight",
+                   verdict=f"not checked: {int(use.sum())} samples of straight, level flight faster than "
+                           f"{s.course_check_min_speed_mps:g} m/s in {sectors} course sector(s) "
+                           f"(need {s.course_check_min_samples} in 2 or more)")
+        return out
+
+    def spread(psi):
+        d = wrap_angle_rad(psi[use] - course[use])
+        mean = float(np.angle(np.mean(np.exp(1j * d))))
+        dev = wrap_angle_rad(d - mean)
+        return d, mean, dev, float(np.degrees(np.sqrt(np.mean(dev ** 2))))
+
+    _, m_old, dev_old, sd_old = spread(old)
+    _, m_new, _, sd_new = spread(new)
+    change = wrap_angle_rad(new[use] - old[use])
+    change = change - change.mean()
+    slope = float(np.dot(change, -dev_old) / np.dot(change, change)) if np.degrees(np.std(change)) > 0.2 else float("nan")
+    better = sd_new < sd_old - 0.5
+    worse = sd_new > sd_old + 0.5
+    verdict = ("the GPS course agrees better with the new calibration" if better else
+               "the GPS course agrees worse with the new calibration" if worse else
+               "the GPS course does not tell the two apart")
+    out.update(status="ok", old={"mean_deg": round(float(np.degrees(m_old)), 2), "spread_deg": round(sd_old, 2)},
+               new={"mean_deg": round(float(np.degrees(m_new)), 2), "spread_deg": round(sd_new, 2)},
+               slope=round(slope, 2) if np.isfinite(slope) else None,
+               verdict=verdict + f" (heading − course spread {sd_old:.1f}° in force, {sd_new:.1f}° new"
+                       + (f"; the course sees {slope:.0%} of the fitted heading change" if np.isfinite(slope) else "")
+                       + ")")
     return out
 
 
@@ -265,8 +327,7 @@ def _fit_terms(data: FieldData, model: str, p0: np.ndarray, auto: np.ndarray, fo
 
 
 def _subset(data: FieldData, keep: np.ndarray) -> FieldData:
-    return FieldData(data.mag_raw_mG[keep], data.roll_rad[keep], data.pitch_rad[keep], data.yaw_rad[keep],
-                     data.motor_signal[keep], data.field_ned_mG, None if data.weight is None else data.weight[keep])
+    return data.subset(keep)
 
 
 def _with_jackknife(cov: np.ndarray, data: FieldData, sol: Solution, active: np.ndarray, p0: np.ndarray,
@@ -425,7 +486,8 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
     Args (N samples on the field's time base; use estimators.log_alignment to get there):
         t_s (N,) s; mag_raw_mG (N,3) raw body field (corrections in force un-applied,
         estimators.compass_corrections); roll/pitch/yaw_rad (N,) autopilot attitude (NaN: none);
-        field_ned_mG (3,) WMM field; attitude_rate_deg_s (N,) from ``attitude_at`` (rate gate);
+        field_ned_mG (3,) WMM field, or (N,3) the WMM at each sample's position, altitude and date
+        (estimators.geomag.field_along_path); attitude_rate_deg_s (N,) from ``attitude_at`` (rate gate);
         motor_signal (N,) current A or throttle 0..1; gps_vel_ne_mps (N,2) GPS velocity (course gate);
         corrected_in_force_mG (N,3) the logged corrected field (yaw-dependence test);
         nominal_matrix (3,3) M held where not fitted (e.g. the DIA/ODI in force).
@@ -434,9 +496,10 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
     s = settings
     raw = np.asarray(mag_raw_mG, float).reshape(-1, 3)
     n = len(raw)
-    H = np.asarray(field_ned_mG, float).ravel()
-    if H.shape != (3,) or not np.all(np.isfinite(H)) or np.linalg.norm(H) <= 0:
-        return _failed("no_expected_field", "no finite WMM field given", n, {}, s)
+    H = np.asarray(field_ned_mG, float)
+    H = H.ravel() if H.size == 3 else H
+    if H.shape not in ((3,), (n, 3)) or not np.all(np.isfinite(H)) or np.any(np.linalg.norm(H, axis=-1) <= 0):
+        return _failed("no_expected_field", "no finite WMM field given (one (3,) or one per sample (N,3))", n, {}, s)
     cols = [np.full(n, np.nan) if a is None else np.asarray(a, float).ravel() for a in (roll_rad, pitch_rad, yaw_rad)]
     if any(len(c) != n for c in cols) or not np.any(np.all(np.isfinite(np.column_stack(cols)), axis=1)):
         return _failed("no_attitude", "no attitude at the field samples", n, {"no_attitude": n}, s)
@@ -474,7 +537,7 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
     cover = [0.0]
 
     def data_for(mask):
-        d = FieldData(raw[mask], cols[0][mask], cols[1][mask], cols[2][mask], sig[mask], H)
+        d = FieldData(raw[mask], cols[0][mask], cols[1][mask], cols[2][mask], sig[mask], H if H.ndim == 1 else H[mask])
         w, cover[0] = sphere_cell_weights(d.expected_body_mG(), s.sphere_bands, s.sphere_sectors)
         return replace(d, weight=w) if (few if s.cell_weighting is None else s.cell_weighting) else d
 
@@ -495,5 +558,62 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
     if model == "vector" and gps_vel_ne_mps is not None:
         sol, active = _fit_terms(data, model, p0, auto, forced, s, held)     # refit without the gated samples
     cin_used = None if corrected_in_force_mG is None else np.asarray(corrected_in_force_mG, float).reshape(-1, 3)[ok]
-    return _result(sol, active, model, (slope, disagree), data, n, rej, notes, s,
-                   _heading_change(data, sol.params, cin_used), cover[0])
+    fit = _result(sol, active, model, (slope, disagree), data, n, rej, notes, s,
+                  _heading_change(data, sol.params, cin_used), cover[0])
+    if gps_vel_ne_mps is not None and cin_used is not None and fit.status in ("ok", "weak"):
+        Hs = data.field_ned_mG
+        new = compass_heading_rad(corrected_field(sol.params, data), data.roll_rad, data.pitch_rad, Hs)
+        old = compass_heading_rad(cin_used, data.roll_rad, data.pitch_rad, Hs)
+        fit = replace(fit, course=course_check(t[ok], new, old, np.asarray(gps_vel_ne_mps, float).reshape(-1, 2)[ok],
+                                               data.roll_rad, s))
+    return fit
+
+
+def heldout_residual_mG(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, attitude_rate_deg_s=None,
+                        motor_signal=None, nominal_matrix=None, settings: WmmFitSettings = WmmFitSettings(),
+                        block_samples: int = 20) -> tuple[float, int]:
+    """How well an attitude source explains a compass: the held-out residual of the in-flight fit.
+
+    Two-fold cross-validation over interleaved time blocks of ``block_samples`` samples (even blocks
+    fit, odd blocks judged, and back; short blocks so that each half flies the headings of the
+    whole): each half is fitted with ``fit_wmm`` (no jackknife, no observability refusal: the
+    score asks how consistent the data are, not whether the offsets are pinned down) and the residual
+    r = m − A(h + f·x) − b (estimators.field_model.residuals, the fit's model) is taken on the other
+    half's samples that pass the same gates.  Returns (RMS |r| [mG] over the held-out samples with
+    |r| below 5 × their median, samples judged); (NaN, 0) when a half cannot be fitted.  A held-out
+    residual does not reward a source for the terms it lets the fit bend to (unlike the residual
+    after the fit), and an attitude that is late, noisy or wrong in tilt shows in it directly.
+    """
+    s = replace(settings, jackknife_blocks=0, min_heading_coverage=0.0, max_answer_sd_mG=float("inf"))
+    raw = np.asarray(mag_raw_mG, float).reshape(-1, 3)
+    n = len(raw)
+    cols = [np.asarray(a, float).ravel() for a in (roll_rad, pitch_rad, yaw_rad)]
+    H = np.asarray(field_ned_mG, float)
+    H = H.ravel() if H.size == 3 else H
+    t = np.asarray(t_s, float).ravel()
+    rate = None if attitude_rate_deg_s is None else np.asarray(attitude_rate_deg_s, float).ravel()
+    sig = None if motor_signal is None else np.asarray(motor_signal, float).ravel()
+    if n < 4 * block_samples or any(len(c) != n for c in cols):
+        return float("nan"), 0
+    fold = (np.arange(n) // max(1, int(block_samples))) % 2
+    ok, _ = _gate(t, raw, *cols, rate, s)
+    errs = []
+    for k in (0, 1):
+        train = fold != k
+        pick = lambda a: None if a is None else a[train]  # noqa: E731
+        fit = fit_wmm(t[train], raw[train], *(c[train] for c in cols), H if H.ndim == 1 else H[train],
+                      attitude_rate_deg_s=pick(rate), motor_signal=pick(sig), nominal_matrix=nominal_matrix, settings=s)
+        if fit.status not in ("ok", "weak", "attitude_depends_on_compass") or not np.all(np.isfinite(fit.offsets_mG)):
+            return float("nan"), 0
+        p = nominal_params(fit.matrix, fit.offsets_mG)
+        f = fit.motor_mG_per_unit
+        p[9:12] = np.where(np.isfinite(f), f, 0.0)
+        test = (fold == k) & ok & (np.isfinite(sig) if sig is not None else True)
+        x = np.zeros(int(test.sum())) if sig is None else np.nan_to_num(sig[test])
+        data = FieldData(raw[test], cols[0][test], cols[1][test], cols[2][test], x, H if H.ndim == 1 else H[test])
+        errs.append(np.linalg.norm(residuals(p, data, fit.model or "yaw_free"), axis=1))
+    e = np.concatenate(errs)
+    if len(e) == 0:
+        return float("nan"), 0
+    e = e[e <= 5 * np.median(e)]
+    return float(np.sqrt(np.mean(e ** 2))), int(len(e))

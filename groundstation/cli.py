@@ -141,13 +141,17 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from groundstation.jobs.calibrate import calibrate_compasses, error_result, format_consistency, format_summary
+    from dataclasses import replace
+
+    from groundstation.jobs.calibrate import (DEFAULT_SETTINGS, calibrate_compasses, error_result, format_consistency,
+                                              format_summary)
 
     values, label = in_force_params(args)
+    settings = replace(DEFAULT_SETTINGS, attitude_source=args.attitude)
     results = []
     for file in args.files:
         try:
-            found = calibrate_compasses(with_params(load_log(file), values, label))    # one result per compass
+            found = calibrate_compasses(with_params(load_log(file), values, label), settings)    # one result per compass
         except IngestError as err:
             found = [error_result(file, str(err))]
         results += found
@@ -156,16 +160,24 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.json:
         _write_json(args.json, {"results": [_file_name(r) for r in results]})
     if args.param_out:
-        _write_params(args.param_out, results)
+        _write_params(args.param_out, results, args.accept_weak)
     return 0 if all(r["status"] == "ok" for r in results) else 1
 
 
-def _write_params(path: str, results: list[dict]) -> None:
-    """Every absolute result's parameters in one .param file (a relative result has none to write)."""
+def _write_params(path: str, results: list[dict], accept_weak: bool = False) -> None:
+    """Every absolute result's parameters in one .param file (a relative result has none to write).
+    A weak (not recommended) answer is refused in one line unless ``accept_weak``."""
+    weak = [r for r in results if r.get("relative_to") == "raw" and (r.get("status") == "weak" or (
+        r.get("status") == "ok" and r.get("recommended") is False))]
+    if weak and not accept_weak:
+        r = weak[0]
+        why = (r.get("recommendation") or r.get("status") or "").split(";")[0].removeprefix("not recommended: ")
+        raise CliError(f"not writing {path}: compass {r.get('compass')} of {r.get('file')} is not recommended "
+                       f"({why}); give --accept-weak to write it with its stated 1σ")
     values: dict[str, float] = {}
     for r in results:
         ap = r.get("autopilot") or "ardupilot"
-        if r.get("status") == "ok" and r.get("relative_to") == "raw":
+        if r.get("status") in (("ok", "weak") if accept_weak else ("ok",)) and r.get("relative_to") == "raw":
             values.update(r.get("px4_params" if ap == "px4" else "ardupilot_params") or {})
     if not values:
         raise CliError("no absolute calibration to write as parameters: the fit is relative to corrections in "
@@ -354,6 +366,11 @@ def build_parser() -> argparse.ArgumentParser:
                                                  "(default: none)")
     p.add_argument("--param-out", metavar="FILE.param", help="write the absolute COMPASS_*/CAL_MAG* parameters "
                                                              "as a .param file (default: none)")
+    p.add_argument("--attitude", metavar="SOURCE", default="auto",
+                   help="attitude for the in-flight fit: ATT, AHR2 (DCM), XKF1 (EKF3), NKF1 (EKF2), ATTITUDE, "
+                        "vehicle_attitude or ahrs (ours, from the IMU) (default: auto, the one that fits best)")
+    p.add_argument("--accept-weak", action="store_true", help="with --param-out: also write answers marked "
+                                                               "`recommended: no` (weak, with their 1σ); default: refuse")
     add_params_options(p)
     p.set_defaults(func=cmd_calibrate)
 

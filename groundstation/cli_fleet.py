@@ -146,6 +146,7 @@ def cmd_review(args: argparse.Namespace) -> int:
     write_html(rows, findings, out / "report.html", failures=summary.failures)
     _print_summary(summary, out)
     _print_calibrations(rows, started)
+    _print_offsets(rows)
     return 1 if total and summary.progress.failed == summary.progress.done else 0
 
 
@@ -158,6 +159,18 @@ def _review_settings(args: argparse.Namespace):
     if values is None:
         return ReviewSettings()
     return ReviewSettings(params=tuple(sorted(values.items())), params_label=label)
+
+
+def _print_offsets(rows: list[dict]) -> None:
+    """Each airframe's in-flight offsets across its flights: combined, spread, drift (compass_history)."""
+    from groundstation.cli_common import printable
+    from groundstation.jobs.compass_history import offset_summaries
+
+    summaries = offset_summaries(rows)
+    if summaries:
+        print("in-flight offsets across flights (raw sensor frame):")
+    for s in summaries:
+        print(f"  {printable(s['line'])}")
 
 
 def _print_calibrations(rows: list[dict], since_unix_s: float) -> None:

@@ -39,11 +39,13 @@ class ImuSample:
 
 @dataclass(slots=True)
 class AttitudeSample:
-    """The autopilot's own attitude estimate (not truth)."""
+    """The autopilot's own attitude estimate (not truth).  ``source`` "": the log's attitude (ATT,
+    ATTITUDE, vehicle_attitude); else another estimator the log also recorded (AHR2, XKF1, NKF1)."""
     t_s: float
     roll_rad: float
     pitch_rad: float
     yaw_rad: float
+    source: str = ""
 
 
 @dataclass(slots=True)
@@ -189,7 +191,8 @@ class FlightLog:
     ingest and counted in ``warnings``).
       mag:       [t_s, mx_mG, my_mG, mz_mG]                (primary instance only)
       imu:       [t_s, gx, gy, gz rad/s, ax, ay, az m/s^2]  (primary instance only)
-      attitude:  [t_s, roll_rad, pitch_rad, yaw_rad]
+      attitude:  [t_s, roll_rad, pitch_rad, yaw_rad]  (the log's own; ``attitudes``: the other
+                 estimators the log recorded, e.g. DataFlash AHR2 (DCM), XKF1 (EKF3), NKF1 (EKF2))
       gps:       [t_s, lat_deg, lon_deg, alt_m, vn, ve, vd m/s, fix_type]
       battery:   [t_s, current_A]
       throttle:  [t_s, throttle 0..1]
@@ -204,6 +207,7 @@ class FlightLog:
     mag: np.ndarray = field(default_factory=lambda: _empty(4))
     imu: np.ndarray = field(default_factory=lambda: _empty(7))
     attitude: np.ndarray = field(default_factory=lambda: _empty(4))
+    attitudes: dict[str, np.ndarray] = field(default_factory=dict)   # other estimators logged, like attitude
     gps: np.ndarray = field(default_factory=lambda: _empty(8))
     battery: np.ndarray = field(default_factory=lambda: _empty(2))
     throttle: np.ndarray = field(default_factory=lambda: _empty(2))

@@ -237,3 +237,75 @@ def test_a_log_that_is_all_dance_shorter_than_a_window_is_one_window():
     r = calibrate_log(log)
     assert r["status"] == "ok" and [w["source"] for w in r["windows"] if w["chosen"]] == ["whole_log"]
     np.testing.assert_allclose(r["offsets_mG"], [-60, 90, 15], atol=1.0)
+
+
+def test_attitude_source_chosen_by_the_held_out_residual_named_and_forced(flight):
+    """The log's own attitude made wrong (1.5 s late, 4° tilt error), the true one beside it as
+    XKF1: the fit picks XKF1 by its held-out residual, says so, and lands within 5 mG; forced to the
+    wrong one it says it was asked and does worse."""
+    sim, log, _ = flight
+    rng = np.random.default_rng(0)
+    att = log.attitude.copy()
+    bad = att.copy()
+    bad[:, 0] += 1.5
+    bad[:, 1:3] += np.radians(4.0) * np.sin(np.cumsum(rng.normal(0, 0.05, (len(att), 2)), axis=0) + 1.0)
+    two = replace(log, attitude=bad, attitudes={"XKF1": att})
+    results = calibrate_compasses(two)
+    for r in results:
+        truth = np.asarray(sim.truth["compasses"][r["compass"]]["offsets_rot_mG"])
+        assert r["attitude_source"] == "XKF1", r["attitude_choice"]
+        assert np.max(np.abs(np.asarray(r["offsets_mG"]) - truth)) < 5.0, r["message"]
+    scores = results[0]["attitude_choice"]["scores"]
+    assert set(scores) == {"ATTITUDE", "XKF1"} and scores["XKF1"] < scores["ATTITUDE"]
+    assert "held-out residual" in results[0]["attitude_choice"]["note"]
+    forced = calibrate_compasses(two, replace(DEFAULT_SETTINGS, attitude_source="ATTITUDE"))[0]
+    assert forced["attitude_source"] == "ATTITUDE" and forced["attitude_choice"]["forced"]
+    truth0 = np.asarray(sim.truth["compasses"][0]["offsets_rot_mG"])
+    assert forced["offsets_mG"] is None or np.max(np.abs(np.asarray(forced["offsets_mG"]) - truth0)) > \
+        np.max(np.abs(np.asarray(results[0]["offsets_mG"]) - truth0))
+    missing = calibrate_compasses(two, replace(DEFAULT_SETTINGS, attitude_source="NKF1"))[0]
+    assert missing["attitude_source"] == "ATTITUDE" and "not in this log" in missing["attitude_choice"]["note"]
+
+
+def test_dataflash_reader_keeps_every_attitude_estimator(tmp_path, monkeypatch):
+    """AHR2 (DCM), XKF1 (EKF3, first core only) and NKF1 (EKF2) beside ATT, in degrees."""
+    from groundstation.sim import dataflash_writer as dfw
+    layout = {"ATT": ("QccccCCCC", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw"),
+              "AHR2": ("QccCfLLffff", "TimeUS,Roll,Pitch,Yaw,Alt,Lat,Lng,Q1,Q2,Q3,Q4"),
+              "XKF1": ("QBccCfffffffccce", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD,GX,GY,GZ,OH"),
+              "NKF1": ("QBccCfffffffccce", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD,GX,GY,GZ,OH")}
+    monkeypatch.setitem(dfw.LAYOUTS, "attitudes", layout)
+    w = dfw.DataFlashWriter("attitudes")
+    for k in range(50):
+        t = 1_000_000 + 100_000 * k
+        w.write("ATT", t, 0, 10.0, 0, -5.0, 0, 90.0, 0, 0)
+        w.write("AHR2", t, 11.0, -6.0, 91.0, 0, 0, 0, 1, 0, 0, 0)
+        for c, roll in ((0, 12.0), (1, 40.0)):
+            w.write("XKF1", t, c, roll, -7.0, 92.0, *([0.0] * 7), 0, 0, 0, 0)
+        w.write("NKF1", t, 0, 13.0, -8.0, 93.0, *([0.0] * 7), 0, 0, 0, 0)
+    log = read_log(w.save(tmp_path / "att.bin"))
+    assert set(log.attitudes) == {"AHR2", "XKF1", "NKF1"} and len(log.attitude) == 50
+    for name, (roll, pitch, yaw) in {"AHR2": (11, -6, 91), "XKF1": (12, -7, 92), "NKF1": (13, -8, 93)}.items():
+        table = log.attitudes[name]
+        assert len(table) == 50, name                               # XKF1 core 1 (roll 40) left out
+        np.testing.assert_allclose(np.degrees(table[:, 1:]), [[roll, pitch, yaw]] * 50, atol=0.01)
+    np.testing.assert_allclose(np.degrees(log.attitude[0, 1:]), [10, -5, 90], atol=0.01)
+
+
+def test_inflight_inputs_carry_the_wmm_at_each_sample(flight):
+    """The fit's field is the WMM at each sample's GPS position, altitude and date (not one point)."""
+    from estimators.geomag import decimal_year_from_unix, earth_field
+    from groundstation.jobs.calibrate.context import log_context
+    from groundstation.jobs.calibrate.inflight import flight_inputs
+    _, log, _ = flight
+    cf = compass_fields(log)[0]
+    ctx = log_context(log)
+    x = flight_inputs(log, cf, 1500, ctx)
+    assert x.field_ned_mG.shape == (len(x.idx), 3) and np.isfinite(x.field_ned_mG).all()
+    t = cf.t_s[x.idx]
+    k = len(t) // 2
+    g = log.gps[np.argmin(np.abs(log.gps[:, 0] - t[k]))]
+    assert log.start_unix_s is not None                             # the simulated tlog is dated
+    year = decimal_year_from_unix(log.start_unix_s + t[k])
+    np.testing.assert_allclose(x.field_ned_mG[k], earth_field(g[1], g[2], g[3], year).field_ned_mG, atol=0.5)
+    assert flight_inputs(log, cf, 1500).field_ned_mG is None         # without ctx: the caller's one field

@@ -462,3 +462,41 @@ def test_a_calibration_written_to_the_vehicle_enters_its_airframe_history(tmp_pa
         assert np.asarray(c["matrix"]).shape == (3, 3) and 0 < c["fitness_mG"] < 10
         assert 200 < c["wmm_strength_mG"] < 700 and -90 < c["wmm_inclination_deg"] < 90
         assert c["lat_deg"] is not None and c["source"] == "station"
+
+
+def test_offsets_across_flights_spread_drift_and_a_combined_answer_of_weak_flights():
+    """Known truth: AF-1 drifts (+30, −40, 0) mG over 39 days with 4 mG scatter; AF-W flies 12
+    weak flights (stated 1σ 20 mG, true scatter 20 mG) of a steady compass."""
+    from groundstation.jobs.compass_history import offset_summaries
+    rows = _synthetic_fleet()
+    rng = np.random.default_rng(5)
+    truth_w = np.array([60.0, -25.0, 110.0])
+    for k in range(12):
+        r = _row("AF-W", k, truth_w + rng.normal(0, 20.0, 3))
+        r.update({f"fit_ofs_sd_{a}_mG": 20.0 for a in "xyz"}, fit_status="weak")
+        rows.append(r)
+    by = {s["airframe"]: s for s in offset_summaries(rows)}
+    af1 = by["AF-1"]
+    assert af1["flights"] == 40 and "drift" in af1["line"] and "combined" in af1["line"]
+    true_slope = np.array([30.0, -40.0, 0.0]) / 39.0 * 30.0                  # mG per 30 days
+    slope, slope_sd = np.array(af1["drift_mG_per_30d"]), np.array(af1["drift_sd_mG_per_30d"])
+    assert np.all(np.abs(slope - true_slope) < 3 * slope_sd) and af1["drift_sigma"] > 5, af1
+    # the stated 0.5 mG is far below the 4 mG (+ anomaly site) scatter: the Birge ratio widens the 1σ
+    assert np.all(np.array(af1["spread_mG"]) > 4 * np.array(af1["stated_sd_mG"]))
+    assert np.all(np.array(af1["combined_sd_mG"]) > 0.5 / np.sqrt(40))
+    steady = by["AF-3"]
+    assert steady["drift_sigma"] < 4, steady
+    w = by["AF-W"]
+    sd = np.array(w["combined_sd_mG"])
+    assert np.all(np.abs(sd - 20.0 / np.sqrt(12)) < 3.0), sd                  # ~5.8 mG from 12 × 20 mG
+    assert np.all(np.abs(np.array(w["combined_mG"]) - truth_w) < 3 * sd), (w["combined_mG"], truth_w)
+    assert np.all(np.abs(np.array(w["spread_mG"]) - 20.0) < 10.0)
+    from groundstation.cli_fleet import _print_offsets
+    import contextlib
+    import io
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        _print_offsets(rows)
+    text = buf.getvalue().splitlines()
+    assert text[0].startswith("in-flight offsets across flights") and any(t.strip().startswith("AF-W: 12 flight(s)")
+                                                                          for t in text)

@@ -46,3 +46,19 @@ def test_msl_altitude_is_converted_with_the_geoid():
 def test_bad_position_raises():
     with pytest.raises(ValueError):
         earth_field(float("nan"), 0.0, 0.0, 2026.0)
+
+
+def test_field_along_path_is_the_point_field_at_each_sample_on_a_coarse_grid():
+    from estimators.geomag import field_along_path
+    # a 60 km leg climbing 3 km over half a year, with one sample lacking a position
+    lat = np.linspace(47.0, 47.5, 200)
+    lon = np.linspace(8.0, 8.3, 200)
+    alt = np.linspace(400.0, 3400.0, 200)
+    year = np.linspace(2026.0, 2026.5, 200)
+    lat[17] = np.nan
+    H = field_along_path(lat, lon, alt, year)
+    assert H.shape == (200, 3) and np.all(np.isnan(H[17])) and np.isfinite(H[np.arange(200) != 17]).all()
+    for i in (0, 63, 199):
+        np.testing.assert_allclose(H[i], earth_field(lat[i], lon[i], alt[i], year[i]).field_ned_mG, atol=0.3)
+    # the field really changes along such a path (more than the grid's error)
+    assert np.linalg.norm(H[199] - H[0]) > 3.0

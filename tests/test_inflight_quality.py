@@ -114,3 +114,18 @@ def test_old_px4log_is_refused_in_one_line(tmp_path):
     assert "px4log" in str(e.value) and "\n" not in str(e.value)
     r = calibrate_path(p)
     assert len(r) == 1 and r[0]["status"] == "error" and ".ulg" in r[0]["message"]
+
+
+def test_param_out_refuses_a_weak_answer_unless_accepted(missions, tmp_path, capsys):
+    from groundstation.cli import main
+    from groundstation.io.param_file import read_param_file
+    weak = next(r for _, _, _, r in missions if r["status"] == "weak" and r["relative_to"] == "raw")
+    out = tmp_path / "weak.param"
+    assert main(["calibrate", weak["file"], "--param-out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "not recommended" in err and "--accept-weak" in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
+    assert main(["calibrate", weak["file"], "--param-out", str(out), "--accept-weak"]) == 1   # exit 1: not "ok"
+    written = read_param_file(out).values
+    ofs = np.array([written[f"COMPASS_OFS_{a}"] for a in "XYZ"])
+    np.testing.assert_allclose(ofs, -np.asarray(weak["offsets_mG"]), atol=0.05)

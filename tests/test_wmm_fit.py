@@ -130,3 +130,63 @@ def test_a_there_and_back_flight_is_not_a_fit():
     four = level_flight(seed=3, headings_deg=(10, 100, 190, 280))
     r = fit_wmm(four["t"], four["raw"], four["roll"], four["pitch"], four["yaw"], H_NED, motor_signal=four["current"])
     assert r.status == "ok" and np.max(np.abs(r.offsets_mG - four["b"])) < 5.0
+
+
+def _field_changing_flight(seed: int = 3, n: int = 1200):
+    """level_flight's legs with the Earth field changing along the path (a long flight: vertical
+    component 25 mG, horizontal 10 mG from start to end); m = A(h + f I) + b + ε per sample."""
+    from estimators.rotations import dcm_body_to_ned
+    d = level_flight(seed=seed, n=n, headings_deg=(10, 100, 190, 280) * 3)
+    ramp = np.linspace(-0.5, 0.5, n)[:, None]
+    H = np.asarray(H_NED, float) + ramp * np.array([10.0, 0.0, 25.0])
+    h = np.einsum("nji,nj->ni", dcm_body_to_ned(d["roll"], d["pitch"], d["yaw"]), H)
+    rng = np.random.default_rng(seed + 100)
+    d["raw"] = (h + d["current"][:, None] * d["f"]) @ d["A"].T + d["b"] + rng.normal(0, 2.0, (n, 3))
+    d["H"] = H
+    return d
+
+
+def test_wmm_along_the_flight_removes_the_bias_of_one_field():
+    d = _field_changing_flight()
+    along = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], d["H"], motor_signal=d["current"])
+    one = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], d["H"][0], motor_signal=d["current"])
+    assert along.status in ("ok", "weak") and one.status in ("ok", "weak"), (along.message, one.message)
+    err_along = np.max(np.abs(along.offsets_mG - d["b"]))
+    err_one = np.max(np.abs(one.offsets_mG - d["b"]))
+    assert err_along < 3.0 and err_one > 2 * err_along, (err_along, err_one)
+    assert along.residual_rms_mG < one.residual_rms_mG
+    bad = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], d["H"][:10], motor_signal=d["current"])
+    assert bad.status == "no_expected_field"
+
+
+def test_held_out_residual_prefers_the_attitude_that_is_right():
+    from estimators.wmm_fit import heldout_residual_mG
+    d = level_flight(seed=4, noise_mG=2.0, headings_deg=(10, 100, 190, 280) * 3)
+    args = (d["t"], d["raw"])
+    good, n_good = heldout_residual_mG(*args, d["roll"], d["pitch"], d["yaw"], H_NED, motor_signal=d["current"])
+    rng = np.random.default_rng(1)
+    tilt_err = np.radians(3.0) * np.sin(np.cumsum(rng.normal(0, 0.1, (len(d["t"]), 2)), axis=0))
+    worse, n_worse = heldout_residual_mG(*args, d["roll"] + tilt_err[:, 0], d["pitch"] + tilt_err[:, 1], d["yaw"],
+                                         H_NED, motor_signal=d["current"])
+    assert n_good > 0.9 * len(d["t"]) and n_worse > 0.5 * len(d["t"])
+    assert 1.5 < good < 4.0 and worse > 1.5 * good, (good, worse)
+
+
+def test_gps_course_checks_the_fitted_heading_change():
+    """Legs flown at 8 m/s with a 3° crab, the autopilot's offsets stale by 40 mG across: the
+    heading with the corrections in force scatters about the course, the fitted one does not, and
+    the course sees the whole fitted heading change."""
+    d = level_flight(seed=7, noise_mG=2.0, headings_deg=(10, 100, 190, 280) * 3)
+    course = d["yaw"] + np.radians(3.0)
+    vel = 8.0 * np.column_stack([np.cos(course), np.sin(course)])
+    cin = d["raw"] - (d["b"] + np.array([40.0, -30.0, 0.0]))
+    r = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED, motor_signal=d["current"],
+                gps_vel_ne_mps=vel, corrected_in_force_mG=cin)
+    c = r.course
+    assert c["status"] == "ok" and c["samples"] > 500 and c["course_sectors"] >= 4, c
+    assert c["new"]["spread_deg"] < 1.5 and c["old"]["spread_deg"] > 3 * c["new"]["spread_deg"], c
+    assert abs(c["new"]["mean_deg"] + 3.0) < 1.0 and 0.8 < c["slope"] < 1.2, c
+    assert c["verdict"].startswith("the GPS course agrees better")
+    slow = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED, motor_signal=d["current"],
+                   gps_vel_ne_mps=vel * 0.5, corrected_in_force_mG=cin)     # 4 m/s: below the 5 m/s gate
+    assert slow.course["status"] == "too_little_straight_flight" and "not checked" in slow.course["verdict"]

@@ -53,7 +53,7 @@ from groundstation.jobs.calibrate.frame import compact, relative_to
 from groundstation.io import fleet_db
 from groundstation.jsonsafe import jsonable
 
-__all__ = ["DriftSettings", "FleetFindings", "analyse_fleet", "refresh_alerts", "record_calibration",
+__all__ = ["offset_summaries", "DriftSettings", "FleetFindings", "analyse_fleet", "refresh_alerts", "record_calibration",
            "record_calibrations", "history_airframe",
            "assign_sites"]
 
@@ -347,6 +347,77 @@ def analyse_fleet(rows: list[dict], calibrations: list[dict] = (), settings: Dri
     alerts += _calibration_alerts(cals, settings)
     alerts += _interference_alerts([r for r in ok if (r.get("compass") or 0) == 0])   # an alarm is per log
     return FleetFindings(sites, site_of, alerts)
+
+
+def _weighted_line(t_d: np.ndarray, y: np.ndarray, sd: np.ndarray) -> tuple[float, float, float, float]:
+    """Weighted least squares y = a + b (t − t̄_w), w = 1/sd²: (a at the weighted mean time, its 1σ,
+    b per day, its 1σ), the 1σ scaled by the Birge ratio √(χ²/(n − 2)) when above 1 (the flights
+    scatter more than their stated 1σ: site, headings flown)."""
+    w = 1.0 / sd ** 2
+    tm = float(np.sum(w * t_d) / np.sum(w))
+    x = t_d - tm
+    sxx = float(np.sum(w * x * x))
+    a = float(np.sum(w * y) / np.sum(w))
+    b = float(np.sum(w * x * y) / sxx) if sxx > 0 else 0.0
+    chi2 = float(np.sum(w * (y - a - b * x) ** 2))
+    birge = math.sqrt(max(1.0, chi2 / max(len(y) - 2, 1)))
+    return a, birge / math.sqrt(float(np.sum(w))), b, (birge / math.sqrt(sxx) if sxx > 0 else float("nan"))
+
+
+def offset_summaries(rows: list[dict], settings: DriftSettings = DriftSettings()) -> list[dict]:
+    """Each airframe's and compass's in-flight offsets across its flights (review rows with a fit,
+    ``ok`` or ``weak``; one row per flight, ``_distinct_flights``), with their uncertainty:
+
+    * ``spread_mG``: the flight-to-flight SD per axis, beside ``stated_sd_mG`` (the median per-flight 1σ);
+    * ``combined_mG`` ± ``combined_sd_mG``: the flights combined, inverse-variance weighted by their
+      stated 1σ (the offsets are the raw sensor's, comparable across calibration changes), the 1σ
+      scaled by the Birge ratio when the flights scatter more than they state — the combined answer
+      of several weak flights that alone are not recommended;
+    * ``drift_mG_per_30d`` ± ``drift_sd_mG_per_30d``: the weighted linear trend over time (same
+      weights and scaling), and ``drift_sigma`` the largest |trend|/1σ of the three axes.
+    Flights of a site the findings call anomalous are kept (this is a summary, not an alert)."""
+    mine: dict[tuple[str, int], list[dict]] = {}
+    for r in sorted((r for r in rows if r.get("status") == "ok"), key=lambda r: (r.get("start_unix_s") or 0.0)):
+        mine.setdefault((r.get("airframe") or "?", r.get("compass") or 0), []).append(r)
+    out = []
+    for (airframe, compass), group in sorted(mine.items()):
+        group = _distinct_flights(group, settings.same_flight_s)
+        ofs, sd = _vec(group, "fit_ofs"), _vec(group, "fit_ofs_sd")
+        use = np.all(np.isfinite(ofs), axis=1) & np.all(np.isfinite(sd) & (sd > 0), axis=1)
+        if not use.any():
+            continue
+        ofs, sd = ofs[use], sd[use]
+        t_d = np.array([(r.get("start_unix_s") or 0.0) / 86400.0 for r, u in zip(group, use) if u])
+        n = len(ofs)
+        fits = [_weighted_line(t_d, ofs[:, i], sd[:, i]) if n >= 3 and np.ptp(t_d) > 0 else None for i in range(3)]
+        w = 1.0 / sd ** 2
+        mean = np.sum(w * ofs, axis=0) / np.sum(w, axis=0)
+        chi2 = np.sum(w * (ofs - mean) ** 2, axis=0)
+        combined_sd = np.sqrt(np.maximum(1.0, chi2 / max(n - 1, 1)) / np.sum(w, axis=0))
+        r2 = lambda v: [round(float(x), 2) for x in v]  # noqa: E731
+        rec = {"airframe": airframe, "compass": compass, "flights": n,
+               "first_unix_s": float(t_d.min() * 86400.0), "last_unix_s": float(t_d.max() * 86400.0),
+               "combined_mG": r2(mean), "combined_sd_mG": r2(combined_sd),
+               "spread_mG": r2(np.std(ofs, axis=0, ddof=1)) if n >= 2 else None,
+               "stated_sd_mG": r2(np.median(sd, axis=0)), "drift_mG_per_30d": None, "drift_sd_mG_per_30d": None,
+               "drift_sigma": None}
+        if all(f is not None for f in fits):
+            slope = np.array([f[2] for f in fits]) * 30.0
+            slope_sd = np.array([f[3] for f in fits]) * 30.0
+            rec.update(drift_mG_per_30d=r2(slope), drift_sd_mG_per_30d=r2(slope_sd),
+                       drift_sigma=round(float(np.max(np.abs(slope) / slope_sd)), 2))
+        name = airframe + (f" compass {compass + 1}" if compass else "")
+        vec = lambda v: ", ".join(f"{x:.1f}" for x in v)  # noqa: E731
+        line = (f"{name}: {n} flight(s); offsets [{vec(rec['combined_mG'])}] ± [{vec(rec['combined_sd_mG'])}] mG "
+                "combined (1σ)")
+        if rec["spread_mG"] is not None:
+            line += f"; spread [{vec(rec['spread_mG'])}] mG flight to flight (stated 1σ [{vec(rec['stated_sd_mG'])}])"
+        if rec["drift_mG_per_30d"] is not None:
+            line += (f"; drift [{vec(rec['drift_mG_per_30d'])}] ± [{vec(rec['drift_sd_mG_per_30d'])}] mG per 30 days "
+                     f"({rec['drift_sigma']:.1f}σ)")
+        rec["line"] = line
+        out.append(rec)
+    return out
 
 
 def refresh_alerts(con, settings: DriftSettings = DriftSettings()) -> FleetFindings:

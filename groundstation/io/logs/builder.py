@@ -39,6 +39,7 @@ class LogBuilder:
         self.mission: dict[int, tuple[float, float, float]] = {}
         self.history: list[tuple[float, str, float, float]] = []     # t, name, value, quantum
         self.source_names: dict[int, str] = {}
+        self.other_attitudes: dict[str, array] = {}       # AttitudeSample.source -> rows
 
     def add_history(self, t_s: float, name: str, value: float, quantum: float = 0.0) -> None:
         """A parameter value seen at t_s (PARM, PARAM_VALUE, logged offsets) for the history only."""
@@ -51,7 +52,8 @@ class LogBuilder:
         elif isinstance(s, ImuSample):
             self.rows["imu"].extend((s.t_s, *s.gyro_rad_s, *s.accel_mps2, s.instance))
         elif isinstance(s, AttitudeSample):
-            self.rows["attitude"].extend((s.t_s, s.roll_rad, s.pitch_rad, s.yaw_rad))
+            rows = self.rows["attitude"] if not s.source else self.other_attitudes.setdefault(s.source, array("d"))
+            rows.extend((s.t_s, s.roll_rad, s.pitch_rad, s.yaw_rad))
         elif isinstance(s, GpsSample):
             self.rows["gps"].extend((s.t_s, s.lat_deg, s.lon_deg, s.alt_m, *s.vel_ned_mps, s.fix_type))
         elif isinstance(s, BatterySample):
@@ -103,6 +105,8 @@ class LogBuilder:
             arr = np.frombuffer(self.rows.pop(name), dtype=float).reshape(-1, WIDTHS[name])
             setattr(log, name, clean_table(arr, name, log.warnings))
             del arr
+        for name, rows in self.other_attitudes.items():
+            log.attitudes[name] = clean_table(np.frombuffer(rows, dtype=float).reshape(-1, 4), name, log.warnings)
         log.param_history = compact_history(self.history)
         log.mag_cal.sort(key=lambda e: e.t_s)
         # ArduPilot numbers mission item 0 as home; a mission is the waypoints after it.

@@ -6,7 +6,7 @@ records without a time of their own (old PARM, CMD) take the last time seen.
 
 Units (ArduPilot's LogStructure, read with pymavlink's DFReader, which applies the format's
 multipliers): MAG/MAG2/MAG3 (or MAG with an instance column ``I``) mGauss with OfsX.. (COMPASS_OFS
-in force, int16) and the motor compensation MOfsX.. / MOX..; IMU rad/s and m/s²; ATT degrees;
+in force, int16) and the motor compensation MOfsX.. / MOX..; IMU rad/s and m/s²; ATT (and AHR2, XKF1, NKF1, EKF1) degrees;
 GPS degrees, m, m/s; CURR Curr in cA as int16 ('h', 3.1/3.2) or A ('c'/'f'), ThrOut 0..1000;
 BAT/BATT Curr in A; CTUN ThO 0..1 (ThrOut 0..1000 in old logs); RCOU PWM µs; PARM Name, Value.
 """
@@ -22,7 +22,7 @@ from ...samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, Mag
 __all__ = ["DataFlashDecoder", "WANTED", "THROTTLE_PRIORITY"]
 
 WANTED = {"MAG", "MAG2", "MAG3", "IMU", "IMU2", "IMU3", "ATT", "GPS", "PARM", "CMD", "BAT", "BATT", "CURR",
-          "CTUN", "RCOU", "MSG", "MAVC"}
+          "CTUN", "RCOU", "MSG", "MAVC"} | {"AHR2", "XKF1", "NKF1", "EKF1"}   # other attitude estimators
 THROTTLE_PRIORITY = ("CTUN", "CURR", "RCOU")     # best throttle source first
 _SPLIT = {"MAG": 0, "MAG2": 1, "MAG3": 2, "IMU": 0, "IMU2": 1, "IMU3": 2}
 
@@ -59,6 +59,7 @@ class DataFlashDecoder:
             "IMU3": self._imu, "ATT": self._att, "GPS": self._gps, "PARM": self._parm, "CMD": self._cmd,
             "BAT": self._bat, "BATT": self._bat, "CURR": self._curr, "CTUN": self._ctun, "RCOU": self._rcou,
             "MSG": self._msg, "MAVC": self._mavc,
+            "AHR2": self._other_att, "XKF1": self._other_att, "NKF1": self._other_att, "EKF1": self._other_att,
         }
 
     # ------------------------------------------------------------------ time
@@ -104,6 +105,13 @@ class DataFlashDecoder:
 
     def _att(self, m, mtype: str, t: float) -> list[Sample]:
         return [AttitudeSample(t, math.radians(m.Roll), math.radians(m.Pitch), math.radians(m.Yaw))]
+
+    def _other_att(self, m, mtype: str, t: float) -> list[Sample]:
+        """AHR2 (DCM, or the backup estimator), XKF1 (EKF3), NKF1 (EKF2), EKF1 (EKF1, 2014–2015):
+        Roll, Pitch, Yaw in degrees; the first core only (``C`` = 0)."""
+        if int(getattr(m, "C", 0) or 0) != 0:
+            return []
+        return [AttitudeSample(t, math.radians(m.Roll), math.radians(m.Pitch), math.radians(m.Yaw), mtype)]
 
     def _gps(self, m, mtype: str, t: float) -> list[Sample]:
         if _instance(m, mtype) != 0 or m.Status < 2:

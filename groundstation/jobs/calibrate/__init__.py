@@ -26,6 +26,7 @@ from groundstation.samples import FlightLog
 
 from .checks import consistency_table
 from .compass import calibrate_compass
+from .inflight import choose_attitude
 from .context import expected_field, log_context
 from .result import empty_result, error_result, format_consistency, format_summary, write_param_file
 from .settings import DEFAULT_SETTINGS, QUICK_SETTINGS, CalibrateSettings
@@ -43,7 +44,7 @@ def _guarded(log: FlightLog, settings: CalibrateSettings, only: int | None = Non
         r = empty_result(log.source, log.primary_compass)
         r.update(status="no_data", message="log has no magnetometer samples", autopilot=log.autopilot)
         return [r]
-    ctx = log_context(log)
+    ctx = choose_attitude(log, fields, log_context(log), settings)   # the attitude of the in-flight fits, per log
     results, calibrations = [], {}
     for cf in fields:
         try:

@@ -58,6 +58,7 @@ def _start(log: FlightLog, cf: CompassField, ctx: LogContext, settings: Calibrat
              onboard_report=onboard_report(log.mag_cal, cf.compass), settings=settings_record(settings))
     if ctx.field is not None:
         r["expected_field_mG"] = finite_or_none(ctx.field.field_strength_mG)
+    r.update(attitude_source=ctx.attitude_source or None, attitude_choice=ctx.attitude_choice)
     return r
 
 
@@ -80,6 +81,7 @@ def _from_inflight(r: dict, fit, cf: CompassField) -> tuple:
              field_strength_mG=finite_or_none(np.nanmedian(np.linalg.norm(cal, axis=1))),
              residual_rms_mG=finite_or_none(fit.residual_rms_mG), offsets_sd_mG=_vec(fit.offsets_sd_mG, 2),
              recommended=bool(fit.recommended), recommendation=fit.reason, offsets_covariance_mG2=offsets_covariance(fit),
+             course_check=fit.course,
              heading_change_deg=heading_change(fit))
     return np.asarray(fit.offsets_mG, float), np.asarray(fit.matrix, float)
 
@@ -177,7 +179,7 @@ def calibrate_compass(log: FlightLog, cf: CompassField, ctx: LogContext, setting
     step = window_step(log, cf, ctx, settings)
     r["windows"] = window_dicts(step.search, cf.t_s)
     cal = _from_window(r, step, cf) if step.search.chosen is not None else None
-    x = flight_inputs(log, cf, settings.inflight_max_samples) if ctx.field is not None and settings.inflight_fit else None
+    x = flight_inputs(log, cf, settings.inflight_max_samples, ctx) if ctx.field is not None and settings.inflight_fit else None
     wmm = inflight_step(cf, x, ctx, settings) if x is not None else None
     r["inflight"] = wmm_dict(wmm, cf.t_s) if wmm is not None else None
     motor = _motor(r, log, cf, x, ctx, settings)

@@ -8,11 +8,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.geomag import EarthField, decimal_year_from_unix, earth_field
+from estimators.geomag import EarthField, decimal_year_from_unix, earth_field, field_along_path
 from estimators.log_alignment import AttitudeAt, attitude_at, interp_series
 from groundstation.samples import MAG_CAL_SUCCESS, FlightLog, MagCalSample
 
-__all__ = ["LogContext", "log_context", "expected_field", "marker_spans", "onboard_report", "WMM_VALID_YEARS"]
+__all__ = ["LogContext", "log_context", "expected_field", "field_for", "attitude_for", "marker_spans", "onboard_report", "WMM_VALID_YEARS"]
 
 WMM_VALID_YEARS = (2025.0, 2030.0)      # estimators.geomag clamps dates to the WMM2025 span
 
@@ -22,6 +22,9 @@ class LogContext:
     field: EarthField | None
     field_note: str
     log_year: float | None
+    attitude: np.ndarray | None = None          # the attitude the in-flight fits use ([t, roll, pitch, yaw]);
+    attitude_source: str = ""                   # None: log.attitude.  Chosen per log (inflight.choose_attitude)
+    attitude_choice: dict | None = None         # {"chosen", "forced", "scores": {source: held-out mG}, "note"}
 
 
 def expected_field(log: FlightLog) -> tuple[EarthField | None, str]:
@@ -57,9 +60,38 @@ def log_context(log: FlightLog) -> LogContext:
     return LogContext(field, note, year)
 
 
-def attitude_for(log: FlightLog, t_s: np.ndarray) -> AttitudeAt:
-    att = np.asarray(log.attitude, float).reshape(-1, 4)
+def attitude_for(log: FlightLog, t_s: np.ndarray, table: np.ndarray | None = None) -> AttitudeAt:
+    """The attitude at t_s: of ``table`` ([t, roll, pitch, yaw], e.g. LogContext.attitude), else the log's."""
+    att = np.asarray(log.attitude if table is None else table, float).reshape(-1, 4)
     return attitude_at(t_s, att[:, 0], att[:, 1], att[:, 2], att[:, 3])
+
+
+def field_for(log: FlightLog, ctx: LogContext, t_s: np.ndarray) -> np.ndarray | None:
+    """The WMM field (N,3) NED mG at each sample's position, altitude and date (estimators.geomag.
+    field_along_path: GPS interpolated to t_s, good fixes only); samples without a position within
+    10 s of a fix take the field of the first fix (ctx.field).  None without ctx.field."""
+    if ctx.field is None:
+        return None
+    t = np.asarray(t_s, float).ravel()
+    out = np.tile(np.asarray(ctx.field.field_ned_mG, float), (len(t), 1))
+    g = np.asarray(log.gps, float).reshape(-1, 8)
+    good = (g[:, 7] >= 3) & np.isfinite(g[:, 1:4]).all(axis=1) & ~((g[:, 1] == 0) & (g[:, 2] == 0)) \
+        & (np.abs(g[:, 1]) <= 90) & (np.abs(g[:, 2]) <= 180)
+    if good.sum() < 2 or len(t) == 0:
+        return out
+    pos, valid = interp_series(t, g[good, 0], g[good, 1:4], max_gap_s=10.0)
+    if log.start_unix_s is not None and math.isfinite(log.start_unix_s):
+        year = np.array([decimal_year_from_unix(log.start_unix_s + float(x)) for x in (t[0], t[-1])])
+        years = np.interp(t, [t[0], t[-1]], year) if t[-1] > t[0] else np.full(len(t), year[0])
+    else:
+        years = np.full(len(t), decimal_year_from_unix(time.time()))
+    try:
+        H = field_along_path(pos[:, 0], pos[:, 1], pos[:, 2], years)
+    except Exception:  # model outside validity, bad numbers: the single field stands
+        return out
+    use = valid & np.isfinite(H).all(axis=1)
+    out[use] = H[use]
+    return out
 
 
 def gps_velocity_for(log: FlightLog, t_s: np.ndarray) -> np.ndarray | None:

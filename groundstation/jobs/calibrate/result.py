@@ -10,7 +10,10 @@ expected_field_mG (WMM), residual_rms_mG, recommended (true / false: write these
 words, or what flight would make the offsets observable), offsets_covariance_mG2 (3×3, of an in-flight
 fit), heading_change_deg ({rms, max}: how far the new calibration turns the heading against the
 corrections in force), coverage (of the chosen window's
-direction cells, or the heading coverage of an in-flight fit), misalignment_deg, condition_number,
+direction cells, or the heading coverage of an in-flight fit), misalignment_deg, condition_number, attitude_source (the attitude the in-flight fit used: ATT,
+AHR2, XKF1, NKF1, ATTITUDE, vehicle_attitude or ahrs, ours from the IMU) and attitude_choice (every
+source's held-out residual and why this one), course_check (the heading against the GPS course
+in straight fast flight, with the corrections in force and with the new calibration),
 ardupilot_params / px4_params (names follow the instance: COMPASS_OFS2_X, CAL_MAG1_XOFF, motor
 COMPASS_MOT*, orientation COMPASS_ORIENT* when found), corrections (what the autopilot had in
 force and when it changed), windows (every window found, ``chosen`` marked), onboard_report (the
@@ -41,6 +44,7 @@ def empty_result(source: str, compass: int = 0) -> dict:
             "windows": [], "onboard_report": None, "inflight": None, "motor": None, "orientation": None,
             "consistency": None, "relative_to": None, "corrections_in_force": None, "recommended": None,
             "recommendation": None, "offsets_covariance_mG2": None, "heading_change_deg": None,
+            "attitude_source": None, "attitude_choice": None, "course_check": None,
             "settings": settings_record(DEFAULT_SETTINGS)}
 
 
@@ -70,6 +74,12 @@ def _checks_lines(result: dict) -> list[str]:
     part = result.get("inflight")
     if part:
         lines.append(f"  in-flight WMM fit: {part['status']}: {without_status(part['status'], part.get('message', ''))}")
+        course = result.get("course_check") or {}
+        if course.get("verdict"):
+            lines.append(f"  GPS course check: {course['verdict']}")
+        choice = result.get("attitude_choice") or {}
+        if choice.get("note"):
+            lines.append(f"  attitude source: {choice['note']}")
     mot = result.get("motor")
     if mot:
         f = [v for v in mot.get("motor_mG_per_unit") or [] if v is not None]

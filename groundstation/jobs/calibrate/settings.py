@@ -24,6 +24,8 @@ class CalibrateSettings:
     ``offsets_limit_mG``: ArduPilot's default COMPASS_OFFS_MAX (a note, not a rejection).
     ``consistency_max_dt_s``: compasses are compared at samples this close in time.
     ``orientation_max_rate_deg_s``: the orientation check uses samples rotating slower than this.
+    ``attitude_source``: the attitude the in-flight fits use ("auto": chosen by the
+    held-out residual, jobs/calibrate/inflight.choose_attitude; or one by name).
     ``inflight_max_samples``: the in-flight and motor fits take every k-th sample beyond this many
     (attitude errors are slow, so a 50 Hz log holds little more than its 2 Hz subset; the fit's
     covariance already allows for correlated residuals).
@@ -41,6 +43,7 @@ class CalibrateSettings:
     consistency_max_dt_s: float = 0.6
     orientation_max_rate_deg_s: float = 60.0
     inflight_max_samples: int = 1500
+    attitude_source: str = "auto"       # "auto": chosen per log by the held-out residual; or a name (ATT, XKF1, ahrs …)
 
 
 DEFAULT_SETTINGS = CalibrateSettings()
