@@ -14,7 +14,7 @@ Scenarios, each printed as one table: ours vs the truth vs ArduPilot's own resul
 6. trust     -- the rig spun about 8 axes with the guided wizard live: our calibration of the session
                .tlog vs SIM_MAGn_OFS/DIA/ODI, the wizard's cautions (none on a perfect rig), then our
                values written and the field the firmware reports with them applied vs the WMM (1 %).
-Ports 14613-14619 (-I 1..3 only).  Bounded by `timeout` per SITL run.
+Ports 14613-14619 (-I 12..16).  Bounded by `timeout` per SITL run.
 
 Run:  nice -n 10 .venv/bin/python benchmarks/sitl.py [--speedup 8] [--only streams,wizard,onboard,logs,trust]
           [--flights clean,motor,anomaly,gps_off]
@@ -37,8 +37,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests" / "sitl"))
 
 from harness import (COPTER_LAND, HOME, MAV_CMD_NAV_TAKEOFF, MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, MISSING,  # noqa: E402
-                     RIG_TRUTH, SITL_BINARY, Sitl, Watch, arm, command, goto, rig_spin, rig_stop, rig_tour,
-                     set_mode, set_params, station_for, station_link, truth_params, uncalibrated_params,
+                     RIG_TRUTH, SITL_BINARY, Sitl, Watch, arm, boot_offset_s, command, goto, rig_spin, rig_stop, rig_tour,
+                     rig_hold, set_mode, set_params, station_for, station_link, truth_params, uncalibrated_params,
                      wait_for)
 
 RIG_PARAMS = {**truth_params(), **uncalibrated_params(), **{f"SERVO{n}_FUNCTION": 0 for n in (5, 6, 7, 8)}}
@@ -102,7 +102,7 @@ def params_of(p: dict, k: int, key: str) -> list:
 # ---------------------------------------------------------------------------------- scenarios
 def run_onboard(speedup: float, out: dict) -> None:
     """The vehicle's own calibrator: success run (accept, read back), a forced failure, a cancel."""
-    with sitl_run(out, "sitl-bench-onboard-", 2, 14614,
+    with sitl_run(out, "sitl-bench-onboard-", 13, 14614,
                   model="calibration", speedup=speedup, extra=RIG_PARAMS, limit_s=400) as (sitl, session, link):
         out["streams"] = session.snapshot()["vehicles"]["streams"]
         rig_tour(session)
@@ -149,7 +149,7 @@ def run_onboard(speedup: float, out: dict) -> None:
 
 def run_wizard(speedup: float, out: dict) -> None:
     """The guided wizard on the rig; accept, read back, reboot; the logs kept for scenario 4."""
-    with sitl_run(out, "sitl-bench-wizard-", 1, 14613,
+    with sitl_run(out, "sitl-bench-wizard-", 12, 14613,
                   model="calibration", speedup=speedup, extra=RIG_PARAMS, limit_s=400) as (sitl, session, link):
         session.wizard_start("guided")
         rig_tour(session)
@@ -182,15 +182,79 @@ def run_wizard(speedup: float, out: dict) -> None:
         restarts = lambda: sum("restarted" in e["text"] for e in session.snapshot()["events"])  # noqa: E731
         before = restarts()
         t0 = time.monotonic()
-        command(session, MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1)
-        stale = wait_for(lambda: session.snapshot()["vehicle"]["no_data"], 10, 0.05)
+        session.calibration.reboot(True)          # the page's reboot button (POST /api/calibration/reboot)
+        wait_for(lambda: session.snapshot()["vehicle"]["no_data"], 10, 0.05)
         back = wait_for(lambda: session.snapshot()["vehicle"]["no_data"] is None and time.monotonic(), 20, 0.05)
         out["reboot_resume_s"] = (back - t0) if back and restarts() > before else None   # at 8x: ~0.3 s
         time.sleep(2)
         out["after_reboot_params"] = {k: params_of(session.params, k, "OFS") for k in range(3)}
+        # the heading check after the reboot: the rig held level at a known true heading (the rig's
+        # AHRS_EKF_TYPE 10 is the simulation's own attitude, so ATTITUDE.yaw is the truth too)
+        out["heading_check"] = heading_check_at(session, link, HEADING_CHECK_YAW_DEG, speedup)
         out["tlog"] = session.sources.recording_path
         out["wizard_events"] = [f"{e['t_s']:.1f} {e['text']}" for e in session.snapshot()["events"]]
     out["bin"] = max(sitl.bin_logs(), key=lambda p: p.stat().st_size, default=None)   # before the reboot
+
+
+HEADING_CHECK_YAW_DEG = 45.0     # output 8 at PWM 1625 exactly: -180 + 360 * 625 / 1000
+
+
+def heading_check_at(session, link, yaw_deg: float, speedup: float) -> dict:
+    """Hold the rig level at ``yaw_deg`` true, let it settle, run the station's heading check
+    ("bearing", the page's Check heading) against it; returns its result with the vehicle's
+    ATTITUDE yaw (the simulation's truth on the rig) beside it."""
+    yaws: list[float] = []
+
+    def hook(_conn, msg) -> None:
+        if msg.get_type() == "ATTITUDE" and msg.get_srcSystem() == 1:
+            yaws.append(float(np.degrees(msg.yaw)) % 360.0)
+    rig_hold(session, 0.0, 0.0, np.radians(yaw_deg))
+    time.sleep(10.0 / speedup + 1.0)
+    link.mav.message_hooks.append(hook)
+    try:
+        session.calibration.heading_check("bearing", yaw_deg)
+        hc = wait_for(lambda: (lambda h: h if h and h.get("state") == "done" else None)(
+            session.calibration.snapshot().get("heading_check")), 30, 0.2)
+    finally:
+        link.mav.message_hooks.remove(hook)
+    r = dict((hc or {}).get("result") or {})
+    r["attitude_yaw_deg"] = float(np.degrees(np.angle(np.mean(np.exp(1j * np.radians(yaws)))))) % 360.0 if yaws else None
+    return r
+
+
+def run_fixed_yaw(speedup: float, out: dict) -> None:
+    """Large-vehicle mode: the rig held level at a known yaw, the station sends
+    MAV_CMD_FIXED_MAG_CAL_YAW with it (the page's Large vehicle, entered heading); the firmware sets
+    every compass's offsets from the WMM field; these, ours from the same samples, vs SIM_MAGn_OFS.
+    The method assumes no soft iron: the truth here is offsets only (DIA 1, ODI 0)."""
+    truth = {n: {"OFS": t["OFS"], "DIA": (1.0, 1.0, 1.0), "ODI": (0.0, 0.0, 0.0)} for n, t in RIG_TRUTH.items()}
+    extra = {**truth_params(truth), **uncalibrated_params(), **{f"SERVO{n}_FUNCTION": 0 for n in (5, 6, 7, 8)}}
+    with sitl_run(out, "sitl-bench-fixedyaw-", 16, 14617,
+                  model="calibration", speedup=speedup, extra=extra, limit_s=300) as (sitl, session, link):
+        rig_hold(session, 0.0, 0.0, np.radians(FIXED_YAW_DEG))
+        time.sleep(10.0 / speedup + 1.0)
+        session.wizard_start("fixed_yaw")
+        time.sleep(3.0)                                   # the wizard's latest samples of each compass
+        sent = session.calibration.fixed_yaw(FIXED_YAW_DEG, "entered")
+        done = wait_for(lambda: (lambda f: f if f and f.get("state") in ("done", "refused") else None)(
+            session.calibration.snapshot().get("fixed_yaw")), 40, 0.2)
+        session.vehicle.request_params(link)
+        time.sleep(3.0)
+
+        def vehicle_ofs():
+            got = {k: params_of(session.params, k, "OFS") for k in range(3)}
+            return got if all(None not in v and max(abs(a - 0.001) for a in v) > 1 for v in got.values()) else None
+        out["fixed_yaw"] = {"sent": sent, "done": done, "vehicle_ofs": wait_for(vehicle_ofs, 20, 0.3),
+                            "truth": {k: truth[k + 1]["OFS"] for k in range(3)},
+                            "heading_check": heading_check_after_fixed_yaw(session, link, speedup)}
+
+
+FIXED_YAW_DEG = 45.0
+
+
+def heading_check_after_fixed_yaw(session, link, speedup: float) -> dict:
+    """The heading at a second known yaw (135 deg, PWM 1875) with the vehicle's new offsets."""
+    return heading_check_at(session, link, 135.0, speedup)
 
 
 def run_logs(out: dict) -> None:
@@ -240,7 +304,7 @@ def run_flight(name: str, out: dict) -> None:
 
     extra, alt, _ = FLIGHTS[name]
     res: dict = {}
-    with sitl_run(out, f"sitl-bench-{name}-", 3, 14615,
+    with sitl_run(out, f"sitl-bench-{name}-", 14, 14615,
                   model="quad", speedup=1, extra=extra, limit_s=400) as (sitl, session, link):
         watch = Watch(link)
         res["armed"] = arm(session, watch)
@@ -268,6 +332,10 @@ def run_flight(name: str, out: dict) -> None:
         set_mode(session, COPTER_LAND)
         wait_for(lambda: not watch.armed, 120)
         time.sleep(2)
+        # the station's live view: its alarms with their explanation, as the page shows them
+        res["live_alarms"] = [(a.get("evidence_text") or "combined", a["start_s"], a.get("explanation_text") or "")
+                              for a in session.alarm_list()]
+        res["live_current"] = session.snapshot()["vehicle"].get("current_A")
         if name == "clean":           # a reboot at real time, landed: command to live data again
             restarts = lambda: sum("restarted" in e["text"] for e in session.snapshot()["events"])  # noqa: E731
             before, t0 = restarts(), time.monotonic()
@@ -284,8 +352,12 @@ def run_flight(name: str, out: dict) -> None:
             continue
         log = read_log(res[kind])
         summary, _ = analyze_log(log)
-        t0 = log.start_unix_s or 0.0
-        res[f"{kind}_alarms"] = [(a["kind"], round(t0 + a["start_s"], 2)) for a in summary.get("alarms", [])]
+        boot = boot_offset_s(res[kind], log)      # the vehicle's boot clock: one time base for both logs
+        res[f"{kind}_alarms"] = [(a["kind"], round(boot + a["start_s"], 2)) for a in summary.get("alarms", [])]
+        res[f"{kind}_unix_alarms"] = [(a["kind"], round((log.start_unix_s or 0.0) + a["start_s"], 2))
+                                      for a in summary.get("alarms", [])]
+        res[f"{kind}_explained"] = [(a["kind"], round(boot + a["start_s"], 2), a.get("explanation_text") or "")
+                                    for a in summary.get("alarms", []) if a.get("explanation_text")]
         res[f"{kind}_motor"] = summary.get("motor_field") or {}
         res[f"{kind}_duration"] = log.duration_s
     out.setdefault("flights", {})[name] = res
@@ -313,7 +385,7 @@ def run_trust(speedup: float, out: dict) -> None:
         k = MAG_MESSAGES.get(msg.get_type())
         if keep["on"] and k is not None and msg.get_srcSystem() == 1:
             field[k].append(float(np.linalg.norm([msg.xmag, msg.ymag, msg.zmag])))
-    with sitl_run(out, "sitl-bench-trust-", 3, 14615,
+    with sitl_run(out, "sitl-bench-trust-", 15, 14616,
                   model="calibration", speedup=speedup, extra=RIG_PARAMS, limit_s=400) as (sitl, session, link):
         t0 = time.monotonic()
         session.wizard_start("guided")

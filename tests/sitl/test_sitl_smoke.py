@@ -28,7 +28,7 @@ def rig_run(tmp_path_factory):
     if SITL_BINARY is None:
         pytest.skip(MISSING)
     rec = tmp_path_factory.mktemp("rig-recordings")
-    sitl = Sitl(1, 14612, model="calibration", speedup=8, extra=RIG_PARAMS, limit_s=240).start()
+    sitl = Sitl(10, 14612, model="calibration", speedup=8, extra=RIG_PARAMS, limit_s=240).start()
     seen: dict = {}
     try:
         session = station_for(sitl, rec)
@@ -172,7 +172,7 @@ def test_session_tlog_calibrates_every_compass_to_the_truth(rig_run):
 def test_reboot_live_data_resumes_within_5_s_and_no_frozen_attitude(start_sitl, tmp_path):
     """After the station's reboot command the stock vehicle streams nothing again: the station
     says "no attitude data" meanwhile, asks again, and the data is back within 5 s."""
-    sitl = start_sitl(2, 14622, model="quad", speedup=1, limit_s=120)
+    sitl = start_sitl(11, 14622, model="quad", speedup=1, limit_s=120)
     session = station_for(sitl, tmp_path)
     try:
         link = station_link(session)
