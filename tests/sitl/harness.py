@@ -283,8 +283,8 @@ def boot_offset_s(path, log) -> float:
     (groundstation.io.decode.BootClock).  Both logs' UNIX starts differ (the .BIN's from GPS time,
     the .tlog's from the station's clock: 0.75 s apart on this firmware), so alarms are compared on
     the boot clock: b is the median of (ATT TimeUS or ATTITUDE time_boot_ms) - the attitude rows'
-    t_s, row by row (the readers keep every attitude in order; rows after a reboot, whose boot
-    time starts again, fall outside the median)."""
+    t_s, row by row (the readers keep every attitude in order), over the first boot only (up to
+    the first boot time going back: a reboot)."""
     import numpy as np
     from pymavlink import mavutil
 
@@ -302,7 +302,8 @@ def boot_offset_s(path, log) -> float:
     finally:
         conn.close()
     t = np.asarray(log.attitude, dtype=float).reshape(-1, 4)[:, 0]
-    n = min(len(boots), len(t))
+    back = np.flatnonzero(np.diff(boots) < -1.0) if len(boots) > 1 else []
+    n = min(len(boots), len(t), int(back[0]) + 1 if len(back) else len(boots))
     if n == 0:
         raise ValueError(f"{path}: no attitude with a boot time to align on")
     return float(np.median(np.asarray(boots[:n]) - t[:n]))
