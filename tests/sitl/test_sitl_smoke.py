@@ -180,6 +180,7 @@ def test_reboot_live_data_resumes_within_5_s_and_no_frozen_attitude(start_sitl, 
     try:
         link = station_link(session)
         assert wait_for(lambda: link.streams.arriving("ATTITUDE", time.time()), 30)
+        assert wait_for(lambda: sum(p.stat().st_size for p in sitl.bin_logs()) > 200_000, 20), "no .BIN written"
         command(session, 42424, 0, 0, 0, 0, 0)      # MAV_CMD_DO_START_MAG_CAL, every compass
         time.sleep(2.0)
         command(session, 42426, 0)                  # MAV_CMD_DO_CANCEL_MAG_CAL
