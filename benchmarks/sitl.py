@@ -135,15 +135,15 @@ def run_onboard(speedup: float, out: dict) -> None:
         session.wizard_reset()
         out["fail_set"] = set_params(session, {"COMPASS_CAL_FIT": 0.001})
         session.wizard_start("onboard")
-        out["fail"] = wait_for(lambda: (lambda ob: ob if ob["state"] in ("reported", "failed") else None)(
+        out["fail"] = wait_for(lambda: (lambda ob: ob if (ob or {}).get("state") in ("reported", "failed") else None)(
             session.calibration.snapshot()["onboard"]), 180, 0.3)
         # a cancel while running
         session.wizard_reset()
         set_params(session, {"COMPASS_CAL_FIT": 16.0})
         session.wizard_start("onboard")
-        wait_for(lambda: session.calibration.snapshot()["onboard"]["state"] == "running", 30, 0.2)
+        wait_for(lambda: (session.calibration.snapshot()["onboard"] or {}).get("state") == "running", 30, 0.2)
         session.calibration.cancel_onboard()
-        out["cancel"] = wait_for(lambda: (lambda ob: ob if ob["state"] not in ("running", "starting") else None)(
+        out["cancel"] = wait_for(lambda: (lambda ob: ob if ob and ob["state"] not in ("running", "starting") else None)(
             session.calibration.snapshot()["onboard"]), 20, 0.2)
         out["onboard_tlog"] = session.sources.recording_path
     out["onboard_bin"] = max(sitl.bin_logs(), key=lambda p: p.stat().st_size, default=None)
@@ -342,7 +342,8 @@ def run_flight(name: str, out: dict) -> None:
         # the station's live view: its alarms with their explanation, as the page shows them
         res["live_alarms"] = [(a.get("evidence_text") or "combined", a["start_s"], a.get("explanation_text") or "")
                               for a in session.alarm_list()]
-        res["live_current"] = session.snapshot()["vehicle"].get("current_A")
+        res["live_sys_status"] = next((m["state"] for m in link.streams_snapshot()["messages"]
+                                       if m["name"] == "SYS_STATUS"), None)     # battery current
         if name == "clean":           # a reboot at real time, landed: command to live data again
             restarts = lambda: sum("restarted" in e["text"] for e in session.snapshot()["events"])  # noqa: E731
             before, t0 = restarts(), time.monotonic()
@@ -765,18 +766,24 @@ def main() -> int:
     only = set(args.only.split(","))
     out: dict = {}
     print(f"# benchmarks/sitl.py --speedup {args.speedup:g}  ({datetime.datetime.utcnow():%Y-%m-%d %H:%M} UTC)")
+    runs = []
     if only & {"streams", "onboard", "wizard"}:
-        run_onboard(args.speedup, out)
+        runs.append(("onboard", lambda: run_onboard(args.speedup, out)))
     if only & {"wizard", "logs"}:
-        run_wizard(args.speedup, out)
+        runs.append(("wizard", lambda: run_wizard(args.speedup, out)))
     if "logs" in only:
-        run_logs(out)
+        runs.append(("logs", lambda: run_logs(out)))
     if "fixed_yaw" in only:
-        run_fixed_yaw(args.speedup, out)
+        runs.append(("fixed_yaw", lambda: run_fixed_yaw(args.speedup, out)))
     if "trust" in only:
-        run_trust(args.trust_speedup, out)
+        runs.append(("trust", lambda: run_trust(args.trust_speedup, out)))
     for name in filter(None, args.flights.split(",")):
-        run_flight(name, out)
+        runs.append((f"flight {name}", lambda name=name: run_flight(name, out)))
+    for what, run in runs:            # one scenario failing does not lose the others' figures
+        try:
+            run()
+        except Exception as err:      # noqa: BLE001 (reported, the run goes on)
+            print(f"{what}: failed: {type(err).__name__}: {err}"[:300])
     print_tables(out)
     if "trust_cal" in out:
         rows = trust_verdict(out)
