@@ -224,10 +224,15 @@ def heading_check_at(session, link, yaw_deg: float, speedup: float) -> dict:
     def hook(_conn, msg) -> None:
         if msg.get_type() == "ATTITUDE" and msg.get_srcSystem() == 1:
             yaws.append(float(np.degrees(msg.yaw)) % 360.0)
-    rig_hold(session, 0.0, 0.0, np.radians(yaw_deg))
-    time.sleep(10.0 / speedup + 1.0)
     link.mav.message_hooks.append(hook)
     try:
+        rig_hold(session, 0.0, 0.0, np.radians(yaw_deg))
+        # settled: the simulation's yaw at the hold for a second of samples (a loaded machine runs
+        # the SITL slower than its speedup, so no fixed wait)
+        wait_for(lambda: len(yaws) > 20 and all(abs((y - yaw_deg + 180.0) % 360.0 - 180.0) < 0.05
+                                                for y in yaws[-20:]), 60, 0.2)
+        time.sleep(1.0)
+        yaws.clear()
         session.calibration.heading_check("bearing", yaw_deg)
         hc = wait_for(lambda: (lambda h: h if h and h.get("state") == "done" else None)(
             session.calibration.snapshot().get("heading_check")), 30, 0.2)
@@ -247,8 +252,15 @@ def run_fixed_yaw(speedup: float, out: dict) -> None:
     extra = {**truth_params(truth), **uncalibrated_params(), **{f"SERVO{n}_FUNCTION": 0 for n in (5, 6, 7, 8)}}
     with sitl_run(out, "sitl-bench-fixedyaw-", 16, 14617,
                   model="calibration", speedup=speedup, extra=extra, limit_s=300) as (sitl, session, link):
+        settled: list[float] = []
+
+        def hook(_conn, msg) -> None:
+            if msg.get_type() == "ATTITUDE" and msg.get_srcSystem() == 1:
+                settled.append(abs((float(np.degrees(msg.yaw)) - FIXED_YAW_DEG + 180.0) % 360.0 - 180.0))
+        link.mav.message_hooks.append(hook)
         rig_hold(session, 0.0, 0.0, np.radians(FIXED_YAW_DEG))
-        time.sleep(10.0 / speedup + 1.0)
+        wait_for(lambda: len(settled) > 20 and max(settled[-20:]) < 0.05, 60, 0.2)
+        link.mav.message_hooks.remove(hook)
         session.wizard_start("fixed_yaw")
         time.sleep(3.0)                                   # the wizard's latest samples of each compass
         sent = session.calibration.fixed_yaw(FIXED_YAW_DEG, "entered")
