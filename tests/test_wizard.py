@@ -264,6 +264,21 @@ def test_walk_course_and_bearing_check():
     assert not short.finish()["ok"]
 
 
+def test_bearing_check_in_large_vehicle_mode_is_worded_as_a_bearing_not_a_walk():
+    """Large-vehicle mode before its calibration with a bearing check (the page's Check heading; found
+    on ArduPilot SITL): the instruction read the walk's distance_m from a bearing result (KeyError,
+    the state failing); it says the bearing check's words and then its result."""
+    w = CalibrationWizard(WizardSettings())
+    w.start("fixed_yaw")
+    w.heading_check = HeadingCheck("bearing", 45.0, 3.0, -6.0)
+    assert "bearing" in w.snapshot()["instruction"]
+    for i in range(40):
+        w.heading_check.add_heading(i * 0.1, 45.4)
+    assert w.heading_check.result["error_deg"] == pytest.approx(0.4, abs=0.01)
+    text = w.snapshot()["instruction"]
+    assert "walk" not in text.lower() and "+0.4" in text
+
+
 # ------------------------------------------------------------------ ArduPilot's onboard pieces (fake vehicle, wire format)
 def test_geodesic_sections_and_completion_mask():
     rng = np.random.default_rng(0)

@@ -26,7 +26,8 @@ SITL_DIR = Path(__file__).resolve().parents[3] / "shared" / "sitl"
 SITL_BINARY = SITL_DIR / "arducopter" if (SITL_DIR / "arducopter").is_file() else None
 MISSING = f"ArduPilot SITL firmware not found at {SITL_DIR / 'arducopter'} (../shared/sitl)"
 HOME = (30.3, 120.1, 10.0, 0.0)           # lat, lon, alt m, yaw deg (the README's site)
-PORTS = range(14610, 14640)               # this harness's UDP ports; instances -I 1..3
+PORTS = range(14610, 14640)               # this harness's UDP ports
+INSTANCES = range(10, 20)                 # -I 10..19 (every SITL port + 10 N); other users take 1..9
 MAV_CMD_DO_SET_SERVO = 183
 MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN = 246
 
@@ -85,8 +86,9 @@ class Sitl:
     def __post_init__(self) -> None:
         if SITL_BINARY is None:
             raise FileNotFoundError(MISSING)
-        if not 1 <= self.instance <= 3 or self.port not in PORTS:
-            raise ValueError(f"the SITL harness uses -I 1..3 and UDP ports {PORTS.start}-{PORTS.stop - 1}")
+        if self.instance not in INSTANCES or self.port not in PORTS:
+            raise ValueError(f"the SITL harness uses -I {INSTANCES.start}..{INSTANCES.stop - 1} and UDP ports "
+                             f"{PORTS.start}-{PORTS.stop - 1}")
 
     @property
     def pid(self) -> int | None:
@@ -270,3 +272,38 @@ def goto(session, lat_deg: float, lon_deg: float, alt_m: float) -> None:
     link = station_link(session)
     link.mav.mav.command_int_send(link.sysid, 1, 6, MAV_CMD_DO_REPOSITION, 0, 0, -1, 1, 0, math.nan,
                                   int(lat_deg * 1e7), int(lon_deg * 1e7), float(alt_m))
+
+
+# ------------------------------------------------------------------ one clock for .BIN and .tlog
+def boot_offset_s(path, log) -> float:
+    """b [s] such that ``t_s + b`` is the vehicle's boot time for ``log`` (read from ``path``).
+
+    The .BIN's t_s is its boot clock (TimeUS) from its first record; the session .tlog's is the
+    station's receive time from its first packet, with ATTITUDE placed by its ``time_boot_ms``
+    (groundstation.io.decode.BootClock).  Both logs' UNIX starts differ (the .BIN's from GPS time,
+    the .tlog's from the station's clock: 0.75 s apart on this firmware), so alarms are compared on
+    the boot clock: b is the median of (ATT TimeUS or ATTITUDE time_boot_ms) - the attitude rows'
+    t_s, row by row (the readers keep every attitude in order), over the first boot only (up to
+    the first boot time going back: a reboot)."""
+    import numpy as np
+    from pymavlink import mavutil
+
+    boots = []
+    conn = mavutil.mavlink_connection(str(path))
+    try:
+        while True:
+            m = conn.recv_match(type=["ATT", "ATTITUDE"])
+            if m is None:
+                break
+            if m.get_type() == "ATT":
+                boots.append(m.TimeUS * 1e-6)
+            elif m.get_srcSystem() == 1:
+                boots.append(m.time_boot_ms * 1e-3)
+    finally:
+        conn.close()
+    t = np.asarray(log.attitude, dtype=float).reshape(-1, 4)[:, 0]
+    back = np.flatnonzero(np.diff(boots) < -1.0) if len(boots) > 1 else []
+    n = min(len(boots), len(t), int(back[0]) + 1 if len(back) else len(boots))
+    if n == 0:
+        raise ValueError(f"{path}: no attitude with a boot time to align on")
+    return float(np.median(np.asarray(boots[:n]) - t[:n]))

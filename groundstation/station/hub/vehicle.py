@@ -31,6 +31,12 @@ RESULT_TEXT = {0: "accepted", 1: "temporarily rejected", 2: "denied", 3: "unsupp
 
 COMPASS_PARAM_PREFIXES = ("COMPASS_", "CAL_MAG")
 OWN_COMMAND_EFFECT_S = 10.0     # compass parameters the autopilot saves this soon after our command are its answer
+# A vehicle still sending a parameter list answers a PARAM_SET after the list's values queued before
+# it (ArduPilot SITL at 8x on a loaded machine: echoes 1-4 s late, the write judged failed although
+# every value was stored).  While other PARAM_VALUEs keep coming (gaps < LIST_GAP_S) a try waits
+# on, up to LIST_WAIT_FACTOR times its timeout.
+LIST_GAP_S = 0.3
+LIST_WAIT_FACTOR = 8.0
 
 
 def is_compass_param(name: str) -> bool:
@@ -60,6 +66,7 @@ class VehicleLink:
         self._inbox: deque = deque(maxlen=1000)
         self._watched = None
         self._last_command_s = -1e9
+        self._last_other_param_s = -1e9      # monotonic time of the last PARAM_VALUE no write awaits
         self.reset(None, {})
 
     def reset(self, autopilot: str | None, params: dict[str, float]) -> None:
@@ -89,6 +96,7 @@ class VehicleLink:
         if echoes is not None:
             echoes.append(s.value)
             return False
+        self._last_other_param_s = time.monotonic()
         if old is None or same_float32(old, s.value) or not is_compass_param(s.name):
             return False
         if time.monotonic() - self._last_command_s < OWN_COMMAND_EFFECT_S:
@@ -182,7 +190,12 @@ class VehicleLink:
                 except Exception:
                     pass
             deadline = time.monotonic() + timeout_s
-            while time.monotonic() < deadline and pending:
+            longest = time.monotonic() + timeout_s * LIST_WAIT_FACTOR
+            while pending:
+                now = time.monotonic()
+                listing = now - self._last_other_param_s < LIST_GAP_S     # a list still coming in
+                if now >= deadline and not (listing and now < longest):
+                    break
                 time.sleep(0.02)
                 with self._lock:
                     for name in list(pending):

@@ -41,7 +41,7 @@ def heading_check_verdict(result: dict | None) -> str | None:
 
 def _after_write(w) -> str | None:
     pw, rb, hc = w.param_write, w.reboot, w.heading_check
-    if hc is not None and w.mode == "fixed_yaw" and (w.fixed_yaw is None or w.fixed_yaw.state != "done"):
+    if hc is not None and hc.kind == "walk" and w.mode == "fixed_yaw" and (w.fixed_yaw is None or w.fixed_yaw.state != "done"):
         return _walk_for_course(hc)
     if hc is not None:
         r = hc.result
