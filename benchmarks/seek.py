@@ -12,7 +12,10 @@ extrapolated).
     .venv/bin/python benchmarks/seek.py              # 60-minute log, 20 seeks
     .venv/bin/python benchmarks/seek.py --minutes 5 --seeks 5   # smoke run
 
-Target: every seek in a 1-hour 50 Hz log under 2 s (worst of the seeks).
+Targets (issue 29): every seek in a 1-hour 50 Hz log under 0.5 s (worst of the seeks); the replay
+made (``Replayer``: the samples of the log, built when due) well under a second, whereas the replay
+starts playing only after the whole-log analysis (printed: "analysis when the replay starts";
+issue 29 asks a 100 MB log to start playing within 2 s of opening it).
 """
 from __future__ import annotations
 
@@ -33,7 +36,8 @@ from groundstation.io.logs import iter_samples, read_log  # noqa: E402
 from groundstation.jobs.live import LiveAnalyzer  # noqa: E402
 from groundstation.station.hub.session import Session  # noqa: E402
 
-TARGET_SEEK_S = 2.0
+TARGET_SEEK_S = 0.5
+TARGET_PLAY_S = 2.0
 TABLES = ("mag", "imu", "attitude", "gps", "battery")
 
 
@@ -74,6 +78,10 @@ def run(minutes: float, seeks: int, seed: int = 0) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         session = Session(tmp, record_live=False)
         try:
+            from groundstation.io.replay import Replayer
+            r0 = time.perf_counter()
+            Replayer(log)
+            replayer_s = time.perf_counter() - r0
             t0 = time.perf_counter()
             session.start_replay(Path(tmp) / "long.tlog", speed=1.0, flight_log=log)
             session.replay_pause(True)
@@ -94,6 +102,7 @@ def run(minutes: float, seeks: int, seed: int = 0) -> dict:
         finally:
             session.close()
     return {"duration_s": log.duration_s, "imu_rows": len(log.imu), "ready_s": ready_s, "seek_s": times,
+            "replayer_s": replayer_s,
             "per_sample_rate": per_sample_rate(log), "t_after": snap["t_s"]}
 
 
@@ -110,6 +119,9 @@ def main(argv: list[str] | None = None) -> int:
           f"on {os.cpu_count()} cores")
     print(f"analysis when the replay starts: {r['ready_s']:.2f} s (once per replay, and after a calibration "
           f"or line change)")
+    print(f"replayer made (every sample of the log, ready to play and seek): {r['replayer_s']:.3f} s")
+    print(f"open -> playing (the log already read; the analysis runs first): {r['ready_s']:.2f} s, target < "
+          f"{TARGET_PLAY_S:g} s: {'met' if r['ready_s'] < TARGET_PLAY_S else 'MISSED'}")
     print("| path | seek median s | seek max s | seeks |")
     print("|---|---|---|---|")
     print(f"| station (whole-log analysis + cursor) | {np.median(seek):.3f} | {seek.max():.3f} | {len(seek)} |")

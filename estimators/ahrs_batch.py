@@ -369,8 +369,17 @@ def run_ahrs(imu: np.ndarray, mag: np.ndarray, settings: AhrsSettings | None = N
         raw, tau, var = _pass2(X, lay, fl, starts_x, decisions, k1 - k0)
         bias = np.array([d[3] for d in decisions])[bid]
         flags = np.array([(d[2], d[4]) for d in decisions], dtype=bool)[bid]
-        parts.append(_outputs(fl, raw, tau, var, bias, flags))
-    return AhrsResult(*(np.concatenate(a) for a in zip(*parts)))
+        parts.append(list(_outputs(fl, raw, tau, var, bias, flags)))
+    return AhrsResult(*(_joined(parts, j) for j in range(len(parts[0]))))
+
+
+def _joined(parts: list[list], j: int) -> np.ndarray:
+    """Field j of every chunk's outputs in one array; the chunks' copies are freed as it goes
+    (the result and one field's chunks at a time, not every chunk beside the result)."""
+    out = np.concatenate([p[j] for p in parts])
+    for p in parts:
+        p[j] = None
+    return out
 
 
 def _outputs(fl: dict, raw: np.ndarray, tau: np.ndarray, var: np.ndarray, bias: np.ndarray,

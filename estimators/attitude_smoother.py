@@ -95,24 +95,34 @@ def smooth_ahrs(imu: np.ndarray, mag: np.ndarray, settings: SmootherSettings | N
     mag = np.asarray(mag, dtype=float).reshape(-1, 4)
     if len(imu) < 2:
         return run_ahrs(imu, mag, s.ahrs, expected_field=expected_field, gyro_bias_rad_s=gyro_bias_rad_s)
-    imu_r, mag_r, _ = _reverse(imu, mag)
+    # each pass's result is dropped as soon as what the next needs is taken (memory: one pass and
+    # the backward vectors, not three passes)
     first = run_ahrs(imu, mag, s.ahrs, expected_field=expected_field, gyro_bias_rad_s=gyro_bias_rad_s)
     ef = expected_field or _clean_field(first)
-    back = run_ahrs(imu_r, mag_r, s.ahrs, expected_field=ef, gyro_bias_rad_s=-first.gyro_bias_rad_s[-1])
-    fwd = run_ahrs(imu, mag, s.ahrs, expected_field=expected_field, gyro_bias_rad_s=-back.gyro_bias_rad_s[-1])
+    bias_end = -first.gyro_bias_rad_s[-1]
+    del first
+    imu_r, mag_r, _ = _reverse(imu, mag)
+    back = run_ahrs(imu_r, mag_r, s.ahrs, expected_field=ef, gyro_bias_rad_s=bias_end)
+    del imu_r, mag_r
+    bias_start = -back.gyro_bias_rad_s[-1]
+    vb, gb, mb = back.valid[::-1], back.gravity_body[::-1], back.field_body_mG[::-1]
+    del back
+    fwd = run_ahrs(imu, mag, s.ahrs, expected_field=expected_field, gyro_bias_rad_s=bias_start)
     t = fwd.t_s
     wf = -np.expm1(-(t - t[0]) / s.blend_s) + s.floor
     wb = -np.expm1(-(t[-1] - t) / s.blend_s) + s.floor
-    vb = back.valid[::-1]
     wf = np.where(fwd.valid, wf, 0.0)
     wb = np.where(vb, wb, 0.0)
-    g = wf[:, None] * _unit(fwd.gravity_body) + wb[:, None] * _unit(back.gravity_body[::-1])
-    m = wf[:, None] * _unit(fwd.field_body_mG) + wb[:, None] * _unit(back.field_body_mG[::-1])
+    g = wf[:, None] * _unit(fwd.gravity_body) + wb[:, None] * _unit(gb)
+    m = wf[:, None] * _unit(fwd.field_body_mG) + wb[:, None] * _unit(mb)
+    del wf, wb
     valid = fwd.valid | vb
     # back to the vectors' scale (gravity m/s², field mG) for the callers that read them
     fv = fwd.valid[:, None]
-    g = _unit(g) * np.linalg.norm(np.where(fv, fwd.gravity_body, back.gravity_body[::-1]), axis=1)[:, None]
-    m = _unit(m) * np.linalg.norm(np.where(fv, fwd.field_body_mG, back.field_body_mG[::-1]), axis=1)[:, None]
+    g = _unit(g) * np.linalg.norm(np.where(fv, fwd.gravity_body, gb), axis=1)[:, None]
+    del gb
+    m = _unit(m) * np.linalg.norm(np.where(fv, fwd.field_body_mG, mb), axis=1)[:, None]
+    del mb
     roll, pitch, yaw, mag_heading = (np.where(valid, a, 0.0) for a in angles_from_vectors(g, m, fwd.mag_latest_mG))
     return AhrsResult(t, roll, pitch, yaw, mag_heading, fwd.gyro_bias_rad_s, fwd.acc_rejected, fwd.mag_rejected,
                       fwd.mag_disturbed, fwd.at_rest, valid, g, m, fwd.mag_latest_mG)

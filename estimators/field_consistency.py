@@ -458,28 +458,39 @@ class FieldConsistencyResult:
 
 def field_consistency(t_s, mag_body_mG, roll_rad, pitch_rad, attitude_ok, gyro_rad_s, motor_signal,
                       rate_hz, field_ok, settings: FieldConsistencySettings | None = None,
-                      earth_field_mG=None, prior_from_s: float = -math.inf) -> FieldConsistencyResult:
+                      earth_field_mG=None, prior_from_s: float = -math.inf,
+                      chunk: int = 8192) -> FieldConsistencyResult:
     """Batch form: ``FieldConsistency.update`` over arrays of length N (identical numbers); the
-    prior ``earth_field_mG`` is known from ``prior_from_s`` on (live: the first GPS fix)."""
+    prior ``earth_field_mG`` is known from ``prior_from_s`` on (live: the first GPS fix).  The
+    arrays are turned into plain floats ``chunk`` steps at a time (the memory of a chunk, not of
+    the log; any chunk gives the same numbers)."""
     fc = FieldConsistency(settings, None)
     t = np.asarray(t_s, dtype=float)
     n = len(t)
-    cols = [np.broadcast_to(np.asarray(a, dtype=float), (n,)).tolist()
-            for a in (roll_rad, pitch_rad, motor_signal, rate_hz)]
-    ok = np.broadcast_to(np.asarray(attitude_ok, dtype=bool), (n,)).tolist()
-    fok = np.broadcast_to(np.asarray(field_ok, dtype=bool), (n,)).tolist()
-    mag = np.asarray(mag_body_mG, dtype=float).reshape(n, 3).tolist()
-    gyro = np.asarray(gyro_rad_s, dtype=float).reshape(n, 3).tolist()
+    cols = [np.broadcast_to(np.asarray(a, dtype=float), (n,)) for a in (roll_rad, pitch_rad, motor_signal, rate_hz)]
+    ok = np.broadcast_to(np.asarray(attitude_ok, dtype=bool), (n,))
+    fok = np.broadcast_to(np.asarray(field_ok, dtype=bool), (n,))
+    mag = np.asarray(mag_body_mG, dtype=float).reshape(n, 3)
+    gyro = np.asarray(gyro_rad_s, dtype=float).reshape(n, 3)
     z, q, st = np.full(n, np.nan), np.full(n, np.nan), np.zeros(n, int)
     res, mot, msd = np.full((n, 3), np.nan), np.zeros((n, 3)), np.full((n, 3), np.inf)
-    tl = t.tolist()
-    for i in range(n):
-        if fc.prior is None and earth_field_mG is not None and tl[i] >= prior_from_s:
-            fc.set_prior(earth_field_mG)
-        step = fc.update(tl[i], mag[i], cols[0][i], cols[1][i], ok[i], gyro[i], cols[2][i], cols[3][i], fok[i])
-        z[i], q[i], st[i] = step.z, step.q, step.status
-        res[i] = step.residual_mG
-        mot[i] = step.motor_mG_per_unit
-        msd[i] = fc.motor.sd
+    for c0 in range(0, n, chunk):      # plain floats a chunk at a time: memory bounded by the chunk
+        c1 = min(n, c0 + chunk)
+        tl, ml, gl = t[c0:c1].tolist(), mag[c0:c1].tolist(), gyro[c0:c1].tolist()
+        rl, pl, xl, hl = (c[c0:c1].tolist() for c in cols)
+        okl, fokl = ok[c0:c1].tolist(), fok[c0:c1].tolist()
+        zs, qs, sts, rs, ms, sds = [], [], [], [], [], []
+        for i in range(c1 - c0):
+            if fc.prior is None and earth_field_mG is not None and tl[i] >= prior_from_s:
+                fc.set_prior(earth_field_mG)
+            step = fc.update(tl[i], ml[i], rl[i], pl[i], okl[i], gl[i], xl[i], hl[i], fokl[i])
+            zs.append(step.z)
+            qs.append(step.q)
+            sts.append(step.status)
+            rs.append(step.residual_mG)
+            ms.append(step.motor_mG_per_unit)
+            sds.append(tuple(fc.motor.sd))
+        z[c0:c1], q[c0:c1], st[c0:c1] = zs, qs, sts
+        res[c0:c1], mot[c0:c1], msd[c0:c1] = rs, ms, sds
     return FieldConsistencyResult(t, z, q, res, st, mot, fc.noise_mG, tuple(fc.h or (np.nan,) * 3), tuple(fc.b),
                                   tuple(math.degrees(v) for v in fc.tilt.tilt_rad), msd)

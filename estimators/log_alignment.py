@@ -85,8 +85,10 @@ class AttitudeAt:
 
 
 def attitude_at(t_s: np.ndarray, att_t_s: np.ndarray, roll_rad: np.ndarray, pitch_rad: np.ndarray,
-                yaw_rad: np.ndarray, max_gap_s: float = 1.0) -> AttitudeAt:
-    """Roll, pitch, yaw (yaw unwrapped, then wrapped back) and rotation rate at t_s."""
+                yaw_rad: np.ndarray, max_gap_s: float = 1.0, chunk: int = 65536) -> AttitudeAt:
+    """Roll, pitch, yaw (yaw unwrapped, then wrapped back) and rotation rate at t_s.  The rotation
+    between consecutive attitudes, angle = arccos((tr(C_kᵀ C_{k+1}) − 1) / 2), is taken ``chunk``
+    attitudes at a time (memory bounded by the chunk; any chunk gives the same numbers)."""
     t = np.asarray(t_s, float).ravel()
     tt, v = _sorted_finite(att_t_s, np.column_stack([np.ravel(roll_rad), np.ravel(pitch_rad), np.ravel(yaw_rad)]))
     nan = np.full(len(t), np.nan)
@@ -94,9 +96,12 @@ def attitude_at(t_s: np.ndarray, att_t_s: np.ndarray, roll_rad: np.ndarray, pitc
         return AttitudeAt(nan, nan.copy(), nan.copy(), nan.copy(), np.zeros(len(t), bool))
     v = v.copy()
     v[:, 2] = np.unwrap(v[:, 2])
-    C = dcm_body_to_ned(v[:, 0], v[:, 1], v[:, 2])
-    rel = np.einsum("nji,njk->nik", C[:-1], C[1:])          # C_k^T C_{k+1}
-    ang = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    ang = np.empty(len(tt) - 1)
+    for k0 in range(0, len(tt) - 1, max(int(chunk), 1)):
+        k1 = min(len(tt) - 1, k0 + max(int(chunk), 1))
+        C = dcm_body_to_ned(v[k0:k1 + 1, 0], v[k0:k1 + 1, 1], v[k0:k1 + 1, 2])
+        rel = np.einsum("nji,njk->nik", C[:-1], C[1:])          # C_k^T C_{k+1}
+        ang[k0:k1] = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
     dt = np.diff(tt)
     seg_rate = np.where(dt > 0, ang / np.where(dt > 0, dt, 1.0), np.nan)
     out, valid = interp_series(t, tt, v, max_gap_s)

@@ -139,6 +139,16 @@ def test_csv_columns(slow_report, tmp):
     assert set(alarm) <= {"0", "1"} and "1" in alarm
     assert {r[rows[0].index("ins_mode")] for r in rows[1:]} == {""}    # GPS all the way: no INS run
     assert {r[rows[0].index("attitude_source")] for r in rows[1:]} == {"offline"}   # ... so the smoother's
+    # written a chunk of rows at a time: the same bytes whatever the chunk
+    import groundstation.jobs.report as report_module
+    whole = path.read_bytes()
+    old_chunk = report_module.CSV_CHUNK_ROWS
+    try:
+        report_module.CSV_CHUNK_ROWS = 7
+        assert write_csv(tmp / "small.csv", cols).read_bytes() == whole
+    finally:
+        report_module.CSV_CHUNK_ROWS = old_chunk
+    assert len(cols["t_s"]) > 7
 
 
 def test_without_calibration_and_bad_input(slow):

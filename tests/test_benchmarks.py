@@ -126,3 +126,20 @@ def test_detection_broad_benchmark_quick():
     assert set(rows) == {"09", "35"}, out
     assert rows["09"][1] > 0.03 and rows["09"][2] == 0.0, out       # tested, never alarmed
     assert "Fusion" in out and "without a magnet: met" in out
+
+
+def test_memory_benchmark_small_log():
+    """benchmarks/memory.py: every consumer ran in its own child (exit 0/1, no failure line) and
+    its wall time and peak RSS were measured next to the bare parse, with the verdicts."""
+    out = _run("benchmarks/memory.py", "--minutes", "0.5")
+    rows = {m.group(1): m for m in re.finditer(
+        r"^\| ([^|]+?) \| ([\d.]+) \| ([\d.]+)x \| (\d+) \| ([\d.]+)x \| (-?\d+) \| (-?[\d.]+)x \| ([^|]*)\|$", out, re.M)}
+    for name in ("pymavlink bare parse", "magstation info", "magstation calibrate", "magstation analyze",
+                 "magstation analyze --csv"):
+        assert name in rows, out
+        assert float(rows[name].group(2)) > 0 and int(rows[name].group(4)) > 10, out   # seconds, MB
+        assert "exit" not in rows[name].group(8), out
+    assert rows["pymavlink bare parse"].group(3) == "1.00", out
+    for name in ("magstation info", "magstation analyze"):
+        assert re.match(r"time (met|MISSED) memory (met|MISSED)", rows[name].group(8)), out
+    assert re.search(r"^\| imports only \(no log\) \| [\d.]+ \| \| \d+ \|", out, re.M), out

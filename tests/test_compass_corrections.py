@@ -162,3 +162,17 @@ def test_per_sample_tracker_equals_the_batch_rebuild_on_a_log_whose_offsets_chan
         assert known.mean() > 0.95                      # unknown only before the first COMPASS_OFS arrived
         np.testing.assert_allclose(out[known], cf.raw_mG[known], atol=1e-9)
         assert sim.cal_applied_s < cf.t_s[known][-1]
+
+
+def test_attitude_at_rotation_rate_chunked_is_the_same_and_right():
+    """``attitude_at`` takes the rotation between attitudes a chunk at a time: any chunk, the same
+    numbers; and the rate is the known one (a steady 30°/s yaw at a 10° roll)."""
+    tt = np.arange(0.0, 20.0, 0.02)
+    roll, pitch, yaw = np.full(len(tt), np.radians(10.0)), np.zeros(len(tt)), np.radians(30.0) * tt
+    t = np.arange(0.01, 19.9, 0.013)
+    whole = attitude_at(t, tt, roll, pitch, yaw)
+    np.testing.assert_allclose(whole.rate_deg_s[whole.valid], 30.0, rtol=1e-6)
+    for chunk in (1, 7, 500):
+        part = attitude_at(t, tt, roll, pitch, yaw, chunk=chunk)
+        for name in ("roll_rad", "pitch_rad", "yaw_rad", "rate_deg_s", "valid"):
+            np.testing.assert_array_equal(getattr(part, name), getattr(whole, name), err_msg=f"{name} chunk {chunk}")

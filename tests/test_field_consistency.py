@@ -103,6 +103,13 @@ def test_batch_and_per_sample_identical():
     np.testing.assert_array_equal([s.z for s in steps], batch.z)
     np.testing.assert_array_equal([s.status for s in steps], batch.status)
     np.testing.assert_array_equal(np.array([s.residual_mG for s in steps]), batch.residual_mG)
+    # the batch form turns its arrays into floats a chunk at a time: any chunk, the same numbers
+    small = field_consistency(t, mag, roll, pitch, np.ones(len(t), bool), gyro, cur, np.full(len(t), 50.0), True,
+                              earth_field_mG=tuple(H_MAG), chunk=7)
+    for name in ("z", "q", "status", "residual_mG", "motor_mG_per_unit", "motor_sd_mG_per_unit"):
+        np.testing.assert_array_equal(getattr(small, name), getattr(batch, name), err_msg=name)
+    assert (small.noise_mG, small.earth_field_mG, small.offset_mG, small.tilt_deg) == \
+        (batch.noise_mG, batch.earth_field_mG, batch.offset_mG, batch.tilt_deg)
 
 
 def test_detector_takes_the_vector_score_as_field_evidence():

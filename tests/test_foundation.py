@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import groundstation  # noqa: F401
@@ -115,3 +116,32 @@ def test_estimators_are_pure():
                 assert name.split(".")[0] not in forbidden, f"{path.name} imports {name}"
             if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "open":
                 pytest.fail(f"{path.name} opens files")
+
+
+def test_sample_timeline_is_every_row_once_in_time_order():
+    """The replay's samples (``SampleTimeline``, made when asked for): head first, then every IMU,
+    magnetometer, attitude and GPS row and status event once, times non-decreasing, equal times in
+    table order; a slice, an index and iteration give the same samples."""
+    from groundstation.io.logs.builder import SampleTimeline
+    from groundstation.samples import AttitudeSample, GpsSample, ImuSample, MagSample, StatusSample
+
+    log = read_log(DATA / "reference.tlog")
+    tl = SampleTimeline(log)
+    every = list(tl)
+    head = len(log.params) + len(log.mission) + (1 if log.autopilot else 0)
+    assert len(every) == len(tl) == head + len(log.imu) + len(log.mag) + len(log.attitude) + len(log.gps) + len(log.status)
+    body = every[head:]
+    t = np.array([s.t_s for s in body])
+    assert np.all(np.diff(t) >= 0) and np.array_equal(tl.t_s[head:], t)
+    kinds = (ImuSample, MagSample, AttitudeSample, GpsSample)
+    for kind, table in zip(kinds, (log.imu, log.mag, log.attitude, log.gps)):
+        got = [s for s in body if isinstance(s, kind)]
+        assert len(got) == len(table) and [s.t_s for s in got] == table[:, 0].tolist()
+        assert all(type(s.t_s) is float for s in got[:5])
+    assert [s for s in body if isinstance(s, StatusSample)] == sorted(log.status, key=lambda s: s.t_s)
+    rank = {k: i for i, k in enumerate(kinds)}
+    for a, b in zip(body, body[1:]):                      # a tie: IMU, magnetometer, attitude, GPS
+        if a.t_s == b.t_s and type(a) in rank and type(b) in rank:
+            assert rank[type(a)] <= rank[type(b)]
+    assert [repr(s) for s in tl[head - 2:head + 40]] == [repr(s) for s in every[head - 2:head + 40]]
+    assert repr(tl[-1]) == repr(every[-1]) and repr(tl[head + 7]) == repr(every[head + 7])

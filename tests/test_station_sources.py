@@ -78,6 +78,8 @@ def test_seek_benchmark_smoke():
     assert out.returncode == 0, out.stderr[-2000:]
     worst = float(re.search(r"worst ([\d.]+) s", out.stdout).group(1))
     assert 0.0 < worst < 2.0, out.stdout
+    assert float(re.search(r"^replayer made .*: ([\d.]+) s$", out.stdout, re.M).group(1)) < 2.0, out.stdout
+    assert re.search(r"^open -> playing .*: [\d.]+ s, target < 2 s: (met|MISSED)$", out.stdout, re.M), out.stdout
     assert re.search(r"\| per-sample re-run .* \| [\d.]+ \| [\d.]+ \| extrapolated \|", out.stdout), out.stdout
 
 

@@ -1,17 +1,19 @@
 """Replay of a recorded log: as fast as possible (analysis) or paced at real time x speed
 (the live view), with pause, seek and speed changes.
 
-The replayer holds the time-ordered sample list and a log-time cursor.  The server's loop
+The replayer holds the time-ordered samples (``SampleTimeline``: made when due, so a long log
+opens and seeks at once) and a log-time cursor.  The server's loop
 calls ``due()`` regularly and gets every sample whose time has come; the clock is
 injectable so pacing is tested without sleeping.
 """
 from __future__ import annotations
 
-import bisect
 import time
 from typing import Callable, Iterator
 
-from groundstation.io.logs import iter_samples
+import numpy as np
+
+from groundstation.io.logs.builder import SampleTimeline
 from groundstation.samples import FlightLog, Sample
 
 
@@ -21,8 +23,8 @@ class Replayer:
         if not speed > 0:
             raise ValueError("replay speed must be > 0")
         self.log = log
-        self.samples: list[Sample] = list(iter_samples(log))
-        self._times = [s.t_s for s in self.samples]
+        self.samples = SampleTimeline(log)
+        self._times = self.samples.t_s
         self.loop = loop
         self.clock = clock
         self.speed = float(speed)
@@ -30,11 +32,11 @@ class Replayer:
         self.index = 0
         self.loops = 0
         self._anchor_wall = clock()
-        self._anchor_log_t = self._times[0] if self._times else 0.0
+        self._anchor_log_t = float(self._times[0]) if len(self._times) else 0.0
 
     @property
     def duration_s(self) -> float:
-        return self._times[-1] if self._times else 0.0
+        return float(self._times[-1]) if len(self._times) else 0.0
 
     @property
     def position_s(self) -> float:
@@ -50,15 +52,17 @@ class Replayer:
     def __iter__(self) -> Iterator[Sample]:
         """All remaining samples at once, unpaced (analysis)."""
         while self.index < len(self.samples):
-            self.index += 1
-            yield self.samples[self.index - 1]
+            chunk = self.samples[self.index:self.index + 4096]
+            for sample in chunk:
+                self.index += 1
+                yield sample
 
     def due(self, max_samples: int = 100_000) -> list[Sample]:
         """Samples whose log time has come since the last call (paced)."""
-        if self.paused or not self.samples:
+        if self.paused or not len(self.samples):
             return []
         now_t = self.position_s
-        end = min(bisect.bisect_right(self._times, now_t, lo=self.index), self.index + max_samples)
+        end = min(max(int(np.searchsorted(self._times, now_t, side="right")), self.index), self.index + max_samples)
         out = self.samples[self.index:end]
         self.index = end
         if self.index >= len(self.samples) and self.loop:
@@ -90,6 +94,6 @@ class Replayer:
         """Move the cursor to log time t_s (clamped to the log); the consumer should reset
         its estimators, since samples between the old and new position are skipped."""
         t = min(max(float(t_s), 0.0), self.duration_s)
-        self.index = bisect.bisect_left(self._times, t)
+        self.index = int(np.searchsorted(self._times, t, side="left"))
         self._anchor_log_t = t
         self._anchor_wall = self.clock()

@@ -128,6 +128,8 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
     """Heading chain + interference detection on a whole log; see module docstring."""
     settings = settings or DetectionSettings()
     fa = analyze_flight(log, calibration, mission, settings)
+    combined_alarms = fa.combined_alarms()
+    fa.rows = np.empty((0, fa.rows.shape[1]))    # the flight record is the station's; its alarms taken, its memory goes
     x, det = fa.x, fa.det
     t, d, ef, pos, chain, valid, g = (x[k] for k in ("t", "d", "ef", "pos", "chain", "valid", "g"))
     d_gps, legs, rtk, path_test, cal = (x[k] for k in ("d_gps", "legs", "rtk", "path_test", "cal"))
@@ -149,7 +151,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         "attitude_source": best["attitude_source"],
     }
 
-    alarms = alarm_list(t, det, d, settings) + fa.combined_alarms()
+    alarms = alarm_list(t, det, d, settings) + combined_alarms
     alarms.sort(key=lambda a: (a["start_s"], a["kind"]))
     combined = [a for a in alarms if a["kind"] == "combined"]
     legs_report = None

@@ -16,6 +16,7 @@ CSV_COLUMNS = ("t_s", "roll_deg", "pitch_deg", "yaw_deg", "mag_heading_deg", "he
                "gyro_bias_z_dps", "acc_rejected", "mag_rejected", "ins_mode", "attitude_source")
 INTEGER_COLUMNS = ("alarm", "acc_rejected", "mag_rejected")
 TEXT_COLUMNS = ("ins_mode", "attitude_source")
+CSV_CHUNK_ROWS = 8192
 
 
 def write_csv(path: str | Path, columns: dict[str, np.ndarray]) -> Path:
@@ -24,11 +25,12 @@ def write_csv(path: str | Path, columns: dict[str, np.ndarray]) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     names = [c for c in CSV_COLUMNS if c in columns] + [c for c in columns if c not in CSV_COLUMNS]
-    cells = [_cells(c, columns[c]) for c in names]
+    n = min((len(columns[c]) for c in names), default=0)
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(names)
-        w.writerows(zip(*cells))
+        for k in range(0, n, CSV_CHUNK_ROWS):      # the text of a chunk of rows at a time, not of the log
+            w.writerows(zip(*(_cells(c, columns[c][k:k + CSV_CHUNK_ROWS]) for c in names)))
     return path
 
 

@@ -1,9 +1,9 @@
 """Assembling samples into a FlightLog (tables sorted, damage counted) and back into a stream."""
 from __future__ import annotations
 
-import heapq
 from array import array
 from collections import Counter
+from collections.abc import Sequence
 from typing import Iterator
 
 import numpy as np
@@ -14,7 +14,7 @@ from ..decode import expected_field_mG
 from .instances import compact_history, split_compasses, split_imus
 from ..params import param_value_problem
 
-__all__ = ["LogBuilder", "clean_table", "drop_time_outliers", "iter_samples"]
+__all__ = ["LogBuilder", "clean_table", "drop_time_outliers", "iter_samples", "SampleTimeline"]
 
 
 NAN3 = (float("nan"),) * 3
@@ -166,27 +166,81 @@ def clean_table(arr: np.ndarray, name: str, warnings: Counter) -> np.ndarray:
     return arr
 
 
+def _mag(r: list) -> Sample:
+    return MagSample(r[0], (r[1], r[2], r[3]))
+
+
+def _imu(r: list) -> Sample:
+    return ImuSample(r[0], (r[1], r[2], r[3]), (r[4], r[5], r[6]))
+
+
+def _attitude(r: list) -> Sample:
+    return AttitudeSample(r[0], r[1], r[2], r[3])
+
+
+def _gps(r: list) -> Sample:
+    return GpsSample(r[0], r[1], r[2], r[3], (r[4], r[5], r[6]), int(r[7]))
+
+
+class SampleTimeline(Sequence):
+    """A FlightLog's tables merged back into one time-ordered sample stream (for replay), as a
+    sequence whose samples are made when asked for: the log's parameters, mission and autopilot
+    first (at t = 0), then every IMU, magnetometer, attitude and GPS row and status event in time
+    order (equal times: in that order, then in table order).  It holds 17 bytes a sample (time,
+    table, row), not a Python object per sample, so a long log opens and seeks at once.
+    ``t_s``: the times (numpy, the order of the sequence)."""
+
+    _MAKERS = (_imu, _mag, _attitude, _gps)
+
+    def __init__(self, log: FlightLog) -> None:
+        head: list[Sample] = [ParamSample(0.0, k, v) for k, v in log.params.items()]
+        head += [MissionSample(0.0, i, *wp) for i, wp in enumerate(log.mission)]
+        if log.autopilot:
+            head.append(StatusSample(0.0, "autopilot", log.autopilot))
+        self._head = head
+        self._status = sorted(log.status, key=lambda s: s.t_s)
+        self._tables = [np.asarray(a, dtype=float) for a in (log.imu, log.mag, log.attitude, log.gps)]
+        parts = [a[:, 0] for a in self._tables] + [np.array([s.t_s for s in self._status], dtype=float)]
+        times = np.concatenate(parts)
+        order = np.argsort(times, kind="stable")
+        self._src = np.repeat(np.arange(len(parts), dtype=np.int8), [len(p) for p in parts])[order]
+        self._row = np.concatenate([np.arange(len(p)) for p in parts])[order]
+        self.t_s = np.concatenate([np.zeros(len(head)), times[order]])
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return self._build(*index.indices(len(self))[:2]) if index.step in (None, 1) \
+                else [self[i] for i in range(*index.indices(len(self)))]
+        i = range(len(self))[index]           # IndexError as a list's
+        return self._build(i, i + 1)[0]
+
+    def __iter__(self) -> Iterator[Sample]:
+        for lo in range(0, len(self), 4096):
+            yield from self._build(lo, min(len(self), lo + 4096))
+
+    def _build(self, lo: int, hi: int) -> list[Sample]:
+        nh = len(self._head)
+        out: list = self._head[lo:min(hi, nh)]
+        lo, hi = max(lo, nh) - nh, max(hi, nh) - nh
+        if hi <= lo:
+            return out
+        src, row = self._src[lo:hi], self._row[lo:hi]
+        rest: list = [None] * (hi - lo)
+        for k in np.unique(src).tolist():
+            at = np.flatnonzero(src == k)
+            if k == len(self._MAKERS):
+                for j, r in zip(at.tolist(), row[at].tolist()):
+                    rest[j] = self._status[r]
+                continue
+            make = self._MAKERS[k]
+            for j, r in zip(at.tolist(), self._tables[k][row[at]].tolist()):
+                rest[j] = make(r)
+        return out + rest
+
+
 def iter_samples(log: FlightLog) -> Iterator[Sample]:
-    """Merge a FlightLog's tables back into one time-ordered sample stream (for replay)."""
-    def mags() -> Iterator[Sample]:
-        for r in log.mag.tolist():
-            yield MagSample(r[0], (r[1], r[2], r[3]))
-
-    def imus() -> Iterator[Sample]:
-        for r in log.imu.tolist():
-            yield ImuSample(r[0], (r[1], r[2], r[3]), (r[4], r[5], r[6]))
-
-    def atts() -> Iterator[Sample]:
-        for r in log.attitude.tolist():
-            yield AttitudeSample(r[0], r[1], r[2], r[3])
-
-    def gpss() -> Iterator[Sample]:
-        for r in log.gps.tolist():
-            yield GpsSample(r[0], r[1], r[2], r[3], (r[4], r[5], r[6]), int(r[7]))
-
-    head: list[Sample] = [ParamSample(0.0, k, v) for k, v in log.params.items()]
-    head += [MissionSample(0.0, i, *wp) for i, wp in enumerate(log.mission)]
-    if log.autopilot:
-        head.append(StatusSample(0.0, "autopilot", log.autopilot))
-    yield from head
-    yield from heapq.merge(imus(), mags(), atts(), gpss(), log.status, key=lambda s: s.t_s)
+    """Merge a FlightLog's tables back into one time-ordered sample stream (``SampleTimeline``)."""
+    return iter(SampleTimeline(log))
