@@ -16,12 +16,14 @@ from typing import BinaryIO, Callable, Iterator
 
 import numpy as np
 
+from .. import decode as dec
 from ..decode import MavlinkDecoder
 from ..mavlink import mavlink2
 from .builder import LogBuilder
-from ...samples import FlightLog
+from .mavlink_bulk import CRC_EXTRA, KNOWN, PAYLOAD_SIZE, decode_payloads, rows_at, x25_crc_rows
+from ...samples import FlightLog, OffsetsSample, StatusSample
 
-__all__ = ["read_tlog", "tlog_records", "despiked"]
+__all__ = ["read_tlog", "tlog_records", "frame_records", "despike_times", "rebase_backwards"]
 
 TLOG_STAMP = struct.Struct(">Q")
 _PLAUSIBLE_UNIX_S = (946684800.0, 4102444800.0)  # 2000..2100
@@ -120,7 +122,7 @@ def tlog_records(source, warnings: Counter) -> Iterator[tuple[float, object]]:
             i, searching, resynced = k, False, True
         magic = buf[i + 8]
         if magic == 0xFD:
-            size = 12 + buf[i + 9] + (13 if buf[i + 10] & 1 else 0)
+            size = 12 + buf[i + 9] + (13 if i + 10 < len(buf) and buf[i + 10] & 1 else 0)   # flags cut off: incomplete
         elif magic == 0xFE:
             size = 8 + buf[i + 9]
         else:
@@ -167,63 +169,494 @@ def _decode(decode, packet: bytearray):
         return None
 
 
-def despiked(records: Iterator[tuple[float, object]], warnings: Counter,
-             jump_s: float = STAMP_JUMP_S) -> Iterator[tuple[float, object]]:
-    """Records whose stamp jumps more than ``jump_s`` away from the previous record and whose
-    successor comes back (one corrupt stamp, e.g. a flipped bit) get the previous record's
-    stamp and are counted; a jump that persists (a new connection, the clock set) is kept."""
-    prev: float | None = None
-    pending: tuple[float, object] | None = None
-    for unix, msg in records:
-        if pending is not None:
-            p_unix, p_msg = pending
-            pending = None
-            if abs(unix - prev) <= jump_s < abs(unix - p_unix):
-                warnings[SPIKE] += 1
-                yield prev, p_msg
-            else:
-                prev = p_unix
-                yield p_unix, p_msg
-        if prev is not None and abs(unix - prev) > jump_s:
-            pending = (unix, msg)
+TRUNCATED = "log truncated: last record cut off"
+_PAD = MAX_RECORD + 512          # zero bytes after the file: every fixed-width view stays inside the buffer
+
+
+def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
+    """Start offsets of the good records of a .tlog held in ``data[:n]`` (zero-padded past n), the
+    records ``tlog_records`` yields, with the same corrupt and truncation counts.
+
+    Every position whose byte 8 is a MAVLink magic is judged at once: stamp plausible, packet
+    complete, message id known, X.25 CRC (``mavlink_bulk.x25_crc_rows``, grouped by checked length).
+    A record chain is then followed: from a good record the next is at start + 8 + size, and
+    while the next good position is exactly that one a whole run is taken at once (numpy); only
+    where the chain breaks (garbage, a bad CRC, a false start inside a payload) is it walked
+    position by position with the rules of ``tlog_records``: on the chain an unknown message id is
+    a record (pymavlink decodes it as UNKNOWN_n); after a failure the next candidate (plausible
+    stamp, known id, a payload length it can have) must have a good CRC; a plausible record cut
+    off by the end stops the reading.
+    """
+    magic = data[8:max(n - 1, 8)]
+    pos = np.flatnonzero((magic == 0xFD) | (magic == 0xFE))
+    stamp_us = rows_at(data, pos, 8).copy().view(">u8").ravel()
+    unix = stamp_us.astype(np.float64) * 1e-6
+    plausible = (unix > _PLAUSIBLE_UNIX_S[0]) & (unix < _PLAUSIBLE_UNIX_S[1])
+    v2 = data[pos + 8] == 0xFD
+    mlen = data[pos + 9].astype(np.int64)
+    signed = v2 & (data[pos + 10] & 1).astype(bool)
+    size = np.where(v2, 12 + mlen + 13 * signed, 8 + mlen)
+    complete = pos + 8 + size <= n
+    last = max(n - 1, 0)
+    at = lambda k: data[np.minimum(k, last)].astype(np.int64)       # noqa: E731  (the candidate scan clamps)
+    ids_clamped = np.where(v2, at(pos + 15) | at(pos + 16) << 8 | at(pos + 17) << 16, at(pos + 13))
+    ids = np.where(v2, data[pos + 15].astype(np.int64) | data[pos + 16].astype(np.int64) << 8
+                   | data[pos + 17].astype(np.int64) << 16, data[pos + 13])
+    known = (ids < len(KNOWN)) & KNOWN[np.minimum(ids, len(KNOWN) - 1)]
+    known_c = (ids_clamped < len(KNOWN)) & KNOWN[np.minimum(ids_clamped, len(KNOWN) - 1)]
+    cand = ((stamp_us > _PLAUSIBLE_US[0]) & (stamp_us < _PLAUSIBLE_US[1]) & known_c & (mlen >= 1)
+            & (mlen <= PAYLOAD_SIZE[np.where(known_c, ids_clamped, 0)]))
+    crc_ok = np.zeros(len(pos), dtype=bool)
+    check = np.flatnonzero(plausible & complete & known)
+    width = np.where(v2[check], 9, 5) + mlen[check]           # header after the magic + payload
+    for w in np.unique(width).tolist():
+        sel = check[width == w]
+        rows = np.empty((len(sel), w + 1), dtype=np.uint8)
+        rows[:, :w] = rows_at(data, pos[sel] + 9, w)
+        rows[:, w] = CRC_EXTRA[ids[sel]]
+        end = pos[sel] + 8 + size[sel] - 2 - 13 * signed[sel]
+        sent = data[end].astype(np.uint16) | data[end + 1].astype(np.uint16) << 8
+        crc_ok[sel] = x25_crc_rows(rows) == sent
+    truncated = plausible & ~complete
+    good_plain = plausible & complete & (~known | crc_ok)
+    good_resync = cand & plausible & complete & crc_ok
+    chain = pos[good_plain]
+    after = chain + 8 + size[good_plain]
+    breaks = np.flatnonzero(after[:-1] != chain[1:])
+    candidates = pos[cand]
+    runs: list[tuple[int, int]] = []
+    i, searching, corrupt = 0, False, 0
+    while True:
+        if i + 10 > n:
+            if i < n:
+                warnings[TRUNCATED] += 1
+            break
+        if searching:
+            c = int(np.searchsorted(candidates, i))
+            if c == len(candidates) or candidates[c] > n - 10:
+                warnings[TRUNCATED] += 1
+                break
+            i = int(candidates[c])
+        k = int(np.searchsorted(pos, i))
+        here = k < len(pos) and pos[k] == i
+        if here and truncated[k]:
+            warnings[TRUNCATED] += 1
+            break
+        if here and (good_resync[k] if searching else good_plain[k]):
+            j = int(np.searchsorted(chain, i))
+            b = int(np.searchsorted(breaks, j))
+            e = int(breaks[b]) if b < len(breaks) else len(chain) - 1
+            runs.append((j, e + 1))
+            i, searching = int(after[e]), False
             continue
-        prev = unix
-        yield unix, msg
-    if pending is not None:
-        yield pending
+        corrupt += 1
+        i += 1
+        searching = True
+    if corrupt:
+        warnings[CORRUPT] += corrupt
+    if not runs:
+        return np.empty(0, dtype=np.int64)
+    return np.concatenate([chain[a:b] for a, b in runs])
+
+
+def despike_times(unix: np.ndarray, warnings: Counter, jump_s: float = STAMP_JUMP_S) -> np.ndarray:
+    """Record stamps with single corrupt ones replaced: a stamp more than ``jump_s`` from the
+    previous record's whose successor comes back gets the previous record's stamp (counted); a
+    jump that persists (a new connection, the clock set) is kept.  The state machine runs only
+    around the jumps; between them every stamp is kept as it is."""
+    out = unix.copy()
+    n = len(unix)
+    if n < 2:
+        return out
+    jumps = np.flatnonzero(np.abs(np.diff(unix)) > jump_s) + 1
+    prev, pending, spikes = float(unix[0]), None, 0
+    k, q = 1, 0
+    while k < n:
+        if pending is None and prev == unix[k - 1]:        # a normal stretch: on to the next jump
+            while q < len(jumps) and jumps[q] < k:
+                q += 1
+            if q == len(jumps):
+                break
+            k = int(jumps[q])
+            prev = float(out[k - 1])
+        u = float(unix[k])
+        if pending is not None:
+            p = float(unix[pending])
+            if abs(u - prev) <= jump_s < abs(u - p):
+                spikes += 1
+                out[pending] = prev
+            else:
+                prev = p
+            pending = None
+        if abs(u - prev) > jump_s:
+            pending = k
+        else:
+            prev = u
+        k += 1
+    if spikes:
+        warnings[SPIKE] += spikes
+    return out
+
+
+def rebase_backwards(unix: np.ndarray, warnings: Counter) -> np.ndarray:
+    """Arrival times on the log's time base: unix - first + shift, where the shift grows whenever
+    the recorder's clock went back, so the arrival continues from where it was (counted)."""
+    arrival = np.empty(len(unix))
+    if not len(unix):
+        return arrival
+    first, shift, last, k, window, events = float(unix[0]), 0.0, -math.inf, 0, 1024, 0
+    while k < len(unix):
+        a = (unix[k:k + window] - first) + shift
+        back = a < np.concatenate(([last], a[:-1]))
+        e = int(np.argmax(back)) if back.any() else len(a)
+        arrival[k:k + e] = a[:e]
+        if e:
+            last = float(a[e - 1])
+        k += e
+        if e < len(a):
+            events += 1
+            shift += last - float(a[e])
+            arrival[k] = last
+            k += 1
+            window = 1024
+        else:
+            window = min(window * 2, 1 << 22)
+    if events:
+        warnings["timestamps going backwards (re-based)"] += events
+    return arrival
+
+
+# message ids the decoder turns into samples (decode.MavlinkDecoder's handlers)
+_ID = {name: getattr(mavlink2, "MAVLINK_MSG_ID_" + name) for name in (
+    "HEARTBEAT", "RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "HIGHRES_IMU", "ATTITUDE",
+    "ATTITUDE_QUATERNION", "GPS_RAW_INT", "GLOBAL_POSITION_INT", "SENSOR_OFFSETS", "VFR_HUD", "SYSTEM_TIME",
+    "SYS_STATUS", "MISSION_ITEM_INT", "MISSION_ITEM", "PARAM_VALUE", "STATUSTEXT", "MAG_CAL_PROGRESS",
+    "MAG_CAL_REPORT", "COMMAND_LONG")}
+# decoded per packet through pymavlink and MavlinkDecoder itself: text, parameters, missions and
+# calibration events, a few per second at most, each with Python objects for its samples
+_PER_PACKET = tuple(_ID[n] for n in ("MISSION_ITEM_INT", "MISSION_ITEM", "PARAM_VALUE", "STATUSTEXT",
+                                     "MAG_CAL_PROGRESS", "MAG_CAL_REPORT", "COMMAND_LONG"))
+_SCALED = {_ID["RAW_IMU"]: 0, _ID["SCALED_IMU"]: 10, _ID["SCALED_IMU2"]: 11, _ID["SCALED_IMU3"]: 12}
+
+
+class _Records:
+    """The good records of one .tlog as columns (record order): start offset, message id, payload
+    offset and length, source system, arrival time [s] on the log's time base."""
+
+    def __init__(self, data: np.ndarray, starts: np.ndarray, unix: np.ndarray, arrival: np.ndarray) -> None:
+        self.data, self.start, self.unix, self.arrival = data, starts, unix, arrival
+        v2 = data[starts + 8] == 0xFD
+        self.v2 = v2
+        self.id = np.where(v2, data[starts + 15].astype(np.int64) | data[starts + 16].astype(np.int64) << 8
+                           | data[starts + 17].astype(np.int64) << 16, data[starts + 13])
+        self.length = data[starts + 9].astype(np.int64)
+        self.sysid = np.where(v2, data[starts + 13], data[starts + 11]).astype(np.int64)
+        self.payload = starts + np.where(v2, 18, 14)
+        order = np.argsort(self.id, kind="stable")
+        ids, first = np.unique(self.id[order], return_index=True)
+        self._groups = {int(i): order[a:b] for i, a, b in zip(ids, first, np.r_[first[1:], len(order)])}
+
+    def rows(self, msg_id: int) -> np.ndarray:
+        """Record indices of one message id, in record order."""
+        return self._groups.get(msg_id, np.empty(0, dtype=np.int64))
+
+    def fields(self, msg_id: int, rows: np.ndarray) -> np.ndarray:
+        return decode_payloads(self.data, self.payload[rows], self.length[rows], msg_id)
+
+    def packet(self, r: int) -> bytearray:
+        s = int(self.start[r]) + 8
+        size = (12 + int(self.length[r]) + (13 if self.data[s + 2] & 1 else 0)) if self.v2[r] else 8 + int(self.length[r])
+        return bytearray(self.data[s:s + size].tobytes())
+
+    def counts(self) -> Counter:
+        """Messages per type (pymavlink's names, UNKNOWN_n for ids it does not know), in the order
+        each type first appears."""
+        out: Counter = Counter()
+        for i, rows in sorted(self._groups.items(), key=lambda g: g[1][0]):
+            cls = mavlink2.mavlink_map.get(i)
+            out[cls.msgname if cls is not None else f"UNKNOWN_{i}"] = len(rows)
+        return out
+
+
+def _read_file(path: Path) -> tuple[np.ndarray, int]:
+    n = path.stat().st_size
+    data = np.zeros(n + _PAD, dtype=np.uint8)
+    view, got = memoryview(data), 0
+    with open(path, "rb") as f:
+        while got < n:
+            k = f.readinto(view[got:n])
+            if not k:
+                break
+            got += k
+    return data, got
 
 
 def read_tlog(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
+    """A .tlog as a FlightLog, decoded column-wise: records framed and CRC-checked in bulk
+    (``frame_records``), each message id's payloads one numpy structured array
+    (``mavlink_bulk.payload_dtype``, pymavlink's layout), converted by the functions the live
+    decoder uses (``decode.scaled_imu_to_si`` ...) with its rules: the vehicle is the first
+    autopilot heartbeat's system, times from time_boot_ms through ``_BootClock.times``, each
+    magnetometer source's unit judged at its first sample.  Parameters, status text, missions
+    and calibration events (``_PER_PACKET``, a few a second) go through pymavlink and
+    ``MavlinkDecoder`` packet by packet.  The same FlightLog as decoding every packet with
+    ``MavlinkDecoder`` (tests/test_ingest_vectorised.py)."""
+    data, n = _read_file(path)
     builder = LogBuilder(str(path))
-    decoder = MavlinkDecoder()
-    counts = builder.log.message_counts
-    warnings = builder.log.warnings
-    first_unix = None
-    last_arrival = -math.inf
-    backwards_shift = 0.0
-    decode = decoder.decode
-    add = builder.add
-    size = max(path.stat().st_size, 1)
-    with open(path, "rb") as f:
-        for n, (unix, msg) in enumerate(despiked(tlog_records(f, warnings), warnings)):
-            counts[msg.get_type()] += 1
-            if first_unix is None:
-                first_unix = unix
-            arrival = unix - first_unix + backwards_shift
-            if arrival < last_arrival:  # the recorder's clock went back: continue from where it was
-                warnings["timestamps going backwards (re-based)"] += 1
-                backwards_shift += last_arrival - arrival
-                arrival = last_arrival
-            last_arrival = arrival
-            for s in decode(msg, arrival):
-                add(s)
-            if progress is not None and n % 20000 == 0:
-                progress(min(f.tell() / size, 1.0))
+    log, warnings = builder.log, builder.log.warnings
+    starts = frame_records(data, n, warnings)
+    if progress is not None:
+        progress(0.3)
+    stamps = rows_at(data, starts, 8).copy().view(">u8").ravel()
+    unix = despike_times(stamps.astype(np.float64) * 1e-6, warnings)
+    arrival = rebase_backwards(unix, warnings)
+    rec = _Records(data, starts, unix, arrival)
+    log.message_counts.update(rec.counts())
+    decoder = _ColumnDecoder(rec, builder)
+    decoder.run()
+    if progress is not None:
+        progress(0.9)
     warnings.update(decoder.warnings)
     log = builder.finish()
-    log.start_unix_s = first_unix
+    log.start_unix_s = float(unix[0]) if len(unix) else None
     if log.autopilot is None:
         log.autopilot = decoder.autopilot
     if log.autopilot == "ardupilot":
         log.mag_calibration_applied = True  # ArduPilot sends the corrected field
     return log
+
+
+class _ColumnDecoder:
+    """``MavlinkDecoder``'s rules applied to whole columns of one log (its per-message state, the
+    vehicle, the boot clock, the last GPS fix, the units judged, found with searchsorted over the
+    record order).  Tables go to the builder as arrays, events (statuses, parameters, offsets) as
+    samples in record order."""
+
+    def __init__(self, rec: _Records, builder: LogBuilder) -> None:
+        self.rec, self.builder = rec, builder
+        self.warnings: Counter = Counter()
+        self.autopilot: str | None = None
+        self.events: list[tuple[int, object]] = []
+        self.tables: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {
+            "mag": [], "imu": [], "attitude": [], "gps": [], "battery": [], "throttle": []}
+        self.vehicle: int | None = None
+        self.h0 = len(rec.start)
+
+    # ---------------------------------------------------------------- helpers
+    def accepted(self, msg_id: int) -> np.ndarray:
+        """Record indices of ``msg_id`` the decoder would use: before the vehicle is known every
+        system's, after it the vehicle's only."""
+        rows = self.rec.rows(msg_id)
+        if self.vehicle is None:
+            return rows
+        return rows[(rows < self.h0) | (self.rec.sysid[rows] == self.vehicle)]
+
+    def table(self, name: str, rows: np.ndarray, *columns) -> None:
+        if len(rows):
+            self.tables[name].append((rows, np.column_stack([np.asarray(c, dtype=float) for c in columns])))
+
+    # ---------------------------------------------------------------- run
+    def run(self) -> None:
+        rec = self.rec
+        self._heartbeats()
+        self._per_packet()
+        st = self.accepted(_ID["SYSTEM_TIME"])
+        usec = rec.fields(_ID["SYSTEM_TIME"], st)["time_unix_usec"]
+        ok = np.flatnonzero(usec > 1e15)
+        self.start_row = int(st[ok[0]]) if len(ok) else len(rec.start)
+        self.start_unix = float(usec[ok[0]]) * 1e-6 - float(rec.arrival[st[ok[0]]]) if len(ok) else None
+        self._gps_raw()
+        times = self._clock()
+        self._scaled(times)
+        self._highres()
+        self._attitude(times)
+        self._global_position(times[_ID["GLOBAL_POSITION_INT"]])
+        self._offsets()
+        vfr = self.accepted(_ID["VFR_HUD"])
+        thr, valid = dec.vfr_hud_throttle(rec.fields(_ID["VFR_HUD"], vfr)["throttle"])
+        self.table("throttle", vfr[valid], rec.arrival[vfr[valid]], thr[valid])
+        sys = self.accepted(_ID["SYS_STATUS"])
+        amps, valid = dec.sys_status_current_A(rec.fields(_ID["SYS_STATUS"], sys)["current_battery"])
+        self.table("battery", sys[valid], rec.arrival[sys[valid]], amps[valid])
+        self._finish()
+
+    def _heartbeats(self) -> None:
+        rows = self.rec.rows(_ID["HEARTBEAT"])
+        f = self.rec.fields(_ID["HEARTBEAT"], rows)
+        autopilot_hb = (f["type"] != dec.MAV_TYPE_GCS) & (f["autopilot"] != 8)     # 8: MAV_AUTOPILOT_INVALID
+        first = np.flatnonzero(autopilot_hb)
+        if not len(first):
+            return
+        self.h0 = int(rows[first[0]])
+        self.vehicle = int(self.rec.sysid[self.h0])
+        mine = autopilot_hb & (self.rec.sysid[rows] == self.vehicle)
+        names = {dec.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot", dec.MAV_AUTOPILOT_PX4: "px4"}
+        for r, ap in zip(rows[mine].tolist(), f["autopilot"][mine].tolist()):
+            name = names.get(ap)
+            if name and name != self.autopilot:
+                self.autopilot = name
+                self.events.append((r, StatusSample(float(self.rec.arrival[r]), "autopilot", name)))
+
+    def _per_packet(self) -> None:
+        rows = np.sort(np.concatenate([self.rec.rows(i) for i in _PER_PACKET]))
+        self.param_rows = self.rec.rows(_ID["PARAM_VALUE"])
+        parser = mavlink2.MAVLink(None)
+        parser.robust_parsing = True
+        decoder = MavlinkDecoder()
+        for r in rows.tolist():
+            msg = _decode(parser.decode, self.rec.packet(r))
+            if msg is None:
+                self.warnings[CORRUPT] += 1
+                continue
+            decoder.vehicle_sysid = self.vehicle if r > self.h0 else None
+            for s in decoder.decode(msg, float(self.rec.arrival[r])):
+                self.events.append((r, s))
+        self.warnings.update(decoder.warnings)
+
+    def _gps_raw(self) -> None:
+        rows = self.accepted(_ID["GPS_RAW_INT"])
+        f = self.rec.fields(_ID["GPS_RAW_INT"], rows)
+        self.gps_rows, self.gps_fix = rows, f["fix_type"].astype(np.int64)
+        use = (f["fix_type"] >= 2) & ~((f["lat"] == 0) & (f["lon"] == 0))
+        g = f[use]
+        lat, lon, alt, vn, ve, vd = dec.gps_raw_int_to_si(g["lat"], g["lon"], g["alt"], g["vel"], g["cog"])
+        self.place_rows, self.place = rows[use], np.column_stack([lat, lon, alt]) if len(g) else np.empty((0, 3))
+        self.table("gps", rows[use], self.rec.arrival[rows[use]], lat, lon, alt, vn, ve, vd, g["fix_type"])
+
+    def _clock(self) -> dict[int, np.ndarray]:
+        """Boot-clock times of every message that has them, in record order through one clock."""
+        parts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for name in ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "ATTITUDE", "ATTITUDE_QUATERNION",
+                     "GLOBAL_POSITION_INT"):
+            rows = self.accepted(_ID[name])
+            f = self.rec.fields(_ID[name], rows)
+            if name == "ATTITUDE":
+                self.att_ok = np.isfinite(f["roll"]) & np.isfinite(f["pitch"]) & np.isfinite(f["yaw"])
+                rows, f = rows[self.att_ok], f[self.att_ok]
+            elif name == "ATTITUDE_QUATERNION":
+                self.quat, valid = dec.normalised_quaternion(f["q1"], f["q2"], f["q3"], f["q4"])
+                self.quat_bad = int((~valid).sum())
+                self.quat, rows, f = self.quat[valid], rows[valid], f[valid]
+            parts[_ID[name]] = (rows, f)
+        rows = np.concatenate([p[0] for p in parts.values()])
+        boot = np.concatenate([p[1]["time_boot_ms"].astype(np.int64) for p in parts.values()])
+        order = np.argsort(rows, kind="stable")
+        t = np.empty(len(rows))
+        t[order] = dec._BootClock().times(boot[order], self.rec.arrival[rows[order]])
+        out, k = {}, 0
+        self.parts = parts
+        for i, (r, _) in parts.items():
+            out[i] = t[k:k + len(r)]
+            k += len(r)
+        return out
+
+    def _place_before(self, r: int) -> tuple[float, float, float] | None:
+        k = int(np.searchsorted(self.place_rows, r)) - 1
+        return None if k < 0 else tuple(float(v) for v in self.place[k])
+
+    def _judge(self, instance: int, rows: np.ndarray, t: np.ndarray, sent: np.ndarray, units) -> float | None:
+        """The scale of a magnetometer source judged at its first non-zero sample (the decoder's
+        ``judge_first_field``), its warning counted; None when every sample is zero."""
+        nonzero = np.flatnonzero((sent != 0).any(axis=1))
+        if not len(nonzero):
+            return None
+        k = int(nonzero[0])
+        r = int(rows[k])
+        unit = dec.judge_first_field(instance, tuple(float(v) for v in sent[k]), units, float(t[k]),
+                                     self._place_before(r), self.start_unix if self.start_row < r else None)
+        if not unit.plausible:
+            self.warnings[f"{unit.source}: implausible magnetometer field ({unit.why})"] += 1
+        return unit.scale_to_mG
+
+    def _scaled(self, times: dict[int, np.ndarray]) -> None:
+        for msg_id, instance in _SCALED.items():
+            if msg_id == _ID["RAW_IMU"]:
+                rows = self.accepted(msg_id)
+                f, t = self.rec.fields(msg_id, rows), self.rec.arrival[rows]
+            else:
+                rows, f = self.parts[msg_id]
+                t = times[msg_id]
+            if not len(rows):
+                continue
+            mag = np.column_stack([f["xmag"], f["ymag"], f["zmag"]]).astype(float)
+            self._judge(instance, rows, t, mag, dec.MG_UNIT)
+            has = (mag != 0).any(axis=1)
+            nan3 = np.full(int(has.sum()), np.nan)
+            self.table("mag", rows[has], t[has], *mag[has].T, nan3, nan3, nan3, np.full(len(nan3), instance))
+            gyro, acc = dec.scaled_imu_to_si(np.column_stack([f["xgyro"], f["ygyro"], f["zgyro"]]),
+                                             np.column_stack([f["xacc"], f["yacc"], f["zacc"]]))
+            self.table("imu", rows, t, *gyro.T, *acc.T, np.full(len(rows), instance))
+
+    def _highres(self) -> None:
+        rows = self.accepted(_ID["HIGHRES_IMU"])
+        if not len(rows):
+            return
+        f = self.rec.fields(_ID["HIGHRES_IMU"], rows)
+        t = self.rec.arrival[rows]
+        upd = f["fields_updated"]
+        wanted = ((upd & 0x1C0) != 0) | (upd == 0)
+        sent = np.column_stack([f["xmag"], f["ymag"], f["zmag"]]).astype(float)
+        finite = np.isfinite(sent).all(axis=1)
+        if (wanted & ~finite).any():
+            self.warnings["NaN magnetometer field"] += int((wanted & ~finite).sum())
+        inst = 20 + f["id"].astype(np.int64)
+        use = wanted & finite
+        scale = np.full(len(rows), dec.MG_PER_GAUSS)
+        for k in np.unique(inst[use]).tolist():
+            sel = use & (inst == k)
+            s = self._judge(k, rows[sel], t[sel], sent[sel], dec.HIGHRES_MAG_UNITS)
+            scale[inst == k] = dec.MG_PER_GAUSS if s is None else s
+        m = sent[use] * scale[use, None]
+        nan3 = np.full(int(use.sum()), np.nan)
+        self.table("mag", rows[use], t[use], *m.T, nan3, nan3, nan3, inst[use])
+        imu = np.column_stack([f[c] for c in ("xgyro", "ygyro", "zgyro", "xacc", "yacc", "zacc")]).astype(float)
+        ok = np.isfinite(imu).all(axis=1)
+        if not ok.all():
+            self.warnings["NaN IMU field"] += int((~ok).sum())
+        self.table("imu", rows[ok], t[ok], *imu[ok].T, inst[ok])
+
+    def _attitude(self, times: dict[int, np.ndarray]) -> None:
+        bad = int((~self.att_ok).sum())
+        if bad:
+            self.warnings["NaN attitude field"] += bad
+        if self.quat_bad:
+            self.warnings["invalid attitude quaternion"] += self.quat_bad
+        rows, f = self.parts[_ID["ATTITUDE"]]
+        self.table("attitude", rows, times[_ID["ATTITUDE"]], f["roll"], f["pitch"], f["yaw"])
+        rows, _ = self.parts[_ID["ATTITUDE_QUATERNION"]]
+        if len(rows):
+            self.table("attitude", rows, times[_ID["ATTITUDE_QUATERNION"]], *dec.euler_from_quaternion(*self.quat.T))
+
+    def _global_position(self, t: np.ndarray) -> None:
+        rows, f = self.parts[_ID["GLOBAL_POSITION_INT"]]
+        k = np.searchsorted(self.gps_rows, rows) - 1            # the last GPS_RAW_INT before each
+        last_t = np.where(k >= 0, self.rec.arrival[self.gps_rows[np.maximum(k, 0)]] if len(self.gps_rows) else 0.0,
+                          -math.inf)
+        fix = np.where(k >= 0, self.gps_fix[np.maximum(k, 0)] if len(self.gps_rows) else 0, 3)
+        use = ~(t - last_t < 3.0) & ~((f["lat"] == 0) & (f["lon"] == 0))
+        g = f[use]
+        cols = dec.global_position_int_to_si(g["lat"], g["lon"], g["alt"], g["vx"], g["vy"], g["vz"])
+        self.table("gps", rows[use], t[use], *cols, fix[use])
+
+    def _offsets(self) -> None:
+        """SENSOR_OFFSETS: compass 0's offsets as history entries; a record repeating the previous
+        one's values (with no PARAM_VALUE between, which could name the same parameter) adds
+        nothing to the history (``compact_history`` drops such repeats) and is skipped here."""
+        rows = self.accepted(_ID["SENSOR_OFFSETS"])
+        f = self.rec.fields(_ID["SENSOR_OFFSETS"], rows)
+        ofs = np.column_stack([f["mag_ofs_x"], f["mag_ofs_y"], f["mag_ofs_z"]])
+        group = np.searchsorted(self.param_rows, rows)
+        keep = np.ones(len(rows), dtype=bool)
+        keep[1:] = (ofs[1:] != ofs[:-1]).any(axis=1) | (group[1:] != group[:-1])
+        for r, v in zip(rows[keep].tolist(), ofs[keep].tolist()):
+            self.events.append((r, OffsetsSample(float(self.rec.arrival[r]), 0, tuple(float(x) for x in v), 1.0)))
+
+    def _finish(self) -> None:
+        for name, parts in self.tables.items():
+            if parts:
+                rows = np.concatenate([p[0] for p in parts])
+                order = np.argsort(rows, kind="stable")
+                self.builder.set_table(name, np.concatenate([p[1] for p in parts])[order])
+        self.events.sort(key=lambda e: e[0])
+        for _, s in self.events:
+            self.builder.add(s)
