@@ -62,7 +62,7 @@ def write_bin(path: Path, minutes: float) -> None:
     for k in range(int(minutes * 60 * 50)):
         t_us = 1_000_000 + k * 20_000
         out += df_record("IMU", t_us, 0, 0.0, 0.0, 0.3, 0.0, 0.0, -9.8, 0, 0, 25.0, 1, 1, 400, 400)
-        out += df_record("MAG", t_us, 0, 300, -100, -400, 12, 0, 0, 0, 0, 0, 1, t_us)
+        out += df_record("MAG", t_us, 0, 300, -100, -400, 12, 0, 0, 0, 0, 0, 1, t_us & 0xFFFFFFFF)
         out += df_record("ATT", t_us, 0, 100, 0, -200, 0, 9000, 0, 0, 3)
         if k % 10 == 0:
             out += df_record("GPS", t_us, 0, 6, 1000, 2400, 18, 80, 302600000, 1201200000, 5000,

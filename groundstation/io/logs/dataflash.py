@@ -214,6 +214,10 @@ class _Type:
         i = self.fmt.colhash[column]
         c = self.fmt.format[i]
         raw = self.body[f"f{i}"]
+        with np.errstate(invalid="ignore", over="ignore"):
+            return self._value(raw, i, c)
+
+    def _value(self, raw: np.ndarray, i: int, c: str) -> np.ndarray:
         if c in _TEXT_CHARS:
             return np.array([_text(b) for b in raw.tolist()], dtype=object)
         mult = self.fmt.msg_mults[i]

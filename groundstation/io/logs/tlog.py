@@ -1,8 +1,13 @@
 """MAVLink telemetry logs (.tlog): 8-byte big-endian UNIX microseconds + one MAVLink packet per record.
 
-The file is read in chunks (memory bounded by the chunk, not the file), garbage is skipped in
-linear time (candidate record starts are found with numpy over growing windows), and a record
-whose stamp jumps away and straight back (a flipped bit) gets its neighbour's time.
+``read_tlog`` (the FlightLog) decodes column-wise: the file is read once, every record is framed
+and CRC-checked in bulk (``frame_records``), each message id's payloads become one numpy
+structured array (``mavlink_bulk``) and the decoder's rules run on whole columns
+(``_ColumnDecoder``); corrupt stamps (``despike_times``) and a clock going back
+(``rebase_backwards``) are handled on the time column.  ``tlog_records`` yields (UNIX time,
+pymavlink message) per record, streaming in bounded chunks (the station's replay and the
+recordings list); both frame the same records with the same resynchronisation after garbage
+(linear: candidate starts are found with numpy) and the same corrupt counts.
 """
 from __future__ import annotations
 
