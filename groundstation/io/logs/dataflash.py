@@ -286,11 +286,10 @@ def _records(reader) -> tuple[dict[str, _Type], int, int]:
         rows = np.flatnonzero(types[:stop] == i)
         fmt = reader.formats[i]
         dtype = _fmt_dtype(fmt)
-        if len(rows):
-            body = np.lib.stride_tricks.sliding_window_view(data, fmt.len)[offsets[rows]][:, 3:]
-            body = np.ascontiguousarray(body).view(dtype).ravel()
+        if len(rows) and dtype.itemsize:
+            body = np.lib.stride_tricks.sliding_window_view(data, fmt.len - 3)[offsets[rows] + 3].view(dtype).ravel()
         else:
-            body = np.empty(0, dtype=dtype)
+            body = np.zeros(len(rows), dtype=dtype)
         out[name] = _Type(name, fmt, body, rows)
     del data
     return out, stop, end
@@ -462,8 +461,9 @@ class _BulkDecoder:
             q = np.concatenate([np.full(len(c[0]), c[2]) for c in changes])
             rows = np.concatenate([c[3] for c in changes])
             t = np.concatenate([c[4] for c in changes])
-            order = np.lexsort((rows, k))                    # by compass, then record
-            k, ofs, q, rows, t = k[order], ofs[order], q[order], rows[order], t[order]
+            if len(changes) > 1 or (k[1:] != k[:-1]).any():
+                order = np.lexsort((rows, k))                # by compass, then record
+                k, ofs, q, rows, t = k[order], ofs[order], q[order], rows[order], t[order]
             new = np.ones(len(k), dtype=bool)
             new[1:] = (k[1:] != k[:-1]) | (ofs[1:] != ofs[:-1]).any(axis=1)
             for kk, v, qq, r, tt in zip(k[new].tolist(), ofs[new].tolist(), q[new].tolist(), rows[new].tolist(),
@@ -492,7 +492,9 @@ def _read_bulk(path: Path, progress: Callable[[float], None] | None, reader) -> 
     for _, name, count in first:
         log.message_counts[name] += count
     for name, parts in bulk.tables.items():
-        if parts:
+        if len(parts) == 1:
+            builder.set_table(name, parts[0][1])                   # one message type: in record order
+        elif parts:
             rows = np.concatenate([p[0] for p in parts])
             order = np.argsort(rows, kind="stable")
             builder.set_table(name, np.concatenate([p[1] for p in parts])[order])

@@ -175,6 +175,19 @@ def _decode(decode, packet: bytearray):
 
 
 TRUNCATED = "log truncated: last record cut off"
+
+
+def _msg_ids(data: np.ndarray, pos: np.ndarray, v2: np.ndarray, last: int | None = None) -> np.ndarray:
+    """Message id of the packet at pos + 8: bytes 7..9 of MAVLink 2 (little-endian 24 bit), byte 5
+    of MAVLink 1; with ``last``, byte offsets are clamped to it (as the candidate scan reads)."""
+    def b(k):
+        return data[k if last is None else np.minimum(k, last)].astype(np.int64)
+    ids = b(pos + 13)
+    if v2.any():
+        w = np.flatnonzero(v2)
+        p = pos[w]
+        ids[w] = b(p + 15) | b(p + 16) << 8 | b(p + 17) << 16
+    return ids
 _PAD = MAX_RECORD + 512          # zero bytes after the file: every fixed-width view stays inside the buffer
 
 
@@ -193,7 +206,7 @@ def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
     off by the end stops the reading.
     """
     magic = data[8:max(n - 1, 8)]
-    pos = np.flatnonzero((magic == 0xFD) | (magic == 0xFE))
+    pos = np.flatnonzero((magic - np.uint8(0xFD)) < 2)            # 0xFD or 0xFE (uint8 wraps the rest)
     stamp_us = rows_at(data, pos, 8).copy().view(">u8").ravel()
     unix = stamp_us.astype(np.float64) * 1e-6
     plausible = (unix > _PLAUSIBLE_UNIX_S[0]) & (unix < _PLAUSIBLE_UNIX_S[1])
@@ -202,11 +215,12 @@ def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
     signed = v2 & (data[pos + 10] & 1).astype(bool)
     size = np.where(v2, 12 + mlen + 13 * signed, 8 + mlen)
     complete = pos + 8 + size <= n
-    last = max(n - 1, 0)
-    at = lambda k: data[np.minimum(k, last)].astype(np.int64)       # noqa: E731  (the candidate scan clamps)
-    ids_clamped = np.where(v2, at(pos + 15) | at(pos + 16) << 8 | at(pos + 17) << 16, at(pos + 13))
-    ids = np.where(v2, data[pos + 15].astype(np.int64) | data[pos + 16].astype(np.int64) << 8
-                   | data[pos + 17].astype(np.int64) << 16, data[pos + 13])
+    ids = _msg_ids(data, pos, v2)
+    ids_clamped = ids.copy()                   # the candidate scan reads the id bytes clamped to the end
+    near = np.flatnonzero(pos + 17 > n - 1)
+    if len(near):
+        last = max(n - 1, 0)
+        ids_clamped[near] = _msg_ids(data, np.minimum(pos[near], last), v2[near], last)
     known = (ids < len(KNOWN)) & KNOWN[np.minimum(ids, len(KNOWN) - 1)]
     known_c = (ids_clamped < len(KNOWN)) & KNOWN[np.minimum(ids_clamped, len(KNOWN) - 1)]
     cand = ((stamp_us > _PLAUSIBLE_US[0]) & (stamp_us < _PLAUSIBLE_US[1]) & known_c & (mlen >= 1)
@@ -214,7 +228,7 @@ def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
     crc_ok = np.zeros(len(pos), dtype=bool)
     check = np.flatnonzero(plausible & complete & known)
     width = np.where(v2[check], 9, 5) + mlen[check]           # header after the magic + payload
-    for w in np.unique(width).tolist():
+    for w in np.flatnonzero(np.bincount(width)).tolist() if len(width) else []:
         sel = check[width == w]
         rows = np.empty((len(sel), w + 1), dtype=np.uint8)
         rows[:, :w] = rows_at(data, pos[sel] + 9, w)
@@ -352,14 +366,14 @@ class _Records:
         self.data, self.start, self.unix, self.arrival = data, starts, unix, arrival
         v2 = data[starts + 8] == 0xFD
         self.v2 = v2
-        self.id = np.where(v2, data[starts + 15].astype(np.int64) | data[starts + 16].astype(np.int64) << 8
-                           | data[starts + 17].astype(np.int64) << 16, data[starts + 13])
+        self.id = _msg_ids(data, starts, v2)
         self.length = data[starts + 9].astype(np.int64)
         self.sysid = np.where(v2, data[starts + 13], data[starts + 11]).astype(np.int64)
         self.payload = starts + np.where(v2, 18, 14)
         order = np.argsort(self.id, kind="stable")
-        ids, first = np.unique(self.id[order], return_index=True)
-        self._groups = {int(i): order[a:b] for i, a, b in zip(ids, first, np.r_[first[1:], len(order)])}
+        sorted_ids = self.id[order]
+        first = np.flatnonzero(np.r_[True, sorted_ids[1:] != sorted_ids[:-1]]) if len(order) else np.empty(0, int)
+        self._groups = {int(sorted_ids[a]): order[a:b] for a, b in zip(first.tolist(), np.r_[first[1:], len(order)].tolist())}
 
     def rows(self, msg_id: int) -> np.ndarray:
         """Record indices of one message id, in record order."""
@@ -658,7 +672,9 @@ class _ColumnDecoder:
 
     def _finish(self) -> None:
         for name, parts in self.tables.items():
-            if parts:
+            if len(parts) == 1:
+                self.builder.set_table(name, parts[0][1])            # one message type: in record order
+            elif parts:
                 rows = np.concatenate([p[0] for p in parts])
                 order = np.argsort(rows, kind="stable")
                 self.builder.set_table(name, np.concatenate([p[1] for p in parts])[order])
