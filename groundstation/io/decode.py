@@ -301,7 +301,7 @@ class _BootClock:
                 k += 1
                 window = 256
             else:
-                window = min(window * 2, 1 << 20)
+                window = min(window * 2, 1 << 13)         # bounded temporaries
         return out
 
     def _anchor(self, offset_s: float) -> None:

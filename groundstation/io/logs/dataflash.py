@@ -347,7 +347,10 @@ class _BulkDecoder:
 
     def table(self, name: str, rows: np.ndarray, *columns) -> None:
         if len(rows):
-            self.tables[name].append((rows, np.column_stack([np.asarray(c, dtype=float) for c in columns])))
+            out = np.empty((len(rows), len(columns)))
+            for j, c in enumerate(columns):          # converted column by column: no float copy of each
+                out[:, j] = c
+            self.tables[name].append((rows, out))
 
     def run(self) -> None:
         for name, tp in self.types.items():

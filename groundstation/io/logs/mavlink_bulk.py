@@ -22,7 +22,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from ..mavlink import mavlink2
 
-__all__ = ["payload_dtype", "x25_crc_rows", "rows_at", "KNOWN_IDS", "CRC_EXTRA", "PAYLOAD_SIZE"]
+__all__ = ["payload_dtype", "x25_crc_rows", "rows_at", "byte_at", "KNOWN_IDS", "CRC_EXTRA", "PAYLOAD_SIZE"]
 
 KNOWN_IDS = np.array(sorted(mavlink2.mavlink_map), dtype=np.int64)
 _MAX_ID = int(KNOWN_IDS.max()) + 1
@@ -69,11 +69,30 @@ def x25_crc_rows(rows: np.ndarray) -> np.ndarray:
 
 
 def rows_at(data: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
-    """``data[s:s + width]`` for each start, as one (n, width) uint8 array (``data`` must extend
-    ``width`` bytes past the last start: the readers pad their buffer)."""
+    """``data[s:s + width]`` for each start, as one (n, width) uint8 array; bytes past the end of
+    ``data`` read as zero."""
+    starts = np.asarray(starts, dtype=np.int64)
     if width == 0:
         return np.zeros((len(starts), 0), dtype=np.uint8)
-    return sliding_window_view(data, width)[starts]
+    n = len(data)
+    if not len(starts) or (width <= n and int(starts.max()) + width <= n):
+        return sliding_window_view(data, width)[starts]
+    out = np.zeros((len(starts), width), dtype=np.uint8)
+    inside = starts + width <= n
+    if width <= n and inside.any():
+        out[inside] = sliding_window_view(data, width)[starts[inside]]
+    for i in np.flatnonzero(~inside).tolist():
+        tail = data[int(starts[i]):n]
+        out[i, :len(tail)] = tail
+    return out
+
+
+def byte_at(data: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``data[idx]``, zero past the end."""
+    n = len(data)
+    if not len(idx) or int(idx.max()) < n:
+        return data[idx]
+    return np.where(idx < n, data[np.minimum(idx, max(n - 1, 0))], 0).astype(np.uint8)
 
 
 @lru_cache(maxsize=None)
@@ -108,8 +127,9 @@ def decode_payloads(data: np.ndarray, starts: np.ndarray, lengths: np.ndarray, m
     """Payloads of one message id (at ``starts``, ``lengths`` bytes as sent) as a structured array:
     zero-extended where shorter than the layout, cut where longer (pymavlink's ``decode``)."""
     dtype = payload_dtype(msg_id)
-    rows = np.array(rows_at(data, starts, dtype.itemsize))
+    rows = rows_at(data, starts, dtype.itemsize)          # a copy (fancy indexing)
     short = lengths < dtype.itemsize
     if short.any():
-        rows[short] *= (np.arange(dtype.itemsize) < lengths[short, None])
+        for length in np.unique(lengths[short]).tolist():     # a few lengths: no (n, size) mask
+            rows[lengths == length, length:] = 0
     return rows.view(dtype).ravel()

@@ -25,7 +25,7 @@ from .. import decode as dec
 from ..decode import MavlinkDecoder
 from ..mavlink import mavlink2
 from .builder import LogBuilder
-from .mavlink_bulk import CRC_EXTRA, KNOWN, PAYLOAD_SIZE, decode_payloads, rows_at, x25_crc_rows
+from .mavlink_bulk import CRC_EXTRA, KNOWN, PAYLOAD_SIZE, byte_at, decode_payloads, rows_at, x25_crc_rows
 from ...samples import FlightLog, OffsetsSample, StatusSample
 
 __all__ = ["read_tlog", "tlog_records", "frame_records", "despike_times", "rebase_backwards"]
@@ -181,38 +181,31 @@ def _msg_ids(data: np.ndarray, pos: np.ndarray, v2: np.ndarray, last: int | None
     """Message id of the packet at pos + 8: bytes 7..9 of MAVLink 2 (little-endian 24 bit), byte 5
     of MAVLink 1; with ``last``, byte offsets are clamped to it (as the candidate scan reads)."""
     def b(k):
-        return data[k if last is None else np.minimum(k, last)].astype(np.int64)
+        return (byte_at(data, k) if last is None else data[np.minimum(k, last)]).astype(np.int64)
     ids = b(pos + 13)
     if v2.any():
         w = np.flatnonzero(v2)
         p = pos[w]
         ids[w] = b(p + 15) | b(p + 16) << 8 | b(p + 17) << 16
     return ids
-_PAD = MAX_RECORD + 512          # zero bytes after the file: every fixed-width view stays inside the buffer
 
 
-def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
-    """Start offsets of the good records of a .tlog held in ``data[:n]`` (zero-padded past n), the
-    records ``tlog_records`` yields, with the same corrupt and truncation counts.
+_TRUNC, _PLAIN, _RESYNC, _CAND = 1, 2, 4, 8   # frame_records: what a position is
+_BLOCK = 1 << 18                              # file bytes judged at once (bounds the temporaries)
 
-    Every position whose byte 8 is a MAVLink magic is judged at once: stamp plausible, packet
-    complete, message id known, X.25 CRC (``mavlink_bulk.x25_crc_rows``, grouped by checked length).
-    A record chain is then followed: from a good record the next is at start + 8 + size, and
-    while the next good position is exactly that one a whole run is taken at once (numpy); only
-    where the chain breaks (garbage, a bad CRC, a false start inside a payload) is it walked
-    position by position with the rules of ``tlog_records``: on the chain an unknown message id is
-    a record (pymavlink decodes it as UNKNOWN_n); after a failure the next candidate (plausible
-    stamp, known id, a payload length it can have) must have a good CRC; a plausible record cut
-    off by the end stops the reading.
-    """
-    magic = data[8:max(n - 1, 8)]
-    pos = np.flatnonzero((magic - np.uint8(0xFD)) < 2)            # 0xFD or 0xFE (uint8 wraps the rest)
+
+def _judge_block(data: np.ndarray, n: int, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(positions, record sizes, flags) of the positions a <= p < b whose byte 8 is a MAVLink magic
+    (p <= n - 10); flags: _TRUNC a plausible record cut off by the end, _PLAIN a record on the
+    chain, _CAND a resynchronisation candidate, _RESYNC a candidate that is a record."""
+    magic = data[a + 8:min(b, n - 9) + 8]
+    pos = np.flatnonzero((magic - np.uint8(0xFD)) < 2) + a        # 0xFD or 0xFE (uint8 wraps the rest)
     stamp_us = rows_at(data, pos, 8).copy().view(">u8").ravel()
     unix = stamp_us.astype(np.float64) * 1e-6
     plausible = (unix > _PLAUSIBLE_UNIX_S[0]) & (unix < _PLAUSIBLE_UNIX_S[1])
     v2 = data[pos + 8] == 0xFD
     mlen = data[pos + 9].astype(np.int64)
-    signed = v2 & (data[pos + 10] & 1).astype(bool)
+    signed = v2 & (byte_at(data, pos + 10) & 1).astype(bool)
     size = np.where(v2, 12 + mlen + 13 * signed, 8 + mlen)
     complete = pos + 8 + size <= n
     ids = _msg_ids(data, pos, v2)
@@ -236,13 +229,33 @@ def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
         end = pos[sel] + 8 + size[sel] - 2 - 13 * signed[sel]
         sent = data[end].astype(np.uint16) | data[end + 1].astype(np.uint16) << 8
         crc_ok[sel] = x25_crc_rows(rows) == sent
-    truncated = plausible & ~complete
-    good_plain = plausible & complete & (~known | crc_ok)
-    good_resync = cand & plausible & complete & crc_ok
-    chain = pos[good_plain]
-    after = chain + 8 + size[good_plain]
+    flags = ((plausible & ~complete) * _TRUNC + (plausible & complete & (~known | crc_ok)) * _PLAIN
+             + (cand & plausible & complete & crc_ok) * _RESYNC + cand * _CAND).astype(np.uint8)
+    return pos, size.astype(np.int16), flags
+
+
+def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
+    """Start offsets of the good records of a .tlog held in ``data[:n]``, the
+    records ``tlog_records`` yields, with the same corrupt and truncation counts.
+
+    Every position whose byte 8 is a MAVLink magic is judged at once (``_judge_block``, a block
+    of the file at a time): stamp plausible, packet complete, message id known, X.25 CRC
+    (``mavlink_bulk.x25_crc_rows``, grouped by checked length).  A record chain is then followed:
+    from a good record the next is at start + 8 + size, and while the next good position is
+    exactly that one a whole run is taken at once; only where the chain breaks (garbage, a bad
+    CRC, a false start inside a payload) is it walked position by position with the rules of
+    ``tlog_records``: on the chain an unknown message id is a record (pymavlink decodes it as
+    UNKNOWN_n); after a failure the next candidate (plausible stamp, known id, a payload length
+    it can have) must have a good CRC; a plausible record cut off by the end stops the reading.
+    """
+    blocks = [_judge_block(data, n, a, a + _BLOCK) for a in range(0, max(n - 9, 0), _BLOCK)]
+    pos, size, flags = (np.concatenate([b[k] for b in blocks]) if blocks else np.empty(0, int) for k in range(3))
+    del blocks
+    plain = (flags & _PLAIN) != 0
+    chain = pos[plain]
+    after = chain + 8 + size[plain]
     breaks = np.flatnonzero(after[:-1] != chain[1:])
-    candidates = pos[cand]
+    candidates = pos[(flags & _CAND) != 0]
     runs: list[tuple[int, int]] = []
     i, searching, corrupt = 0, False, 0
     while True:
@@ -252,16 +265,16 @@ def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
             break
         if searching:
             c = int(np.searchsorted(candidates, i))
-            if c == len(candidates) or candidates[c] > n - 10:
+            if c == len(candidates):
                 warnings[TRUNCATED] += 1
                 break
             i = int(candidates[c])
         k = int(np.searchsorted(pos, i))
-        here = k < len(pos) and pos[k] == i
-        if here and truncated[k]:
+        flag = int(flags[k]) if k < len(pos) and pos[k] == i else 0
+        if flag & _TRUNC:
             warnings[TRUNCATED] += 1
             break
-        if here and (good_resync[k] if searching else good_plain[k]):
+        if flag & (_RESYNC if searching else _PLAIN):
             j = int(np.searchsorted(chain, i))
             b = int(np.searchsorted(breaks, j))
             e = int(breaks[b]) if b < len(breaks) else len(chain) - 1
@@ -273,9 +286,7 @@ def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
         searching = True
     if corrupt:
         warnings[CORRUPT] += corrupt
-    if not runs:
-        return np.empty(0, dtype=np.int64)
-    return np.concatenate([chain[a:b] for a, b in runs])
+    return np.concatenate([chain[a:b] for a, b in runs]) if runs else np.empty(0, dtype=np.int64)
 
 
 def despike_times(unix: np.ndarray, warnings: Counter, jump_s: float = STAMP_JUMP_S) -> np.ndarray:
@@ -339,7 +350,7 @@ def rebase_backwards(unix: np.ndarray, warnings: Counter) -> np.ndarray:
             k += 1
             window = 1024
         else:
-            window = min(window * 2, 1 << 22)
+            window = min(window * 2, 1 << 16)
     if events:
         warnings["timestamps going backwards (re-based)"] += events
     return arrival
@@ -362,15 +373,14 @@ class _Records:
     """The good records of one .tlog as columns (record order): start offset, message id, payload
     offset and length, source system, arrival time [s] on the log's time base."""
 
-    def __init__(self, data: np.ndarray, starts: np.ndarray, unix: np.ndarray, arrival: np.ndarray) -> None:
-        self.data, self.start, self.unix, self.arrival = data, starts, unix, arrival
+    def __init__(self, data: np.ndarray, starts: np.ndarray, arrival: np.ndarray) -> None:
+        self.data, self.start, self.arrival = data, starts, arrival
         v2 = data[starts + 8] == 0xFD
         self.v2 = v2
-        self.id = _msg_ids(data, starts, v2)
-        self.length = data[starts + 9].astype(np.int64)
-        self.sysid = np.where(v2, data[starts + 13], data[starts + 11]).astype(np.int64)
-        self.payload = starts + np.where(v2, 18, 14)
-        order = np.argsort(self.id, kind="stable")
+        self.id = _msg_ids(data, starts, v2).astype(np.int32)
+        self.length = data[starts + 9]
+        self.sysid = np.where(v2, data[starts + 13], data[starts + 11])
+        order = np.argsort(self.id, kind="stable").astype(np.int32)
         sorted_ids = self.id[order]
         first = np.flatnonzero(np.r_[True, sorted_ids[1:] != sorted_ids[:-1]]) if len(order) else np.empty(0, int)
         self._groups = {int(sorted_ids[a]): order[a:b] for a, b in zip(first.tolist(), np.r_[first[1:], len(order)].tolist())}
@@ -380,7 +390,9 @@ class _Records:
         return self._groups.get(msg_id, np.empty(0, dtype=np.int64))
 
     def fields(self, msg_id: int, rows: np.ndarray) -> np.ndarray:
-        return decode_payloads(self.data, self.payload[rows], self.length[rows], msg_id)
+        start = self.start[rows]
+        return decode_payloads(self.data, start + np.where(self.v2[rows], 18, 14), self.length[rows].astype(np.int64),
+                               msg_id)
 
     def packet(self, r: int) -> bytearray:
         s = int(self.start[r]) + 8
@@ -398,16 +410,9 @@ class _Records:
 
 
 def _read_file(path: Path) -> tuple[np.ndarray, int]:
+    """The file mapped read-only (the page cache holds it; no copy), and its length."""
     n = path.stat().st_size
-    data = np.zeros(n + _PAD, dtype=np.uint8)
-    view, got = memoryview(data), 0
-    with open(path, "rb") as f:
-        while got < n:
-            k = f.readinto(view[got:n])
-            if not k:
-                break
-            got += k
-    return data, got
+    return (np.memmap(path, dtype=np.uint8, mode="r") if n else np.zeros(0, dtype=np.uint8)), n
 
 
 def read_tlog(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
@@ -429,15 +434,19 @@ def read_tlog(path: Path, progress: Callable[[float], None] | None) -> FlightLog
     stamps = rows_at(data, starts, 8).copy().view(">u8").ravel()
     unix = despike_times(stamps.astype(np.float64) * 1e-6, warnings)
     arrival = rebase_backwards(unix, warnings)
-    rec = _Records(data, starts, unix, arrival)
+    start_unix = float(unix[0]) if len(unix) else None
+    del stamps, unix
+    rec = _Records(data, starts, arrival)
+    del data, starts, arrival
     log.message_counts.update(rec.counts())
     decoder = _ColumnDecoder(rec, builder)
     decoder.run()
+    del rec, decoder.rec, decoder.parts          # the file and its records: only the tables are left
     if progress is not None:
         progress(0.9)
     warnings.update(decoder.warnings)
     log = builder.finish()
-    log.start_unix_s = float(unix[0]) if len(unix) else None
+    log.start_unix_s = start_unix
     if log.autopilot is None:
         log.autopilot = decoder.autopilot
     if log.autopilot == "ardupilot":
@@ -472,7 +481,10 @@ class _ColumnDecoder:
 
     def table(self, name: str, rows: np.ndarray, *columns) -> None:
         if len(rows):
-            self.tables[name].append((rows, np.column_stack([np.asarray(c, dtype=float) for c in columns])))
+            out = np.empty((len(rows), len(columns)))
+            for j, c in enumerate(columns):          # converted column by column: no float copy of each
+                out[:, j] = c
+            self.tables[name].append((rows, out))
 
     # ---------------------------------------------------------------- run
     def run(self) -> None:
@@ -556,14 +568,15 @@ class _ColumnDecoder:
                 self.quat, valid = dec.normalised_quaternion(f["q1"], f["q2"], f["q3"], f["q4"])
                 self.quat_bad = int((~valid).sum())
                 self.quat, rows, f = self.quat[valid], rows[valid], f[valid]
-            parts[_ID[name]] = (rows, f)
+            parts[_ID[name]] = (rows, f["time_boot_ms"].astype(np.int64))
+            del f                                       # decoded again where used: memory, not time
         rows = np.concatenate([p[0] for p in parts.values()])
-        boot = np.concatenate([p[1]["time_boot_ms"].astype(np.int64) for p in parts.values()])
+        boot = np.concatenate([p[1] for p in parts.values()])
         order = np.argsort(rows, kind="stable")
         t = np.empty(len(rows))
         t[order] = dec._BootClock().times(boot[order], self.rec.arrival[rows[order]])
         out, k = {}, 0
-        self.parts = parts
+        self.parts = {i: p[0] for i, p in parts.items()}
         for i, (r, _) in parts.items():
             out[i] = t[k:k + len(r)]
             k += len(r)
@@ -593,18 +606,21 @@ class _ColumnDecoder:
                 rows = self.accepted(msg_id)
                 f, t = self.rec.fields(msg_id, rows), self.rec.arrival[rows]
             else:
-                rows, f = self.parts[msg_id]
+                rows = self.parts[msg_id]
+                f = self.rec.fields(msg_id, rows)
                 t = times[msg_id]
             if not len(rows):
                 continue
-            mag = np.column_stack([f["xmag"], f["ymag"], f["zmag"]]).astype(float)
-            self._judge(instance, rows, t, mag, dec.MG_UNIT)
+            mag = np.column_stack([f["xmag"], f["ymag"], f["zmag"]])
+            self._judge(instance, rows, t, mag.astype(float), dec.MG_UNIT)
             has = (mag != 0).any(axis=1)
-            nan3 = np.full(int(has.sum()), np.nan)
-            self.table("mag", rows[has], t[has], *mag[has].T, nan3, nan3, nan3, np.full(len(nan3), instance))
+            sel = slice(None) if has.all() else has                 # no copies when every row has a field
+            self.table("mag", rows[sel], t[sel], *mag[sel].T, np.nan, np.nan, np.nan, instance)
+            del mag
             gyro, acc = dec.scaled_imu_to_si(np.column_stack([f["xgyro"], f["ygyro"], f["zgyro"]]),
                                              np.column_stack([f["xacc"], f["yacc"], f["zacc"]]))
-            self.table("imu", rows, t, *gyro.T, *acc.T, np.full(len(rows), instance))
+            del f
+            self.table("imu", rows, t, *gyro.T, *acc.T, instance)
 
     def _highres(self) -> None:
         rows = self.accepted(_ID["HIGHRES_IMU"])
@@ -640,14 +656,16 @@ class _ColumnDecoder:
             self.warnings["NaN attitude field"] += bad
         if self.quat_bad:
             self.warnings["invalid attitude quaternion"] += self.quat_bad
-        rows, f = self.parts[_ID["ATTITUDE"]]
+        rows = self.parts[_ID["ATTITUDE"]]
+        f = self.rec.fields(_ID["ATTITUDE"], rows)
         self.table("attitude", rows, times[_ID["ATTITUDE"]], f["roll"], f["pitch"], f["yaw"])
-        rows, _ = self.parts[_ID["ATTITUDE_QUATERNION"]]
+        rows = self.parts[_ID["ATTITUDE_QUATERNION"]]
         if len(rows):
             self.table("attitude", rows, times[_ID["ATTITUDE_QUATERNION"]], *dec.euler_from_quaternion(*self.quat.T))
 
     def _global_position(self, t: np.ndarray) -> None:
-        rows, f = self.parts[_ID["GLOBAL_POSITION_INT"]]
+        rows = self.parts[_ID["GLOBAL_POSITION_INT"]]
+        f = self.rec.fields(_ID["GLOBAL_POSITION_INT"], rows)
         k = np.searchsorted(self.gps_rows, rows) - 1            # the last GPS_RAW_INT before each
         last_t = np.where(k >= 0, self.rec.arrival[self.gps_rows[np.maximum(k, 0)]] if len(self.gps_rows) else 0.0,
                           -math.inf)
@@ -678,6 +696,7 @@ class _ColumnDecoder:
                 rows = np.concatenate([p[0] for p in parts])
                 order = np.argsort(rows, kind="stable")
                 self.builder.set_table(name, np.concatenate([p[1] for p in parts])[order])
+        self.tables.clear()
         self.events.sort(key=lambda e: e[0])
         for _, s in self.events:
             self.builder.add(s)
