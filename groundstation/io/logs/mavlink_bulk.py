@@ -15,6 +15,7 @@ the state depends only on crc ^ word).
 from __future__ import annotations
 
 import re
+import struct
 from functools import lru_cache
 
 import numpy as np
@@ -22,7 +23,9 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from ..mavlink import mavlink2
 
-__all__ = ["payload_dtype", "x25_crc_rows", "rows_at", "byte_at", "KNOWN_IDS", "CRC_EXTRA", "PAYLOAD_SIZE"]
+CORRUPT = "corrupt packets skipped (bad CRC or garbage)"
+
+__all__ = ["CORRUPT", "payload_dtype", "x25_crc_rows", "rows_at", "byte_at", "decode_packet", "KNOWN_IDS", "CRC_EXTRA", "PAYLOAD_SIZE"]
 
 KNOWN_IDS = np.array(sorted(mavlink2.mavlink_map), dtype=np.int64)
 _MAX_ID = int(KNOWN_IDS.max()) + 1
@@ -133,3 +136,11 @@ def decode_payloads(data: np.ndarray, starts: np.ndarray, lengths: np.ndarray, m
         for length in np.unique(lengths[short]).tolist():     # a few lengths: no (n, size) mask
             rows[lengths == length, length:] = 0
     return rows.view(dtype).ravel()
+
+
+def decode_packet(decode, packet: bytearray):
+    """pymavlink's ``decode`` of one whole packet, None when it refuses it (bad CRC, damage)."""
+    try:
+        return decode(packet)
+    except (mavlink2.MAVError, struct.error, IndexError, ValueError, TypeError):
+        return None
