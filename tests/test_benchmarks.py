@@ -72,11 +72,16 @@ def test_ahrs_population_benchmark_quick():
 def test_ingest_benchmark_small_log():
     out = _run("benchmarks/ingest.py", "--minutes", "0.5", "--repeats", "1")
     rows = {m.group(1): m for m in re.finditer(r"^\| ([^|]+?) \| [\d.]+ \| ([\d.]+) \| (\d+)", out, re.M)}
-    assert {"pymavlink bare parse (tlog)", "tlog", "bin", "csv"} <= rows.keys(), out
+    assert {"pymavlink bare parse (tlog)", "DFReader bare parse (bin)", "tlog", "bin", "csv"} <= rows.keys(), out
     # 30 s at 50 Hz: 1500 mag + 1500 IMU + 1500 attitude rows (+ GPS) from every generated format
     for name in ("tlog", "bin"):
         assert int(rows[name].group(3)) >= 4500, out
     assert int(rows["csv"].group(3)) == 1500, out
+    # the bare parses read every message of the same files: 30 s of the tlog's 7 streams, the bin's 4
+    assert int(rows["pymavlink bare parse (tlog)"].group(3)) == 1500 * 2 + 300 + 150 * 3 + 30, out
+    assert int(rows["DFReader bare parse (bin)"].group(3)) >= 1500 * 3 + 150, out
+    speeds = dict(re.findall(r"^(tlog|bin): ours ([\d.]+)x the bare parse", out, re.M))
+    assert speeds.keys() == {"tlog", "bin"} and all(float(v) > 0 for v in speeds.values()), out
 
 
 def test_live_benchmark_quick():

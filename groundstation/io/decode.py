@@ -9,15 +9,20 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import Callable
 
+import numpy as np
+
+from .mavlink_units import (G_MPS2, euler_from_quaternion, global_position_int_to_si, gps_raw_int_to_si,
+                            normalised_quaternion, scaled_imu_to_si, sys_status_current_A, vfr_hud_throttle)
 from ..samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, MagCalSample, MagSample, MissionSample,
                        OffsetsSample, ParamSample, Sample, StatusSample, ThrottleSample)
 
 __all__ = ["MavlinkDecoder", "G_MPS2", "MG_PER_GAUSS", "MG_PER_UT", "MAV_CMD_NAV_WAYPOINT",
            "MAV_CMD_SET_MESSAGE_INTERVAL", "MAG_CAL_COMMANDS", "SOURCE_NAMES", "compass_of_source", "source_name",
            "PLAUSIBLE_FIELD_mG", "FieldUnit", "judge_field_unit", "field_plausible", "expected_field_mG",
-           "HIGHRES_MAG_UNITS", "MG_UNIT", "rank_mag_source"]
+           "HIGHRES_MAG_UNITS", "MG_UNIT", "rank_mag_source", "scaled_imu_to_si", "euler_from_quaternion",
+           "normalised_quaternion", "gps_raw_int_to_si", "global_position_int_to_si", "vfr_hud_throttle",
+           "sys_status_current_A", "judge_first_field"]
 
-G_MPS2 = 9.80665
 MG_PER_GAUSS = 1000.0
 MG_PER_UT = 10.0  # 1 uT = 10 mG
 
@@ -141,12 +146,18 @@ def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
-def _euler_from_quaternion(w: float, x: float, y: float, z: float) -> tuple[float, float, float]:
-    """ZYX Euler angles (roll, pitch, yaw) in rad of a body-to-NED quaternion."""
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return roll, pitch, yaw
+def judge_first_field(instance: int, sent: tuple[float, float, float], units, t: float,
+                      place: tuple[float, float, float] | None, start_unix_s: float | None) -> FieldUnit | None:
+    """The unit of a magnetometer source judged at its first sample (``judge_field_unit``) against
+    the WMM at ``place`` (the last GPS position, None before one) on the date of t; None when the
+    sample is all zero (the next one is judged)."""
+    m = math.sqrt(sum(v * v for v in sent))
+    if m == 0.0:
+        return None
+    expected = None
+    if place is not None:
+        expected = expected_field_mG(*place, start_unix_s + t if start_unix_s is not None else None)
+    return judge_field_unit(source_name(instance), m, units, expected)
 
 
 class _BootClock:
@@ -188,6 +199,53 @@ class _BootClock:
             self._late_since_boot_s, self._late_offset_s = None, math.inf
         self.last_boot_s = boot_s
         return boot_s + self.offset_s
+
+    def times(self, boot_ms: np.ndarray, arrival_s: np.ndarray) -> np.ndarray:
+        """``self(boot_ms[k], arrival_s[k])`` for every k in order, as one array (the same state
+        afterwards).  Between events (a reboot, a late re-anchor) the offset is the running
+        minimum of arrival - boot (``np.minimum.accumulate``); each event is one call of the
+        per-message step, then the vectorised stretch goes on: linear in the messages."""
+        boot = np.asarray(boot_ms, dtype=float) * 1e-3
+        arrival = np.asarray(arrival_s, dtype=float)
+        cand = arrival - boot
+        out = np.empty(len(boot))
+        k, window = 0, 256
+        while k < len(boot):
+            if self.offset_s is None:
+                out[k] = self(float(boot_ms[k]), float(arrival[k]))
+                k += 1
+                continue
+            b, c = boot[k:k + window], cand[k:k + window]
+            prev_b = np.concatenate(([self.last_boot_s], b[:-1]))
+            reboot = b < prev_b - 1.0
+            off = np.minimum.accumulate(np.concatenate(([self.offset_s], c)))[1:]
+            late = c - off > self.REANCHOR_LATE_S
+            # the boot time each late stretch started at (carried in from before the window)
+            starts = late & ~np.concatenate(([self._late_since_boot_s is not None], late[:-1]))
+            run = np.cumsum(starts)
+            start_b = np.where(run > 0, b[np.flatnonzero(starts)][np.maximum(run - 1, 0)] if starts.any() else 0.0,
+                               self._late_since_boot_s if self._late_since_boot_s is not None else 0.0)
+            reanchor = late & (b - start_b >= self.REANCHOR_AFTER_S)
+            events = np.flatnonzero(reboot | reanchor)
+            e = int(events[0]) if len(events) else len(b)
+            if e:
+                out[k:k + e] = b[:e] + off[:e]
+                if late[e - 1]:
+                    in_run = (run[:e] == run[e - 1]) & late[:e]
+                    carried = self._late_offset_s if run[e - 1] == 0 else math.inf
+                    self._late_since_boot_s = float(start_b[e - 1])
+                    self._late_offset_s = min(carried, float(c[:e][in_run].min()))
+                else:
+                    self._late_since_boot_s, self._late_offset_s = None, math.inf
+                self.offset_s, self.last_boot_s = float(off[e - 1]), float(b[e - 1])
+            k += e
+            if e < len(b):          # the event: one per-message step
+                out[k] = self(float(boot_ms[k]), float(arrival[k]))
+                k += 1
+                window = 256
+            else:
+                window = min(window * 2, 1 << 13)         # bounded temporaries
+        return out
 
     def _anchor(self, offset_s: float) -> None:
         self.offset_s = offset_s
@@ -282,9 +340,8 @@ class MavlinkDecoder:
             if mag != (0.0, 0.0, 0.0):  # all-zero = no compass on this instance
                 out += self._judge(instance, mag, MG_UNIT, t)
                 out.append(MagSample(t, mag, instance))
-            gyro = (msg.xgyro * 1e-3, msg.ygyro * 1e-3, msg.zgyro * 1e-3)
-            acc = (msg.xacc * 1e-3 * G_MPS2, msg.yacc * 1e-3 * G_MPS2, msg.zacc * 1e-3 * G_MPS2)
-            out.append(ImuSample(t, gyro, acc, instance))
+            gyro, acc = scaled_imu_to_si((msg.xgyro, msg.ygyro, msg.zgyro), (msg.xacc, msg.yacc, msg.zacc))
+            out.append(ImuSample(t, tuple(gyro.tolist()), tuple(acc.tolist()), instance))
             return out
         return decode
 
@@ -309,17 +366,12 @@ class MavlinkDecoder:
 
     def _judge(self, instance: int, sent: tuple[float, float, float], units, t: float) -> list[Sample]:
         """The unit of a magnetometer source, judged at its first non-zero sample
-        (``judge_field_unit``), kept in ``mag_units`` (the live link says it as a "mag_unit" status)."""
+        (``judge_first_field``), kept in ``mag_units`` (the live link says it as a "mag_unit" status)."""
         if instance in self._mag_scale:
             return []
-        m = math.sqrt(sum(v * v for v in sent))
-        if m == 0.0:
+        unit = judge_first_field(instance, sent, units, t, self._place, self.start_unix_s)
+        if unit is None:
             return []
-        expected = None
-        if self._place is not None:
-            unix = self.start_unix_s + t if self.start_unix_s is not None else None
-            expected = expected_field_mG(*self._place, unix)
-        unit = judge_field_unit(source_name(instance), m, units, expected)
         self._mag_scale[instance] = unit.scale_to_mG
         self.mag_units[unit.source] = unit.as_dict()
         if not unit.plausible:
@@ -333,31 +385,29 @@ class MavlinkDecoder:
         return [AttitudeSample(self._t(msg, arrival_s), msg.roll, msg.pitch, msg.yaw)]
 
     def _attitude_quaternion(self, msg, arrival_s: float) -> list[Sample]:
-        q = (msg.q1, msg.q2, msg.q3, msg.q4)
-        norm = math.sqrt(sum(v * v for v in q)) if _finite(*q) else 0.0
-        if not 0.5 < norm < 1.5:
+        q, valid = normalised_quaternion(msg.q1, msg.q2, msg.q3, msg.q4)
+        if not valid:
             self.warnings["invalid attitude quaternion"] += 1
             return []
-        return [AttitudeSample(self._t(msg, arrival_s), *_euler_from_quaternion(*(v / norm for v in q)))]
+        return [AttitudeSample(self._t(msg, arrival_s), *(float(a) for a in euler_from_quaternion(*q)))]
 
     def _gps_raw_int(self, msg, t: float) -> list[Sample]:
         self._last_gps_raw_t = t
         self._last_fix_type = int(msg.fix_type)
         if msg.fix_type < 2 or (msg.lat == 0 and msg.lon == 0):
             return []
-        self._place = (msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
-        speed = msg.vel * 0.01 if msg.vel != 65535 else math.nan
-        course = math.radians(msg.cog * 0.01) if msg.cog != 65535 else math.nan
-        vel = (speed * math.cos(course), speed * math.sin(course), math.nan)
-        return [GpsSample(t, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3, vel, int(msg.fix_type))]
+        lat, lon, alt, vn, ve, vd = (float(v) for v in gps_raw_int_to_si(msg.lat, msg.lon, msg.alt, msg.vel, msg.cog))
+        self._place = (lat, lon, alt)
+        return [GpsSample(t, lat, lon, alt, (vn, ve, vd), int(msg.fix_type))]
 
     def _global_position_int(self, msg, arrival_s: float) -> list[Sample]:
         """The autopilot's fused position: used only when no GPS_RAW_INT came for 3 s."""
         t = self._t(msg, arrival_s)
         if t - self._last_gps_raw_t < 3.0 or (msg.lat == 0 and msg.lon == 0):
             return []
-        vel = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
-        return [GpsSample(t, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3, vel, self._last_fix_type)]
+        lat, lon, alt, vn, ve, vd = (float(v) for v in global_position_int_to_si(msg.lat, msg.lon, msg.alt, msg.vx,
+                                                                                  msg.vy, msg.vz))
+        return [GpsSample(t, lat, lon, alt, (vn, ve, vd), self._last_fix_type)]
 
     def _mission_item(self, msg, t: float) -> list[Sample]:
         if msg.command != MAV_CMD_NAV_WAYPOINT:
@@ -408,13 +458,13 @@ class MavlinkDecoder:
 
     def _vfr_hud(self, msg, t: float) -> list[Sample]:
         """VFR_HUD throttle: percent of full throttle (ArduPilot: the motors' throttle output)."""
-        return [ThrottleSample(t, float(msg.throttle) * 0.01)] if 0 <= msg.throttle <= 100 else []
+        thr, valid = vfr_hud_throttle(msg.throttle)
+        return [ThrottleSample(t, float(thr))] if valid else []
 
     def _sys_status(self, msg, t: float) -> list[Sample]:
         """current_battery is in cA (10 mA); -1 means the autopilot does not measure it."""
-        if msg.current_battery < 0:
-            return []
-        return [BatterySample(t, msg.current_battery * 0.01)]
+        amps, valid = sys_status_current_A(msg.current_battery)
+        return [BatterySample(t, float(amps))] if valid else []
 
     def _system_time(self, msg, t: float) -> list[Sample]:
         if self.start_unix_s is None and msg.time_unix_usec > 1e15:

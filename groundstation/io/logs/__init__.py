@@ -8,6 +8,13 @@ calibration events, current and throttle.  Bad input never raises out of ``read_
 ``IngestError`` with a one-line message (nothing usable at all); damage inside a log (bad CRC,
 garbage bytes, NaN fields, time going backwards, truncation) is skipped and counted in
 ``FlightLog.warnings``.
+
+The binary logs are decoded column-wise with numpy (tlog.py, mavlink_bulk.py, dataflash.py):
+pymavlink defines the messages (MAVLink payload layouts, DataFlash FMT records through DFReader's
+index), every record of a type is one structured array, and the unit conversions are the numpy
+functions the live decoder calls too (decode.py, dataflash_messages.py), so a log read here gives
+the numbers the per-message path gives (tests/test_ingest_vectorised.py).  ``read_log`` returns
+the whole FlightLog; there is no chunked API yet.
 """
 from __future__ import annotations
 

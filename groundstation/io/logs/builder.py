@@ -45,6 +45,13 @@ class LogBuilder:
         """A parameter value seen at t_s (PARM, PARAM_VALUE, logged offsets) for the history only."""
         self.history.append((t_s, name, value, quantum))
 
+    def set_table(self, name: str, rows: np.ndarray) -> None:
+        """Rows of one table at once ([t, ...] as ``WIDTHS`` says, in arrival order), after any
+        added one by one."""
+        rows = np.ascontiguousarray(rows, dtype=float).reshape(-1, WIDTHS[name])
+        held = self.rows[name]
+        self.rows[name] = np.concatenate([np.frombuffer(held, dtype=float), rows.ravel()]) if len(held) else rows.ravel()
+
     def add(self, s: Sample) -> None:
         if isinstance(s, MagSample):
             mot = s.motor_offset_mG if s.motor_offset_mG is not None else NAN3

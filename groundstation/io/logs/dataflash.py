@@ -1,4 +1,18 @@
-"""ArduPilot DataFlash logs (.bin) through pymavlink's DFReader."""
+"""ArduPilot DataFlash logs (.bin): pymavlink's DFReader indexes the records, numpy decodes them.
+
+DFReader (its C indexer) finds every record and learns the FMT layouts; the records
+``recv_match(type=WANTED)`` would return are then decoded type by type, each type's records one
+numpy structured array built from its FMT format characters (``_FMT_DTYPE``), with DFReader's
+value rules (c/C/e/E / 100, L / 1e7, text decoded UTF-8 else Latin-1 up to the first NUL), and
+turned into samples with ``DataFlashDecoder``'s rules on whole columns (``_BulkDecoder``).
+
+Falls back to the per-record path (``_read_messages_per_record``, DFReader's ``recv_match`` and
+``DataFlashDecoder`` message by message) for the rare structures whose per-record behaviour is
+not reproduced column-wise: a FMT whose Length does not match its format or whose column and
+format counts differ, a message type named twice, a wanted record missing a column its handler
+needs, a non-finite float where an integer is read.  DFReader's own side effects of reading
+(``_add_msg`` complaining about a record) are not reproduced.
+"""
 from __future__ import annotations
 
 import os
@@ -13,6 +27,7 @@ from typing import Callable, Iterator
 from .quiet import counting, quiet, record
 from ..errors import IngestError
 from .builder import LogBuilder
+from .dataflash_columns import read_bulk as _read_bulk
 from .dataflash_messages import WANTED, DataFlashDecoder
 from ...samples import FlightLog
 
@@ -93,7 +108,9 @@ def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Flig
     with counting(counts):
         reader = _open_reader(path)
         try:
-            log = _read_messages(path, progress, reader)
+            log = _read_bulk(path, progress, reader)
+            if log is None:
+                log = _read_messages_per_record(path, progress, reader)
         finally:
             try:
                 reader.close()
@@ -103,7 +120,8 @@ def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Flig
     return log
 
 
-def _read_messages(path: Path, progress: Callable[[float], None] | None, reader) -> FlightLog:
+def _read_messages_per_record(path: Path, progress: Callable[[float], None] | None, reader) -> FlightLog:
+    """The fallback: DFReader's recv_match and DataFlashDecoder, one record at a time."""
     builder = LogBuilder(str(path))
     log = builder.log
     log.autopilot = "ardupilot"

@@ -15,16 +15,43 @@ from __future__ import annotations
 import math
 from typing import Callable
 
+import numpy as np
+
 from ..decode import MAG_CAL_COMMANDS, MAV_CMD_NAV_WAYPOINT
 from ...samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, MagCalSample, MagSample, MissionSample,
                         ParamSample, Sample, StatusSample, ThrottleSample)
 
-__all__ = ["DataFlashDecoder", "WANTED", "THROTTLE_PRIORITY"]
+__all__ = ["DataFlashDecoder", "WANTED", "THROTTLE_PRIORITY", "att_rad", "gps_velocity_ned", "curr_amps",
+           "rcou_throttle"]
 
 WANTED = {"MAG", "MAG2", "MAG3", "IMU", "IMU2", "IMU3", "ATT", "GPS", "PARM", "CMD", "BAT", "BATT", "CURR",
           "CTUN", "RCOU", "MSG", "MAVC"} | {"AHR2", "XKF1", "NKF1", "EKF1"}   # other attitude estimators
 THROTTLE_PRIORITY = ("CTUN", "CURR", "RCOU")     # best throttle source first
 _SPLIT = {"MAG": 0, "MAG2": 1, "MAG3": 2, "IMU": 0, "IMU2": 1, "IMU3": 2}
+
+
+# Unit conversions, numpy ufuncs: the per-record decoder calls them with scalars, the bulk reader
+# (dataflash.py) with columns, so both give the same numbers.
+
+def att_rad(deg):
+    """ATT Roll/Pitch/Yaw degrees -> rad."""
+    return np.radians(deg)
+
+
+def gps_velocity_ned(spd_mps, gcrs_deg, vz_mps) -> tuple:
+    """GPS ground speed along the course (deg from north) and VZ -> (vn, ve, vd) m/s."""
+    crs = np.radians(gcrs_deg)
+    return spd_mps * np.cos(crs), spd_mps * np.sin(crs), vz_mps
+
+
+def curr_amps(curr, centiamps: bool):
+    """CURR Curr: cA when stored as int16 ('h'/'H', ArduPilot 3.1/3.2), already A otherwise."""
+    return np.asarray(curr, dtype=float) / (100.0 if centiamps else 1.0)
+
+
+def rcou_throttle(c1, c2, c3, c4):
+    """Mean of the first four motor outputs, 1000-2000 us -> 0..1 (clipped)."""
+    return np.clip(((c1 + c2 + c3 + c4) / 4.0 - 1000.0) / 1000.0, 0.0, 1.0)
 
 
 def _instance(m, mtype: str) -> int:
@@ -104,7 +131,7 @@ class DataFlashDecoder:
         return [ImuSample(t, (m.GyrX, m.GyrY, m.GyrZ), (m.AccX, m.AccY, m.AccZ), _instance(m, mtype))]
 
     def _att(self, m, mtype: str, t: float) -> list[Sample]:
-        return [AttitudeSample(t, math.radians(m.Roll), math.radians(m.Pitch), math.radians(m.Yaw))]
+        return [AttitudeSample(t, *(float(att_rad(v)) for v in (m.Roll, m.Pitch, m.Yaw)))]
 
     def _other_att(self, m, mtype: str, t: float) -> list[Sample]:
         """AHR2 (DCM, or the backup estimator), XKF1 (EKF3), NKF1 (EKF2), EKF1 (EKF1, 2014–2015):
@@ -116,14 +143,14 @@ class DataFlashDecoder:
     def _gps(self, m, mtype: str, t: float) -> list[Sample]:
         if _instance(m, mtype) != 0 or m.Status < 2:
             return []
-        crs = math.radians(m.GCrs)
+        course_deg = m.GCrs
         week, ms = getattr(m, "GWk", getattr(m, "Week", 0)), getattr(m, "GMS", None)
         if ms is None and getattr(m, "Week", None) is not None:
             ms = m.TimeMS
         if self.gps_week_ms is None and week and ms is not None and week > 0:
             self.gps_week_ms = (float(week), float(ms), t)
-        vz = float(getattr(m, "VZ", math.nan))
-        return [GpsSample(t, m.Lat, m.Lng, m.Alt, (m.Spd * math.cos(crs), m.Spd * math.sin(crs), vz), int(m.Status))]
+        vel = tuple(float(v) for v in gps_velocity_ned(m.Spd, course_deg, float(getattr(m, "VZ", math.nan))))
+        return [GpsSample(t, m.Lat, m.Lng, m.Alt, vel, int(m.Status))]
 
     def _parm(self, m, mtype: str, t: float) -> list[Sample]:
         return [ParamSample(t, str(m.Name), float(m.Value))]
@@ -138,7 +165,7 @@ class DataFlashDecoder:
 
     def _curr(self, m, mtype: str, t: float) -> list[Sample]:
         """Old CURR: current in cA when stored as int16 ('h'), already A when 'c' or float."""
-        amps = float(m.Curr) / (100.0 if _column_char(m, "Curr") in "hH" else 1.0)
+        amps = float(curr_amps(m.Curr, _column_char(m, "Curr") in "hH"))
         thr = getattr(m, "ThrOut", None)
         if thr is not None:
             self.throttle["CURR"].append((t, float(thr) / 1000.0))
@@ -157,7 +184,7 @@ class DataFlashDecoder:
         when neither CTUN nor CURR gives one)."""
         pwm = [getattr(m, f"C{i}", None) for i in range(1, 5)]
         if None not in pwm:
-            self.throttle["RCOU"].append((t, min(max((sum(pwm) / 4.0 - 1000.0) / 1000.0, 0.0), 1.0)))
+            self.throttle["RCOU"].append((t, float(rcou_throttle(*pwm))))
         return []
 
     def _mavc(self, m, mtype: str, t: float) -> list[Sample]:

@@ -1,8 +1,13 @@
 """MAVLink telemetry logs (.tlog): 8-byte big-endian UNIX microseconds + one MAVLink packet per record.
 
-The file is read in chunks (memory bounded by the chunk, not the file), garbage is skipped in
-linear time (candidate record starts are found with numpy over growing windows), and a record
-whose stamp jumps away and straight back (a flipped bit) gets its neighbour's time.
+``read_tlog`` (the FlightLog) decodes column-wise: the file is read once, every record is framed
+and CRC-checked in bulk (``frame_records``), each message id's payloads become one numpy
+structured array (``mavlink_bulk``) and the decoder's rules run on whole columns
+(``_ColumnDecoder``); corrupt stamps (``despike_times``) and a clock going back
+(``rebase_backwards``) are handled on the time column.  ``tlog_records`` yields (UNIX time,
+pymavlink message) per record, streaming in bounded chunks (the station's replay and the
+recordings list); both frame the same records with the same resynchronisation after garbage
+(linear: candidate starts are found with numpy) and the same corrupt counts.
 """
 from __future__ import annotations
 
@@ -19,9 +24,11 @@ import numpy as np
 from ..decode import MavlinkDecoder
 from ..mavlink import mavlink2
 from .builder import LogBuilder
+from .mavlink_bulk import CORRUPT, decode_packet as _decode, CRC_EXTRA, KNOWN, PAYLOAD_SIZE, byte_at, rows_at, x25_crc_rows
+from .mavlink_columns import _ColumnDecoder, _Records, msg_ids as _msg_ids
 from ...samples import FlightLog
 
-__all__ = ["read_tlog", "tlog_records", "despiked"]
+__all__ = ["read_tlog", "tlog_records", "frame_records", "despike_times", "rebase_backwards"]
 
 TLOG_STAMP = struct.Struct(">Q")
 _PLAUSIBLE_UNIX_S = (946684800.0, 4102444800.0)  # 2000..2100
@@ -29,7 +36,6 @@ _PLAUSIBLE_US = (int(_PLAUSIBLE_UNIX_S[0] * 1e6), int(_PLAUSIBLE_UNIX_S[1] * 1e6
 MAX_RECORD = 8 + 10 + 255 + 2 + 13      # stamp + the largest MAVLink 2 packet (signed)
 CHUNK_BYTES = 1 << 18
 STAMP_JUMP_S = 60.0                      # a record this far from both neighbours has a corrupt stamp
-CORRUPT = "corrupt packets skipped (bad CRC or garbage)"
 SPIKE = "timestamps corrupt (jumped away and back): replaced by the previous record's"
 
 
@@ -120,7 +126,7 @@ def tlog_records(source, warnings: Counter) -> Iterator[tuple[float, object]]:
             i, searching, resynced = k, False, True
         magic = buf[i + 8]
         if magic == 0xFD:
-            size = 12 + buf[i + 9] + (13 if buf[i + 10] & 1 else 0)
+            size = 12 + buf[i + 9] + (13 if i + 10 < len(buf) and buf[i + 10] & 1 else 0)   # flags cut off: incomplete
         elif magic == 0xFE:
             size = 8 + buf[i + 9]
         else:
@@ -160,68 +166,213 @@ def _crc_ok(packet: bytearray, known: dict) -> bool:
     return crc == packet[end] | packet[end + 1] << 8
 
 
-def _decode(decode, packet: bytearray):
-    try:
-        return decode(packet)
-    except (mavlink2.MAVError, struct.error, IndexError, ValueError, TypeError):
-        return None
+TRUNCATED = "log truncated: last record cut off"
 
 
-def despiked(records: Iterator[tuple[float, object]], warnings: Counter,
-             jump_s: float = STAMP_JUMP_S) -> Iterator[tuple[float, object]]:
-    """Records whose stamp jumps more than ``jump_s`` away from the previous record and whose
-    successor comes back (one corrupt stamp, e.g. a flipped bit) get the previous record's
-    stamp and are counted; a jump that persists (a new connection, the clock set) is kept."""
-    prev: float | None = None
-    pending: tuple[float, object] | None = None
-    for unix, msg in records:
-        if pending is not None:
-            p_unix, p_msg = pending
-            pending = None
-            if abs(unix - prev) <= jump_s < abs(unix - p_unix):
-                warnings[SPIKE] += 1
-                yield prev, p_msg
-            else:
-                prev = p_unix
-                yield p_unix, p_msg
-        if prev is not None and abs(unix - prev) > jump_s:
-            pending = (unix, msg)
+_TRUNC, _PLAIN, _RESYNC, _CAND = 1, 2, 4, 8   # frame_records: what a position is
+_BLOCK = 1 << 18                              # file bytes judged at once (bounds the temporaries)
+
+
+def _judge_block(data: np.ndarray, n: int, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(positions, record sizes, flags) of the positions a <= p < b whose byte 8 is a MAVLink magic
+    (p <= n - 10); flags: _TRUNC a plausible record cut off by the end, _PLAIN a record on the
+    chain, _CAND a resynchronisation candidate, _RESYNC a candidate that is a record."""
+    magic = data[a + 8:min(b, n - 9) + 8]
+    pos = np.flatnonzero((magic - np.uint8(0xFD)) < 2) + a        # 0xFD or 0xFE (uint8 wraps the rest)
+    stamp_us = rows_at(data, pos, 8).copy().view(">u8").ravel()
+    unix = stamp_us.astype(np.float64) * 1e-6
+    plausible = (unix > _PLAUSIBLE_UNIX_S[0]) & (unix < _PLAUSIBLE_UNIX_S[1])
+    v2 = data[pos + 8] == 0xFD
+    mlen = data[pos + 9].astype(np.int64)
+    signed = v2 & (byte_at(data, pos + 10) & 1).astype(bool)
+    size = np.where(v2, 12 + mlen + 13 * signed, 8 + mlen)
+    complete = pos + 8 + size <= n
+    ids = _msg_ids(data, pos, v2)
+    ids_clamped = ids.copy()                   # the candidate scan reads the id bytes clamped to the end
+    near = np.flatnonzero(pos + 17 > n - 1)
+    if len(near):
+        last = max(n - 1, 0)
+        ids_clamped[near] = _msg_ids(data, np.minimum(pos[near], last), v2[near], last)
+    known = (ids < len(KNOWN)) & KNOWN[np.minimum(ids, len(KNOWN) - 1)]
+    known_c = (ids_clamped < len(KNOWN)) & KNOWN[np.minimum(ids_clamped, len(KNOWN) - 1)]
+    cand = ((stamp_us > _PLAUSIBLE_US[0]) & (stamp_us < _PLAUSIBLE_US[1]) & known_c & (mlen >= 1)
+            & (mlen <= PAYLOAD_SIZE[np.where(known_c, ids_clamped, 0)]))
+    crc_ok = np.zeros(len(pos), dtype=bool)
+    check = np.flatnonzero(plausible & complete & known)
+    width = np.where(v2[check], 9, 5) + mlen[check]           # header after the magic + payload
+    for w in np.flatnonzero(np.bincount(width)).tolist() if len(width) else []:
+        sel = check[width == w]
+        rows = np.empty((len(sel), w + 1), dtype=np.uint8)
+        rows[:, :w] = rows_at(data, pos[sel] + 9, w)
+        rows[:, w] = CRC_EXTRA[ids[sel]]
+        end = pos[sel] + 8 + size[sel] - 2 - 13 * signed[sel]
+        sent = data[end].astype(np.uint16) | data[end + 1].astype(np.uint16) << 8
+        crc_ok[sel] = x25_crc_rows(rows) == sent
+    flags = ((plausible & ~complete) * _TRUNC + (plausible & complete & (~known | crc_ok)) * _PLAIN
+             + (cand & plausible & complete & crc_ok) * _RESYNC + cand * _CAND).astype(np.uint8)
+    return pos, size.astype(np.int16), flags
+
+
+def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
+    """Start offsets of the good records of a .tlog held in ``data[:n]``, the
+    records ``tlog_records`` yields, with the same corrupt and truncation counts.
+
+    Every position whose byte 8 is a MAVLink magic is judged at once (``_judge_block``, a block
+    of the file at a time): stamp plausible, packet complete, message id known, X.25 CRC
+    (``mavlink_bulk.x25_crc_rows``, grouped by checked length).  A record chain is then followed:
+    from a good record the next is at start + 8 + size, and while the next good position is
+    exactly that one a whole run is taken at once; only where the chain breaks (garbage, a bad
+    CRC, a false start inside a payload) is it walked position by position with the rules of
+    ``tlog_records``: on the chain an unknown message id is a record (pymavlink decodes it as
+    UNKNOWN_n); after a failure the next candidate (plausible stamp, known id, a payload length
+    it can have) must have a good CRC; a plausible record cut off by the end stops the reading.
+    """
+    blocks = [_judge_block(data, n, a, a + _BLOCK) for a in range(0, max(n - 9, 0), _BLOCK)]
+    pos, size, flags = (np.concatenate([b[k] for b in blocks]) if blocks else np.empty(0, int) for k in range(3))
+    del blocks
+    plain = (flags & _PLAIN) != 0
+    chain = pos[plain]
+    after = chain + 8 + size[plain]
+    breaks = np.flatnonzero(after[:-1] != chain[1:])
+    candidates = pos[(flags & _CAND) != 0]
+    runs: list[tuple[int, int]] = []
+    i, searching, corrupt = 0, False, 0
+    while True:
+        if i + 10 > n:
+            if i < n:
+                warnings[TRUNCATED] += 1
+            break
+        if searching:
+            c = int(np.searchsorted(candidates, i))
+            if c == len(candidates):
+                warnings[TRUNCATED] += 1
+                break
+            i = int(candidates[c])
+        k = int(np.searchsorted(pos, i))
+        flag = int(flags[k]) if k < len(pos) and pos[k] == i else 0
+        if flag & _TRUNC:
+            warnings[TRUNCATED] += 1
+            break
+        if flag & (_RESYNC if searching else _PLAIN):
+            j = int(np.searchsorted(chain, i))
+            b = int(np.searchsorted(breaks, j))
+            e = int(breaks[b]) if b < len(breaks) else len(chain) - 1
+            runs.append((j, e + 1))
+            i, searching = int(after[e]), False
             continue
-        prev = unix
-        yield unix, msg
-    if pending is not None:
-        yield pending
+        corrupt += 1
+        i += 1
+        searching = True
+    if corrupt:
+        warnings[CORRUPT] += corrupt
+    return np.concatenate([chain[a:b] for a, b in runs]) if runs else np.empty(0, dtype=np.int64)
+
+
+def despike_times(unix: np.ndarray, warnings: Counter, jump_s: float = STAMP_JUMP_S) -> np.ndarray:
+    """Record stamps with single corrupt ones replaced: a stamp more than ``jump_s`` from the
+    previous record's whose successor comes back gets the previous record's stamp (counted); a
+    jump that persists (a new connection, the clock set) is kept.  The state machine runs only
+    around the jumps; between them every stamp is kept as it is."""
+    out = unix.copy()
+    n = len(unix)
+    if n < 2:
+        return out
+    jumps = np.flatnonzero(np.abs(np.diff(unix)) > jump_s) + 1
+    prev, pending, spikes = float(unix[0]), None, 0
+    k, q = 1, 0
+    while k < n:
+        if pending is None and prev == unix[k - 1]:        # a normal stretch: on to the next jump
+            while q < len(jumps) and jumps[q] < k:
+                q += 1
+            if q == len(jumps):
+                break
+            k = int(jumps[q])
+            prev = float(out[k - 1])
+        u = float(unix[k])
+        if pending is not None:
+            p = float(unix[pending])
+            if abs(u - prev) <= jump_s < abs(u - p):
+                spikes += 1
+                out[pending] = prev
+            else:
+                prev = p
+            pending = None
+        if abs(u - prev) > jump_s:
+            pending = k
+        else:
+            prev = u
+        k += 1
+    if spikes:
+        warnings[SPIKE] += spikes
+    return out
+
+
+def rebase_backwards(unix: np.ndarray, warnings: Counter) -> np.ndarray:
+    """Arrival times on the log's time base: unix - first + shift, where the shift grows whenever
+    the recorder's clock went back, so the arrival continues from where it was (counted)."""
+    arrival = np.empty(len(unix))
+    if not len(unix):
+        return arrival
+    first, shift, last, k, window, events = float(unix[0]), 0.0, -math.inf, 0, 1024, 0
+    while k < len(unix):
+        a = (unix[k:k + window] - first) + shift
+        back = a < np.concatenate(([last], a[:-1]))
+        e = int(np.argmax(back)) if back.any() else len(a)
+        arrival[k:k + e] = a[:e]
+        if e:
+            last = float(a[e - 1])
+        k += e
+        if e < len(a):
+            events += 1
+            shift += last - float(a[e])
+            arrival[k] = last
+            k += 1
+            window = 1024
+        else:
+            window = min(window * 2, 1 << 16)
+    if events:
+        warnings["timestamps going backwards (re-based)"] += events
+    return arrival
+
+
+def _read_file(path: Path) -> tuple[np.ndarray, int]:
+    """The file mapped read-only (the page cache holds it; no copy), and its length."""
+    n = path.stat().st_size
+    return (np.memmap(path, dtype=np.uint8, mode="r") if n else np.zeros(0, dtype=np.uint8)), n
 
 
 def read_tlog(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
+    """A .tlog as a FlightLog, decoded column-wise: records framed and CRC-checked in bulk
+    (``frame_records``), each message id's payloads one numpy structured array
+    (``mavlink_bulk.payload_dtype``, pymavlink's layout), converted by the functions the live
+    decoder uses (``decode.scaled_imu_to_si`` ...) with its rules: the vehicle is the first
+    autopilot heartbeat's system, times from time_boot_ms through ``_BootClock.times``, each
+    magnetometer source's unit judged at its first sample.  Parameters, status text, missions
+    and calibration events (``_PER_PACKET``, a few a second) go through pymavlink and
+    ``MavlinkDecoder`` packet by packet.  The same FlightLog as decoding every packet with
+    ``MavlinkDecoder`` (tests/test_ingest_vectorised.py)."""
+    data, n = _read_file(path)
     builder = LogBuilder(str(path))
-    decoder = MavlinkDecoder()
-    counts = builder.log.message_counts
-    warnings = builder.log.warnings
-    first_unix = None
-    last_arrival = -math.inf
-    backwards_shift = 0.0
-    decode = decoder.decode
-    add = builder.add
-    size = max(path.stat().st_size, 1)
-    with open(path, "rb") as f:
-        for n, (unix, msg) in enumerate(despiked(tlog_records(f, warnings), warnings)):
-            counts[msg.get_type()] += 1
-            if first_unix is None:
-                first_unix = unix
-            arrival = unix - first_unix + backwards_shift
-            if arrival < last_arrival:  # the recorder's clock went back: continue from where it was
-                warnings["timestamps going backwards (re-based)"] += 1
-                backwards_shift += last_arrival - arrival
-                arrival = last_arrival
-            last_arrival = arrival
-            for s in decode(msg, arrival):
-                add(s)
-            if progress is not None and n % 20000 == 0:
-                progress(min(f.tell() / size, 1.0))
+    log, warnings = builder.log, builder.log.warnings
+    starts = frame_records(data, n, warnings)
+    if progress is not None:
+        progress(0.3)
+    stamps = rows_at(data, starts, 8).copy().view(">u8").ravel()
+    unix = despike_times(stamps.astype(np.float64) * 1e-6, warnings)
+    arrival = rebase_backwards(unix, warnings)
+    start_unix = float(unix[0]) if len(unix) else None
+    del stamps, unix
+    rec = _Records(data, starts, arrival)
+    del data, starts, arrival
+    log.message_counts.update(rec.counts())
+    decoder = _ColumnDecoder(rec, builder)
+    decoder.run()
+    del rec, decoder.rec, decoder.parts          # the file and its records: only the tables are left
+    if progress is not None:
+        progress(0.9)
     warnings.update(decoder.warnings)
     log = builder.finish()
-    log.start_unix_s = first_unix
+    log.start_unix_s = start_unix
     if log.autopilot is None:
         log.autopilot = decoder.autopilot
     if log.autopilot == "ardupilot":

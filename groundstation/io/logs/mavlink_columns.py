@@ -1,0 +1,335 @@
+"""MAVLink records of a .tlog as columns, and ``MavlinkDecoder``'s rules applied to them.
+
+``_Records``: the good records (framed by tlog.frame_records) as columns; ``_ColumnDecoder``: the
+samples ``decode.MavlinkDecoder`` would give, message type by message type (used by
+tlog.read_tlog).
+"""
+from __future__ import annotations
+
+import math
+from collections import Counter
+
+import numpy as np
+
+from .. import decode as dec
+from ..decode import MavlinkDecoder
+from ..mavlink import mavlink2
+from .builder import LogBuilder
+from .mavlink_bulk import CORRUPT, byte_at, decode_packet as _decode, decode_payloads
+from ...samples import OffsetsSample, StatusSample
+
+__all__ = ["msg_ids"]
+
+
+def msg_ids(data: np.ndarray, pos: np.ndarray, v2: np.ndarray, last: int | None = None) -> np.ndarray:
+    """Message id of the packet at pos + 8: bytes 7..9 of MAVLink 2 (little-endian 24 bit), byte 5
+    of MAVLink 1; with ``last``, byte offsets are clamped to it (as the candidate scan reads)."""
+    def b(k):
+        return (byte_at(data, k) if last is None else data[np.minimum(k, last)]).astype(np.int64)
+    ids = b(pos + 13)
+    if v2.any():
+        w = np.flatnonzero(v2)
+        p = pos[w]
+        ids[w] = b(p + 15) | b(p + 16) << 8 | b(p + 17) << 16
+    return ids
+
+
+# message ids the decoder turns into samples (decode.MavlinkDecoder's handlers)
+_ID = {name: getattr(mavlink2, "MAVLINK_MSG_ID_" + name) for name in (
+    "HEARTBEAT", "RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "HIGHRES_IMU", "ATTITUDE",
+    "ATTITUDE_QUATERNION", "GPS_RAW_INT", "GLOBAL_POSITION_INT", "SENSOR_OFFSETS", "VFR_HUD", "SYSTEM_TIME",
+    "SYS_STATUS", "MISSION_ITEM_INT", "MISSION_ITEM", "PARAM_VALUE", "STATUSTEXT", "MAG_CAL_PROGRESS",
+    "MAG_CAL_REPORT", "COMMAND_LONG")}
+# decoded per packet through pymavlink and MavlinkDecoder itself: text, parameters, missions and
+# calibration events, a few per second at most, each with Python objects for its samples
+_PER_PACKET = tuple(_ID[n] for n in ("MISSION_ITEM_INT", "MISSION_ITEM", "PARAM_VALUE", "STATUSTEXT",
+                                     "MAG_CAL_PROGRESS", "MAG_CAL_REPORT", "COMMAND_LONG"))
+_SCALED = {_ID["RAW_IMU"]: 0, _ID["SCALED_IMU"]: 10, _ID["SCALED_IMU2"]: 11, _ID["SCALED_IMU3"]: 12}
+
+
+class _Records:
+    """The good records of one .tlog as columns (record order): start offset, message id, payload
+    offset and length, source system, arrival time [s] on the log's time base."""
+
+    def __init__(self, data: np.ndarray, starts: np.ndarray, arrival: np.ndarray) -> None:
+        self.data, self.start, self.arrival = data, starts, arrival
+        v2 = data[starts + 8] == 0xFD
+        self.v2 = v2
+        self.id = msg_ids(data, starts, v2).astype(np.int32)
+        self.length = data[starts + 9]
+        self.sysid = np.where(v2, data[starts + 13], data[starts + 11])
+        order = np.argsort(self.id, kind="stable").astype(np.int32)
+        sorted_ids = self.id[order]
+        first = np.flatnonzero(np.r_[True, sorted_ids[1:] != sorted_ids[:-1]]) if len(order) else np.empty(0, int)
+        self._groups = {int(sorted_ids[a]): order[a:b] for a, b in zip(first.tolist(), np.r_[first[1:], len(order)].tolist())}
+
+    def rows(self, msg_id: int) -> np.ndarray:
+        """Record indices of one message id, in record order."""
+        return self._groups.get(msg_id, np.empty(0, dtype=np.int64))
+
+    def fields(self, msg_id: int, rows: np.ndarray) -> np.ndarray:
+        start = self.start[rows]
+        return decode_payloads(self.data, start + np.where(self.v2[rows], 18, 14), self.length[rows].astype(np.int64),
+                               msg_id)
+
+    def packet(self, r: int) -> bytearray:
+        s = int(self.start[r]) + 8
+        size = (12 + int(self.length[r]) + (13 if self.data[s + 2] & 1 else 0)) if self.v2[r] else 8 + int(self.length[r])
+        return bytearray(self.data[s:s + size].tobytes())
+
+    def counts(self) -> Counter:
+        """Messages per type (pymavlink's names, UNKNOWN_n for ids it does not know), in the order
+        each type first appears."""
+        out: Counter = Counter()
+        for i, rows in sorted(self._groups.items(), key=lambda g: g[1][0]):
+            cls = mavlink2.mavlink_map.get(i)
+            out[cls.msgname if cls is not None else f"UNKNOWN_{i}"] = len(rows)
+        return out
+
+
+class _ColumnDecoder:
+    """``MavlinkDecoder``'s rules applied to whole columns of one log (its per-message state, the
+    vehicle, the boot clock, the last GPS fix, the units judged, found with searchsorted over the
+    record order).  Tables go to the builder as arrays, events (statuses, parameters, offsets) as
+    samples in record order."""
+
+    def __init__(self, rec: _Records, builder: LogBuilder) -> None:
+        self.rec, self.builder = rec, builder
+        self.warnings: Counter = Counter()
+        self.autopilot: str | None = None
+        self.events: list[tuple[int, object]] = []
+        self.tables: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {
+            "mag": [], "imu": [], "attitude": [], "gps": [], "battery": [], "throttle": []}
+        self.vehicle: int | None = None
+        self.h0 = len(rec.start)
+
+    # ---------------------------------------------------------------- helpers
+    def accepted(self, msg_id: int) -> np.ndarray:
+        """Record indices of ``msg_id`` the decoder would use: before the vehicle is known every
+        system's, after it the vehicle's only."""
+        rows = self.rec.rows(msg_id)
+        if self.vehicle is None:
+            return rows
+        return rows[(rows < self.h0) | (self.rec.sysid[rows] == self.vehicle)]
+
+    def table(self, name: str, rows: np.ndarray, *columns) -> None:
+        if len(rows):
+            out = np.empty((len(rows), len(columns)))
+            for j, c in enumerate(columns):          # converted column by column: no float copy of each
+                out[:, j] = c
+            self.tables[name].append((rows, out))
+
+    # ---------------------------------------------------------------- run
+    def run(self) -> None:
+        rec = self.rec
+        self._heartbeats()
+        self._per_packet()
+        st = self.accepted(_ID["SYSTEM_TIME"])
+        usec = rec.fields(_ID["SYSTEM_TIME"], st)["time_unix_usec"]
+        ok = np.flatnonzero(usec > 1e15)
+        self.start_row = int(st[ok[0]]) if len(ok) else len(rec.start)
+        self.start_unix = float(usec[ok[0]]) * 1e-6 - float(rec.arrival[st[ok[0]]]) if len(ok) else None
+        self._gps_raw()
+        times = self._clock()
+        self._scaled(times)
+        self._highres()
+        self._attitude(times)
+        self._global_position(times[_ID["GLOBAL_POSITION_INT"]])
+        self._offsets()
+        vfr = self.accepted(_ID["VFR_HUD"])
+        thr, valid = dec.vfr_hud_throttle(rec.fields(_ID["VFR_HUD"], vfr)["throttle"])
+        self.table("throttle", vfr[valid], rec.arrival[vfr[valid]], thr[valid])
+        sys = self.accepted(_ID["SYS_STATUS"])
+        amps, valid = dec.sys_status_current_A(rec.fields(_ID["SYS_STATUS"], sys)["current_battery"])
+        self.table("battery", sys[valid], rec.arrival[sys[valid]], amps[valid])
+        self._finish()
+
+    def _heartbeats(self) -> None:
+        rows = self.rec.rows(_ID["HEARTBEAT"])
+        f = self.rec.fields(_ID["HEARTBEAT"], rows)
+        autopilot_hb = (f["type"] != dec.MAV_TYPE_GCS) & (f["autopilot"] != 8)     # 8: MAV_AUTOPILOT_INVALID
+        first = np.flatnonzero(autopilot_hb)
+        if not len(first):
+            return
+        self.h0 = int(rows[first[0]])
+        self.vehicle = int(self.rec.sysid[self.h0])
+        mine = autopilot_hb & (self.rec.sysid[rows] == self.vehicle)
+        names = {dec.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot", dec.MAV_AUTOPILOT_PX4: "px4"}
+        for r, ap in zip(rows[mine].tolist(), f["autopilot"][mine].tolist()):
+            name = names.get(ap)
+            if name and name != self.autopilot:
+                self.autopilot = name
+                self.events.append((r, StatusSample(float(self.rec.arrival[r]), "autopilot", name)))
+
+    def _per_packet(self) -> None:
+        rows = np.sort(np.concatenate([self.rec.rows(i) for i in _PER_PACKET]))
+        self.param_rows = self.rec.rows(_ID["PARAM_VALUE"])
+        parser = mavlink2.MAVLink(None)
+        parser.robust_parsing = True
+        decoder = MavlinkDecoder()
+        for r in rows.tolist():
+            msg = _decode(parser.decode, self.rec.packet(r))
+            if msg is None:
+                self.warnings[CORRUPT] += 1
+                continue
+            decoder.vehicle_sysid = self.vehicle if r > self.h0 else None
+            for s in decoder.decode(msg, float(self.rec.arrival[r])):
+                self.events.append((r, s))
+        self.warnings.update(decoder.warnings)
+
+    def _gps_raw(self) -> None:
+        rows = self.accepted(_ID["GPS_RAW_INT"])
+        f = self.rec.fields(_ID["GPS_RAW_INT"], rows)
+        self.gps_rows, self.gps_fix = rows, f["fix_type"].astype(np.int64)
+        use = (f["fix_type"] >= 2) & ~((f["lat"] == 0) & (f["lon"] == 0))
+        g = f[use]
+        lat, lon, alt, vn, ve, vd = dec.gps_raw_int_to_si(g["lat"], g["lon"], g["alt"], g["vel"], g["cog"])
+        self.place_rows, self.place = rows[use], np.column_stack([lat, lon, alt]) if len(g) else np.empty((0, 3))
+        self.table("gps", rows[use], self.rec.arrival[rows[use]], lat, lon, alt, vn, ve, vd, g["fix_type"])
+
+    def _clock(self) -> dict[int, np.ndarray]:
+        """Boot-clock times of every message that has them, in record order through one clock."""
+        parts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for name in ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "ATTITUDE", "ATTITUDE_QUATERNION",
+                     "GLOBAL_POSITION_INT"):
+            rows = self.accepted(_ID[name])
+            f = self.rec.fields(_ID[name], rows)
+            if name == "ATTITUDE":
+                self.att_ok = np.isfinite(f["roll"]) & np.isfinite(f["pitch"]) & np.isfinite(f["yaw"])
+                rows, f = rows[self.att_ok], f[self.att_ok]
+            elif name == "ATTITUDE_QUATERNION":
+                self.quat, valid = dec.normalised_quaternion(f["q1"], f["q2"], f["q3"], f["q4"])
+                self.quat_bad = int((~valid).sum())
+                self.quat, rows, f = self.quat[valid], rows[valid], f[valid]
+            parts[_ID[name]] = (rows, f["time_boot_ms"].astype(np.int64))
+            del f                                       # decoded again where used: memory, not time
+        rows = np.concatenate([p[0] for p in parts.values()])
+        boot = np.concatenate([p[1] for p in parts.values()])
+        order = np.argsort(rows, kind="stable")
+        t = np.empty(len(rows))
+        t[order] = dec._BootClock().times(boot[order], self.rec.arrival[rows[order]])
+        out, k = {}, 0
+        self.parts = {i: p[0] for i, p in parts.items()}
+        for i, (r, _) in parts.items():
+            out[i] = t[k:k + len(r)]
+            k += len(r)
+        return out
+
+    def _place_before(self, r: int) -> tuple[float, float, float] | None:
+        k = int(np.searchsorted(self.place_rows, r)) - 1
+        return None if k < 0 else tuple(float(v) for v in self.place[k])
+
+    def _judge(self, instance: int, rows: np.ndarray, t: np.ndarray, sent: np.ndarray, units) -> float | None:
+        """The scale of a magnetometer source judged at its first non-zero sample (the decoder's
+        ``judge_first_field``), its warning counted; None when every sample is zero."""
+        nonzero = np.flatnonzero((sent != 0).any(axis=1))
+        if not len(nonzero):
+            return None
+        k = int(nonzero[0])
+        r = int(rows[k])
+        unit = dec.judge_first_field(instance, tuple(float(v) for v in sent[k]), units, float(t[k]),
+                                     self._place_before(r), self.start_unix if self.start_row < r else None)
+        if not unit.plausible:
+            self.warnings[f"{unit.source}: implausible magnetometer field ({unit.why})"] += 1
+        return unit.scale_to_mG
+
+    def _scaled(self, times: dict[int, np.ndarray]) -> None:
+        for msg_id, instance in _SCALED.items():
+            if msg_id == _ID["RAW_IMU"]:
+                rows = self.accepted(msg_id)
+                f, t = self.rec.fields(msg_id, rows), self.rec.arrival[rows]
+            else:
+                rows = self.parts[msg_id]
+                f = self.rec.fields(msg_id, rows)
+                t = times[msg_id]
+            if not len(rows):
+                continue
+            mag = np.column_stack([f["xmag"], f["ymag"], f["zmag"]])
+            self._judge(instance, rows, t, mag.astype(float), dec.MG_UNIT)
+            has = (mag != 0).any(axis=1)
+            sel = slice(None) if has.all() else has                 # no copies when every row has a field
+            self.table("mag", rows[sel], t[sel], *mag[sel].T, np.nan, np.nan, np.nan, instance)
+            del mag
+            gyro, acc = dec.scaled_imu_to_si(np.column_stack([f["xgyro"], f["ygyro"], f["zgyro"]]),
+                                             np.column_stack([f["xacc"], f["yacc"], f["zacc"]]))
+            del f
+            self.table("imu", rows, t, *gyro.T, *acc.T, instance)
+
+    def _highres(self) -> None:
+        rows = self.accepted(_ID["HIGHRES_IMU"])
+        if not len(rows):
+            return
+        f = self.rec.fields(_ID["HIGHRES_IMU"], rows)
+        t = self.rec.arrival[rows]
+        upd = f["fields_updated"]
+        wanted = ((upd & 0x1C0) != 0) | (upd == 0)
+        sent = np.column_stack([f["xmag"], f["ymag"], f["zmag"]]).astype(float)
+        finite = np.isfinite(sent).all(axis=1)
+        if (wanted & ~finite).any():
+            self.warnings["NaN magnetometer field"] += int((wanted & ~finite).sum())
+        inst = 20 + f["id"].astype(np.int64)
+        use = wanted & finite
+        scale = np.full(len(rows), dec.MG_PER_GAUSS)
+        for k in np.unique(inst[use]).tolist():
+            sel = use & (inst == k)
+            s = self._judge(k, rows[sel], t[sel], sent[sel], dec.HIGHRES_MAG_UNITS)
+            scale[inst == k] = dec.MG_PER_GAUSS if s is None else s
+        m = sent[use] * scale[use, None]
+        nan3 = np.full(int(use.sum()), np.nan)
+        self.table("mag", rows[use], t[use], *m.T, nan3, nan3, nan3, inst[use])
+        imu = np.column_stack([f[c] for c in ("xgyro", "ygyro", "zgyro", "xacc", "yacc", "zacc")]).astype(float)
+        ok = np.isfinite(imu).all(axis=1)
+        if not ok.all():
+            self.warnings["NaN IMU field"] += int((~ok).sum())
+        self.table("imu", rows[ok], t[ok], *imu[ok].T, inst[ok])
+
+    def _attitude(self, times: dict[int, np.ndarray]) -> None:
+        bad = int((~self.att_ok).sum())
+        if bad:
+            self.warnings["NaN attitude field"] += bad
+        if self.quat_bad:
+            self.warnings["invalid attitude quaternion"] += self.quat_bad
+        rows = self.parts[_ID["ATTITUDE"]]
+        f = self.rec.fields(_ID["ATTITUDE"], rows)
+        self.table("attitude", rows, times[_ID["ATTITUDE"]], f["roll"], f["pitch"], f["yaw"])
+        rows = self.parts[_ID["ATTITUDE_QUATERNION"]]
+        if len(rows):
+            self.table("attitude", rows, times[_ID["ATTITUDE_QUATERNION"]], *dec.euler_from_quaternion(*self.quat.T))
+
+    def _global_position(self, t: np.ndarray) -> None:
+        rows = self.parts[_ID["GLOBAL_POSITION_INT"]]
+        f = self.rec.fields(_ID["GLOBAL_POSITION_INT"], rows)
+        k = np.searchsorted(self.gps_rows, rows) - 1            # the last GPS_RAW_INT before each
+        last_t = np.where(k >= 0, self.rec.arrival[self.gps_rows[np.maximum(k, 0)]] if len(self.gps_rows) else 0.0,
+                          -math.inf)
+        fix = np.where(k >= 0, self.gps_fix[np.maximum(k, 0)] if len(self.gps_rows) else 0, 3)
+        use = ~(t - last_t < 3.0) & ~((f["lat"] == 0) & (f["lon"] == 0))
+        g = f[use]
+        cols = dec.global_position_int_to_si(g["lat"], g["lon"], g["alt"], g["vx"], g["vy"], g["vz"])
+        self.table("gps", rows[use], t[use], *cols, fix[use])
+
+    def _offsets(self) -> None:
+        """SENSOR_OFFSETS: compass 0's offsets as history entries; a record repeating the previous
+        one's values (with no PARAM_VALUE between, which could name the same parameter) adds
+        nothing to the history (``compact_history`` drops such repeats) and is skipped here."""
+        rows = self.accepted(_ID["SENSOR_OFFSETS"])
+        f = self.rec.fields(_ID["SENSOR_OFFSETS"], rows)
+        ofs = np.column_stack([f["mag_ofs_x"], f["mag_ofs_y"], f["mag_ofs_z"]])
+        group = np.searchsorted(self.param_rows, rows)
+        keep = np.ones(len(rows), dtype=bool)
+        keep[1:] = (ofs[1:] != ofs[:-1]).any(axis=1) | (group[1:] != group[:-1])
+        for r, v in zip(rows[keep].tolist(), ofs[keep].tolist()):
+            self.events.append((r, OffsetsSample(float(self.rec.arrival[r]), 0, tuple(float(x) for x in v), 1.0)))
+
+    def _finish(self) -> None:
+        for name, parts in self.tables.items():
+            if len(parts) == 1:
+                self.builder.set_table(name, parts[0][1])            # one message type: in record order
+            elif parts:
+                rows = np.concatenate([p[0] for p in parts])
+                order = np.argsort(rows, kind="stable")
+                self.builder.set_table(name, np.concatenate([p[1] for p in parts])[order])
+        self.tables.clear()
+        self.events.sort(key=lambda e: e[0])
+        for _, s in self.events:
+            self.builder.add(s)
