@@ -120,6 +120,9 @@ def assert_same_log(ref, new) -> None:
     assert ref.imus.keys() == new.imus.keys()
     for k in ref.imus:
         _same_array(ref.imus[k], new.imus[k], f"imu {k}")
+    assert ref.attitudes.keys() == new.attitudes.keys()
+    for k in ref.attitudes:
+        _same_array(ref.attitudes[k], new.attitudes[k], f"attitude {k}")
     assert ref.primary_compass == new.primary_compass
     assert ref.params == new.params
     assert ref.param_history == new.param_history
@@ -324,6 +327,30 @@ SHIPPED_BIN = _bins(DATA)
 @pytest.mark.parametrize("path", SHIPPED_BIN, ids=[p.name for p in SHIPPED_BIN])
 def test_shipped_bins_read_the_same(path, monkeypatch):
     ref, new = _read_both_bin(path, monkeypatch)
+    assert_same_log(ref, new)
+
+
+def test_other_attitude_estimators_read_the_same(tmp_path, monkeypatch):
+    """AHR2, XKF1 (two cores: only core 0 kept), NKF1 beside ATT: the bulk path keeps the same
+    tables as the per-record one (the in-flight fit chooses among them)."""
+    from groundstation.sim import dataflash_writer as dfw
+    layout = {"ATT": ("QccccCCCC", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw"),
+              "AHR2": ("QccCfLLffff", "TimeUS,Roll,Pitch,Yaw,Alt,Lat,Lng,Q1,Q2,Q3,Q4"),
+              "XKF1": ("QBccCfffffffccce", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD,GX,GY,GZ,OH"),
+              "NKF1": ("QBccCfffffffccce", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD,GX,GY,GZ,OH")}
+    monkeypatch.setitem(dfw.LAYOUTS, "attitudes", layout)
+    w = dfw.DataFlashWriter("attitudes")
+    for k in range(40):
+        t = 1_000_000 + 100_000 * k
+        w.write("ATT", t, 0, 10.0 + k, 0, -5.0, 0, 90.0, 0, 0)
+        w.write("AHR2", t, 11.0 - k, -6.0, 91.0, 0, 0, 0, 1, 0, 0, 0)
+        for c, roll in ((0, 12.0 + 0.5 * k), (1, 40.0)):
+            w.write("XKF1", t, c, roll, -7.0, 92.0 + k, *([0.0] * 7), 0, 0, 0, 0)
+        w.write("NKF1", t, 0, 13.0, -8.0 - k, 93.0, *([0.0] * 7), 0, 0, 0, 0)
+    path = w.save(tmp_path / "att.bin")
+    monkeypatch.undo()
+    ref, new = _read_both_bin(path, monkeypatch)
+    assert set(new.attitudes) == {"AHR2", "XKF1", "NKF1"} and len(new.attitudes["XKF1"]) == 40
     assert_same_log(ref, new)
 
 

@@ -39,7 +39,7 @@ class LogBuilder:
         self.mission: dict[int, tuple[float, float, float]] = {}
         self.history: list[tuple[float, str, float, float]] = []     # t, name, value, quantum
         self.source_names: dict[int, str] = {}
-        self.other_attitudes: dict[str, array] = {}       # AttitudeSample.source -> rows
+        self.other_attitudes: dict[str, array | np.ndarray] = {}   # AttitudeSample.source -> flat rows
 
     def add_history(self, t_s: float, name: str, value: float, quantum: float = 0.0) -> None:
         """A parameter value seen at t_s (PARM, PARAM_VALUE, logged offsets) for the history only."""

@@ -36,8 +36,10 @@ _ALWAYS = ("MODE", "MSG", "PARM", "STAT", "ORGN", "VER")     # DFReader's skip_t
 _REQUIRED = {"MAG": ("MagX", "MagY", "MagZ"), "IMU": ("GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ"),
              "ATT": ("Roll", "Pitch", "Yaw"), "GPS": ("Status", "GCrs", "Lat", "Lng", "Alt", "Spd"),
              "PARM": ("Name", "Value"), "CMD": ("CId", "CNum", "Lat", "Lng", "Alt"), "BAT": ("Curr",),
-             "CURR": ("Curr",), "CTUN": (), "RCOU": (), "MSG": ("Message",), "MAVC": ("Cmd", "Res", "P1")}
-_FAMILY = {"MAG2": "MAG", "MAG3": "MAG", "IMU2": "IMU", "IMU3": "IMU", "BATT": "BAT"}
+             "CURR": ("Curr",), "CTUN": (), "RCOU": (), "MSG": ("Message",), "MAVC": ("Cmd", "Res", "P1"),
+             "OTHERATT": ("Roll", "Pitch", "Yaw")}
+_FAMILY = {"MAG2": "MAG", "MAG3": "MAG", "IMU2": "IMU", "IMU3": "IMU", "BATT": "BAT",
+           "AHR2": "OTHERATT", "XKF1": "OTHERATT", "NKF1": "OTHERATT", "EKF1": "OTHERATT"}
 
 
 def _fmt_dtype(fmt) -> np.dtype:
@@ -166,6 +168,7 @@ class _BulkDecoder:
                                                                        "gps": [], "battery": []}
         self.events: list[tuple[int, int, object]] = []     # (record, sub-order, ParamSample | entry | sample)
         self.throttle: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {k: [] for k in THROTTLE_PRIORITY}
+        self.other_attitudes: dict[str, np.ndarray] = {}     # AHR2/XKF1/NKF1/EKF1 -> [t, roll, pitch, yaw]
         self.source_names: dict[int, str] = {}
         self.gps_week_ms: tuple[float, float, float] | None = None
 
@@ -236,6 +239,14 @@ class _BulkDecoder:
 
     def _att(self, tp: _Type) -> None:
         self.table("attitude", tp.order, self.t[tp.order], *(att_rad(tp.col(c)) for c in ("Roll", "Pitch", "Yaw")))
+
+    def _otheratt(self, tp: _Type) -> None:
+        """``DataFlashDecoder._other_att`` on columns: degrees -> rad, the first core only (``C`` = 0)."""
+        keep = tp.int_col("C") == 0 if tp.has("C") else np.ones(len(tp.order), dtype=bool)
+        rows = tp.order[keep]
+        if len(rows):
+            self.other_attitudes[tp.name] = np.column_stack(
+                [self.t[rows]] + [np.radians(tp.col(c).astype(float)[keep]) for c in ("Roll", "Pitch", "Yaw")])
 
     def _gps(self, tp: _Type) -> None:
         use = (tp.instance() == 0) & ~(tp.col("Status") < 2)
@@ -374,6 +385,8 @@ def read_bulk(path: Path, progress: Callable[[float], None] | None, reader) -> F
         rows = np.concatenate([p[0] for p in parts])
         table = np.concatenate([p[1] for p in parts])[np.argsort(rows, kind="stable")]
         builder.set_table("throttle", table)
+    for name, table in bulk.other_attitudes.items():
+        builder.other_attitudes[name] = np.ascontiguousarray(table).ravel()   # read back with np.frombuffer
     builder.source_names.update(bulk.source_names)
     log.mag_calibration_applied = True
     log = builder.finish()
