@@ -70,7 +70,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.residual_trackers import FieldModelFilter, TiltTracker
+from estimators.residual_trackers import FieldModelFilter, TiltTracker, inv3
 from estimators.rotations import dcm_body_to_ned_float
 
 __all__ = ["FieldConsistencySettings", "FieldConsistency", "FieldStep", "FieldConsistencyResult",
@@ -349,19 +349,23 @@ class FieldConsistency:
         p = [c[0] * h[0] + c[3] * h[1] + c[6] * h[2], c[1] * h[0] + c[4] * h[1] + c[7] * h[2],
              c[2] * h[0] + c[5] * h[1] + c[8] * h[2]]
         tx, ty = self.tilt.tilt_rad
-        rt = np.array([[1.0, 0.0, ty], [0.0, 1.0, -tx], [-ty, tx, 1.0]])          # R(δ) ≈ I + [δ×]
-        cbt = rt @ np.array([[c[0], c[3], c[6]], [c[1], c[4], c[7]], [c[2], c[5], c[8]]])
+        ct = [[c[0], c[3], c[6]], [c[1], c[4], c[7]], [c[2], c[5], c[8]]]             # Cᵀ
+        cbt = [[ct[0][j] + ty * ct[2][j] for j in range(3)],                        # R(δ)Cᵀ, R(δ) ≈ I + [δ×]
+               [ct[1][j] - tx * ct[2][j] for j in range(3)],
+               [ct[2][j] - ty * ct[0][j] + tx * ct[1][j] for j in range(3)]]
         H = model.jacobian(cbt, xt)
         pred = model.predict(H)
         e = [m[k] - float(pred[k]) for k in range(3)]
         fv = model.theta[8:11]
-        lag_cov = (spread * spread) * np.outer(fv, fv)   # the signal's timing: f·(x_true − x_seen)
+        lag_cov = (spread * spread) * np.outer(fv, fv) if spread > 0.0 else None   # the signal's timing: f·(x_true − x_seen)
         turn = self._relearning_turn(t, learning) or t < self.relearn_until
         allowed = self._learning_allowed()
         sigma = self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG
         model.forget(dt, sigma, self.yaw_rate_rad_s)
+        PHt = model.P @ H.T
+        HPHt = H @ PHt                                  # the model's uncertainty on this step [mG²]
         if (turn or allowed) and abs(self.yaw_rate_rad_s) <= math.radians(s.model_max_turn_deg_s):
-            model.update(H, m, dt, sigma, s.model_clip_sigma, lag_cov)
+            model.update(H, m, dt, sigma, s.model_clip_sigma, lag_cov, PHt, HPHt)
             self.psi = _wrap(self.psi - model.take_heading())
         b, f = model.theta[5:8], model.theta[8:11]
         self.tilt.update(t, p, [m[k] - p[k] - b[k] - f[k] * xt for k in range(3)], dt,
@@ -380,10 +384,10 @@ class FieldConsistency:
         sigma = self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG
         # q: r̄ against the noise and the model's own uncertainty, Σ = σ²/3 I + H P Hᵀ + lag term
         # (q = |r̄|/σ when the model is known exactly)
-        cov = model.predicted_cov(H) + lag_cov
-        cov[np.diag_indices(3)] += sigma * sigma / 3.0
+        cov = HPHt + lag_cov if lag_cov is not None else HPHt.copy()
+        cov.flat[::4] += sigma * sigma / 3.0
         rv = np.asarray(r, dtype=float)
-        q = math.sqrt(max(float(rv @ np.linalg.solve(cov, rv)) / 3.0, 0.0))
+        q = math.sqrt(max(float(rv @ inv3(cov) @ rv) / 3.0, 0.0))
         if learning or turn or t < self.settle_until:
             # learning or relearning a turn, the test is on but blind: score 0, not NaN (so a
             # heading difference alone does not alarm while the field-vector test cannot judge)

@@ -30,6 +30,20 @@ def _huber(y: float, pred: float, clip: float) -> float:
     return pred + min(max(y - pred, -clip), clip)
 
 
+_DIAG11 = np.diag_indices(11)
+
+
+def inv3(a: np.ndarray) -> np.ndarray:
+    """Inverse of a 3 × 3 matrix by its adjugate (cofactors / determinant): a small matrix, many
+    times per second, where np.linalg's call overhead dominates."""
+    (a0, a1, a2), (a3, a4, a5), (a6, a7, a8) = a.tolist()
+    c0, c1, c2 = a4 * a8 - a5 * a7, a5 * a6 - a3 * a8, a3 * a7 - a4 * a6
+    det = a0 * c0 + a1 * c1 + a2 * c2
+    return np.array([[c0, a2 * a7 - a1 * a8, a1 * a5 - a2 * a4],
+                     [c1, a0 * a8 - a2 * a6, a2 * a3 - a0 * a5],
+                     [c2, a1 * a6 - a0 * a7, a0 * a4 - a1 * a3]]) / det
+
+
 SIGNAL_SCALE = 10.0     # a typical excursion of the motor signal [A or %]: sets f's random walk
 
 
@@ -66,7 +80,8 @@ class FieldModelFilter:
         self.P = np.diag([heading_sd_rad ** 2, bias_sd_rad_s ** 2] + [h_sd_mG ** 2] * 3 + [b_sd_mG ** 2] * 3
                          + [f_sd ** 2] * 3)
         self.tau = np.array([h_tau_s] * 3 + [b_tau_s] * 3 + [f_tau_s] * 3)
-        self._unit = np.array([1.0] * 6 + [1.0 / SIGNAL_SCALE ** 2] * 3)   # f's walk per SIGNAL_SCALE of signal
+        unit = np.array([1.0] * 6 + [1.0 / SIGNAL_SCALE ** 2] * 3)   # f's walk per SIGNAL_SCALE of signal
+        self._walk = np.concatenate([[0.0, 0.0], unit / (self.tau * self.tau)])
         self.bias_walk_rad_s2, self.gyro_scale = bias_walk_rad_s2, gyro_scale
         self.corr_s = corr_s
         self.x0: float | None = None
@@ -87,12 +102,12 @@ class FieldModelFilter:
     @property
     def sd(self) -> list:
         """f's standard error per axis (√ of P's diagonal)."""
-        return np.sqrt(np.diag(self.P)[8:11]).tolist()
+        return np.sqrt(self.P.flat[96::12]).tolist()
 
     def significant(self, k_sigma: float = 3.0) -> bool:
         """|f| ≥ k_sigma · |sd|: the motor field is known well enough to be removed."""
         f2 = float(self.theta[8:11] @ self.theta[8:11])
-        return f2 > 0.0 and f2 >= k_sigma * k_sigma * float(np.sum(np.diag(self.P)[8:11]))
+        return f2 > 0.0 and f2 >= k_sigma * k_sigma * float(np.sum(self.P.flat[96::12]))
 
     @property
     def yaw_bias_rad_s(self) -> float:
@@ -115,9 +130,11 @@ class FieldModelFilter:
 
     def jacobian(self, c_bt: np.ndarray, xt: float) -> np.ndarray:
         """H (3 × 11) for the body-from-navigation matrix c_bt = R(δ)Cᵀ and the signal x̃."""
-        h = self.theta[2:5]
-        d_eps = c_bt @ np.array([-h[1], h[0], 0.0])
-        return np.hstack([d_eps[:, None], np.zeros((3, 1)), c_bt, np.eye(3), xt * np.eye(3)])
+        hn, he = float(self.theta[2]), float(self.theta[3])
+        rows = c_bt.tolist() if isinstance(c_bt, np.ndarray) else c_bt
+        return np.array([[r[1] * hn - r[0] * he, 0.0, r[0], r[1], r[2]]            # R(δ)Cᵀ (−h_E, h_N, 0)
+                         + [1.0 if j == k else 0.0 for j in range(3)] + [xt if j == k else 0.0 for j in range(3)]
+                         for k, r in enumerate(rows)])
 
     def predict(self, H: np.ndarray) -> np.ndarray:
         """The predicted body field H θ [mG]."""
@@ -133,32 +150,38 @@ class FieldModelFilter:
         P = self.P
         P[0, :] += dt_s * P[1, :]                      # P ← F P Fᵀ, F = I + Δt e_ε e_βᵀ
         P[:, 0] += dt_s * P[:, 1]
-        d = np.diag_indices(11)
-        walk = [(self.gyro_scale * yaw_rate_rad_s) ** 2, self.bias_walk_rad_s2 ** 2]
-        P[d] += np.concatenate([walk, (sigma_mG * sigma_mG * self.corr_s) / (self.tau * self.tau) * self._unit]) * dt_s
+        q = self._walk * (sigma_mG * sigma_mG * self.corr_s * dt_s)
+        q[0] = (self.gyro_scale * yaw_rate_rad_s) ** 2 * dt_s
+        q[1] = self.bias_walk_rad_s2 ** 2 * dt_s
+        P.flat[::12] += q
 
     def inflate(self, h_sd_mG: float, b_sd_mG: float) -> None:
         """Forget h and b to this much more variance (a disturbance has ended: learn them again)."""
-        self.P[np.diag_indices(11)] += np.array([0.0, 0.0] + [h_sd_mG ** 2] * 3 + [b_sd_mG ** 2] * 3 + [0.0] * 3)
+        self.P[_DIAG11] += np.array([0.0, 0.0] + [h_sd_mG ** 2] * 3 + [b_sd_mG ** 2] * 3 + [0.0] * 3)
 
     def update(self, H: np.ndarray, m_mG, dt_s: float, sigma_mG: float, clip: float,
-               extra_cov: np.ndarray | None = None) -> None:
-        """One Kalman measurement update with measurement noise R = (σ² τ_c / dt) I (+ extra_cov)."""
+               extra_cov: np.ndarray | None = None, PHt: np.ndarray | None = None,
+               HPHt: np.ndarray | None = None) -> None:
+        """One Kalman measurement update with measurement noise R = (σ² τ_c / dt) I (+ extra_cov);
+        ``PHt`` = P Hᵀ and ``HPHt`` = H P Hᵀ if the caller has them."""
         if dt_s <= 0.0:
             return
-        R = np.eye(3) * (sigma_mG * sigma_mG * self.corr_s / dt_s)
-        if extra_cov is not None:
-            R = R + extra_cov / max(dt_s, 1e-9) * self.corr_s
-        PHt = self.P @ H.T
-        HPHt = H @ PHt
-        S = HPHt + R
+        if PHt is None:
+            PHt = self.P @ H.T
+        if HPHt is None:
+            HPHt = H @ PHt
+        r = sigma_mG * sigma_mG
+        S = HPHt + extra_cov * (self.corr_s / dt_s) if extra_cov is not None else HPHt.copy()
+        S.flat[::4] += r * self.corr_s / dt_s
         nu = np.asarray(m_mG, dtype=float) - H @ self.theta
-        d = math.sqrt(max(float(nu @ np.linalg.solve(HPHt + np.eye(3) * sigma_mG * sigma_mG, nu)), 0.0))
+        C = HPHt.copy()
+        C.flat[::4] += r
+        d = math.sqrt(max(float(nu @ inv3(C) @ nu), 0.0))
         if d > clip:                       # Huber: at most ``clip`` σ of innovation (model error included)
             nu = nu * (clip / d)
-        K = np.linalg.solve(S, PHt.T).T
-        self.theta = self.theta + K @ nu
-        P = self.P - K @ H @ self.P
+        K = PHt @ inv3(S)
+        self.theta += K @ nu
+        P = self.P - K @ PHt.T
         self.P = 0.5 * (P + P.T)
         xt = float(H[0, 8])
         self.excitation += xt * xt * dt_s
