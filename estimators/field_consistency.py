@@ -108,6 +108,7 @@ class FieldConsistencySettings:
     tilt_memory_s: float = 300.0        # ... least squares forgetting with this time constant ...
     tilt_reg_mG2_s: float = 1.0e4       # ... held at 0 with this weight [mG² s] until the nose turns ...
     tilt_max_deg: float = 5.0           # ... at most this (per axis)
+    model_start_s: float = 5.0          # the model (and ψ_f) start after the attitude has been valid this long
     model_heading_sd_deg: float = 3.0   # ψ_f's error at its start (the first field's heading) ...
     model_yaw_bias_sd_deg_s: float = 0.1    # ... growing by the yaw-rate bias left in the gyro (learned) ...
     model_gyro_scale: float = 0.02      # ... and by this fraction of the yaw rate in turns
@@ -167,6 +168,7 @@ class FieldConsistency:
         self.tilt = TiltTracker(self.s.tilt_lag_s, self.s.tilt_memory_s, self.s.tilt_reg_mG2_s,
                                 math.radians(self.s.tilt_max_deg))
         self._recent_x: deque = deque()              # (t, signal) over the last ``signal_lag_s``
+        self._att_since: float | None = None         # the attitude valid since then
         self.psi_learned: float | None = None      # heading at the end of learning
         self.turn_until: float | None = None        # the first turn is learned again until then
         self.learned_s = 0.0
@@ -231,12 +233,15 @@ class FieldConsistency:
         mx, my, mz = (float(v) for v in mag_body_mG)
         have_field = field_ok and math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz)
         if attitude_ok and have_field:
+            if self._att_since is None:
+                self._att_since = t
             dx = self._signal(float(motor_signal))
             b, f = self.b, self.f
             m_earth = self._untilt((mx - b[0] - f[0] * dx, my - b[1] - f[1] * dx, mz - b[2] - f[2] * dx))
             self._track_heading(dt, roll_rad, pitch_rad, m_earth, gyro_rad_s)
         else:
             self.psi = None
+            self._att_since = None
         if not have_field:
             return self._off(t, OFF_NO_FIELD)
         if not rate_hz >= s.min_rate_hz:
@@ -245,6 +250,12 @@ class FieldConsistency:
             return self._off(t, OFF_ATTITUDE)
         c = dcm_body_to_ned_float(roll_rad, pitch_rad, self.psi)
         if self.model is None:
+            if t - self._att_since < s.model_start_s:
+                # the attitude settles first: ψ_f starts from the field's heading on a settled tilt
+                # (a first AHRS tilt 19° off made ψ_f 105° off at 75° inclination, far outside
+                # what the model's linear ε can take back)
+                self.psi = None
+                return self._off(t, SETTLING)
             if self.prior is not None and all(map(math.isfinite, self.prior)):
                 h0 = list(self.prior)
             else:                                            # no prior: the first field is the Earth field
@@ -269,9 +280,10 @@ class FieldConsistency:
 
     def _track_heading(self, dt: float, roll: float, pitch: float, m: tuple, gyro) -> None:
         """ψ_f: started at the tilt-compensated magnetic heading (seed 000 eqs. 11-13) of the Earth
-        part of the field (m − b − f·Δx), then the bias-corrected gyro's yaw rate; its error ε is a
-        state of the field model (``_test`` folds the model's ε into it), so the field pulls it
-        only as far as the model can tell a heading error from a body offset."""
+        part of the field (m − b − f·Δx), then the bias-corrected gyro's yaw rate less the model's
+        β; its error ε is a state of the field model (``_test`` folds the model's ε into it), so
+        after learning the field pulls it only as far as the model can tell a heading error from a
+        body offset."""
         if self.psi is None:
             c = dcm_body_to_ned_float(roll, pitch, 0.0)     # tilt only: the field levelled
             self.psi = float(-math.atan2(c[3] * m[0] + c[4] * m[1] + c[5] * m[2],
