@@ -169,7 +169,6 @@ class FieldConsistency:
                                 math.radians(self.s.tilt_max_deg))
         self._recent_x: deque = deque()              # (t, signal) over the last ``signal_lag_s``
         self._att_since: float | None = None         # the attitude valid since then
-        self._psi_last: tuple | None = None          # (t, ψ_f) last known, carried over short gaps
         self.psi_learned: float | None = None      # heading at the end of learning
         self.turn_until: float | None = None        # the first turn is learned again until then
         self.learned_s = 0.0
@@ -284,29 +283,20 @@ class FieldConsistency:
         part of the field (m − b − f·Δx), then the bias-corrected gyro's yaw rate less the model's
         β; its error ε is a state of the field model (``_test`` folds the model's ε into it), so
         after learning the field pulls it only as far as the model can tell a heading error from a
-        body offset.  After a short gap (``_restart``, under ``segment_gap_s``) ψ_f goes on from its
-        last value by the gyro: the model's ε and b were learnt together, and restarting at the
-        magnetic heading would break that split (a 10° jump after a 0.7 s gap, population clean
-        flight 44)."""
+        body offset."""
+        if self.psi is None:
+            c = dcm_body_to_ned_float(roll, pitch, 0.0)     # tilt only: the field levelled
+            self.psi = float(-math.atan2(c[3] * m[0] + c[4] * m[1] + c[5] * m[2],
+                                         c[0] * m[0] + c[1] * m[1] + c[2] * m[2]))
+            return
         q, r = float(gyro[1]), float(gyro[2])
         cos_p = math.cos(pitch)
         rate = (q * math.sin(roll) + r * math.cos(roll)) / cos_p if abs(cos_p) > 1e-3 else 0.0
         if not math.isfinite(rate):
             rate = 0.0
-        beta = self.model.yaw_bias_rad_s if self.model is not None else 0.0
-        if self.psi is None:
-            last = self._psi_last
-            if self.model is not None and last is not None and 0.0 <= self._t - last[0] <= self.s.segment_gap_s:
-                self.psi = _wrap(last[1] + (rate - beta) * (self._t - last[0]))
-            else:
-                c = dcm_body_to_ned_float(roll, pitch, 0.0)     # tilt only: the field levelled
-                self.psi = float(-math.atan2(c[3] * m[0] + c[4] * m[1] + c[5] * m[2],
-                                             c[0] * m[0] + c[1] * m[1] + c[2] * m[2]))
-            self._psi_last = (self._t, self.psi)
-            return
         self.yaw_rate_rad_s = rate
+        beta = self.model.yaw_bias_rad_s if self.model is not None else 0.0
         self.psi = _wrap(self.psi + (rate - beta) * dt)
-        self._psi_last = (self._t, self.psi)
 
     def _learning_allowed(self) -> bool:
         """Learning pauses while the score is at ``freeze_z`` or more, for ``freeze_max_s`` at most."""
