@@ -248,12 +248,14 @@ def population_flight(draw, tmp: Path) -> dict:
     return row
 
 
-def population_run(n_clean: int, n_kind: int, seed: int, kinds=None, log=print, out_json: str | None = None) -> list[dict]:
-    """The population's flights, round robin over the kinds (clean first), so a run cut short
-    still covers every kind; with ``out_json`` the rows so far are written after every flight."""
+def population_run(n_clean: int, n_kind: int, seed: int, kinds=None, log=print, out_json: str | None = None,
+                   first: int = 0) -> list[dict]:
+    """The population's flights (indices ``first`` up to n_clean / n_kind), round robin over the
+    kinds (clean first), so a run cut short still covers every kind; with ``out_json`` the rows so
+    far are written after every flight."""
     from groundstation.sim.population import DISTURBANCES, draw_flight
     kinds = DISTURBANCES if kinds is None else kinds
-    plan = [(k, i) for i in range(max(n_clean, n_kind)) for k in ("clean", *kinds)
+    plan = [(k, i) for i in range(first, max(n_clean, n_kind)) for k in ("clean", *kinds)
             if i < (n_clean if k == "clean" else n_kind)]
     rows = []
     t0 = time.perf_counter()
@@ -389,6 +391,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", help="population: write the per-flight rows here")
     ap.add_argument("--kinds", help="population: only these kinds, comma-separated (clean,fast,slow,step,bump,"
                     "payload,anomaly), to split one run over processes")
+    ap.add_argument("--first-index", type=int, default=0, help="population: start at this flight index (split "
+                    "one run over processes: --population 100, and --population 200 --first-index 100)")
     ap.add_argument("--merge", nargs="+", metavar="JSON", help="population: print the table and chart of rows "
                     "written by --json runs (one run split by --kinds) instead of flying")
     a = ap.parse_args(argv)
@@ -402,7 +406,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             kinds = a.kinds.split(",") if a.kinds else None
             rows = population_run(a.population if (kinds is None or "clean" in kinds) else 0, a.per_kind, a.pop_seed,
-                                  [k for k in kinds if k != "clean"] if kinds else None, out_json=a.json)
+                                  [k for k in kinds if k != "clean"] if kinds else None, out_json=a.json,
+                                  first=a.first_index)
         sums = print_population(rows, a.pop_seed)
         if a.png:
             png = a.png if a.png != ap.get_default("png") else "benchmarks/results/detection_population.png"

@@ -65,11 +65,12 @@ a loop, plain floats) give identical numbers.  Units: mG, rad, rad/s, s, A.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.residual_trackers import MotorFieldTracker, TiltTracker
+from estimators.residual_trackers import FieldModelFilter, TiltTracker, inv3
 from estimators.rotations import dcm_body_to_ned_float
 
 __all__ = ["FieldConsistencySettings", "FieldConsistency", "FieldStep", "FieldConsistencyResult",
@@ -85,9 +86,17 @@ STATUS = ("on", "learning", "off: no calibrated field", "off: IMU rate below the
 class FieldConsistencySettings:
     """One default for every vehicle; units in the names."""
     learn_s: float = 20.0               # data time before the test is armed (field, offset, noise learned)
-    offset_learn_fast_s: float = 2.0    # LMS time constant of the body offset b while learning
-    offset_learn_s: float = 20.0        # ... and afterwards
-    field_learn_ratio: float = 10.0     # the Earth field h learns this many times slower than b
+    model_field_sd_mG: float = 5.0      # the model's prior sd: Earth field h about the WMM ...
+    model_offset_sd_mG: float = 50.0    # ... body offset b ...
+    model_motor_sd: float = 3.0         # ... motor field f [mG per A, or per %]
+    model_field_tau_s: float = 2000.0   # once known, h follows with this time constant ...
+    model_offset_tau_s: float = 20.0    # ... b ...
+    model_motor_tau_s: float = 300.0    # ... f
+    model_corr_s: float = 1.0           # the residual's noise is correlated over this long
+    model_clip_sigma: float = 3.0       # the model learns from innovations clipped at this many σ (Huber)
+    model_max_turn_deg_s: float = 20.0  # ... and not in turns faster than this (ψ_f lags the gyro's scale)
+    signal_lag_s: float = 1.5           # the motor signal may lag the field this long (sensor lag, 1 Hz telemetry)
+    relearn_sd_mG: float = 10.0         # after a disturbance, h and b are this much less known
     turn_deg: float = 45.0              # the first turn this far from the learning heading ...
     turn_learn_s: float = 10.0
     first_turn_hold_deg_s: float = 20.0  # the CUSUM holds in turns faster than this ...
@@ -99,16 +108,10 @@ class FieldConsistencySettings:
     tilt_memory_s: float = 300.0        # ... least squares forgetting with this time constant ...
     tilt_reg_mG2_s: float = 1.0e4       # ... held at 0 with this weight [mG² s] until the nose turns ...
     tilt_max_deg: float = 5.0           # ... at most this (per axis)
-    motor_excitation: float = 200.0     # Σ z² Δt [A² s] of signal changes before f is trusted; until then ...
-    motor_hold_signal: float = 3.0      # ... the CUSUM holds while the signal is this far from its reference
-    motor_learn_after_s: float = 5.0    # f learns from then on (ψ_f has settled)
-    motor_lag_s: float = 1.0            # f from the field's change over this lag against the signal's
-    motor_memory_s: float = 300.0       # ... weighted least squares forgetting with this time constant
-    motor_clip_sigma: float = 3.0       # f learns from changes clipped at this many σ (Huber) ...
-    motor_max_turn_deg_s: float = 10.0  # ... and not while turning faster than this
-    motor_ref_s: float = 30.0           # the reference signal x_ref follows the signal this slowly
-    heading_track_s: float = 30.0       # ψ_f follows the magnetic heading with this time constant
-    heading_learn_s: float = 5.0        # ... while learning
+    model_start_s: float = 5.0          # the model (and ψ_f) start after the attitude has been valid this long
+    model_heading_sd_deg: float = 3.0   # ψ_f's error at its start (the first field's heading) ...
+    model_yaw_bias_sd_deg_s: float = 0.1    # ... growing by the yaw-rate bias left in the gyro (learned) ...
+    model_gyro_scale: float = 0.02      # ... and by this fraction of the yaw rate in turns
     freeze_max_s: float = 120.0         # learning resumes after this long frozen (a lasting change is learned)
     reanchor_peak: float = 8.0          # after an alarm whose residual reached this many σ, ...
     reanchor_margin: float = 2.5        # ... the residual below (κ + this) σ ...
@@ -135,7 +138,7 @@ def status_text(code: int) -> str:
 @dataclass
 class FieldStep:
     t_s: float
-    z: float                            # CUSUM / threshold (NaN unless ON; 0 while relearning a turn)
+    z: float                            # CUSUM / threshold (NaN when off or settling; 0 while learning)
     q: float                            # |r̄| / σ (NaN when off)
     residual_mG: tuple                  # r̄, body frame (NaN when off)
     status: int
@@ -161,17 +164,14 @@ class FieldConsistency:
         self.prior = tuple(float(v) for v in earth_field_mG) if earth_field_mG is not None else None
 
     def _reset(self) -> None:
-        self.h = None
-        self.b = [0.0, 0.0, 0.0]
+        self.model: FieldModelFilter | None = None   # made with the Earth field's first value
         self.tilt = TiltTracker(self.s.tilt_lag_s, self.s.tilt_memory_s, self.s.tilt_reg_mG2_s,
                                 math.radians(self.s.tilt_max_deg))
-        self.motor = MotorFieldTracker(self.s.motor_lag_s, self.s.motor_memory_s)
-        self.f = self.motor.f                        # the same list: the tracker updates it
-        self.x_ref: float | None = None
+        self._recent_x: deque = deque()              # (t, signal) over the last ``signal_lag_s``
+        self._att_since: float | None = None         # the attitude valid since then
         self.psi_learned: float | None = None      # heading at the end of learning
         self.turn_until: float | None = None        # the first turn is learned again until then
         self.learned_s = 0.0
-        self.yaw_bias_rad_s = 0.0
         self.yaw_rate_rad_s = 0.0
         self._dx = 0.0
         self._frozen_since: float | None = None
@@ -192,8 +192,29 @@ class FieldConsistency:
         self.relearn_until = -math.inf
         self._turn_hold_until = -math.inf
         self.settle_until = settle_until
-        self.motor.clear_history()
+        self._recent_x.clear()
         self.tilt.clear_history()
+
+    @property
+    def h(self) -> list | None:
+        """The Earth field (magnetic NED) [mG], None before the first tested step."""
+        return None if self.model is None else self.model.h
+
+    @property
+    def b(self) -> list:
+        return [0.0, 0.0, 0.0] if self.model is None else self.model.b
+
+    @property
+    def f(self) -> list:
+        return [0.0, 0.0, 0.0] if self.model is None else self.model.f
+
+    @property
+    def motor(self) -> FieldModelFilter | None:
+        """The one motor-field model (f, its sd, ``significant``): the field model's filter."""
+        return self.model
+
+    def _signal(self, x: float) -> float:
+        return 0.0 if self.model is None else self.model.signal(x)
 
     # ------------------------------------------------------------------ one step
     def update(self, t_s: float, mag_body_mG, roll_rad: float, pitch_rad: float, attitude_ok: bool,
@@ -212,13 +233,15 @@ class FieldConsistency:
         mx, my, mz = (float(v) for v in mag_body_mG)
         have_field = field_ok and math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz)
         if attitude_ok and have_field:
-            x = float(motor_signal)
-            dx = x - self.x_ref if math.isfinite(x) and self.x_ref is not None else 0.0
+            if self._att_since is None:
+                self._att_since = t
+            dx = self._signal(float(motor_signal))
             b, f = self.b, self.f
             m_earth = self._untilt((mx - b[0] - f[0] * dx, my - b[1] - f[1] * dx, mz - b[2] - f[2] * dx))
             self._track_heading(dt, roll_rad, pitch_rad, m_earth, gyro_rad_s)
         else:
             self.psi = None
+            self._att_since = None
         if not have_field:
             return self._off(t, OFF_NO_FIELD)
         if not rate_hz >= s.min_rate_hz:
@@ -226,11 +249,23 @@ class FieldConsistency:
         if self.psi is None:
             return self._off(t, OFF_ATTITUDE)
         c = dcm_body_to_ned_float(roll_rad, pitch_rad, self.psi)
-        if self.h is None and self.prior is not None and all(map(math.isfinite, self.prior)):
-            self.h = list(self.prior)
-        elif self.h is None:                                 # no prior: the first field is the Earth field
-            self.h = [c[0] * mx + c[1] * my + c[2] * mz, c[3] * mx + c[4] * my + c[5] * mz,
+        if self.model is None:
+            if t - self._att_since < s.model_start_s:
+                # the attitude settles first: ψ_f starts from the field's heading on a settled tilt
+                # (a first AHRS tilt 19° off made ψ_f 105° off at 75° inclination, far outside
+                # what the model's linear ε can take back)
+                self.psi = None
+                return self._off(t, SETTLING)
+            if self.prior is not None and all(map(math.isfinite, self.prior)):
+                h0 = list(self.prior)
+            else:                                            # no prior: the first field is the Earth field
+                h0 = [c[0] * mx + c[1] * my + c[2] * mz, c[3] * mx + c[4] * my + c[5] * mz,
                       c[6] * mx + c[7] * my + c[8] * mz]
+            s_ = self.s
+            self.model = FieldModelFilter(h0, s_.model_field_sd_mG, s_.model_offset_sd_mG, s_.model_motor_sd,
+                                          s_.model_field_tau_s, s_.model_offset_tau_s, s_.model_motor_tau_s,
+                                          s_.model_corr_s, math.radians(s_.model_heading_sd_deg),
+                                          math.radians(s_.model_yaw_bias_sd_deg_s), 1.0e-4, s_.model_gyro_scale)
         return self._test(t, dt, c, (mx, my, mz), motor_signal)
 
     def _untilt(self, v: tuple) -> tuple:
@@ -244,15 +279,15 @@ class FieldConsistency:
         return [p[0] + ty * p[2], p[1] - tx * p[2], p[2] + tx * p[1] - ty * p[0]]
 
     def _track_heading(self, dt: float, roll: float, pitch: float, m: tuple, gyro) -> None:
-        """ψ_f: gyro yaw rate, pulled to the tilt-compensated magnetic heading (seed 000 eqs. 11-13)
-        of the Earth part of the field (m − b − f·Δx, so a body-fixed offset does not turn it) by a
-        PI loop (gains 2/τ, 1/τ²: critically damped, the integral estimates what is left of the
-        yaw-rate bias); gyro only while the test suspects a disturbance, as fast as while learning
-        for ``relearn_s`` after one (``_reanchor``)."""
-        c = dcm_body_to_ned_float(roll, pitch, 0.0)         # tilt only: the field levelled
-        yaw = -math.atan2(c[3] * m[0] + c[4] * m[1] + c[5] * m[2], c[0] * m[0] + c[1] * m[1] + c[2] * m[2])
+        """ψ_f: started at the tilt-compensated magnetic heading (seed 000 eqs. 11-13) of the Earth
+        part of the field (m − b − f·Δx), then the bias-corrected gyro's yaw rate less the model's
+        β; its error ε is a state of the field model (``_test`` folds the model's ε into it), so
+        after learning the field pulls it only as far as the model can tell a heading error from a
+        body offset."""
         if self.psi is None:
-            self.psi = float(yaw)
+            c = dcm_body_to_ned_float(roll, pitch, 0.0)     # tilt only: the field levelled
+            self.psi = float(-math.atan2(c[3] * m[0] + c[4] * m[1] + c[5] * m[2],
+                                         c[0] * m[0] + c[1] * m[1] + c[2] * m[2]))
             return
         q, r = float(gyro[1]), float(gyro[2])
         cos_p = math.cos(pitch)
@@ -260,14 +295,8 @@ class FieldConsistency:
         if not math.isfinite(rate):
             rate = 0.0
         self.yaw_rate_rad_s = rate
-        pred = self.psi + (rate - self.yaw_bias_rad_s) * dt
-        if self._learning_allowed():
-            fast = self.learned_s < self.s.learn_s or (self._t is not None and self._t < self.relearn_until)
-            tau = self.s.heading_learn_s if fast else self.s.heading_track_s
-            innovation = _wrap(yaw - pred)
-            pred += 2.0 * min(dt / tau, 0.5) * innovation          # PI loop, ζ = 1, ω_n = 1/τ
-            self.yaw_bias_rad_s -= dt / (tau * tau) * innovation
-        self.psi = _wrap(pred)
+        beta = self.model.yaw_bias_rad_s if self.model is not None else 0.0
+        self.psi = _wrap(self.psi + (rate - beta) * dt)
 
     def _learning_allowed(self) -> bool:
         """Learning pauses while the score is at ``freeze_z`` or more, for ``freeze_max_s`` at most."""
@@ -282,19 +311,6 @@ class FieldConsistency:
         nan = float("nan")
         return FieldStep(t, nan, nan, (nan, nan, nan), status, tuple(self.f))
 
-    def _motor(self, x: float, dt: float) -> float:
-        """x − x_ref (0 without a signal); x_ref follows the signal with ``motor_ref_s``, so Δx has
-        no lasting mean and f learns from the signal's changes only (b keeps the rest)."""
-        if not math.isfinite(x):
-            return 0.0
-        if self.x_ref is None:
-            self.x_ref = x
-        step = (1.0 - math.exp(-dt / self.s.motor_ref_s)) * (x - self.x_ref)
-        self.x_ref += step
-        for k in range(3):                   # b + f (x − x_ref) unchanged: b carries f x_ref
-            self.b[k] += self.f[k] * step
-        return x - self.x_ref
-
     def _relearning_turn(self, t: float, learning: bool) -> bool:
         """True while the first big turn after learning is being learned again."""
         if learning or self.psi is None:
@@ -306,18 +322,6 @@ class FieldConsistency:
             self.turn_until = t + self.s.turn_learn_s
         return self.turn_until is not None and t < self.turn_until
 
-    def _learn(self, dt: float, c: tuple, e: list, learning: bool, turn: bool) -> None:
-        s = self.s
-        tau_b = s.offset_learn_fast_s if (learning or turn) else s.offset_learn_s
-        g = 1.0 - math.exp(-dt / tau_b)
-        g_h = g if turn else 1.0 - math.exp(-dt / (tau_b * s.field_learn_ratio))
-        en = [c[0] * e[0] + c[1] * e[1] + c[2] * e[2], c[3] * e[0] + c[4] * e[1] + c[5] * e[2],
-              c[6] * e[0] + c[7] * e[1] + c[8] * e[2]]
-        h, b = self.h, self.b
-        for k in range(3):
-            h[k] += 0.5 * g_h * en[k]
-            b[k] += 0.5 * g * e[k]
-
     def _tilt_learns(self, allowed: bool) -> bool:
         """The tilt learns while the nose turns at a vehicle's rates (``tilt_min_turn_deg_s`` to
         ``tilt_max_turn_deg_s``): the horizontal field turning through the body is its signature; a
@@ -328,38 +332,55 @@ class FieldConsistency:
                 and math.radians(s.tilt_min_turn_deg_s) <= abs(self.yaw_rate_rad_s) <= math.radians(s.tilt_max_turn_deg_s))
 
     def _clip_mG(self) -> float:
-        """The trackers learn from changes clipped at ``motor_clip_sigma`` σ (Huber)."""
+        """The tilt learns from changes clipped at ``model_clip_sigma`` σ (Huber)."""
         s = self.s
-        return s.motor_clip_sigma * (self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG)
+        return s.model_clip_sigma * (self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG)
 
-    def _learn_motor(self, t: float, dt: float, u: list, x: float, turn: bool, allowed: bool) -> None:
-        """f from the signal's changes (estimators.residual_trackers.MotorFieldTracker), outside turns,
-        after ``motor_learn_after_s``; b keeps carrying f x_ref when f changes."""
-        s = self.s
-        learn = (allowed and not turn and abs(self.yaw_rate_rad_s) < math.radians(s.motor_max_turn_deg_s)
-                 and self.learned_s >= s.motor_learn_after_s)
-        old = list(self.f)
-        self.motor.update(t, u, float(x), dt, learn, self._clip_mG())
-        if self.x_ref is not None:
-            for k in range(3):
-                self.b[k] += (self.f[k] - old[k]) * self.x_ref
+    def _signal_spread(self, t: float, x: float) -> float:
+        """Half the range of the motor signal over the last ``signal_lag_s`` [A or %]: how far the
+        signal as received (lagging, held between 1-2 Hz samples) may be from the one the field
+        follows now; f·that is part of the model's uncertainty."""
+        q = self._recent_x
+        if math.isfinite(x):
+            q.append((t, x))
+        while q and q[0][0] < t - self.s.signal_lag_s:
+            q.popleft()
+        if len(q) < 2:
+            return 0.0
+        xs = [v for _, v in q]
+        return 0.5 * (max(xs) - min(xs))
 
     def _test(self, t: float, dt: float, c: tuple, m: tuple, x: float) -> FieldStep:
         s = self.s
         learning = self.learned_s < s.learn_s
         self.learned_s += min(dt, s.max_gap_s)
-        h, b, f = self.h, self.b, self.f
-        dx = self._dx = self._motor(x, dt)
+        model = self.model
+        xt = self._dx = model.signal(float(x))
+        spread = self._signal_spread(t, float(x))
+        h = model.theta[2:5]
         p = [c[0] * h[0] + c[3] * h[1] + c[6] * h[2], c[1] * h[0] + c[4] * h[1] + c[7] * h[2],
              c[2] * h[0] + c[5] * h[1] + c[8] * h[2]]
-        pred = self._tilted(p)
-        e = [m[k] - pred[k] - b[k] - f[k] * dx for k in range(3)]
+        tx, ty = self.tilt.tilt_rad
+        ct = [[c[0], c[3], c[6]], [c[1], c[4], c[7]], [c[2], c[5], c[8]]]             # Cᵀ
+        cbt = [[ct[0][j] + ty * ct[2][j] for j in range(3)],                        # R(δ)Cᵀ, R(δ) ≈ I + [δ×]
+               [ct[1][j] - tx * ct[2][j] for j in range(3)],
+               [ct[2][j] - ty * ct[0][j] + tx * ct[1][j] for j in range(3)]]
+        H = model.jacobian(cbt, xt)
+        pred = model.predict(H)
+        e = [m[k] - float(pred[k]) for k in range(3)]
+        fv = model.theta[8:11]
+        lag_cov = (spread * spread) * np.outer(fv, fv) if spread > 0.0 else None   # the signal's timing: f·(x_true − x_seen)
         turn = self._relearning_turn(t, learning) or t < self.relearn_until
         allowed = self._learning_allowed()
-        if turn or allowed:
-            self._learn(dt, c, e, learning, turn)
-        self._learn_motor(t, dt, [m[k] - pred[k] for k in range(3)], x, turn, allowed)
-        self.tilt.update(t, p, [m[k] - p[k] - b[k] - f[k] * dx for k in range(3)], dt,
+        sigma = self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG
+        model.forget(dt, sigma, self.yaw_rate_rad_s)
+        PHt = model.P @ H.T
+        HPHt = H @ PHt                                  # the model's uncertainty on this step [mG²]
+        if (turn or allowed) and abs(self.yaw_rate_rad_s) <= math.radians(s.model_max_turn_deg_s):
+            model.update(H, m, dt, sigma, s.model_clip_sigma, lag_cov, PHt, HPHt)
+            self.psi = _wrap(self.psi - model.take_heading())
+        b, f = model.theta[5:8], model.theta[8:11]
+        self.tilt.update(t, p, [m[k] - p[k] - b[k] - f[k] * xt for k in range(3)], dt,
                          self._tilt_learns(turn or allowed), self._clip_mG())
         a = 1.0 - math.exp(-dt / s.smooth_s) if self.r is not None else 1.0
         r = self.r = e if self.r is None else [self.r[k] + a * (e[k] - self.r[k]) for k in range(3)]
@@ -373,21 +394,27 @@ class FieldConsistency:
         if self._noise_n:
             self.noise_mG = max(s.noise_floor_mG, math.sqrt(self._noise_ms))
         sigma = self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG
-        q = size / sigma
+        # q: r̄ against the noise and the model's own uncertainty, Σ = σ²/3 I + H P Hᵀ + lag term
+        # (q = |r̄|/σ when the model is known exactly)
+        cov = HPHt + lag_cov if lag_cov is not None else HPHt.copy()
+        cov.flat[::4] += sigma * sigma / 3.0
+        rv = np.asarray(r, dtype=float)
+        q = math.sqrt(max(float(rv @ inv3(cov) @ rv) / 3.0, 0.0))
         if learning or turn or t < self.settle_until:
-            self.S = self.z = 0.0        # relearning a turn, the test is on but blind: score 0, not NaN
-            z = 0.0 if (turn and not learning) else float("nan")
-            return FieldStep(t, z, q, tuple(r), LEARNING if (learning or turn) else SETTLING, tuple(f))
+            # learning or relearning a turn, the test is on but blind: score 0, not NaN (so a
+            # heading difference alone does not alarm while the field-vector test cannot judge)
+            self.S = self.z = 0.0
+            z = 0.0 if (turn or learning) else float("nan")
+            return FieldStep(t, z, q, tuple(r), LEARNING if (learning or turn) else SETTLING, tuple(self.f))
         q_other, eps = self._non_heading_q(c, r, sigma)
         first_turn = self._fast_turn(t, q_other, eps)
-        unknown_motor = self.motor.excitation < s.motor_excitation and abs(self._dx) > s.motor_hold_signal
-        if not (first_turn or unknown_motor):
+        if not first_turn:
             self.S = min(max(0.0, self.S + dt * (q - s.cusum_drift)), s.cusum_cap * s.cusum_threshold_s)
         self.z = self.S / s.cusum_threshold_s
         frozen = self.z >= s.freeze_z
         self._frozen_since = (self._frozen_since if self._frozen_since is not None else t) if frozen else None
         self._reanchor(t, q_other, frozen)
-        return FieldStep(t, self.z, q, tuple(r), ON, tuple(f))
+        return FieldStep(t, self.z, q, tuple(r), ON, tuple(self.f))
 
     def _fast_turn(self, t: float, q_other: float, eps: float) -> bool:
         """True while the CUSUM holds for a fast turn (over ``first_turn_hold_deg_s``) and
@@ -436,6 +463,7 @@ class FieldConsistency:
         self._low_since = (self._low_since if self._low_since is not None else t) if low else None
         if self._peak_q >= s.reanchor_peak and low and t - self._low_since >= s.reanchor_s:
             self.relearn_until = t + s.relearn_s
+            self.model.inflate(s.relearn_sd_mG, s.relearn_sd_mG)
             self.S = self.z = 0.0
             self._frozen_since, self._peak_q, self._low_since = None, 0.0, None
 
@@ -489,7 +517,7 @@ def field_consistency(t_s, mag_body_mG, roll_rad, pitch_rad, attitude_ok, gyro_r
             sts.append(step.status)
             rs.append(step.residual_mG)
             ms.append(step.motor_mG_per_unit)
-            sds.append(tuple(fc.motor.sd))
+            sds.append(tuple(fc.model.sd) if fc.model is not None else (math.inf,) * 3)
         z[c0:c1], q[c0:c1], st[c0:c1] = zs, qs, sts
         res[c0:c1], mot[c0:c1], msd[c0:c1] = rs, ms, sds
     return FieldConsistencyResult(t, z, q, res, st, mot, fc.noise_mG, tuple(fc.h or (np.nan,) * 3), tuple(fc.b),

@@ -1,15 +1,18 @@
-"""Online trackers of the live field-vector test (estimators.field_consistency), each learned from
-the changes of the residual over a short lag, so that a body offset (constant over the lag) never
-teaches them anything: the motor field per unit of the motor signal (``MotorFieldTracker``; the
-offline fits are estimators.motor_field) and the magnetometer's tilt against the attitude's axes
-(``TiltTracker``).  Pure, plain floats.
+"""The models of the live field-vector test (estimators.field_consistency): the body field's model
+with its uncertainty, a Kalman filter over the Earth field, the body offset and the motor field per
+unit of the motor signal (``FieldModelFilter``, the one motor-field model; the offline fits are
+estimators.motor_field), and the magnetometer's tilt against the attitude's axes (``TiltTracker``,
+learned from the changes of the residual over a short lag, so that a body offset never teaches it
+anything).  Pure; numpy for the 11-state filter, plain floats for the tilt.
 """
 from __future__ import annotations
 
 import math
 from collections import deque
 
-__all__ = ["MotorFieldTracker", "TiltTracker"]
+import numpy as np
+
+__all__ = ["FieldModelFilter", "TiltTracker"]
 
 
 def _lagged(hist: deque, row: tuple, lag_s: float) -> tuple | None:
@@ -27,66 +30,161 @@ def _huber(y: float, pred: float, clip: float) -> float:
     return pred + min(max(y - pred, -clip), clip)
 
 
-class MotorFieldTracker:
-    """Online field per unit of the motor signal from its changes (for the live field-vector test).
+_DIAG11 = np.diag_indices(11)
 
-    Over a short lag L the Earth part of the field barely changes outside turns, so the change of
-    u = m − Cᵀh (measured minus the predicted Earth field, body frame [mG]) is the motor field's:
-        y = u(t) − u(t − L) = f · (x(t) − x(t − L)) + noise,
-    independent of the body offset and of a steady heading error.  f is the exponentially weighted
-    least-squares slope per axis, f_k = Σ w z y_k / (Σ w z² + reg) with z = x(t) − x(t − L), the
-    weights forgetting with ``memory_s``, each y_k Huber-clipped at ``clip_mG`` around f_k z (a
-    disturbance that starts while the current changes does not teach it much).  ``excitation`` is
-    Σ z² Δt [unit² s], how much signal change f has been learned from.
-    Uncertainty: the weighted least-squares standard error per axis, sd_k = √(s²_k / (Σ w z² + reg))
-    with s²_k = Σ w (y_k − f_k z)² / Σ w the weighted mean square of the (clipped) fit residual, so
-    the noise of the field's change, a lag of the current sensor and a coarse (1-2 Hz, held) current
-    all widen it; ``significant`` (|f| ≥ k |sd|) says whether f should be removed from the field.
-    Units: mG, A (or %), s.
+
+def inv3(a: np.ndarray) -> np.ndarray:
+    """Inverse of a 3 × 3 matrix by its adjugate (cofactors / determinant): a small matrix, many
+    times per second, where np.linalg's call overhead dominates."""
+    (a0, a1, a2), (a3, a4, a5), (a6, a7, a8) = a.tolist()
+    c0, c1, c2 = a4 * a8 - a5 * a7, a5 * a6 - a3 * a8, a3 * a7 - a4 * a6
+    det = a0 * c0 + a1 * c1 + a2 * c2
+    return np.array([[c0, a2 * a7 - a1 * a8, a1 * a5 - a2 * a4],
+                     [c1, a0 * a8 - a2 * a6, a2 * a3 - a0 * a5],
+                     [c2, a1 * a6 - a0 * a7, a0 * a4 - a1 * a3]]) / det
+
+
+SIGNAL_SCALE = 10.0     # a typical excursion of the motor signal [A or %]: sets f's random walk
+
+
+class FieldModelFilter:
+    """The field-vector test's model of the calibrated body field, one Kalman filter (the one
+    motor-field model: the detector, the explanations and the best heading use its f and sd).
+
+    State θ = (ε, β, h, b, f): the error ε [rad] of the test's gyro-propagated heading ψ_f (an error
+    state: folded into ψ_f after each update, ``take_heading``), the yaw-rate bias β [rad/s] left in
+    the gyro (ψ_f integrates the yaw rate − β, so ε̇ = β − β̂: F = I + Δt e_ε e_βᵀ), the Earth field in the magnetic
+    navigation frame h [mG], a body-fixed offset b [mG] (calibration error, the motor field at the
+    first signal value) and the motor field per unit of the motor signal f [mG per A, or per %
+    throttle], body frame.  Measurement, linearised in ε (C = C(φ, θ, ψ_f), ∂(Cᵀh)/∂ψ = Cᵀ(h_E, −h_N, 0)):
+        m = R(δ) C(φ, θ, ψ_f − ε)ᵀ h + b + f·x̃ + v,   x̃ = x − x₀ (x₀: the first signal value),
+    so H = [R(δ)Cᵀ(−h_E, h_N, 0) | 0 | R(δ)Cᵀ | I | x̃ I] (3 × 11).  Kalman steps (Kalman 1960; Simon, Optimal State
+    Estimation, 2006, ch. 5): θ ← θ + K ν, P ← (I − K H) P, K = P Hᵀ S⁻¹, S = H P Hᵀ + R, with
+    ν the innovation Huber-clipped at ``clip`` σ of the test's noise and the model's uncertainty
+    (a disturbance's onset teaches it little).
+    Random walks set how fast each part follows after it is known: process noise q = r_c / τ²
+    per second (the steady-state time constant of a random walk observed with noise density
+    r_c is √(r_c / q); for f, observed through x̃, per SIGNAL_SCALE of signal), with r_c = σ² τ_c (residual noise σ, correlated over τ_c: the residual
+    is dominated by attitude and current errors that last about a second).
+    What straight flight cannot separate (h against b on one heading, f against b while the
+    signal is steady) keeps its prior variance, so the first turn or current change after it
+    is learned at once and the test's σ includes the model's own uncertainty H P Hᵀ
+    (``predicted_cov``) instead of alarming on it.  Units: mG, A (or %), s.
     """
 
-    def __init__(self, lag_s: float = 1.0, memory_s: float = 300.0, reg: float = 1.0) -> None:
-        self.lag_s, self.memory_s, self.reg = lag_s, memory_s, reg
-        self.f = [0.0, 0.0, 0.0]
-        self.sd = [math.inf, math.inf, math.inf]
+    def __init__(self, h0_mG, h_sd_mG: float = 5.0, b_sd_mG: float = 50.0, f_sd: float = 3.0,
+                 h_tau_s: float = 2000.0, b_tau_s: float = 20.0, f_tau_s: float = 300.0,
+                 corr_s: float = 1.0, heading_sd_rad: float = 0.17, bias_sd_rad_s: float = 0.0087,
+                 bias_walk_rad_s2: float = 1.0e-4, gyro_scale: float = 0.02) -> None:
+        self.theta = np.concatenate([[0.0, 0.0], np.asarray(h0_mG, dtype=float), np.zeros(6)])
+        self.P = np.diag([heading_sd_rad ** 2, bias_sd_rad_s ** 2] + [h_sd_mG ** 2] * 3 + [b_sd_mG ** 2] * 3
+                         + [f_sd ** 2] * 3)
+        self.tau = np.array([h_tau_s] * 3 + [b_tau_s] * 3 + [f_tau_s] * 3)
+        unit = np.array([1.0] * 6 + [1.0 / SIGNAL_SCALE ** 2] * 3)   # f's walk per SIGNAL_SCALE of signal
+        self._walk = np.concatenate([[0.0, 0.0], unit / (self.tau * self.tau)])
+        self.bias_walk_rad_s2, self.gyro_scale = bias_walk_rad_s2, gyro_scale
+        self.corr_s = corr_s
+        self.x0: float | None = None
         self.excitation = 0.0
-        self._sxx = 0.0
-        self._sxy = [0.0, 0.0, 0.0]
-        self._see = [0.0, 0.0, 0.0]
-        self._sw = 0.0
-        self._hist: deque = deque()
+
+    @property
+    def h(self) -> list:
+        return self.theta[2:5].tolist()
+
+    @property
+    def b(self) -> list:
+        return self.theta[5:8].tolist()
+
+    @property
+    def f(self) -> list:
+        return self.theta[8:11].tolist()
+
+    @property
+    def sd(self) -> list:
+        """f's standard error per axis (√ of P's diagonal)."""
+        return np.sqrt(self.P.flat[96::12]).tolist()
 
     def significant(self, k_sigma: float = 3.0) -> bool:
         """|f| ≥ k_sigma · |sd|: the motor field is known well enough to be removed."""
-        f2 = self.f[0] ** 2 + self.f[1] ** 2 + self.f[2] ** 2
-        sd2 = self.sd[0] ** 2 + self.sd[1] ** 2 + self.sd[2] ** 2
-        return f2 > 0.0 and f2 >= k_sigma * k_sigma * sd2
+        f2 = float(self.theta[8:11] @ self.theta[8:11])
+        return f2 > 0.0 and f2 >= k_sigma * k_sigma * float(np.sum(self.P.flat[96::12]))
 
-    def clear_history(self) -> None:
-        """Forget the recent samples (after a gap), keep what has been learned."""
-        self._hist.clear()
+    @property
+    def yaw_bias_rad_s(self) -> float:
+        """β̂, the yaw-rate bias ψ_f takes out of the gyro."""
+        return float(self.theta[1])
 
-    def update(self, t_s: float, u_mG, x: float, dt_s: float, learn: bool, clip_mG: float) -> None:
-        """One step: u = m − Cᵀh [mG], signal x (NaN: none); learns only when ``learn``."""
+    def take_heading(self) -> float:
+        """ε, reset to 0 (the caller's ψ_f takes it: ψ_f ← ψ_f − ε)."""
+        eps = float(self.theta[0])
+        self.theta[0] = 0.0
+        return eps
+
+    def signal(self, x: float) -> float:
+        """x̃ = x − x₀ (0 without a signal)."""
         if not math.isfinite(x):
-            self._hist.clear()
+            return 0.0
+        if self.x0 is None:
+            self.x0 = float(x)
+        return float(x) - self.x0
+
+    def jacobian(self, c_bt: np.ndarray, xt: float) -> np.ndarray:
+        """H (3 × 11) for the body-from-navigation matrix c_bt = R(δ)Cᵀ and the signal x̃."""
+        hn, he = float(self.theta[2]), float(self.theta[3])
+        rows = c_bt.tolist() if isinstance(c_bt, np.ndarray) else c_bt
+        return np.array([[r[1] * hn - r[0] * he, 0.0, r[0], r[1], r[2]]            # R(δ)Cᵀ (−h_E, h_N, 0)
+                         + [1.0 if j == k else 0.0 for j in range(3)] + [xt if j == k else 0.0 for j in range(3)]
+                         for k, r in enumerate(rows)])
+
+    def predict(self, H: np.ndarray) -> np.ndarray:
+        """The predicted body field H θ [mG]."""
+        return H @ self.theta
+
+    def predicted_cov(self, H: np.ndarray) -> np.ndarray:
+        """H P Hᵀ [mG²]: how uncertain the model's prediction of this step is."""
+        return H @ self.P @ H.T
+
+    def forget(self, dt_s: float, sigma_mG: float, yaw_rate_rad_s: float = 0.0) -> None:
+        """The random walks over dt: P += diag(r_c / τ²) dt, r_c = σ² τ_c; the heading's error grows
+        by what is left of the gyro's bias and by its scale error in turns."""
+        P = self.P
+        P[0, :] += dt_s * P[1, :]                      # P ← F P Fᵀ, F = I + Δt e_ε e_βᵀ
+        P[:, 0] += dt_s * P[:, 1]
+        q = self._walk * (sigma_mG * sigma_mG * self.corr_s * dt_s)
+        q[0] = (self.gyro_scale * yaw_rate_rad_s) ** 2 * dt_s
+        q[1] = self.bias_walk_rad_s2 ** 2 * dt_s
+        P.flat[::12] += q
+
+    def inflate(self, h_sd_mG: float, b_sd_mG: float) -> None:
+        """Forget h and b to this much more variance (a disturbance has ended: learn them again)."""
+        self.P[_DIAG11] += np.array([0.0, 0.0] + [h_sd_mG ** 2] * 3 + [b_sd_mG ** 2] * 3 + [0.0] * 3)
+
+    def update(self, H: np.ndarray, m_mG, dt_s: float, sigma_mG: float, clip: float,
+               extra_cov: np.ndarray | None = None, PHt: np.ndarray | None = None,
+               HPHt: np.ndarray | None = None) -> None:
+        """One Kalman measurement update with measurement noise R = (σ² τ_c / dt) I (+ extra_cov);
+        ``PHt`` = P Hᵀ and ``HPHt`` = H P Hᵀ if the caller has them."""
+        if dt_s <= 0.0:
             return
-        old = _lagged(self._hist, (t_s, float(u_mG[0]), float(u_mG[1]), float(u_mG[2]), x), self.lag_s)
-        if not learn or old is None:
-            return
-        z = x - old[4]
-        w = math.exp(-dt_s / self.memory_s)
-        self._sxx = w * self._sxx + z * z * dt_s
-        self._sw = w * self._sw + dt_s
-        self.excitation += z * z * dt_s
-        for k in range(3):
-            pred = self.f[k] * z
-            y = _huber(float(u_mG[k]) - old[k + 1], pred, clip_mG)
-            self._see[k] = w * self._see[k] + (y - pred) ** 2 * dt_s
-            self._sxy[k] = w * self._sxy[k] + z * y * dt_s
-            self.f[k] = self._sxy[k] / (self._sxx + self.reg)
-            if self._sw > 0.0:
-                self.sd[k] = math.sqrt(self._see[k] / self._sw / (self._sxx + self.reg))
+        if PHt is None:
+            PHt = self.P @ H.T
+        if HPHt is None:
+            HPHt = H @ PHt
+        r = sigma_mG * sigma_mG
+        S = HPHt + extra_cov * (self.corr_s / dt_s) if extra_cov is not None else HPHt.copy()
+        S.flat[::4] += r * self.corr_s / dt_s
+        nu = np.asarray(m_mG, dtype=float) - H @ self.theta
+        C = HPHt.copy()
+        C.flat[::4] += r
+        d = math.sqrt(max(float(nu @ inv3(C) @ nu), 0.0))
+        if d > clip:                       # Huber: at most ``clip`` σ of innovation (model error included)
+            nu = nu * (clip / d)
+        K = PHt @ inv3(S)
+        self.theta += K @ nu
+        P = self.P - K @ PHt.T
+        self.P = 0.5 * (P + P.T)
+        xt = float(H[0, 8])
+        self.excitation += xt * xt * dt_s
 
 
 class TiltTracker:

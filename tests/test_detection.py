@@ -185,8 +185,8 @@ def test_the_autopilot_tilt_counts_only_where_ours_confirms_it():
 
 
 def test_the_field_tests_never_use_the_autopilot_heading(tmp_path):
-    """The same log with the autopilot's ATTITUDE yaw drifting 0.5°/s (and its roll 15° off for a
-    minute) gives the heading difference and the field-vector score of the untouched log."""
+    """The same log with the autopilot's ATTITUDE yaw drifting 0.5°/s (and its roll jumping 25° off
+    for half a minute) gives the heading difference and the field-vector score of the untouched log."""
     from groundstation.io.logs import read_log
     from groundstation.jobs.inputs import detection_inputs
     from groundstation.sim.scenarios import simulate
@@ -195,15 +195,15 @@ def test_the_field_tests_never_use_the_autopilot_heading(tmp_path):
     att = log.attitude.copy()
     att[:, 3] += np.radians(0.5) * att[:, 0]
     late = att[:, 0] > 40.0
-    att[late, 1] += np.radians(15.0)
+    att[late, 1] += np.radians(25.0)
     log.attitude = att
     bad = detection_inputs(log)
     assert np.isfinite(ref["z_vector"]).mean() > 0.3 and np.isfinite(ref["e"]).mean() > 0.5
     np.testing.assert_array_equal(bad["e"], ref["e"])
     early = ref["t"] <= 40.0
     np.testing.assert_array_equal(bad["z_vector"][early], ref["z_vector"][early])
-    # past 40 s the 15° roll is ours instead of the autopilot's (theirs agreed with ours): the score
-    # stays below the alarm, as on the untouched log
+    # past 40 s the 25° roll jump (over TILT_JUMP_DEG) is ours instead of the autopilot's (theirs
+    # agreed with ours): the score stays below the alarm, as on the untouched log
     assert np.nanmax(bad["z_vector"][~early]) < 1.0 and np.nanmax(ref["z_vector"][~early]) < 1.0
 
 

@@ -18,6 +18,7 @@ the same pieces, so a log gives the same alarms replayed, streamed live or analy
 """
 from __future__ import annotations
 
+import math
 import statistics
 import time
 from dataclasses import dataclass, field
@@ -38,7 +39,7 @@ from groundstation.samples import CompassTable, FlightLog, finite_or_none
 __all__ = ["detection_inputs", "primary_raw", "primary_field", "mission_legs",
            "cross_track_legs", "hold_last", "Held", "field_reference", "field_policy", "FieldPolicy", "gps_rows",
            "GPS_COLUMNS", "imu_rate_hz", "step_inputs", "StepState", "too_steep", "rotation_rate", "rounded",
-           "checked_tilt", "TILT_AGREE_DEG",
+           "checked_tilt", "TILT_AGREE_DEG", "TILT_GAP_S", "TILT_JUMP_DEG",
            "heading_deg", "GPS_TIMEOUT_S", "ATTITUDE_TIMEOUT_S", "RATE_WINDOW", "vector_test_inputs", "earth_prior_mG",
            "motor_signal_table", "MOTOR_TIMEOUT_S"]
 MOTOR_TIMEOUT_S = 2.5        # the one motor-signal timeout (detector, heading): 1-2 Hz current stays held
@@ -277,28 +278,66 @@ def rounded(x, nd=3):
 
 
 # ----------------------------------------------------------------------------- per IMU step
-TILT_AGREE_DEG = 8.0         # the autopilot's roll/pitch count only this close to ours
+TILT_AGREE_DEG = 8.0         # the autopilot's roll/pitch count only while their lasting gap to ours is this small
+TILT_GAP_S = 10.0            # the gap is low-passed with this time constant (ours errs for seconds, a drift lasts)
+TILT_JUMP_DEG = 20.0         # ... and a gap this large at any one step (a jump of the autopilot) counts at once
 
 
 # One attitude (issues 27, 30): the detector's reference is the default AHRS, the attitude shown;
 # the field tests take its tilt or the autopilot's where ours confirms it (``checked_tilt``), never
 # the autopilot's heading.  Below ``min_imu_rate_hz`` the attitude-based tests are off and say why.
-def checked_tilt(chain, att_rp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def checked_tilt(chain, att_rp: np.ndarray, t_s=None, state: "StepState | None" = None) -> tuple[np.ndarray, np.ndarray]:
     """(roll, pitch) [rad] for the field tests: the autopilot's GPS-aided roll and pitch where fresh
-    and within TILT_AGREE_DEG of our AHRS's (which tilts 3-5° in a sustained acceleration: a 30-40
-    mG field-vector residual), else ours (an autopilot drifting open-loop is caught)."""
+    and their lasting gap to our AHRS's is within TILT_AGREE_DEG, else ours.
+
+    Our AHRS tilts by 5-10° for a second or two in a hard manoeuvre (a 50-80 mG field-vector
+    residual), the GPS-aided autopilot does not; an autopilot drifting open-loop in a GPS outage
+    drifts for tens of seconds.  So the gap g = autopilot − ours is low-passed with TILT_GAP_S,
+    ḡ ← ḡ + (1 − e^(−Δt/τ)) (g − ḡ) on the steps where the autopilot is fresh (held otherwise), and
+    the autopilot counts while |ḡ| ≤ TILT_AGREE_DEG and |g| ≤ TILT_JUMP_DEG on both axes (a jump of
+    its estimate counts at once; our AHRS's manoeuvre errors measured up to 13°, population clean
+    flight 173).  ``t_s`` and ``state``
+    (``StepState``, carried from call to call live) give the steps' times and the filter's state;
+    without them each step is judged on its own gap (|g|)."""
     roll, pitch = np.asarray(chain.roll_rad, dtype=float), np.asarray(chain.pitch_rad, dtype=float)
     ar, ap = np.asarray(att_rp[:, 0], dtype=float), np.asarray(att_rp[:, 1], dtype=float)
     lim = np.radians(TILT_AGREE_DEG)
     with np.errstate(invalid="ignore"):
-        agree = (np.abs(wrap_angle_rad(ar - roll)) <= lim) & (np.abs(ap - pitch) <= lim)
+        gr, gp = wrap_angle_rad(ar - roll), ap - pitch
+        jump = np.radians(TILT_JUMP_DEG)
+        agree = np.isfinite(ar) & np.isfinite(ap) & (np.abs(gr) <= jump) & (np.abs(gp) <= jump)
+    if t_s is not None and state is not None:
+        gr, gp = _lasting_gap(np.asarray(t_s, dtype=float), gr, gp, state)
+    with np.errstate(invalid="ignore"):
+        agree &= (np.abs(gr) <= lim) & (np.abs(gp) <= lim)
     return np.where(agree, ar, roll), np.where(agree, ap, pitch)
+
+
+def _lasting_gap(t: np.ndarray, gr: np.ndarray, gp: np.ndarray, state: "StepState") -> tuple[np.ndarray, np.ndarray]:
+    """The autopilot-minus-ours tilt gap low-passed with TILT_GAP_S (``checked_tilt``), per step."""
+    out_r, out_p = np.full(len(t), np.nan), np.full(len(t), np.nan)
+    tl, rl, pl = t.tolist(), gr.tolist(), gp.tolist()
+    for i in range(len(tl)):
+        r, p = rl[i], pl[i]
+        if math.isfinite(r) and math.isfinite(p):
+            if state.tilt_gap is None or state.tilt_gap_t is None or tl[i] < state.tilt_gap_t:
+                state.tilt_gap = (r, p)
+            else:
+                a = 1.0 - math.exp(-(tl[i] - state.tilt_gap_t) / TILT_GAP_S)
+                state.tilt_gap = (state.tilt_gap[0] + a * (r - state.tilt_gap[0]),
+                                  state.tilt_gap[1] + a * (p - state.tilt_gap[1]))
+            state.tilt_gap_t = tl[i]
+        if state.tilt_gap is not None:
+            out_r[i], out_p[i] = state.tilt_gap
+    return out_r, out_p
 
 
 @dataclass
 class StepState:
     """What the per-step gates carry from one call to the next (the live form calls per sample)."""
     last_steep_t: float = -np.inf
+    tilt_gap: tuple | None = None        # the autopilot-minus-ours tilt gap, low-passed (``checked_tilt``)
+    tilt_gap_t: float | None = None
 
 
 def step_inputs(t, chain, mag_held, att_rp, gps_held, rate_hz, gyro, policy: FieldPolicy,
@@ -315,7 +354,7 @@ def step_inputs(t, chain, mag_held, att_rp, gps_held, rate_hz, gyro, policy: Fie
     """
     t = np.asarray(t, dtype=float)
     valid = np.asarray(chain.valid, dtype=bool)
-    roll, pitch = checked_tilt(chain, att_rp)
+    roll, pitch = checked_tilt(chain, att_rp, t, state)
     field_mG = np.linalg.norm(mag_held, axis=1)
     incl = field_inclination_deg(mag_held, roll, pitch)
     last = np.maximum.accumulate(np.concatenate([[state.last_steep_t],
@@ -331,6 +370,7 @@ def step_inputs(t, chain, mag_held, att_rp, gps_held, rate_hz, gyro, policy: Fie
                 strength=np.where(use_field, field_mG, np.nan), incl=np.where(tilt_ok, incl, np.nan),
                 heading=np.where(valid, chain.yaw_rad, np.nan), yaw_rate=rotation_rate(gyro),
                 field_mG=field_mG, inclination_deg=incl, heading_on=heading_on, field_on=use_field, steep=steep,
+                tilt_roll=roll, tilt_pitch=pitch,
                 rate_hz=np.asarray(rate_hz, dtype=float))
 
 
@@ -371,10 +411,11 @@ def motor_signal_table(log: FlightLog) -> tuple[np.ndarray, str]:
     return np.zeros((0, 2)), "none"
 
 
-def vector_test_inputs(chain, att_rp: np.ndarray, gyro: np.ndarray, steep: np.ndarray):
+def vector_test_inputs(chain, x: dict, gyro: np.ndarray, steep: np.ndarray):
     """(roll, pitch, attitude_ok, gyro bias-corrected) for the field-vector test: the tilt of
-    ``checked_tilt`` and our attitude's gyro bias removed (its heading is the test's own, ψ_f)."""
-    roll, pitch = checked_tilt(chain, att_rp)
+    ``checked_tilt`` (``step_inputs``' x["tilt_roll"], x["tilt_pitch"]) and our attitude's gyro
+    bias removed (its heading is the test's own, ψ_f)."""
+    roll, pitch = x["tilt_roll"], x["tilt_pitch"]
     ok = np.asarray(chain.valid, dtype=bool) & ~np.asarray(steep, dtype=bool)
     return roll, pitch, ok, np.asarray(gyro, dtype=float) - np.asarray(chain.gyro_bias_rad_s, dtype=float)
 
@@ -433,7 +474,7 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
                     gps_held, rate, imu[:, 1:4], policy, settings, StepState())
     motor, motor_name = motor_signal_table(log)
     motor_held = hold_last(motor[:, 0], motor[:, 1], t, MOTOR_TIMEOUT_S)
-    roll_v, pitch_v, ok_v, gyro_v = vector_test_inputs(chain, att_held[:, :2], imu[:, 1:4], x["steep"])
+    roll_v, pitch_v, ok_v, gyro_v = vector_test_inputs(chain, x, imu[:, 1:4], x["steep"])
     vector = field_consistency(t, hold_last(mag_cal[:, 0], mag_cal[:, 1:4], t, GPS_TIMEOUT_S), roll_v, pitch_v,
                                ok_v, gyro_v, motor_held, rate, policy.field_on, settings.vector,
                                *first_fix_prior(log))

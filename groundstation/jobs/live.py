@@ -247,7 +247,7 @@ class LiveAnalyzer:
         score and residual [mG, body] per step."""
         if self.vector is None:
             self.vector = FieldConsistency(self.settings.vector, None)
-        roll, pitch, ok, gyro_c = vector_test_inputs(chain, att[:, :2], gyro, x["steep"])
+        roll, pitch, ok, gyro_c = vector_test_inputs(chain, x, gyro, x["steep"])
         field_on = self.policy.field_on
         z = np.full(len(t), np.nan)
         residual = np.full((len(t), 3), np.nan)
