@@ -742,10 +742,15 @@ def summary_rows(out: dict) -> list[tuple]:
         elif name == "motor":
             m = r.get("bin_motor") or {}
             e = _max_err([m.get("mG_per_A")], [MOTOR_TRUTH_mG_PER_A])
-            moving = any("moving with current" in x for _, _, x in r.get("bin_explained", []) + r.get("live_alarms", []))
-            rows.append(("5 flight motor", f"{fmt(m.get('mG_per_A'))} mG/A ({fmt(e)} off); 'moving with current' "
-                         f"{'said' if moving else 'never said'}", f"{list(MOTOR_TRUTH_mG_PER_A)} mG/A", "—",
-                         "explained moving with current; same on both", moving and same))
+            explained = r.get("bin_explained", []) + r.get("live_alarms", [])
+            moving = all("moving with current" in x for _, _, x in explained)
+            learnt = e is not None and e <= 0.1 * float(np.linalg.norm(MOTOR_TRUTH_mG_PER_A))
+            said = "no alarm" if not (nb or nt) else ("every alarm 'moving with current'" if moving
+                                                        else "an alarm not explained 'moving with current'")
+            rows.append(("5 flight motor", f"{fmt(m.get('mG_per_A'))} mG/A ({fmt(e)} off); {said}",
+                         f"{list(MOTOR_TRUTH_mG_PER_A)} mG/A", "—",
+                         "learnt within 10 %; no alarm, or each explained moving with current; same on both",
+                         learnt and moving and same))
         else:
             rows.append((f"5 flight {name}", f"alarms .BIN {nb}, .tlog {nt}, matched {mb}/{nb}, {mt}/{nt}",
                          FLIGHTS[name][2][:40], "—", "same kinds, start within 0.5 s", same))

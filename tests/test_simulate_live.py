@@ -6,7 +6,9 @@ corrected on board.  Truth: the scenario's own (groundstation.sim.scenarios)."""
 from __future__ import annotations
 
 import os
+import sqlite3
 import subprocess
+from pathlib import Path
 import sys
 import time
 
@@ -34,8 +36,10 @@ def _wait(predicate, timeout_s: float, what: str, procs=()):
     raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}")
 
 
-def _start(args: list[str]) -> subprocess.Popen:
+def _start(args: list[str], fleet_db: Path | None = None) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    if fleet_db is not None:      # the wizard's written result goes to a history of the test's own
+        env["MAGSTATION_FLEET_DB"] = str(fleet_db)
     return subprocess.Popen(CLI + args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
 
 
@@ -60,11 +64,11 @@ def test_live_errors_are_one_line():
         assert r.returncode == 1 and words in r.stderr and r.stderr.count("\n") == 1, (args, r.stderr)
 
 
-def test_simulate_live_drives_the_station_and_the_wizard():
+def test_simulate_live_drives_the_station_and_the_wizard(tmp_path):
     udp, port = free_udp_port(), free_tcp_port()
     url = f"http://127.0.0.1:{port}"
     station = _start(["serve", "--connect", f"udpin:127.0.0.1:{udp}", "--port", str(port),
-                      "--viser-port", str(free_tcp_port())])
+                      "--viser-port", str(free_tcp_port())], fleet_db=tmp_path / "fleet.sqlite")
     vehicle = None
     try:
         _wait(lambda: httpx.get(url + "/api/state", timeout=5).json()["source"]["kind"] == "live", 60,
@@ -85,6 +89,10 @@ def test_simulate_live_drives_the_station_and_the_wizard():
         # written and confirmed by the vehicle's PARAM_VALUE echoes: the field is corrected on board now
         _wait(lambda: httpx.get(url + "/api/state", timeout=5).json()["tests"]["field_correction"]["kind"]
               == "autopilot", 90, "the vehicle to confirm the parameters", [station, vehicle])
+        # the written result is in the history it was pointed at (not in the repository's recordings/)
+        with sqlite3.connect(tmp_path / "fleet.sqlite") as db:
+            rows = db.execute("SELECT ofs_x_mG, ofs_y_mG, ofs_z_mG FROM calibrations WHERE compass = 0").fetchall()
+        assert rows and max(abs(a - b) for a, b in zip(rows[-1], result["offsets_mG"])) < 0.01, rows
     finally:
         out_v = _stop(vehicle) if vehicle is not None else ""
         out_s = _stop(station)
