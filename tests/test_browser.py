@@ -15,7 +15,9 @@ from browser_checks import (ROOT, api, click, console_errors, has, inside, label
                             open_page, overlaps, replay, shared_browser, shared_station, view_pixels_until,
                             wait_js, wait_until)
 
-FLIGHT_PIXELS = {"violet": 150, "red": 150, "cyan": 150, "orange": 100}
+# the flight vehicle is drawn at 0.4 of the calibration model since issue 31 (92 orange px measured at
+# 1280x720 on the demo at 175 s; the threshold of 100 was set for the full-size model)
+FLIGHT_PIXELS = {"violet": 150, "red": 150, "cyan": 150, "orange": 40}
 CALIBRATION_PIXELS = {"orange": 100, "blue": 300, "amber": 300, "green": 300}
 from conftest import free_tcp_port, free_udp_port
 
@@ -212,7 +214,7 @@ def test_view_frames_the_activity(shared_station, new_page, artifacts):
         assert px["cyan"][1][2] - px["cyan"][1][0] > 0.4 * w, (size, px["cyan"])     # the line spans the view
         page.context.close()
 
-    api(st, "POST", "/api/replay/start", json={"recording": "dance.tlog", "speed": 10.0})
+    api(st, "POST", "/api/replay/start", json={"recording": "dance.tlog", "speed": 20.0})
     assert wait_until(lambda: not _state(st)["analysing"], 60)
     api(st, "POST", "/api/calibration/start")
     assert wait_until(lambda: _state(st)["wizard"]["state"] == "result", 90), {k: v for k, v in _state(st)["wizard"].items() if k in ("step", "progress_deg", "hint", "instruction", "banner", "samples", "coverage")} | {"replay": _state(st)["replay"], "src": _state(st)["source"]}
