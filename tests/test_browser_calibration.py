@@ -10,7 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
-from browser_checks import wait_until
+from browser_checks import set_value, wait_until
 from conftest import CHROMIUM, CHROMIUM_ARGS, free_tcp_port, free_udp_port
 from groundstation.sim.fake_vehicle import FakeVehicle
 from groundstation.sim.vehicle_streams import (MORE_TILTS, ROTATION_ROLL_180, ROTATION_YAW_90, TILTS,
@@ -255,7 +255,7 @@ def test_three_compasses_orientation_write_reboot_and_heading_check(station, pag
         page.screenshot(path=str(shots / "10_rebooting.png"))
         shown(page, "#instruction:has-text('is back')", WAIT_MS)
         assert fv.reboots == 1
-        page.locator("#hc-bearing").fill(force=True, value="135")
+        set_value(page, "#hc-bearing", "135")
         press(page, "#hc-measure")
         shown(page, "#hc-result .good", WAIT_MS)
         page.wait_for_timeout(300)
@@ -343,7 +343,7 @@ def test_large_vehicle_fixed_yaw_with_gps_course_and_entered_heading(station, pa
         assert fy["check"]["ok"] and abs(fy["check"]["heading_error_deg"]) < 2.0
         assert abs(fy["check"]["strength_mG"] - fy["check"]["wmm_strength_mG"]) < 15.0
         np.testing.assert_allclose(fy["vehicle_ofs_mG"]["0"], fy["ours_ofs_mG"]["0"], atol=5.0)
-        page.locator("#fy-yaw").fill(force=True, value="75")
+        set_value(page, "#fy-yaw", "75")
         press(page, "#fy-send")
         w = wait_api(api, lambda w: w["fixed_yaw"]["source"] == "entered" and w["fixed_yaw"]["state"] == "done")
         assert abs(w["fixed_yaw"]["check"]["heading_error_deg"]) < 2.0
