@@ -214,7 +214,7 @@ def test_view_frames_the_activity(shared_station, new_page, artifacts):
         assert px["cyan"][1][2] - px["cyan"][1][0] > 0.4 * w, (size, px["cyan"])     # the line spans the view
         page.context.close()
 
-    api(st, "POST", "/api/replay/start", json={"recording": "dance.tlog", "speed": 20.0})
+    api(st, "POST", "/api/replay/start", json={"recording": "dance.tlog", "speed": 10.0})
     assert wait_until(lambda: not _state(st)["analysing"], 60)
     api(st, "POST", "/api/calibration/start")
     assert wait_until(lambda: _state(st)["wizard"]["state"] == "result", 90), {k: v for k, v in _state(st)["wizard"].items() if k in ("step", "progress_deg", "hint", "instruction", "banner", "samples", "coverage")} | {"replay": _state(st)["replay"], "src": _state(st)["source"]}
