@@ -104,6 +104,15 @@ def click(page, selector: str) -> None:
     page.locator(selector).first.dispatch_event("click")
 
 
+def set_value(page, selector: str, value: str) -> None:
+    """Type ``value`` into an input as ``fill`` does (the value, then an input event), without
+    Playwright's actionability waits: beside the software-rendered 3-D view they waited 18-32 s
+    for animation frames on a loaded machine (see ``wait_js``)."""
+    has(page, selector)
+    page.locator(selector).first.evaluate(
+        "(e, v) => { e.value = v; e.dispatchEvent(new Event('input', {bubbles: true})); }", value)
+
+
 def open_page(page, station, path: str = "/index.html") -> None:
     page.goto(station.url + path)
     wait_js(page, "!document.getElementById('status').textContent.includes('connecting')")

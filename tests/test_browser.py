@@ -15,7 +15,9 @@ from browser_checks import (ROOT, api, click, console_errors, has, inside, label
                             open_page, overlaps, replay, shared_browser, shared_station, view_pixels_until,
                             wait_js, wait_until)
 
-FLIGHT_PIXELS = {"violet": 150, "red": 150, "cyan": 150, "orange": 100}
+# the flight vehicle is drawn at 0.4 of the calibration model since issue 31 (92 orange px measured at
+# 1280x720 on the demo at 175 s; the threshold of 100 was set for the full-size model)
+FLIGHT_PIXELS = {"violet": 150, "red": 150, "cyan": 150, "orange": 40}
 CALIBRATION_PIXELS = {"orange": 100, "blue": 300, "amber": 300, "green": 300}
 from conftest import free_tcp_port, free_udp_port
 

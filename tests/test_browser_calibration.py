@@ -10,7 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
-from browser_checks import wait_until
+from browser_checks import set_value, wait_until
 from conftest import CHROMIUM, CHROMIUM_ARGS, free_tcp_port, free_udp_port
 from groundstation.sim.fake_vehicle import FakeVehicle
 from groundstation.sim.vehicle_streams import (MORE_TILTS, ROTATION_ROLL_180, ROTATION_YAW_90, TILTS,
@@ -128,14 +128,19 @@ def sent_after(msgs, t_rel_s) -> int:
 def test_steps_fill_only_with_their_own_axis(station, page, api, shots):
     """Wobbling about Y and Z leaves step X empty; held still the page says so; a turn about X fills it."""
     wobble = [("body", a, d, 50.0) for a in (1, 2) for d in (40.0, -80.0, 40.0)] * 2
-    moves = [("still", 2.0)] + wobble + [("still", 60.0), ("body", 0, 370.0, 35.0), ("still", 3.0)]
+    moves = [("still", 2.0)] + wobble + [("still", 12.0), ("body", 0, 370.0, 35.0), ("still", 3.0)]
     hist = attitude_from_moves(moves, 25.0)
     msgs = pack_stream(hist, make_hardware(three_compasses()))
     t_wobble_end = 2.0 + sum(abs(m[2]) / m[3] for m in wobble)
     port = connect(api)
     open_page(page, station)
     press(page, "#start")
-    with FakeVehicle(msgs, port, speed=3.0) as fv:
+    fv = FakeVehicle(msgs, port, speed=3.0)
+    # held still (heartbeats go on, the last attitude stays the station's) from 10 s after the wobble
+    # (the hint needs 2 s of stillness as the station receives it: 6 s of the stream at x3) until
+    # the page has shown the hint, instead of a minute of stillness waited out
+    fv.hold_before = sent_after(msgs, t_wobble_end + 10.0)
+    with fv:
         while fv.sent < sent_after(msgs, t_wobble_end + 0.3):
             time.sleep(0.05)
         w = wizard(api)
@@ -145,6 +150,8 @@ def test_steps_fill_only_with_their_own_axis(station, page, api, shots):
         assert w["hint"].startswith("No motion") and w["step"] == "x" and w["progress_deg"]["x"] < 5.0
         shown(page, "#hint:has-text('No motion')", WAIT_MS)
         page.screenshot(path=str(shots / "01_steps_still_after_wobble.png"))
+        assert wizard(api)["step"] == "x"
+        fv.release()                                 # the turn about X
         shown(page, "#steps li[data-step='y'].current", WAIT_MS)
         assert "full turn" in page.locator("#steps li[data-step='x'] .deg").inner_text()
         page.screenshot(path=str(shots / "02_steps_x_done.png"))
@@ -156,15 +163,17 @@ def test_steps_fill_only_with_their_own_axis(station, page, api, shots):
 def test_link_drop_pauses_and_resumes_the_step(station, page, api, shots):
     # the still stretch spans the drop, the banner and the return on a loaded machine; the second Y
     # turn is long enough to finish the step whatever part of it falls in the gap
-    moves = [("still", 2.0), ("body", 0, 370.0, 35.0), ("still", 1.0), ("body", 1, 200.0, 35.0), ("still", 36.0),
+    moves = [("still", 2.0), ("body", 0, 370.0, 35.0), ("still", 1.0), ("body", 1, 200.0, 35.0), ("still", 4.0),
              ("body", 1, 400.0, 35.0), ("still", 3.0)]
     msgs = pack_stream(attitude_from_moves(moves, 25.0), make_hardware(three_compasses()))
     t_still = 2.0 + 370 / 35 + 1.0 + 200 / 35
     port = connect(api)
     open_page(page, station)
     press(page, "#start")
-    with FakeVehicle(msgs, port, speed=SPEED) as fv:
-        while fv.sent < sent_after(msgs, t_still + 0.5):
+    fv = FakeVehicle(msgs, port, speed=SPEED)
+    fv.hold_before = sent_after(msgs, t_still + 0.5)   # held still over the drop, until the banner says it resumes
+    with fv:
+        while fv.sent < fv.hold_before:
             time.sleep(0.05)
         fv.set_link(False)
         shown(page, "#banner:has-text('Link lost during step Y')", WAIT_MS)
@@ -177,6 +186,7 @@ def test_link_drop_pauses_and_resumes_the_step(station, page, api, shots):
         shown(page, "#banner:has-text('resumes')", WAIT_MS)
         assert wizard(api)["progress_deg"]["y"] >= y_before - 2.0       # resumed, not restarted
         page.screenshot(path=str(shots / "04_link_back_resumed.png"))
+        fv.release()                                                    # the rest of the Y turn
         shown(page, "#steps li[data-step='z'].current", WAIT_MS)
     events = [e["text"] for e in api.get("/api/state").json()["events"]]
     assert any("paused: link lost during step Y" in t for t in events)
@@ -196,8 +206,10 @@ def test_three_compasses_orientation_write_reboot_and_heading_check(station, pag
     press(page, "#start")
     warnings: set[str] = set()
     with FakeVehicle(msgs, port, speed=SPEED, after_reboot=after, reboot_silence_s=4.0) as fv:
-        # step X done (a loaded machine may already be past step Y when the page is polled)
-        shown(page, "#steps li[data-step='x'].done", WAIT_MS)
+        # step X done (a loaded machine may already be past step Y when the page is polled, or, at
+        # load 20, at the result, when the steps are no longer shown)
+        assert wait_until(lambda: page.locator("#steps li[data-step='x'].done").first.is_visible()
+                          or page.locator("#result-card:not([hidden])").first.is_visible(), WAIT_MS / 1000, 0.1)
         page.screenshot(path=str(shots / "05_guided_step_y.png"))
         w = wait_api(api, lambda w: warnings.update(w["warnings"]) or (w["step"] == "tumble" and w["next_pose"])
                      or w["state"] != "running")
@@ -245,7 +257,7 @@ def test_three_compasses_orientation_write_reboot_and_heading_check(station, pag
         page.screenshot(path=str(shots / "10_rebooting.png"))
         shown(page, "#instruction:has-text('is back')", WAIT_MS)
         assert fv.reboots == 1
-        page.locator("#hc-bearing").fill(force=True, value="135")
+        set_value(page, "#hc-bearing", "135")
         press(page, "#hc-measure")
         shown(page, "#hc-result .good", WAIT_MS)
         page.wait_for_timeout(300)
@@ -262,16 +274,20 @@ def test_three_compasses_orientation_write_reboot_and_heading_check(station, pag
 # ------------------------------------------------------------------ onboard calibration
 def test_onboard_calibrator_beside_ours(station, page, api, shots):
     hw = make_hardware(three_compasses())
-    dance = hold_attitude(30.0, 30.0, rate_hz=25.0, wobble_deg=0.0).then(guided_dance_attitude(tilts=TILTS + MORE_TILTS))
+    dance = hold_attitude(30.0, 4.0, rate_hz=25.0, wobble_deg=0.0).then(guided_dance_attitude(tilts=TILTS + MORE_TILTS))
     msgs = pack_stream(dance, hw)
     port = connect(api)
     open_page(page, station)
     set_checked(page, "#modes input[value='onboard']", True)
-    with FakeVehicle(msgs, port, speed=SPEED) as fv:
+    fv = FakeVehicle(msgs, port, speed=SPEED)
+    fv.hold_before = sent_after(msgs, 3.0)         # held still until the vehicle's calibrator has started
+    with fv:
         while api.get("/api/state").json()["source"]["link"] != "up":      # the command needs the link
             time.sleep(0.05)
         press(page, "#start")
         shown(page, "#onboard-card:not([hidden])", WAIT_MS)
+        assert wait_until(lambda: any(c[0] == 42424 for c in fv.commands), WAIT_MS / 1000)   # DO_START_MAG_CAL
+        fv.release()
         wait_api(api, lambda w: w["onboard"]["compasses"] and w["onboard"]["compasses"][0].get("completion_pct", 0) > 40)
         page.wait_for_timeout(500)
         page.screenshot(path=str(shots / "13_onboard_running.png"))
@@ -329,7 +345,7 @@ def test_large_vehicle_fixed_yaw_with_gps_course_and_entered_heading(station, pa
         assert fy["check"]["ok"] and abs(fy["check"]["heading_error_deg"]) < 2.0
         assert abs(fy["check"]["strength_mG"] - fy["check"]["wmm_strength_mG"]) < 15.0
         np.testing.assert_allclose(fy["vehicle_ofs_mG"]["0"], fy["ours_ofs_mG"]["0"], atol=5.0)
-        page.locator("#fy-yaw").fill(force=True, value="75")
+        set_value(page, "#fy-yaw", "75")
         press(page, "#fy-send")
         w = wait_api(api, lambda w: w["fixed_yaw"]["source"] == "entered" and w["fixed_yaw"]["state"] == "done")
         assert abs(w["fixed_yaw"]["check"]["heading_error_deg"]) < 2.0

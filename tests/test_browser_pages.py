@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from browser_checks import (ROOT, dismiss_webgl_notice, label_boxes, launch_browser, overlaps, project,
-                            view_pixels_until, wait_js)
+                            set_value, view_pixels_until, wait_js)
 from conftest import free_tcp_port, free_udp_port, wait_until
 
 UPLOAD_NAME = "upload-20260101-101010-a_very_long_field_log_name_from_the_trial.tlog"
@@ -366,7 +366,7 @@ def test_wizard_on_a_vehicle_reads_right(station, new_page, http, shots):
         assert "calibration in use: this station's" in status and "the vehicle's" not in status, status
         ok(http.post("/api/calibration/reboot", json={"confirm": True}))
         wait_js(page, "document.getElementById('instruction').textContent.includes('is back')", 60_000)
-        page.locator("#hc-bearing").fill(force=True, value="173.6")       # the vehicle points at 135°
+        set_value(page, "#hc-bearing", "173.6")                           # the vehicle points at 135°
         page.locator("#hc-measure").dispatch_event("click")
         wait_js(page, "document.querySelector('#hc-result .good, #hc-result .error')", 60_000)
         page.wait_for_timeout(300)

@@ -58,17 +58,25 @@ def _hangs_on_the_empty_file(path, settings, skip):
 
 
 @pytest.fixture(scope="module")
-def reviewed(fleet, tmp_path_factory):
+def cluster():
+    """One LocalCluster of 2 worker processes for the module (its start-up is most of a review's cost
+    on 2 cores): the review below and the benchmark's 2-worker side run on it."""
+    with fleet_client(workers=2) as (client, dashboard):
+        yield client, dashboard
+
+
+@pytest.fixture(scope="module")
+def reviewed(fleet, cluster, tmp_path_factory):
     """The fleet reviewed on a LocalCluster of 2 worker processes (one log hangs), then again."""
     out, _ = fleet
     db = tmp_path_factory.mktemp("history") / "fleet.sqlite"
     mapping = load_airframes(out / "airframes.json")
     seen = []
-    with fleet_client(workers=2) as (client, dashboard):
-        info = client.scheduler_info()["workers"]
-        summary = run_review(client, [out], db, airframes=mapping, job=_hangs_on_the_empty_file, timeout_s=15.0,
-                             on_progress=lambda p: seen.append((p.done, p.failed, p.left)))
-        again = run_review(client, [out], db, airframes=mapping)
+    client, dashboard = cluster
+    info = client.scheduler_info()["workers"]
+    summary = run_review(client, [out], db, airframes=mapping, job=_hangs_on_the_empty_file, timeout_s=15.0,
+                         on_progress=lambda p: seen.append((p.done, p.failed, p.left)))
+    again = run_review(client, [out], db, airframes=mapping)
     return {"db": db, "workers": list(info), "dashboard": dashboard, "summary": summary, "again": again, "seen": seen}
 
 
@@ -174,18 +182,38 @@ def test_review_cli_on_explicit_scheduler_and_worker_processes(fleet, reviewed, 
         assert Path(f).name in page                                             # listed under failed logs
 
 
-def test_review_benchmark_smoke(fleet):
-    """The benchmark's table on four logs of the test fleet (speed figures are not asserted: load)."""
+def test_review_benchmark_smoke(fleet, cluster, monkeypatch, capsys):
+    """The benchmark's table on four logs of the test fleet (speed figures are not asserted: load).
+    Run in this process, its 2-worker side on the module's cluster (its 1-worker cluster is its own):
+    a second interpreter and a second 2-worker start-up cost more than the run itself."""
+    import importlib.util
+    from contextlib import contextmanager
+
     out, _ = fleet
-    res = subprocess.run([sys.executable, "benchmarks/review.py", "--fleet", str(out), "--vehicles", "3", "--flights",
-                          "10", "--seed", "3", "--max-logs", "4", "--serial-logs", "1", "--throughput-logs", "2",
-                          "--repeats", "1"], cwd=ROOT, capture_output=True, text=True, timeout=600)
-    assert res.returncode == 0, res.stderr[-3000:]
-    assert "(reused)" in res.stdout and "| 2 workers / 1 worker | " in res.stdout, res.stdout
+    spec = importlib.util.spec_from_file_location("review_benchmark", ROOT / "benchmarks" / "review.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    started = []
+
+    @contextmanager
+    def clients(scheduler=None, workers=2, **kw):
+        started.append(workers)
+        if workers == 2:
+            yield cluster
+        else:
+            with fleet_client(scheduler, workers, **kw) as own:
+                yield own
+
+    monkeypatch.setattr(bench, "fleet_client", clients)
+    assert bench.main(["--fleet", str(out), "--vehicles", "3", "--flights", "10", "--seed", "3", "--max-logs", "4",
+                       "--serial-logs", "1", "--throughput-logs", "2", "--repeats", "1"]) == 0
+    stdout = capsys.readouterr().out
+    assert sorted(started) == [1, 2]
+    assert "(reused)" in stdout and "| 2 workers / 1 worker | " in stdout, stdout
     for metric in ("serial loop, no Dask (peer)", "repeat 1: 1 worker(s), 2 logs", "repeat 1: 2 worker(s), 2 logs",
                    "per-log cost", "per-log CPU", "peak memory per worker", "planted drifts found",
                    "interference events found"):
-        assert f"| {metric}" in res.stdout, res.stdout
+        assert f"| {metric}" in stdout, stdout
 
 
 def test_fleet_page_lists_airframes_and_the_drift_alert(fleet, reviewed, playwright_instance, artifacts, tmp_path,

@@ -7,7 +7,7 @@ Screenshots at each step go to tests/artifacts/walkthrough_*.png; what must be v
 from __future__ import annotations
 
 from browser_checks import (api, click, console_errors, has, inside, new_page, open_page,  # noqa: F401
-                            shared_browser, shared_station, view_pixels_until, wait_js, wait_until)
+                            set_value, shared_browser, shared_station, view_pixels_until, wait_js, wait_until)
 from conftest import free_udp_port
 from groundstation.sim.fake_vehicle import FakeVehicle
 from groundstation.sim.scenarios import simulate
@@ -28,7 +28,7 @@ def test_walkthrough(shared_station, new_page, artifacts):
 
     # 1. the demo: replay, seek into the interference episode; route, line and vehicle in view
     click(page, "#recordings tr[data-name='demo.tlog']")
-    page.locator("#speed").fill("4", force=True)
+    set_value(page, "#speed", "4")
     click(page, "#replay")
     has(page, "#status", "demo.tlog")
     assert wait_until(lambda: not api(st, "GET", "/api/state")["analysing"], 60)
@@ -69,7 +69,7 @@ def test_walkthrough(shared_station, new_page, artifacts):
     page.go_back()
     has(page, "#recordings tr[data-name]")
     port = free_udp_port()
-    page.locator("#connect").fill(f"udpin:127.0.0.1:{port}", force=True)
+    set_value(page, "#connect", f"udpin:127.0.0.1:{port}")
     click(page, "#connect-btn")
     has(page, "#pending")
     click(page, "#stop")
