@@ -1,14 +1,14 @@
 """Field-vector consistency test: the measured body field against the one the attitude predicts.
 
 Model (body FRD, mG), for each IMU step with a calibrated field m:
-    m = R(δ) C(φ, θ, ψ_f)ᵀ h + b + f·(x − x_ref) + d + noise
+    m = R(δ) C(φ, θ, ψ_f)ᵀ h + b + f·(x − x₀) + d + noise
 * C = C_b^n (estimators.rotations) from roll φ and pitch θ (the caller's best: the autopilot's
   GPS-aided attitude when fresh, else our AHRS, which tilts by degrees in a sustained acceleration)
   and a heading ψ_f that follows the gyro: ψ_f is propagated by the bias-corrected gyro's yaw rate
-  ψ̇ = (q sin φ + r cos φ) / cos θ (ZYX Euler kinematics) and pulled to the tilt-compensated
-  magnetic heading of m − b − f·Δx with the time constant ``heading_track_s`` (not at all
-  while the test suspects a disturbance).  The AHRS heading follows the magnetometer
-  (k_m ≈ 0.2/s), so it would turn with a disturbance and hide most of it; ψ_f does not.
+  ψ̇ = (q sin φ + r cos φ) / cos θ (ZYX Euler kinematics) less the model's yaw-rate bias, and
+  corrected by the model's heading-error state ε (below) — slowly, since a heading difference is
+  also what a disturbance makes.  The AHRS heading follows the magnetometer (k_m ≈ 0.2/s), so it
+  would turn with a disturbance and hide most of it; ψ_f does not.
 * R(δ) ≈ I + [δ×]: the magnetometer's tilt δ = (δ_x, δ_y, 0) [rad] against the attitude's body
   axes, a mounting misalignment that an ArduPilot calibration cannot hold (COMPASS_DIA/ODI is
   symmetric: the rotation part of the fitted matrix is dropped, estimators.calibration.
@@ -26,22 +26,14 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   The tilt about z is a heading offset, ψ_f's.  ψ_f is pulled to the heading of the untilted
   field R(δ)ᵀ(m − b − f·Δx).
 * h: the Earth field in the magnetic navigation frame (the AHRS heading is magnetic), WMM as the
-  prior (H, 0, Z) (without one, the first field), learned in flight; b: a body-fixed residual
-  offset (calibration error, motor field at the reference signal);
-* f: the motor field per unit of the motor signal x (current [A], or throttle in % without a
-  current sensor), on x − x_ref (x_ref: the signal low-passed with ``motor_ref_s``), as
-  ArduPilot's compassmot / PX4's mag_compensation fit it offline (estimators.motor_field).
-  f is learned from the signal's changes (estimators.residual_trackers.MotorFieldTracker: the change of m − Cᵀh over ``motor_lag_s``
-  against the change of x, weighted least squares, Huber-clipped at ``motor_clip_sigma`` σ), not
-  in turns, not before ``motor_learn_after_s``, not while the test suspects a disturbance, so the
-  body offset settling or a slow disturbance does not teach it a wrong field per ampere; until
-  ``motor_excitation`` of signal change is seen, the CUSUM holds while x is far from x_ref.
-  h and b are learned by (normalised) LMS on the residual (gradients C e and e), fast
-  during the first ``learn_s`` of data, then slowly.  While the vehicle flies one heading, h (a
-  heading offset) and b are not separable; b learns ``field_learn_ratio`` times faster, and the
-  first turn of more than ``turn_deg`` is learned again for ``turn_learn_s`` with equal gains: on a
-  turn round, equal-gain LMS puts exactly half of the new residual in b and half in h, which is the
-  split that removes a wrong one (the residual of a wrong split flips sign with the heading).
+  prior (H, 0, Z) (without one, the first field); b: a body-fixed residual offset (calibration
+  error, motor field at the first signal value); f: the motor field per unit of the motor signal x
+  (current [A], or throttle in % without a current sensor), as ArduPilot's compassmot / PX4's
+  mag_compensation fit it offline (estimators.motor_field).  ε, the yaw-rate bias, h, b and f are
+  one Kalman state (estimators.residual_trackers.FieldModelFilter, the one motor-field model):
+  what the flight so far cannot separate (h against b on one heading, f against b on a steady
+  current) keeps its variance, so the first turn or current change is learned at once, in turns
+  too, and the model's own uncertainty H P Hᵀ enters the test's σ instead of alarming.
 * d: the disturbance.  The residual e = m − C ᵀh − b − f(x − x_ref) is low-passed (``smooth_s``),
   r̄; its size in noise units q = |r̄| / σ (σ: RMS of |r̄| over the last quarter of the learning
   time, then following it with ``noise_track_s`` while the test is quiet; at least

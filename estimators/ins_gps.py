@@ -84,6 +84,7 @@ from estimators.attitude import roll_pitch_from_specific_force
 from estimators.rotations import (dcm_body_to_ned, euler_from_dcm, rotation_from_vector_rad, skew, wrap_angle_deg,
                                   wrap_heading_rad, wrap_heading_rad_float)
 from estimators.heading import tilt_compensated_heading_rad
+from estimators.residual_trackers import MOTOR_TIMEOUT_S
 
 __all__ = ["InsGpsSettings", "InsGpsFilter", "InsGpsState", "InsGpsResult", "AidStatus", "run_ins_gps",
            "MODE_INIT", "MODE_GPS", "MODE_FIELD_FEEDBACK", "MODE_OPEN_LOOP", "MODE_NAMES",
@@ -133,7 +134,7 @@ class InsGpsSettings:
     body_field_sigma_mG: float = 0.0         # prior of a body-fixed field d^b (0 = not estimated)
     body_field_walk_mG: float = 0.2          # its random walk, mG per sqrt(s)
     motor_field_sigma_mG_per_A: float = 3.0  # prior of the motor-current field c, H_m += c·I (needs current)
-    current_timeout_s: float = 1.0           # an older battery-current sample is not used
+    current_timeout_s: float = MOTOR_TIMEOUT_S   # an older battery-current sample is not used (the one timeout)
     outage_field_walk_mG: float = 1.0        # "kalman": the set-point may drift, mG per sqrt(s) (see doc)
     declination_deg: float = 0.0             # initial heading from the magnetometer + declination
     init_attitude_sigma_rad: float = 0.1     # tilt from one accelerometer sample: rotor drag, gusts

@@ -20,7 +20,7 @@ Reported, as ArduPilot's compassmot and PX4's mag_compensation.py do:
 This is the offline calibration product (a raw-field fit against the WMM, like compassmot).  In
 flight the one motor-field model of a calibrated field, serving the detector, the heading and the
 explanations, is the online one learnt from the current's changes with its uncertainty
-(estimators.residual_trackers.MotorFieldTracker, used by estimators.field_consistency and
+(estimators.residual_trackers.FieldModelFilter, used by estimators.field_consistency and
 groundstation.jobs.motor_heading).
 
 Units: mG, A, throttle 0..1.  Pure numpy.

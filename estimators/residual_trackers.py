@@ -12,7 +12,7 @@ from collections import deque
 
 import numpy as np
 
-__all__ = ["FieldModelFilter", "TiltTracker"]
+__all__ = ["FieldModelFilter", "TiltTracker", "MOTOR_TIMEOUT_S"]
 
 
 def _lagged(hist: deque, row: tuple, lag_s: float) -> tuple | None:
@@ -45,6 +45,8 @@ def inv3(a: np.ndarray) -> np.ndarray:
 
 
 SIGNAL_SCALE = 10.0     # a typical excursion of the motor signal [A or %]: sets f's random walk
+MOTOR_TIMEOUT_S = 2.5   # the one motor-signal timeout [s]: an older current (or throttle) sample is not
+                        # used; 1-2 Hz battery telemetry stays held between its samples
 
 
 class FieldModelFilter:

@@ -162,6 +162,28 @@ def test_motor_current_field_states_learn_the_field_per_amp():
     assert np.abs(attitude_errors_deg(without, tr)[1][after]).max() > 3.0
 
 
+def test_current_at_telemetry_rate_is_held_by_the_one_motor_timeout():
+    """Battery current at 0.6 Hz (SYS_STATUS on a slow telemetry link): each sample is held for
+    the one motor-signal timeout (MOTOR_TIMEOUT_S, 2.5 s), so the filter still learns c.  With a
+    1 s timeout (what ins_gps had) the field is left unexplained most of the time."""
+    from estimators.residual_trackers import MOTOR_TIMEOUT_S
+    tr = simulate_manoeuvring_flight(duration_s=200.0, imu_rate_hz=50.0, seed=5)
+    c = np.array([-1.2, 0.8, 2.0])
+    t_fine = np.arange(0.0, 200.0, 0.1)
+    amps_fine = 20.0 + 6.0 * np.sin(0.21 * t_fine) + 2.0 * np.sin(0.9 * t_fine + 1.0)
+    mag = tr.mag.copy()
+    mag[:, 1:4] += np.interp(mag[:, 0], t_fine, amps_fine)[:, None] * c
+    t_cur = np.arange(0.0, 200.0, 1.0 / 0.6)
+    current = np.c_[t_cur, np.interp(t_cur, t_fine, amps_fine)]
+    errors = {}
+    for timeout in (MOTOR_TIMEOUT_S, 1.0):
+        f = InsGpsFilter(InsGpsSettings(declination_deg=_decl(tr), current_timeout_s=timeout))
+        run_ins_gps(tr.imu, tr.gps_ned, mag, filt=f, current=current)
+        errors[timeout] = float(np.linalg.norm(f.motor_field - c))
+    assert InsGpsSettings().current_timeout_s == MOTOR_TIMEOUT_S
+    assert errors[MOTOR_TIMEOUT_S] < 0.5 and errors[1.0] > 1.0, errors     # measured 0.09 / 1.80 mG/A
+
+
 def test_gps_outlier_fails_the_innovation_gate():
     """A 60 m GPS position jump is rejected by the 5-sigma gate (test ratio > 1, EKF2's
     innovation test); the neighbouring fixes pass with ratios well under 1."""

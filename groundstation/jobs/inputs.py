@@ -29,6 +29,7 @@ from estimators.detection import DetectionSettings, cross_track_m, field_inclina
 from estimators.field_consistency import field_consistency
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import run_heading_chain
+from estimators.residual_trackers import MOTOR_TIMEOUT_S   # the one motor-signal timeout
 from estimators.rotations import wrap_angle_rad
 
 from groundstation.io.params import ardupilot_never_calibrated, unapply_onboard_calibration
@@ -42,7 +43,6 @@ __all__ = ["detection_inputs", "primary_raw", "primary_field", "mission_legs",
            "checked_tilt", "TILT_AGREE_DEG", "TILT_GAP_S", "TILT_JUMP_DEG",
            "heading_deg", "GPS_TIMEOUT_S", "ATTITUDE_TIMEOUT_S", "RATE_WINDOW", "vector_test_inputs", "earth_prior_mG",
            "motor_signal_table", "MOTOR_TIMEOUT_S"]
-MOTOR_TIMEOUT_S = 2.5        # the one motor-signal timeout (detector, heading): 1-2 Hz current stays held
 
 GPS_TIMEOUT_S = 1.0          # a GPS or magnetometer value older than this is not used
 ATTITUDE_TIMEOUT_S = 0.5     # the autopilot's roll/pitch, for the field inclination and the steep gate

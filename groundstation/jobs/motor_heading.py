@@ -2,7 +2,7 @@
 taken out (analyze's CSV attitude, issue 12).
 
 One motor-field model (issue 30): the field per ampere f the field-vector test learns online from
-the current's changes (``estimators.residual_trackers.MotorFieldTracker``, inside
+the current's changes (``estimators.residual_trackers.FieldModelFilter``, inside
 ``estimators.field_consistency``), with its standard error, serves the detector, the alarm
 explanations (the test's residual has f·Δx removed) and this heading.  A calibration from the
 rotation dance is made with the motors off, so in flight the field of the motor and battery
