@@ -2,6 +2,8 @@
 no sample of the other enters the estimates, and its outputs equal those of the vehicle alone."""
 from __future__ import annotations
 
+import math
+
 import time
 from collections import Counter
 
@@ -127,9 +129,16 @@ def sent_values(packets: list[bytes], sysid: int) -> list[tuple]:
     return sensor_values(values(samples))
 
 
+def _nan_equal(v):
+    """NaN as a marker that equals itself (a decoded NaN is a new float each time: nan != nan)."""
+    if isinstance(v, tuple):
+        return tuple(_nan_equal(x) for x in v)
+    return "NaN" if isinstance(v, float) and math.isnan(v) else v
+
+
 def sensor_values(samples: list[tuple]) -> list[tuple]:
     """Sensor samples only: parameter answers arrive whenever the station asked for them."""
-    return [v for v in samples if v[0] != "ParamSample"]
+    return [_nan_equal(v) for v in samples if v[0] != "ParamSample"]
 
 
 def same_tail(a: list, b: list, slack: int = 20) -> bool:

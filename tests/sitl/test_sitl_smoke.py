@@ -140,7 +140,7 @@ def test_session_tlog_has_both_directions_one_report_each_and_the_right_magnetom
     assert log.message_counts["COMMAND_LONG"] >= 14          # SET_MESSAGE_INTERVAL per stream + start
     lines = "\n".join(compass_lines(log))
     assert "1 start command(s)" in lines, lines
-    assert "3 report(s)" in lines and log.message_counts["MAG_CAL_REPORT"] > 3, lines
+    assert "3 report(s)" in lines and log.message_counts["MAG_CAL_REPORT"] >= 3, lines   # repeated until accepted: once each when the station is quick
     c0 = [c for c in log.compass_tables() if c.compass == 0][0]
     assert c0.source == "RAW_IMU" and "HIGHRES_IMU" in (c0.source_note or "")
     dec, mags = MavlinkDecoder(), {0: [], 20: []}
