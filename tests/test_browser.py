@@ -95,6 +95,7 @@ def test_new_source_starts_clean(shared_station, new_page):
     assert "last packet" not in status and "waiting" in status
     assert page.locator("#v-rp").inner_text() == "— / —" and page.locator("#alarm-count").inner_text() == "0"
     page.click("#stop")
+    page.wait_for_selector("#status:has-text('no source')")     # the page's stop lands before the next start
     replay(st, "demo.tlog", seek=10.0)
     page.wait_for_selector("#line-text:has-text('mission')")
     page.click("#line-clear")

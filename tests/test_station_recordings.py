@@ -171,3 +171,17 @@ def test_review_of_an_uploaded_finished_flight_shows_the_smoothed_attitude(clien
     for col in ("t_s", "alarm", "ev_heading", "ev_path", "ev_field", "score", "heading_on", "field_on", "path_on",
                 "steep", "mag_heading_deg", "field_mG", "inclination_deg", "cross_track_m"):
         np.testing.assert_array_equal(review.rows[:, COL[col]], causal.rows[:, COL[col]], err_msg=col)
+
+
+def test_a_replay_stopped_as_it_starts_is_a_conflict_not_a_server_error(client, monkeypatch):
+    """A stop that lands between the replay's start and its answer (the page's stop button racing
+    an API start, seen in CI): 409 with a one-line reason, never a 500 from the response model."""
+    name = _upload(client, "race.tlog", DEMO.read_bytes()).json()["name"]
+    real = Session.start_replay
+
+    def start_then_stopped(self, *a, **kw):
+        real(self, *a, **kw)
+        self.stop()
+    monkeypatch.setattr(Session, "start_replay", start_then_stopped)
+    r = client.post("/api/replay/start", json={"recording": name, "speed": 1})
+    assert r.status_code == 409 and "stopped as it started" in r.text, (r.status_code, r.text)

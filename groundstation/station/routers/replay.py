@@ -13,7 +13,10 @@ router = APIRouter(prefix="/api/replay", tags=["replay"])
 @router.post("/start", response_model=ReplayInfo)
 def replay_start(req: ReplayStart, hub: HubDep) -> dict:
     hub.start_replay(hub.resolve_recording(req.recording), req.speed, req.loop)
-    return hub.snapshot()["replay"]
+    info = hub.snapshot()["replay"]
+    if info is None:        # a stop (or another source) came in between: say so, not a 500
+        raise ConflictError("the replay was stopped as it started (another request changed the source)")
+    return info
 
 
 @router.post("/stop", response_model=Ok)
