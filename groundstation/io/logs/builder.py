@@ -14,7 +14,8 @@ from ..decode import expected_field_mG
 from .instances import compact_history, split_compasses, split_imus
 from ..params import param_value_problem
 
-__all__ = ["LogBuilder", "clean_table", "drop_time_outliers", "iter_samples", "SampleTimeline"]
+__all__ = ["LogBuilder", "clean_table", "drop_time_outliers", "iter_samples", "SampleTimeline", "column_table",
+           "in_record_order"]
 
 
 NAN3 = (float("nan"),) * 3
@@ -128,6 +129,24 @@ ABSURD_VALUE = 1e15          # no time [s] or reading in any internal unit comes
 OUTLIER_GAP_S = 300.0     # samples separated from the rest of a table by a gap this long ...
 OUTLIER_MAX_ROWS = 2      # ... in a group of at most this many rows (or 0.1 % of the table) have
 OUTLIER_MAX_FRACTION = 1e-3  # corrupt times (a flipped bit: 9e12 s), not a second session
+
+
+def column_table(rows: np.ndarray, *columns) -> tuple[np.ndarray, np.ndarray]:
+    """(record numbers, [n, len(columns)] float table) of one message type decoded in bulk,
+    converted column by column (no float copy of each column)."""
+    out = np.empty((len(rows), len(columns)))
+    for j, c in enumerate(columns):
+        out[:, j] = c
+    return rows, out
+
+
+def in_record_order(parts: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """The rows of a table made of several message types' ``column_table`` parts, in record
+    order (stable: rows of one record keep their order)."""
+    if len(parts) == 1:
+        return parts[0][1]                      # one message type: already in record order
+    rows = np.concatenate([p[0] for p in parts])
+    return np.concatenate([p[1] for p in parts])[np.argsort(rows, kind="stable")]
 
 
 def drop_time_outliers(arr: np.ndarray, name: str, warnings: Counter) -> np.ndarray:

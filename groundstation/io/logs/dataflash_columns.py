@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from .builder import LogBuilder
+from .builder import LogBuilder, column_table, in_record_order
 from .dataflash_messages import (_SPLIT, THROTTLE_PRIORITY, WANTED, att_rad, curr_amps, gps_velocity_ned,
                                  rcou_throttle)
 from ..decode import MAG_CAL_COMMANDS, MAV_CMD_NAV_WAYPOINT
@@ -206,10 +206,7 @@ class _BulkDecoder:
 
     def table(self, name: str, rows: np.ndarray, *columns) -> None:
         if len(rows):
-            out = np.empty((len(rows), len(columns)))
-            for j, c in enumerate(columns):          # converted column by column: no float copy of each
-                out[:, j] = c
-            self.tables[name].append((rows, out))
+            self.tables[name].append(column_table(rows, *columns))
 
     def run(self) -> None:
         for name, tp in self.types.items():
@@ -362,12 +359,8 @@ def read_bulk(path: Path, progress: Callable[[float], None] | None, reader) -> F
     for _, name, count in first:
         log.message_counts[name] += count
     for name, parts in bulk.tables.items():
-        if len(parts) == 1:
-            builder.set_table(name, parts[0][1])                   # one message type: in record order
-        elif parts:
-            rows = np.concatenate([p[0] for p in parts])
-            order = np.argsort(rows, kind="stable")
-            builder.set_table(name, np.concatenate([p[1] for p in parts])[order])
+        if parts:
+            builder.set_table(name, in_record_order(parts))
     for kind, *item in events:
         if kind == "add":
             builder.add(item[0])
@@ -381,9 +374,7 @@ def read_bulk(path: Path, progress: Callable[[float], None] | None, reader) -> F
         log.warnings[f"log truncated: last {reader.data_len - end} bytes unreadable"] += 1
     throttle_source = next((k for k in THROTTLE_PRIORITY if bulk.throttle[k]), None)
     if throttle_source:
-        parts = bulk.throttle[throttle_source]
-        rows = np.concatenate([p[0] for p in parts])
-        table = np.concatenate([p[1] for p in parts])[np.argsort(rows, kind="stable")]
+        table = in_record_order(bulk.throttle[throttle_source])
         builder.set_table("throttle", table)
     for name, table in bulk.other_attitudes.items():
         builder.other_attitudes[name] = np.ascontiguousarray(table).ravel()   # read back with np.frombuffer

@@ -14,7 +14,7 @@ import numpy as np
 from .. import decode as dec
 from ..decode import MavlinkDecoder
 from ..mavlink import mavlink2
-from .builder import LogBuilder
+from .builder import LogBuilder, column_table, in_record_order
 from .mavlink_bulk import CORRUPT, byte_at, decode_packet as _decode, decode_payloads
 from ...samples import OffsetsSample, StatusSample
 
@@ -114,10 +114,7 @@ class _ColumnDecoder:
 
     def table(self, name: str, rows: np.ndarray, *columns) -> None:
         if len(rows):
-            out = np.empty((len(rows), len(columns)))
-            for j, c in enumerate(columns):          # converted column by column: no float copy of each
-                out[:, j] = c
-            self.tables[name].append((rows, out))
+            self.tables[name].append(column_table(rows, *columns))
 
     # ---------------------------------------------------------------- run
     def run(self) -> None:
@@ -323,12 +320,8 @@ class _ColumnDecoder:
 
     def _finish(self) -> None:
         for name, parts in self.tables.items():
-            if len(parts) == 1:
-                self.builder.set_table(name, parts[0][1])            # one message type: in record order
-            elif parts:
-                rows = np.concatenate([p[0] for p in parts])
-                order = np.argsort(rows, kind="stable")
-                self.builder.set_table(name, np.concatenate([p[1] for p in parts])[order])
+            if parts:
+                self.builder.set_table(name, in_record_order(parts))
         self.tables.clear()
         self.events.sort(key=lambda e: e[0])
         for _, s in self.events:
