@@ -270,11 +270,6 @@ def test_attitude_source_chosen_by_the_held_out_residual_named_and_forced(flight
 def test_dataflash_reader_keeps_every_attitude_estimator(tmp_path, monkeypatch):
     """AHR2 (DCM), XKF1 (EKF3, first core only) and NKF1 (EKF2) beside ATT, in degrees."""
     from groundstation.sim import dataflash_writer as dfw
-    layout = {"ATT": ("QccccCCCC", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw"),
-              "AHR2": ("QccCfLLffff", "TimeUS,Roll,Pitch,Yaw,Alt,Lat,Lng,Q1,Q2,Q3,Q4"),
-              "XKF1": ("QBccCfffffffccce", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD,GX,GY,GZ,OH"),
-              "NKF1": ("QBccCfffffffccce", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD,GX,GY,GZ,OH")}
-    monkeypatch.setitem(dfw.LAYOUTS, "attitudes", layout)
     w = dfw.DataFlashWriter("attitudes")
     for k in range(50):
         t = 1_000_000 + 100_000 * k

@@ -334,11 +334,6 @@ def test_other_attitude_estimators_read_the_same(tmp_path, monkeypatch):
     """AHR2, XKF1 (two cores: only core 0 kept), NKF1 beside ATT: the bulk path keeps the same
     tables as the per-record one (the in-flight fit chooses among them)."""
     from groundstation.sim import dataflash_writer as dfw
-    layout = {"ATT": ("QccccCCCC", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw"),
-              "AHR2": ("QccCfLLffff", "TimeUS,Roll,Pitch,Yaw,Alt,Lat,Lng,Q1,Q2,Q3,Q4"),
-              "XKF1": ("QBccCfffffffccce", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD,GX,GY,GZ,OH"),
-              "NKF1": ("QBccCfffffffccce", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD,GX,GY,GZ,OH")}
-    monkeypatch.setitem(dfw.LAYOUTS, "attitudes", layout)
     w = dfw.DataFlashWriter("attitudes")
     for k in range(40):
         t = 1_000_000 + 100_000 * k
@@ -348,7 +343,6 @@ def test_other_attitude_estimators_read_the_same(tmp_path, monkeypatch):
             w.write("XKF1", t, c, roll, -7.0, 92.0 + k, *([0.0] * 7), 0, 0, 0, 0)
         w.write("NKF1", t, 0, 13.0, -8.0 - k, 93.0, *([0.0] * 7), 0, 0, 0, 0)
     path = w.save(tmp_path / "att.bin")
-    monkeypatch.undo()
     ref, new = _read_both_bin(path, monkeypatch)
     assert set(new.attitudes) == {"AHR2", "XKF1", "NKF1"} and len(new.attitudes["XKF1"]) == 40
     assert_same_log(ref, new)

@@ -26,6 +26,12 @@ HEAD = b"\xa3\x95"
 FMT_ID = 128
 
 LAYOUTS: dict[str, dict[str, tuple[str, str]]] = {
+    "attitudes": {      # ATT beside the other estimators' records (AHR2 DCM, XKF1 EKF3 per core, NKF1 EKF2)
+        "ATT": ("QccccCCCC", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw"),
+        "AHR2": ("QccCfLLffff", "TimeUS,Roll,Pitch,Yaw,Alt,Lat,Lng,Q1,Q2,Q3,Q4"),
+        "XKF1": ("QBccCfffffffccce", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD,GX,GY,GZ,OH"),
+        "NKF1": ("QBccCfffffffccce", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD,GX,GY,GZ,OH"),
+    },
     "timems": {
         "PARM": ("Nf", "Name,Value"),
         "GPS": ("BIHBcLLeeEefI", "Status,TimeMS,Week,NSats,HDop,Lat,Lng,RelAlt,Alt,Spd,GCrs,VZ,T"),
