@@ -73,13 +73,18 @@ def test_seek_rebuilds_route_alarms_and_plots(hub, folder):
 
 
 def test_seek_benchmark_smoke():
-    out = subprocess.run([sys.executable, "benchmarks/seek.py", "--minutes", "5", "--seeks", "5"], cwd=ROOT,
+    out = subprocess.run([sys.executable, "benchmarks/seek.py", "--minutes", "5", "--seeks", "5", "--open-mb", "1"],
+                         cwd=ROOT,
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     worst = float(re.search(r"worst ([\d.]+) s", out.stdout).group(1))
     assert 0.0 < worst < 2.0, out.stdout
     assert float(re.search(r"^replayer made .*: ([\d.]+) s$", out.stdout, re.M).group(1)) < 2.0, out.stdout
-    assert re.search(r"^open -> playing .*: [\d.]+ s, target < 2 s: (met|MISSED)$", out.stdout, re.M), out.stdout
+    first, ready = map(float, re.search(r"^open -> playing .*: first sample pushed after ([\d.]+) s, the analysis "
+                                        r"in after ([\d.]+) s$", out.stdout, re.M).groups())
+    assert first < ready, out.stdout            # it plays while the log is analysed
+    assert re.search(r"^open a [\d.]+ MB tlog by name -> playing: [\d.]+ s .*, target < 2 s: (met|MISSED)$",
+                     out.stdout, re.M), out.stdout
     assert re.search(r"\| per-sample re-run .* \| [\d.]+ \| [\d.]+ \| extrapolated \|", out.stdout), out.stdout
 
 
@@ -194,3 +199,61 @@ def test_tests_state_and_field_correction_on_the_real_log(hub, folder):
     assert t["field_correction"]["kind"] == "autopilot" and "ArduPilot" in t["field_correction"]["note"]
     rows = hub.flight.rows()
     assert not np.any(rows[:, COL["heading_on"]] > 0.5)
+
+
+def _repeated(path: Path, minutes: float):
+    """The log at ``path`` repeated end to end to ``minutes`` (a long flight without writing one)."""
+    import copy
+
+    from groundstation.io.logs import read_log
+    base = read_log(path)
+    period = base.duration_s + 0.02
+    k = max(1, int(np.ceil(minutes * 60 / period)))
+    out = copy.copy(base)
+    for name in ("mag", "imu", "attitude", "gps", "battery"):
+        a = getattr(base, name)
+        if len(a):
+            setattr(out, name, np.concatenate([a + np.r_[i * period, np.zeros(a.shape[1] - 1)] for i in range(k)]))
+    return out
+
+
+def test_a_long_replay_plays_while_it_is_analysed(tmp_path):
+    """Issue 29: a replay starts playing once its file is read; the whole-log analysis runs beside
+    it.  Meanwhile the page says "analysing" and shows the causal path's decisions (the live
+    link's, which are analyze's: the same rows at the same times); then the analysis takes over
+    from where the replay has got to, without a jump back."""
+    log = _repeated(ROOT / "recordings" / "mission-clean.tlog", 6.0)
+    hub = Session(tmp_path, record_live=False)
+    seen: list = []           # (perf s, rx_count, analysing, rows shown) after each batch
+
+    def listener():
+        if hub.sources.kind == "replay":
+            rows = hub.flight.rows()
+            seen.append((time.perf_counter(), hub.sources.rx_count, hub.flight.review is None, rows[-50:].copy()))
+
+    hub.add_listener(listener)
+    try:
+        t0 = time.perf_counter()
+        hub.start_replay(tmp_path / "long.tlog", speed=20.0, flight_log=log)
+        assert hub.snapshot()["analysing"]
+        assert wait_for(lambda: not hub.snapshot()["analysing"], timeout=120)
+        t_ready = time.perf_counter() - t0
+        hub.replay_pause(True)
+        review_rows = hub.flight.review.rows
+        position = hub.snapshot()["t_s"]
+    finally:
+        hub.close()
+    meanwhile = [s for s in seen if s[2] and s[1] > 0]
+    assert meanwhile, "no sample was pushed before the analysis was in"
+    t_first = meanwhile[0][0] - t0
+    assert t_first < 0.3 * t_ready, (t_first, t_ready)          # well before the analysis ends
+    shown = meanwhile[-1][3]
+    assert len(shown) > 10 and shown[-1, COL["t_s"]] > 5.0         # it played seconds of the log meanwhile
+    k = np.searchsorted(review_rows[:, COL["t_s"]], shown[:, COL["t_s"]])
+    assert np.array_equal(review_rows[k, COL["t_s"]], shown[:, COL["t_s"]])
+    for name in ("heading_on", "field_on", "steep", "alarm", "ev_heading", "ev_path", "ev_field", "cross_track_m",
+                 "field_mG", "inclination_deg", "score"):
+        np.testing.assert_allclose(shown[:, COL[name]], review_rows[k, COL[name]], atol=1e-6, equal_nan=True,
+                                   err_msg=name)
+    assert np.isfinite(shown[:, COL["field_mG"]]).all() and np.isfinite(shown[:, COL["cross_track_m"]]).any()
+    assert position >= shown[-1, COL["t_s"]]                       # the analysis took over where it was

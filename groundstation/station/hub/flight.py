@@ -5,7 +5,9 @@ Two ways in, one state (the hub calls both under its lock):
     ``LiveAnalyzer``, one record row per IMU sample; GPS outages by ``GpsOutageWatch``;
   * replay: ``load_review(review, t)`` takes the whole log analysed at once
     (``groundstation.station.hub.review``) and ``show_until(t)`` moves the cursor (forward as the
-    replay plays, anywhere on a seek).
+    replay plays, anywhere on a seek).  Until the analysis is in (a replay plays as soon as its
+    file is read), the replay's samples take the live way, so the page shows the causal decisions
+    meanwhile and the whole-log ones from when it lands.
 Either way the alarms are ``AlarmTracker`` over the rows, so the page lists what analyze
 reports.  Readers (snapshots, plots, scene) go through ``rows()``, ``route()`` and
 ``groundstation.station.hub.display``.

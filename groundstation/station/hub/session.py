@@ -3,7 +3,8 @@
 The parts each do one job (``sources.SourceControl``: live link or replay and its worker thread;
 ``recordings.RecordingsFolder``: the logs on disk; ``vehicle.VehicleLink``: autopilot identity,
 parameters, confirmed writes; ``flight.FlightState``: the flight record, route and alarms, live or
-replayed from one whole-log analysis (``review``); ``calibration.CalibrationControl``: the guided
+replayed from one whole-log analysis (``review``, made beside the playing replay, which
+shows the causal path's decisions until it is in); ``calibration.CalibrationControl``: the guided
 calibration and writing its result).  ``Session`` owns the lock, the version and the event log, routes every
 sample to the parts, and builds immutable snapshots for readers (``views.SessionViews``: the
 WebSocket pusher, the viser scene, REST).  ``add_listener`` callbacks run on the worker thread
@@ -139,7 +140,7 @@ class Session(SessionViews):
             else:
                 self.calibration.on_sample(s)           # every compass instance
             flight_samples.append(s)
-        if live:
+        if live or self.flight.review is None:      # a replay being analysed: the causal path meanwhile
             self.flight.push(flight_samples)
         if changed_elsewhere:
             on_compass_params_changed(self, changed_elsewhere)
@@ -281,7 +282,7 @@ class Session(SessionViews):
                                       "b": [float(v) for v in flight_log.mission[-1][:2]], "source": "mission"})
                 self.event("preset line set from the log's mission", t_s=0.0)
             self.sources.start_replay(path, flight_log, replayer)
-            self.event(f"replaying {path.name} ({replayer.duration_s:.0f} s) at x{speed:g}: analysing it first",
+            self.event(f"replaying {path.name} ({replayer.duration_s:.0f} s) at x{speed:g}: analysing it meanwhile",
                        t_s=0.0)
             if not len(flight_log.mag):
                 self.event(f"{path.name} has no magnetometer samples: no heading, calibration or "
@@ -326,8 +327,13 @@ class Session(SessionViews):
             self.log_calibration = calibration
             self.event(f"using the calibration fitted to this log (residual "
                        f"{calibration.get('residual_rms_mG') or 0:.1f} mG)", t_s=0.0)
+        live_calibration = self.flight.calibration
         self.flight.calibration = calibration
-        self.flight.load_review(review, 0.0)
+        r = self.sources.replay
+        self.flight.load_review(review, min(r.position_s, r.duration_s) if r is not None else 0.0)
+        self.event("replay analysed: alarms, timeline and the finished log's attitude from here on"
+                   + ("" if calibration is live_calibration else
+                      " (the alarms so far recomputed with the calibration chosen for it)"))
         if line != self.flight.line:          # the line changed while the log was analysed
             self._review_again()
 
@@ -424,6 +430,8 @@ class Session(SessionViews):
         with self._lock:
             self.sources.seek(t_s)
             t_s = min(t_s, self.sources.replay.duration_s)
+            if self.flight.review is None:       # still analysing: the causal path starts over there
+                self.flight.reset()
             self.flight.show_until(t_s, seek=True)
             self.event(f"seek to {t_s:.1f} s ({len(self.flight.tracker.alarms)} alarms so far)", t_s=t_s)
             self.changed()
@@ -436,7 +444,7 @@ class Session(SessionViews):
             running = self.wizard.state == "running"
             self.calibration.start(mode)
             r = self.sources.replay
-            if r is not None and not running and mode != "fixed_yaw" and self.flight.review is not None:
+            if r is not None and not running and mode != "fixed_yaw":
                 # a recording cannot follow the steps: it plays its dance from the start, in order,
                 # as a vehicle turned by hand would (started mid-log, step 1 met the tumble instead)
                 self.replay_seek(0.0)

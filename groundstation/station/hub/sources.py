@@ -1,14 +1,17 @@
 """The station's one source at a time: a live MAVLink link (recorded as it arrives) or a replay.
 
 ``SourceControl`` opens and closes sources, runs the worker thread that reads them, and paces
-replays (pause, speed, seek).  A replay is analysed once (``Feed.prepare_replay``) and then
-moves a cursor (``Feed.replay_moved``); its samples still go to the hub (status, calibration
+replays (pause, speed, seek).  A replay plays as soon as its file is read: its samples go
+through the hub's causal path (as a live link's) while the whole-log analysis
+(``Feed.prepare_replay``) runs in a thread beside it; once that is in, the replay moves a cursor
+over it (``Feed.replay_moved``) and its samples still go to the hub (status, calibration
 wizard).  Connecting while a source runs arms the new link: the running source goes on until
 the link hears its first packet, so a connect that reaches nothing stops nothing.  Samples go to
 the hub through the ``Feed`` it is given, with the hub's lock held, so readers see whole batches.
 """
 from __future__ import annotations
 
+import logging
 import math
 import socket
 import threading
@@ -23,6 +26,7 @@ from groundstation.station.hub.recordings import RECORDING_SUFFIXES, LazyRecordi
 __all__ = ["SourceControl", "Feed", "RECORDING_SUFFIXES", "check_speed", "SessionError", "NotFoundError",
            "ConflictError"]
 
+logger = logging.getLogger(__name__)
 REPLAY_BATCH = 2000
 FLUSH_EVERY_S = 0.5
 TCP_PROBE_TIMEOUT_S = 2.0
@@ -175,7 +179,7 @@ class SourceControl:
         except IngestError as err:
             raise SessionError(str(err)) from err
         replayer = Replayer(log, speed=check_speed(speed), loop=loop)
-        replayer.pause()          # the worker analyses the log first, then plays
+        replayer.pause()          # the worker starts it
         return log, replayer
 
     def start_replay(self, path: Path, log: FlightLog, replayer) -> None:
@@ -252,15 +256,18 @@ class SourceControl:
 
     # ------------------------------------------------------------------ worker loops
     def _run_replay(self, stop: threading.Event, log: FlightLog) -> None:
+        """Play at once; the whole-log analysis runs beside it (``_analyse``) and the hub takes
+        it over from the replay's causal path when it is in."""
         feed = self._feed
-        prepared = feed.prepare_replay(log)     # slow: outside the lock
         with self._lock:
-            if self.replay is None or stop.is_set():
+            replayer = self.replay
+            if replayer is None or stop.is_set():
                 return
-            feed.start_review(prepared)
-            self.replay.resume()
+            replayer.resume()
             feed.changed()
-        del log, prepared
+        threading.Thread(target=self._analyse, args=(stop, replayer, log), daemon=True,
+                         name="replay-analysis").start()
+        del log
         loops = 0
         while not stop.is_set():
             with self._lock:
@@ -284,6 +291,26 @@ class SourceControl:
                     feed.changed()
                 wait = 0.1 if (r.paused or r.finished) else 0.02
             stop.wait(wait)
+
+    def _analyse(self, stop: threading.Event, replayer, log: FlightLog) -> None:
+        """The replay's whole-log analysis (slow: outside the lock), handed to the hub if the
+        replay still runs when it is done."""
+        feed = self._feed
+        try:
+            prepared = feed.prepare_replay(log)
+        except Exception as err:      # the replay goes on on its causal path
+            logger.exception("analysis of the replayed log failed")
+            with self._lock:
+                if self.replay is replayer and not stop.is_set():
+                    feed.event(f"the whole-log analysis failed ({type(err).__name__}): the replay shows the "
+                               "live path's decisions only", "warning")
+                    feed.changed()
+            return
+        with self._lock:
+            if self.replay is not replayer or stop.is_set():
+                return
+            feed.start_review(prepared)
+            feed.changed()
 
     def _run_live(self, stop: threading.Event) -> None:
         last_flush = time.monotonic()
