@@ -69,10 +69,15 @@ class FieldData:
         return np.broadcast_to(np.asarray(self.field_ned_mG, float), (len(self.roll_rad), 3))
 
     def subset(self, keep: np.ndarray) -> "FieldData":
+        """The rows ``keep``; the per-row tilt and expected field already computed are kept (rows of them)."""
         H = np.asarray(self.field_ned_mG, float)
-        return FieldData(self.mag_raw_mG[keep], self.roll_rad[keep], self.pitch_rad[keep], self.yaw_rad[keep],
-                         self.motor_signal[keep], H if H.ndim == 1 else H[keep],
-                         None if self.weight is None else self.weight[keep])
+        out = FieldData(self.mag_raw_mG[keep], self.roll_rad[keep], self.pitch_rad[keep], self.yaw_rad[keep],
+                        self.motor_signal[keep], H if H.ndim == 1 else H[keep],
+                        None if self.weight is None else self.weight[keep])
+        for name in ("_tilt", "_expected_body"):
+            if name in self.__dict__:
+                out.__dict__[name] = self.__dict__[name][keep]
+        return out
 
     def expected_body_mG(self) -> np.ndarray:
         return self._expected_body
@@ -150,12 +155,14 @@ def _nuisance_heading(p: np.ndarray, data: FieldData) -> tuple[np.ndarray, np.nd
     u, v = AT[:, :, 0] * hh[:, None], -AT[:, :, 1] * hh[:, None]
     a = np.arctan2(np.sum(z * v, 1), np.sum(z * u, 1))
     for _ in range(3):
-        c, s = np.cos(a), np.sin(a)
-        e = z - u * c[:, None] - v * s[:, None]
-        d1 = u * s[:, None] - v * c[:, None]
+        c, s = np.cos(a)[:, None], np.sin(a)[:, None]
+        uc, vs = u * c, v * s
+        e = z - uc - vs
+        d1 = u * s - v * c
         g = np.sum(e * d1, 1)
-        hess = np.sum(d1 * d1, 1) + np.sum(e * (u * c[:, None] + v * s[:, None]), 1)
-        a = a - np.where(hess > 1e-9, g / np.where(hess > 1e-9, hess, 1.0), 0.0)
+        hess = np.sum(d1 * d1, 1) + np.sum(e * (uc + vs), 1)
+        ok = hess > 1e-9
+        a = a - np.where(ok, g / np.where(ok, hess, 1.0), 0.0)
     c, s = np.cos(a), np.sin(a)
     lv = np.column_stack([hh * c, -hh * s, H[:, 2]])
     h = np.einsum("nji,nj->ni", data.tilt(), lv)
@@ -167,6 +174,13 @@ def _nuisance_heading(p: np.ndarray, data: FieldData) -> tuple[np.ndarray, np.nd
 def residuals(p: np.ndarray, data: FieldData, model: str, with_jacobian: bool = False):
     """r = m − A(h + f·x) − b  (N,3) and optionally ∂r/∂p (N,3,12).  yaw_free: h = h(ψ*) and the
     Jacobian is projected off the direction ψ* absorbs (Kaufman's variable-projection form)."""
+    r, terms = _residuals_terms(p, data, model)
+    return (r, _jacobian(p, data, terms)) if with_jacobian else r
+
+
+def _residuals_terms(p: np.ndarray, data: FieldData, model: str):
+    """(r, terms): the residual and what its Jacobian is built from (``_jacobian``), so a solver that
+    accepts a trial point does not solve for ψ* there again."""
     q = None
     if model == "vector":
         h = data.expected_body_mG()
@@ -176,9 +190,14 @@ def residuals(p: np.ndarray, data: FieldData, model: str, with_jacobian: bool = 
     x = data.motor_signal
     g = h + x[:, None] * p[9:12]
     r = data.mag_raw_mG - g @ A.T - p[:3]
-    if not with_jacobian:
-        return r
-    n = len(r)
+    return r, (A, g, q)
+
+
+def _jacobian(p: np.ndarray, data: FieldData, terms) -> np.ndarray:
+    """∂r/∂p (N,3,12) from ``_residuals_terms``' terms at p."""
+    A, g, q = terms
+    x = data.motor_signal
+    n = len(g)
     J = np.zeros((n, 3, 12))
     J[:, :, 0:3] = -np.eye(3)
     for j in range(3):
@@ -189,7 +208,7 @@ def residuals(p: np.ndarray, data: FieldData, model: str, with_jacobian: bool = 
     J[:, :, 9:12] = -x[:, None, None] * A[None, :, :]
     if q is not None:
         J = J - q[:, :, None] * np.einsum("nr,nrp->np", q, J)[:, None, :]
-    return r, J
+    return J
 
 
 def _weights(r: np.ndarray, mask: np.ndarray, huber_k: float, outlier_sigma: float) -> tuple[np.ndarray, np.ndarray, float]:
@@ -239,14 +258,14 @@ def solve(data: FieldData, p_init: np.ndarray, p0: np.ndarray, opts: SolverOptio
         for _ in range(10):
             trial = p.copy()
             trial[act] += step
-            r_t = residuals(trial, data, opts.model)
+            r_t, terms = _residuals_terms(trial, data, opts.model)
             if np.all(np.isfinite(r_t)) and _cost(r_t, w, trial[act], p0[act], lam, sigma) <= cost0 * (1 + 1e-12):
                 break
             step = step / 2
         else:
             break
         p = trial
-        r, J = residuals(p, data, opts.model, True)
+        r, J = r_t, _jacobian(p, data, terms)
         w, inl, sigma = _weights(r, inl, opts.huber_k, opts.outlier_sigma)
         w = w * prior_w
         if np.max(np.abs(step)) < 1e-4:

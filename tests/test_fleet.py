@@ -500,3 +500,55 @@ def test_offsets_across_flights_spread_drift_and_a_combined_answer_of_weak_fligh
     text = buf.getvalue().splitlines()
     assert text[0].startswith("in-flight offsets across flights") and any(t.strip().startswith("AF-W: 12 flight(s)")
                                                                           for t in text)
+
+
+def test_the_jackknifes_subsets_and_solver_give_the_numbers_of_fresh_data():
+    """Issue 29 (review speed): a subset of FieldData keeps its rows of the tilt and expected field
+    already computed, and the solver builds the Jacobian of an accepted trial point from that
+    point's own residual terms; both give bit for bit what computing them afresh gives."""
+    from dataclasses import replace as dc_replace
+
+    from estimators import field_model as fm
+    from estimators.wmm_fit import WmmFitSettings, _options, _with_jackknife
+
+    rng = np.random.default_rng(7)
+    n = 900
+    t = np.arange(n) / 10.0
+    roll, pitch = 0.2 * np.sin(t / 3.0), 0.15 * np.cos(t / 5.0)
+    yaw = np.mod(t * 0.35, 2 * np.pi)
+    H = np.array([240.0, 20.0, 430.0])
+    truth = fm.nominal_params(offsets_mG=[30.0, -45.0, 12.0])
+    truth[3:6] = [1.03, 0.98, 1.01]
+    x = np.abs(np.sin(t / 7.0)) * 10.0
+    truth[9:12] = [1.5, -0.8, 2.0]
+    clean = fm.FieldData(np.zeros((n, 3)), roll, pitch, yaw, x, H)
+    m = -fm.residuals(truth, clean, "vector") + rng.normal(0.0, 3.0, (n, 3))
+
+    def fresh():
+        return fm.FieldData(m.copy(), roll.copy(), pitch.copy(), yaw.copy(), x.copy(), H.copy())
+
+    data = fresh()
+    data.tilt(), data.expected_body_mG()
+    keep = (np.arange(n) % 8) != 3
+    sub, plain = data.subset(keep), fresh().subset(keep)
+    assert "_tilt" in sub.__dict__ and "_tilt" not in plain.__dict__
+    assert np.array_equal(sub.tilt(), plain.tilt()) and np.array_equal(sub.expected_body_mG(), plain.expected_body_mG())
+    s = WmmFitSettings()
+    p0 = fm.nominal_params()
+    for model, active in (("yaw_free", np.r_[np.ones(6, bool), np.zeros(3, bool), np.ones(3, bool)]),
+                          ("vector", np.ones(12, bool))):
+        opts = _options(model, active, s)
+        sol = fm.solve(data, p0, p0, opts)
+        assert np.linalg.norm(sol.params[:3] - truth[:3]) < 5.0, model        # the fit is a real one
+        again = fm.solve(fresh(), p0, p0, opts)
+        assert np.array_equal(sol.params, again.params) and np.array_equal(sol.covariance, again.covariance)
+        # the solver's residual and Jacobian are residuals()' at the point it stopped
+        r, J = fm.residuals(sol.params, fresh(), model, True)
+        r2, terms = fm._residuals_terms(sol.params, data, model)
+        assert np.array_equal(r, r2) and np.array_equal(J, fm._jacobian(sol.params, data, terms))
+        cov = _with_jackknife(sol.covariance, data, sol, sol.params != sol.params, p0, model,
+                              dc_replace(s, jackknife_blocks=0))
+        assert np.array_equal(cov, sol.covariance)                               # K = 0: no jackknife
+        jk = _with_jackknife(sol.covariance, data, sol, active, p0, model, s)
+        assert np.array_equal(jk, _with_jackknife(sol.covariance, fresh(), sol, active, p0, model, s))
+        assert np.all(np.diag(jk) >= np.diag(sol.covariance))
