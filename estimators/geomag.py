@@ -11,10 +11,23 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from geomaglib import util as geoid_util
-from wmm import wmm_calc
 
 NT_PER_MG = 100.0
+
+
+@lru_cache(maxsize=1)
+def _wmm():
+    """(wmm_calc, geomaglib.util), imported when a field is first asked for.  geomaglib keeps its
+    geoid grid (1441 × 721 heights) as a list of Python floats (~33 MB resident); it is indexed
+    element by element, so the same heights as one float64 array (8 MB) give the same numbers."""
+    from geomaglib import geoid
+    from geomaglib import util as geoid_util
+    from wmm import wmm_calc
+
+    grid = geoid.geoid.get("height_buffer")
+    if isinstance(grid, list):
+        geoid.geoid["height_buffer"] = np.asarray(grid, dtype=np.float64)
+    return wmm_calc, geoid_util
 
 
 @dataclass(frozen=True)
@@ -37,6 +50,7 @@ def decimal_year_from_unix(unix_s: float) -> float:
 @lru_cache(maxsize=256)
 def _field_cached(lat_deg: float, lon_deg: float, alt_m: float, decimal_year: float,
                   msl: bool = True) -> EarthField:
+    wmm_calc, geoid_util = _wmm()
     model = wmm_calc()
     alt_km = alt_m / 1000.0
     if msl:
