@@ -270,32 +270,31 @@ def test_csv_imu_log_runs_the_whole_chain(tmp_path):
 def test_the_log_commands_import_no_plotting_cluster_or_field_model_until_used():
     """Issue 29 (memory): importing what analyze, calibrate and info need loads neither scipy,
     matplotlib, dask nor the WMM (whose geoid grid is ~33 MB of Python floats); the first field
-    asked for loads the WMM with its geoid grid as one float64 array, giving the same heights."""
+    asked for loads the WMM with the geoid grid as one float64 array: the very heights of
+    geomaglib's own module, so the same field."""
+    import json
     import subprocess
     import sys
 
     code = """
-import json, sys
+import json, runpy, sys
+import numpy as np
 import groundstation.cli, groundstation.io.logs, groundstation.jobs.analyze, groundstation.jobs.report
 import groundstation.jobs.calibrate, groundstation.io.mission
 loaded = sorted(m for m in ("scipy", "matplotlib", "dask", "distributed", "wmm", "geomaglib") if m in sys.modules)
-from geomaglib import util
-pts = [(30.26, 120.12, 0.05), (-35.36, 149.16, 0.6), (64.1, -21.9, 0.0), (-77.8, 166.7, 0.1)]
-before = [float(util.alt_to_ellipsoid_height(a, lat, lon)[0]) for lat, lon, a in pts]
 from estimators.geomag import earth_field
-from geomaglib import geoid
 ef = earth_field(30.26, 120.12, 50.0, 2026.5)
-after = [float(util.alt_to_ellipsoid_height(a, lat, lon)[0]) for lat, lon, a in pts]
-print(json.dumps({"loaded": loaded, "grid": type(geoid.geoid["height_buffer"]).__name__, "before": before,
-                  "after": after, "f": ef.field_strength_mG}))
+grid = sys.modules["geomaglib.geoid"].geoid
+stock = runpy.run_path(sys.modules["geomaglib.geoid"].__file__)["geoid"]
+same = (type(grid["height_buffer"]).__name__, np.array_equal(grid["height_buffer"], np.array(stock["height_buffer"])),
+        {k: v for k, v in grid.items() if k != "height_buffer"} == {k: v for k, v in stock.items() if k != "height_buffer"})
+print(json.dumps({"loaded": loaded, "same": same, "f": ef.field_strength_mG, "decl": ef.declination_deg}))
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                          cwd=Path(__file__).resolve().parent.parent)
     assert out.returncode == 0, out.stderr[-2000:]
-    import json
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert r["loaded"] == [], r["loaded"]
-    assert r["grid"] == "ndarray" and r["after"] == r["before"]
-    msl_km = (0.05, 0.6, 0.0, 0.1)              # the points' heights above sea level: the geoid moves each
-    assert all(abs(b - a) > 1e-3 for b, a in zip(r["before"], msl_km))
-    assert 400.0 < r["f"] < 600.0           # the WMM near Hangzhou: ~490 mG
+    assert r["same"] == ["ndarray", True, True]
+    # the WMM2025 near Hangzhou, 50 m above sea level, mid 2026 (NOAA's calculator: ~489 mG, ~-6.1°)
+    assert 485.0 < r["f"] < 495.0 and -6.5 < r["decl"] < -5.5
