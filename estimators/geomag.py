@@ -7,64 +7,14 @@ coefficients and is maintained by the model's authors.  WMM gives nT; we return 
 from __future__ import annotations
 
 import datetime as _dt
-import importlib.util
-import re
-import sys
-import types
-import warnings
 from dataclasses import dataclass
 from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
+from geomaglib import util as geoid_util
+from wmm import wmm_calc
 
 NT_PER_MG = 100.0
-
-
-_GEOID_HEAD = re.compile(r'\s*(?:#[^\n]*\n\s*)*geoid\s*=\s*\{\s*"cols"\s*:\s*(\d+)\s*,\s*"rows"\s*:\s*(\d+)\s*,'
-                         r'\s*"header_items"\s*:\s*(\d+)\s*,\s*"scale_factor"\s*:\s*(\d+)\s*,'
-                         r'\s*"elevs"\s*:\s*(\d+)\s*\*\s*(\d+)\s*,\s*"height_buffer"\s*:\s*\[')
-
-
-def _compact_geoid() -> None:
-    """Put ``geomaglib.geoid`` in place with its height grid as one float64 array, parsed from the
-    module's text, before geomaglib imports it.  The module is one literal, a list of 1441 × 721
-    Python floats (~33 MB resident while it exists); geomaglib indexes it element by element, so
-    the array (8 MB) gives the same heights (the same decimal text, parsed to the nearest double).
-    A module of another shape is imported as it is."""
-    if "geomaglib.geoid" in sys.modules:
-        return
-    try:
-        spec = importlib.util.find_spec("geomaglib.geoid")
-        text = Path(spec.origin).read_text()
-    except (ImportError, AttributeError, OSError, TypeError, ValueError):
-        return
-    head = _GEOID_HEAD.match(text)
-    end = text.rfind("]")
-    if head is None or text[end + 1:].strip() != "}":
-        return
-    cols, rows, items, scale, e1, e2 = (int(v) for v in head.groups())
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        grid = np.fromstring(text[head.end():end], dtype=np.float64, sep=",")
-    if len(grid) != e1 * e2 or not np.all(np.isfinite(grid)):
-        return
-    module = types.ModuleType("geomaglib.geoid", "geomaglib's geoid grid (estimators.geomag: one float64 array)")
-    module.__file__ = spec.origin
-    module.geoid = {"cols": cols, "rows": rows, "header_items": items, "scale_factor": scale, "elevs": e1 * e2,
-                    "height_buffer": grid}
-    sys.modules["geomaglib.geoid"] = module
-
-
-@lru_cache(maxsize=1)
-def _wmm():
-    """(wmm_calc, geomaglib.util), imported when a field is first asked for (with the geoid grid
-    compact: ``_compact_geoid``)."""
-    _compact_geoid()
-    from geomaglib import util as geoid_util
-    from wmm import wmm_calc
-
-    return wmm_calc, geoid_util
 
 
 @dataclass(frozen=True)
@@ -87,7 +37,6 @@ def decimal_year_from_unix(unix_s: float) -> float:
 @lru_cache(maxsize=256)
 def _field_cached(lat_deg: float, lon_deg: float, alt_m: float, decimal_year: float,
                   msl: bool = True) -> EarthField:
-    wmm_calc, geoid_util = _wmm()
     model = wmm_calc()
     alt_km = alt_m / 1000.0
     if msl:

@@ -267,34 +267,21 @@ def test_csv_imu_log_runs_the_whole_chain(tmp_path):
     assert np.sqrt(np.mean((cols["roll_deg"][ok][settled] - roll_true[settled]) ** 2)) < 3.0
 
 
-def test_the_log_commands_import_no_plotting_cluster_or_field_model_until_used():
+def test_the_log_commands_import_no_plotting_or_cluster_library():
     """Issue 29 (memory): importing what analyze, calibrate and info need loads neither scipy,
-    matplotlib, dask nor the WMM (whose geoid grid is ~33 MB of Python floats); the first field
-    asked for loads the WMM with the geoid grid as one float64 array: the very heights of
-    geomaglib's own module, so the same field."""
-    import json
+    matplotlib nor dask (plots and fleet review import them when used).  The WMM is imported with
+    them on purpose: loading its geoid grid later, beside a log being read, raised the peak."""
     import subprocess
     import sys
 
     code = """
-import json, runpy, sys
-import numpy as np
+import sys
 import groundstation.cli, groundstation.io.logs, groundstation.jobs.analyze, groundstation.jobs.report
 import groundstation.jobs.calibrate, groundstation.io.mission
-loaded = sorted(m for m in ("scipy", "matplotlib", "dask", "distributed", "wmm", "geomaglib") if m in sys.modules)
-from estimators.geomag import earth_field
-ef = earth_field(30.26, 120.12, 50.0, 2026.5)
-grid = sys.modules["geomaglib.geoid"].geoid
-stock = runpy.run_path(sys.modules["geomaglib.geoid"].__file__)["geoid"]
-same = (type(grid["height_buffer"]).__name__, np.array_equal(grid["height_buffer"], np.array(stock["height_buffer"])),
-        {k: v for k, v in grid.items() if k != "height_buffer"} == {k: v for k, v in stock.items() if k != "height_buffer"})
-print(json.dumps({"loaded": loaded, "same": same, "f": ef.field_strength_mG, "decl": ef.declination_deg}))
+print(sorted(m for m in ("scipy", "matplotlib", "dask", "distributed", "pandas") if m in sys.modules))
+print("wmm" in sys.modules)
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                          cwd=Path(__file__).resolve().parent.parent)
     assert out.returncode == 0, out.stderr[-2000:]
-    r = json.loads(out.stdout.strip().splitlines()[-1])
-    assert r["loaded"] == [], r["loaded"]
-    assert r["same"] == ["ndarray", True, True]
-    # the WMM2025 near Hangzhou, 50 m above sea level, mid 2026 (NOAA's calculator: ~489 mG, ~-6.1°)
-    assert 485.0 < r["f"] < 495.0 and -6.5 < r["decl"] < -5.5
+    assert out.stdout.split("\n")[:2] == ["[]", "True"], out.stdout
