@@ -142,26 +142,14 @@ def inflight_fits(log: FlightLog, k: int):
 MAGFIT = Path(__import__("pymavlink").__file__).parent / "tools" / "magfit_WMM.py"
 
 
-def dataflash_for_compass(path: Path, k: int, out: Path) -> Path:
-    """A copy of the DataFlash log ``path`` in which magfit_WMM.py's ``--mag 1`` means compass
-    index ``k`` (0-based).  magfit_WMM reads ``MAG`` for its first compass and ``MAG<n>`` for the
-    others, and takes every ``MAG`` record: on ArduPilot 4.x, whose one ``MAG`` message carries all
-    compasses with an instance column ``I``, it fitted the three compasses' samples as one (the
-    "iteration limit" failure on the SITL .BIN).  The copy keeps the ``MAG`` records of instance
-    ``k`` only (older logs: ``MAG<k+1>`` renamed ``MAG``), and swaps compass k's PARM names
-    (COMPASS_OFSn/DIAn/ODIn/MOTn/SCALEn) with compass 1's, so magfit strips compass k's corrections."""
+def copy_dataflash(path: Path, out: Path, edit) -> Path:
+    """Copy the DataFlash log ``path`` record by record to ``out``; ``edit(name, fields, record)`` returns
+    the record (bytes) to write, or None to drop it (``fields``: column -> (byte offset, struct code);
+    FMT records are passed as name "FMT" with the format's name, columns and record)."""
     from pymavlink.DFReader import FORMAT_TO_STRUCT
     data = path.read_bytes()
-    fmts: dict[int, tuple[str, int, list[str], str]] = {}
-    n = k + 1
-    swap: dict[str, str] = {}
-    for key in ("OFS", "DIA", "ODI", "MOT") if k > 0 else ():
-        for axis in "XYZ":
-            swap[f"COMPASS_{key}_{axis}"], swap[f"COMPASS_{key}{n}_{axis}"] = f"COMPASS_{key}{n}_{axis}", f"COMPASS_{key}_{axis}"
-    if k > 0:
-        swap["COMPASS_SCALE"], swap[f"COMPASS_SCALE{n}"] = f"COMPASS_SCALE{n}", "COMPASS_SCALE"
-    mag_old = f"MAG{n}".encode()
-    out_parts, i = [], 0
+    fmts: dict[int, tuple[str, int, dict]] = {}
+    parts, i = [], 0
     while i + 3 <= len(data):
         if data[i] != 0xA3 or data[i + 1] != 0x95:
             i += 1                                   # resynchronise on a damaged stretch, as DFReader does
@@ -172,35 +160,110 @@ def dataflash_for_compass(path: Path, k: int, out: Path) -> Path:
             name = data[i + 5:i + 9].rstrip(b"\0").decode(errors="replace")
             fmt = data[i + 9:i + 25].rstrip(b"\0").decode(errors="replace")
             cols = data[i + 25:i + 89].rstrip(b"\0").decode(errors="replace").split(",")
-            fmts[ftype] = (name, flen, cols, fmt)
-            rec = bytearray(data[i:i + 89])
-            if k > 0 and name.encode() == mag_old:
-                rec[5:9] = b"MAG\0"
-            elif k > 0 and name == "MAG" and "I" not in cols:
-                rec[5:9] = b"MAGx"                  # the first compass's own MAG: out of magfit's way
-            out_parts.append(bytes(rec))
+            fields, ofs = {}, 3
+            for c, code in zip(cols, fmt):
+                st = FORMAT_TO_STRUCT.get(code, ("B",))[0]
+                fields[c] = (ofs, st)
+                ofs += struct.calcsize("<" + st)
+            fmts[ftype] = (name, flen, fields)
+            rec = edit("FMT", {"Name": name, "Columns": cols}, data[i:i + 89])
+            if rec is not None:
+                parts.append(rec)
             i += 89
             continue
         if mtype not in fmts:
             i += 1
             continue
-        name, flen, cols, fmt = fmts[mtype]
-        rec = data[i:i + flen]
+        name, flen, fields = fmts[mtype]
+        rec = edit(name, fields, data[i:i + flen])
+        if rec is not None:
+            parts.append(rec)
         i += flen
-        if name == "MAG" and "I" in cols:
-            j = cols.index("I")
-            ofs = 3 + struct.calcsize("<" + "".join(FORMAT_TO_STRUCT[c][0] for c in fmt[:j]))
-            if rec[ofs] != k:
-                continue
-        elif name == "PARM" and "Name" in cols:
-            j = cols.index("Name")
-            ofs = 3 + struct.calcsize("<" + "".join(FORMAT_TO_STRUCT[c][0] for c in fmt[:j]))
+    out.write_bytes(b"".join(parts))
+    return out
+
+
+def _field(rec: bytes, fields: dict, col: str):
+    ofs, st = fields[col]
+    return struct.unpack_from("<" + st, rec, ofs)[0]
+
+
+def dataflash_for_compass(path: Path, k: int, out: Path) -> Path:
+    """A copy of the DataFlash log ``path`` in which magfit_WMM.py's ``--mag 1`` means compass
+    index ``k`` (0-based).  magfit_WMM reads ``MAG`` for its first compass and ``MAG<n>`` for the
+    others, and takes every ``MAG`` record: on ArduPilot 4.x, whose one ``MAG`` message carries all
+    compasses with an instance column ``I``, it fitted the three compasses' samples as one (the
+    "iteration limit" failure on the SITL .BIN).  The copy keeps the ``MAG`` records of instance
+    ``k`` only (older logs: ``MAG<k+1>`` renamed ``MAG``), and swaps compass k's PARM names
+    (COMPASS_OFSn/DIAn/ODIn/MOTn/SCALEn) with compass 1's, so magfit strips compass k's corrections."""
+    n = k + 1
+    swap: dict[str, str] = {}
+    if k > 0:
+        for key in ("OFS", "DIA", "ODI", "MOT"):
+            for axis in "XYZ":
+                swap[f"COMPASS_{key}_{axis}"], swap[f"COMPASS_{key}{n}_{axis}"] = \
+                    f"COMPASS_{key}{n}_{axis}", f"COMPASS_{key}_{axis}"
+        swap["COMPASS_SCALE"], swap[f"COMPASS_SCALE{n}"] = f"COMPASS_SCALE{n}", "COMPASS_SCALE"
+
+    def edit(name: str, fields: dict, rec: bytes):
+        if name == "FMT":
+            if k > 0 and fields["Name"] == f"MAG{n}":
+                return rec[:5] + b"MAG\0" + rec[9:]
+            if k > 0 and fields["Name"] == "MAG" and "I" not in fields["Columns"]:
+                return rec[:5] + b"MAGx" + rec[9:]      # the first compass's own MAG: out of magfit's way
+            return rec
+        if name == "MAG" and "I" in fields:
+            return rec if _field(rec, fields, "I") == k else None
+        if name == "PARM" and "Name" in fields:
+            ofs = fields["Name"][0]
             pname = rec[ofs:ofs + 16].rstrip(b"\0").decode(errors="replace")
             if pname in swap:
-                rec = rec[:ofs] + swap[pname].encode().ljust(16, b"\0") + rec[ofs + 16:]
-        out_parts.append(rec)
-    out.write_bytes(b"".join(out_parts))
-    return out
+                return rec[:ofs] + swap[pname].encode().ljust(16, b"\0") + rec[ofs + 16:]
+        return rec
+    return copy_dataflash(path, out, edit)
+
+
+CUT_BIN_KEEP = {"FMT": 1, "FMTU": 1, "UNIT": 1, "MULT": 1, "PARM": 1, "MSG": 1, "MODE": 1, "ORGN": 1,
+                "MAG": 2, "ATT": 2, "GPS": 1, "BAT": 5}      # name: keep every n-th record
+CUT_TLOG_KEEP = {"HEARTBEAT": 4, "PARAM_VALUE": 1, "RAW_IMU": 1, "SCALED_IMU2": 1, "SCALED_IMU3": 1,
+                 "ATTITUDE": 1, "GPS_RAW_INT": 2, "GLOBAL_POSITION_INT": 4, "SYS_STATUS": 2,
+                 "BATTERY_STATUS": 8, "SENSOR_OFFSETS": 8, "STATUSTEXT": 1, "SYSTEM_TIME": 8}
+
+
+def cut_sitl_flight(run: Path, out: Path) -> list[Path]:
+    """A small copy of a recorded SITL flight (``record_sitl``) for tests/data: the .BIN with the
+    records the in-flight fit reads (MAG and ATT every 2nd record: 5 Hz; BAT 2 Hz; GPS, PARM, ...),
+    the .tlog with its compass, attitude, position, battery and parameter messages, and truth.json."""
+    from pymavlink import mavutil
+    out.mkdir(parents=True, exist_ok=True)
+    seen: dict[tuple, int] = {}
+
+    def edit(name: str, fields: dict, rec: bytes):
+        if name == "FMT":
+            return rec
+        every = CUT_BIN_KEEP.get(name)
+        if every is None:
+            return None
+        key = (name, _field(rec, fields, "I") if "I" in fields and name == "MAG" else 0)
+        seen[key] = seen.get(key, -1) + 1
+        return rec if seen[key] % every == 0 else None
+    copy_dataflash(run / "flight.BIN", out / "flight.BIN", edit)
+    conn = mavutil.mavlink_connection(str(run / "telemetry.tlog"))
+    kept: dict[str, int] = {}
+    with open(out / "telemetry.tlog", "wb") as f:
+        while True:
+            m = conn.recv_match()
+            if m is None:
+                break
+            every = CUT_TLOG_KEEP.get(m.get_type())
+            if every is None:
+                continue
+            kept[m.get_type()] = kept.get(m.get_type(), -1) + 1
+            if kept[m.get_type()] % every == 0:
+                f.write(struct.pack(">Q", int(m._timestamp * 1e6)) + m.get_msgbuf())
+    conn.close()
+    shutil.copy(run / "truth.json", out / "truth.json")
+    return [out / "flight.BIN", out / "telemetry.tlog", out / "truth.json"]
 
 
 def run_magfit(path: Path, mag: int = 1, reduce: int = 1, timeout_s: float = 1800.0, iterations: int = 1000) -> dict:
@@ -452,7 +515,9 @@ def record_sitl(tmp: Path, flight: SitlFlight, instance: int = 15, port: int = 1
     sitl = Sitl(instance, port, speedup=1, extra=flight.params(), limit_s=timeout_s + 30, home=flight.home)
     run = tmp
     run.mkdir(parents=True, exist_ok=True)
-    (run / "truth.json").write_text(json.dumps({"flight": flight.__dict__, "params": flight.params()}, indent=1))
+    (run / "truth.json").write_text(json.dumps({"recorded": f"benchmarks/real_logs.py record_sitl, -I {instance}, 1x, "
+                                                            f"{time.strftime('%Y-%m-%d', time.gmtime())}",
+                                                "flight": flight.__dict__, "params": flight.params()}, indent=1))
     deadline = time.monotonic() + timeout_s
     tlog_file = open(run / "telemetry.tlog", "wb")
     m = None
