@@ -441,6 +441,7 @@ class SitlFlight:
     mot_mG_per_A: tuple[float, float, float]
     compensated_motor: bool = True
     vertices: int = 10
+    radius_m: tuple[float, float] = (40.0, 90.0)     # the route's vertices from home (the first three flights: 50–110)
 
     @staticmethod
     def of_seed(seed: int) -> "SitlFlight":
@@ -456,8 +457,7 @@ class SitlFlight:
                           compensated_motor=not old, vertices=7 if old else 10)
 
     def params(self) -> dict[str, float]:
-        out = {"ARMING_CHECK": 0, "COMPASS_USE2": 0, "COMPASS_USE3": 0, "COMPASS_MOTCT": 2, "LOG_DISARMED": 0,
-               "SIM_SPEEDUP": 1}
+        out = {"ARMING_CHECK": 0, "COMPASS_USE2": 0, "COMPASS_USE3": 0, "COMPASS_MOTCT": 2, "LOG_DISARMED": 0}
         for n in (1, 2, 3):
             sfx = "" if n == 1 else str(n)
             for key, vals in (("OFS", self.ofs_mG), ("DIA", self.dia), ("ODI", self.odi)):
@@ -488,7 +488,7 @@ class SitlFlight:
         bearings = np.sort(rng.uniform(0, 2 * np.pi, self.vertices)) + rng.uniform(0, 2 * np.pi)
         pts = []
         for i, b in enumerate(bearings):
-            r = rng.uniform(50, 110) if self.vertices <= 7 else rng.uniform(40, 90)
+            r = rng.uniform(50, 110) if self.vertices == 7 else rng.uniform(*self.radius_m)
             alt = float(rng.uniform(15, 60))
             pts.append((r * np.cos(b), r * np.sin(b), alt, float(rng.uniform(3, 11))))
             if i in (1, 4) or (self.vertices > 7 and i == 7):   # climb / descend in place: current without tilt
@@ -498,11 +498,13 @@ class SitlFlight:
 
 
 def record_sitl(tmp: Path, flight: SitlFlight, instance: int = 15, port: int = 14635,
-                timeout_s: float = 600.0) -> tuple[Path | None, str, Path | None]:
+                timeout_s: float = 600.0, speedup: float = 1.0, land: bool = True
+                ) -> tuple[Path | None, str, Path | None]:
     """Fly ArduPilot SITL (../shared/sitl, harness.Sitl, ``-I instance``, MAVLink to udp
-    127.0.0.1:``port``, 1×: the station's .tlog is stamped by the wall clock) through
+    127.0.0.1:``port``, at ``speedup`` (1 for the benchmark: a station's .tlog is stamped by the wall
+    clock; the .tlog kept here is stamped by the vehicle's) through
     ``flight.route()`` in GUIDED (take off to 20 m, MAV_CMD_DO_CHANGE_SPEED + DO_REPOSITION per
-    target, land), the throttle stick held at mid by RC override.  The telemetry received (4 Hz
+    target, land unless ``land`` is False), the throttle stick held at mid by RC override.  The telemetry received (4 Hz
     streams, the parameter list at the start and the end) is kept as a .tlog stamped with the
     vehicle's clock.  Returns (the DataFlash .BIN, note, the .tlog); the truth goes to truth.json."""
     import json
@@ -512,7 +514,7 @@ def record_sitl(tmp: Path, flight: SitlFlight, instance: int = 15, port: int = 1
         return None, "no ../shared/sitl/arducopter", None
     if instance not in SITL_INSTANCES or port not in SITL_PORTS:
         return None, f"SITL instance {instance}/port {port} outside -I {SITL_INSTANCES.start}..{SITL_INSTANCES.stop - 1}", None
-    sitl = Sitl(instance, port, speedup=1, extra=flight.params(), limit_s=timeout_s + 30, home=flight.home)
+    sitl = Sitl(instance, port, speedup=speedup, extra=flight.params(), limit_s=timeout_s + 30, home=flight.home)
     run = tmp
     run.mkdir(parents=True, exist_ok=True)
     (run / "truth.json").write_text(json.dumps({"recorded": f"benchmarks/real_logs.py record_sitl, -I {instance}, 1x, "
@@ -552,8 +554,12 @@ def record_sitl(tmp: Path, flight: SitlFlight, instance: int = 15, port: int = 1
                     last_rc[0] = time.monotonic()
                     m.mav.rc_channels_override_send(m.target_system, m.target_component, 0, 0, 1500, 0, 0, 0, 0, 0)
                 msg = m.recv_match(blocking=True, timeout=0.5)
-                if msg is not None and msg.get_type() == "LOCAL_POSITION_NED":
-                    pos.update(n=msg.x, e=msg.y, alt=-msg.z)
+                if msg is not None and msg.get_type() == "GLOBAL_POSITION_INT":
+                    # from home, in the frame of the targets (LOCAL_POSITION_NED is from the EKF origin,
+                    # whose height differed from home's by more than the 2 m arrival gate at Canberra)
+                    pos.update(n=(msg.lat * 1e-7 - flight.home[0]) * 111_320.0,
+                               e=(msg.lon * 1e-7 - flight.home[1]) * 111_320.0 * np.cos(np.radians(flight.home[0])),
+                               alt=msg.relative_alt * 1e-3)
                 if cond():
                     return True
             return False
@@ -581,10 +587,11 @@ def record_sitl(tmp: Path, flight: SitlFlight, instance: int = 15, port: int = 1
             m.mav.set_position_target_global_int_send(0, m.target_system, m.target_component, 6, 0b110111111000,
                                                       int(lat * 1e7), int(lon * 1e7), alt, 0, 0, 0, 0, 0, 0, 0, 0)
             pump(60, lambda: np.hypot(pos["n"] - n, pos["e"] - e) < 4 and abs(pos["alt"] - alt) < 2)
-        m.set_mode("LAND")
-        pump(90, lambda: not armed())
+        if land:                     # (a test stops in the air: the .BIN is readable up to its last record)
+            m.set_mode("LAND")
+            pump(90, lambda: not armed())
         m.param_fetch_all()          # the parameters once more at the end, as a ground station would
-        pump(5)
+        pump(5 / speedup)
     finally:
         tlog_file.close()
         sitl.stop(keep=True)
