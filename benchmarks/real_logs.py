@@ -271,6 +271,8 @@ def run_magfit(path: Path, mag: int = 1, reduce: int = 1, timeout_s: float = 180
     ours: --elliptical --cmot; attitude ATT; ``--iter`` raised from its 100 to ``iterations``: SLSQP on
     its 13 parameters ends "Iteration limit reached" at 100 on a 3-minute flight), through
     ``dataflash_for_compass``.  Returns {"ofs": COMPASS_OFS (3,), "cmot": (3,), "runtime_s"} or {"error": ...}."""
+    if path.suffix.lower() != ".bin":
+        return {"error": "magfit_WMM reads DataFlash logs only (PARM, MAG, ATT, BAT, GPS records)"}
     try:
         import scipy  # noqa: F401  (magfit_WMM needs scipy and matplotlib: the "bench" extra)
         import matplotlib  # noqa: F401
@@ -649,6 +651,22 @@ def sitl_rows(tmp: Path, magfit_reduce: int | None, seeds: list[int], recorded: 
         with ThreadPoolExecutor(len(SITL_INSTANCES)) as ex:
             for s, f, path, note, tlog in ex.map(fly, enumerate(todo[start:start + len(SITL_INSTANCES)])):
                 runs[s] = (f, path, tlog) if path is not None else (f, None, note)
+    def magfit(job):
+        """magfit_WMM on compass k of seed s's .BIN, kept beside it (magfit_c<k>_r<reduce>.json: 0.5–3 min each)."""
+        import json
+        s, k = job
+        cache = Path(runs[s][1]).parent / f"magfit_c{k}_r{magfit_reduce}.json"
+        if cache.is_file():
+            d = json.loads(cache.read_text())
+        else:
+            d = run_magfit(Path(runs[s][1]), k + 1, magfit_reduce)
+            d = {key: (v.tolist() if isinstance(v, np.ndarray) else v) for key, v in d.items()}
+            if "ofs" in d:
+                cache.write_text(json.dumps(d))
+        return job, {key: (np.asarray(v, float) if key in ("ofs", "cmot") else v) for key, v in d.items()}
+    jobs = [(s, k) for s in seeds if runs[s][1] is not None for k in range(3)] if magfit_reduce is not None else []
+    with ThreadPoolExecutor(2) as ex:
+        peers = dict(ex.map(magfit, jobs))
     rows, table = [], []
     for s in seeds:
         f, path, tlog = runs[s]
@@ -668,7 +686,7 @@ def sitl_rows(tmp: Path, magfit_reduce: int | None, seeds: list[int], recorded: 
                                 (r.get("method") or "-") + _att(r), ours_ofs(r), "SIM_MAG_OFS", f.truth_ofs(k), 5.0,
                                 dt, named(r), _sd(r)))
         for k in range(3):
-            mf = run_magfit(path, k + 1, magfit_reduce) if magfit_reduce is not None else {"error": "not run"}
+            mf = peers.get((s, k), {"error": "not run"})
             if "ofs" in mf:
                 rows.append(Row(f"{label} .BIN", k, "ok", f"magfit_WMM --reduce {magfit_reduce}", mf["ofs"], "SIM_MAG_OFS",
                                 f.truth_ofs(k), None, mf["runtime_s"]))
