@@ -7,6 +7,11 @@ pymavlink's magfit_WMM.py.
     .venv/bin/python benchmarks/real_logs.py --quick         # real logs + seed 1, magfit on every 10th record
     .venv/bin/python benchmarks/real_logs.py --smoke         # one short simulated flight, no real logs, no magfit
                                                              # (the test; < 20 s)
+    .venv/bin/python benchmarks/real_logs.py --sitl 10 --sitl-recorded DIR --no-sim --magfit-reduce 10
+                                                             # + ten ArduPilot SITL route flights at 1x (-I 15..19,
+                                                             # five at once, ~5 min each), kept in DIR and re-used;
+                                                             # one table per compass: truth, ours .BIN/.tlog, 1σ,
+                                                             # magfit_WMM, the motor field
 magfit_WMM needs the "bench" extra (scipy, matplotlib).
 
 Every log is read with groundstation.io.logs.read_log and calibrated with
@@ -22,7 +27,9 @@ per-axis difference and the target:
   TimeUS MAG/MAG2/MAG3, TimeUS MAG with an instance column), in-flight WMM fit against the truth
   (target 5 mG), motor field per ampere against the truth (target 10 %);
 * magfit_WMM.py (--elliptical --cmot, compass 1) on the same .bin files: its offsets against the
-  truth and its runtime over ours (ours: reading the log + calibrating all three compasses).
+  truth and its runtime over ours (ours: reading the log + calibrating all three compasses);
+* ArduPilot SITL route flights (SitlFlight, record_sitl): against SIM_MAGn_OFS and SIM_MAG_MOT, from
+  the .BIN and the telemetry .tlog, magfit_WMM on every compass of the .BIN (dataflash_for_compass).
 """
 from __future__ import annotations
 
@@ -752,8 +759,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--magfit-reduce", type=int, default=4, help="magfit_WMM --reduce (1: every record)")
     ap.add_argument("--no-magfit", action="store_true")
-    ap.add_argument("--sitl", type=int, default=0, metavar="N",
-                    help="also record and fit N ArduPilot SITL route flights (seeds 1..N, 1x, up to 5 at once)")
+    ap.add_argument("--sitl", type=int, nargs="?", default=0, const=5, metavar="N",
+                    help="also record and fit N (default 5) ArduPilot SITL route flights (seeds 1..N, 1x, up to 5 at once)")
     ap.add_argument("--sitl-recorded", type=Path, default=None, metavar="DIR",
                     help="keep the SITL flights in DIR/seed<N>/ and re-use those already there")
     ap.add_argument("--no-sim", action="store_true", help="real logs (and --sitl) only")
