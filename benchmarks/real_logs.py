@@ -604,14 +604,16 @@ def record_sitl(tmp: Path, flight: SitlFlight, instance: int = 15, port: int = 1
     finally:
         tlog_file.close()
         sitl.stop(keep=True)
+        logs = sitl.bin_logs()
+        if logs:
+            shutil.copy(logs[-1], run / "flight.BIN")
+        if sitl.run_dir is not None:
+            shutil.rmtree(sitl.run_dir, ignore_errors=True)
         if m is not None:
             m.close()
-    logs = sitl.bin_logs()
     tlog = run / "telemetry.tlog"
     if not logs:
         return None, "SITL wrote no .BIN", None
-    shutil.copy(logs[-1], run / "flight.BIN")
-    shutil.rmtree(sitl.run_dir, ignore_errors=True)
     return run / "flight.BIN", "", tlog if tlog.is_file() else None
 
 
