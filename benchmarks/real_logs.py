@@ -7,6 +7,11 @@ pymavlink's magfit_WMM.py.
     .venv/bin/python benchmarks/real_logs.py --quick         # real logs + seed 1, magfit on every 10th record
     .venv/bin/python benchmarks/real_logs.py --smoke         # one short simulated flight, no real logs, no magfit
                                                              # (the test; < 20 s)
+    .venv/bin/python benchmarks/real_logs.py --sitl 10 --sitl-recorded DIR --no-sim --magfit-reduce 10
+                                                             # + ten ArduPilot SITL route flights at 1x (-I 15..19,
+                                                             # five at once, ~5 min each), kept in DIR and re-used;
+                                                             # one table per compass: truth, ours .BIN/.tlog, 1σ,
+                                                             # magfit_WMM, the motor field
 magfit_WMM needs the "bench" extra (scipy, matplotlib).
 
 Every log is read with groundstation.io.logs.read_log and calibrated with
@@ -22,7 +27,9 @@ per-axis difference and the target:
   TimeUS MAG/MAG2/MAG3, TimeUS MAG with an instance column), in-flight WMM fit against the truth
   (target 5 mG), motor field per ampere against the truth (target 10 %);
 * magfit_WMM.py (--elliptical --cmot, compass 1) on the same .bin files: its offsets against the
-  truth and its runtime over ours (ours: reading the log + calibrating all three compasses).
+  truth and its runtime over ours (ours: reading the log + calibrating all three compasses);
+* ArduPilot SITL route flights (SitlFlight, record_sitl): against SIM_MAGn_OFS and SIM_MAG_MOT, from
+  the .BIN and the telemetry .tlog, magfit_WMM on every compass of the .BIN (dataflash_for_compass).
 """
 from __future__ import annotations
 
@@ -32,6 +39,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import re  # noqa: E402
+import shutil  # noqa: E402
 import struct  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
@@ -141,21 +149,152 @@ def inflight_fits(log: FlightLog, k: int):
 MAGFIT = Path(__import__("pymavlink").__file__).parent / "tools" / "magfit_WMM.py"
 
 
-def run_magfit(path: Path, mag: int = 1, reduce: int = 1, timeout_s: float = 1800.0) -> dict:
-    """pymavlink's magfit_WMM.py on a DataFlash log (same model as ours: --elliptical --cmot).
-    Returns {"ofs": COMPASS_OFS (3,), "cmot": (3,), "runtime_s"} or {"error": ...}."""
+def copy_dataflash(path: Path, out: Path, edit) -> Path:
+    """Copy the DataFlash log ``path`` record by record to ``out``; ``edit(name, fields, record)`` returns
+    the record (bytes) to write, or None to drop it (``fields``: column -> (byte offset, struct code);
+    FMT records are passed as name "FMT" with the format's name, columns and record)."""
+    from pymavlink.DFReader import FORMAT_TO_STRUCT
+    data = path.read_bytes()
+    fmts: dict[int, tuple[str, int, dict]] = {}
+    parts, i = [], 0
+    while i + 3 <= len(data):
+        if data[i] != 0xA3 or data[i + 1] != 0x95:
+            i += 1                                   # resynchronise on a damaged stretch, as DFReader does
+            continue
+        mtype = data[i + 2]
+        if mtype == 128 and i + 89 <= len(data):
+            ftype, flen = data[i + 3], data[i + 4]
+            name = data[i + 5:i + 9].rstrip(b"\0").decode(errors="replace")
+            fmt = data[i + 9:i + 25].rstrip(b"\0").decode(errors="replace")
+            cols = data[i + 25:i + 89].rstrip(b"\0").decode(errors="replace").split(",")
+            fields, ofs = {}, 3
+            for c, code in zip(cols, fmt):
+                st = FORMAT_TO_STRUCT.get(code, ("B",))[0]
+                fields[c] = (ofs, st)
+                ofs += struct.calcsize("<" + st)
+            fmts[ftype] = (name, flen, fields)
+            rec = edit("FMT", {"Name": name, "Columns": cols}, data[i:i + 89])
+            if rec is not None:
+                parts.append(rec)
+            i += 89
+            continue
+        if mtype not in fmts:
+            i += 1
+            continue
+        name, flen, fields = fmts[mtype]
+        rec = edit(name, fields, data[i:i + flen])
+        if rec is not None:
+            parts.append(rec)
+        i += flen
+    out.write_bytes(b"".join(parts))
+    return out
+
+
+def _field(rec: bytes, fields: dict, col: str):
+    ofs, st = fields[col]
+    return struct.unpack_from("<" + st, rec, ofs)[0]
+
+
+def dataflash_for_compass(path: Path, k: int, out: Path) -> Path:
+    """A copy of the DataFlash log ``path`` in which magfit_WMM.py's ``--mag 1`` means compass
+    index ``k`` (0-based).  magfit_WMM reads ``MAG`` for its first compass and ``MAG<n>`` for the
+    others, and takes every ``MAG`` record: on ArduPilot 4.x, whose one ``MAG`` message carries all
+    compasses with an instance column ``I``, it fitted the three compasses' samples as one (the
+    "iteration limit" failure on the SITL .BIN).  The copy keeps the ``MAG`` records of instance
+    ``k`` only (older logs: ``MAG<k+1>`` renamed ``MAG``), and swaps compass k's PARM names
+    (COMPASS_OFSn/DIAn/ODIn/MOTn/SCALEn) with compass 1's, so magfit strips compass k's corrections."""
+    n = k + 1
+    swap: dict[str, str] = {}
+    if k > 0:
+        for key in ("OFS", "DIA", "ODI", "MOT"):
+            for axis in "XYZ":
+                swap[f"COMPASS_{key}_{axis}"], swap[f"COMPASS_{key}{n}_{axis}"] = \
+                    f"COMPASS_{key}{n}_{axis}", f"COMPASS_{key}_{axis}"
+        swap["COMPASS_SCALE"], swap[f"COMPASS_SCALE{n}"] = f"COMPASS_SCALE{n}", "COMPASS_SCALE"
+
+    def edit(name: str, fields: dict, rec: bytes):
+        if name == "FMT":
+            if k > 0 and fields["Name"] == f"MAG{n}":
+                return rec[:5] + b"MAG\0" + rec[9:]
+            if k > 0 and fields["Name"] == "MAG" and "I" not in fields["Columns"]:
+                return rec[:5] + b"MAGx" + rec[9:]      # the first compass's own MAG: out of magfit's way
+            return rec
+        if name == "MAG" and "I" in fields:
+            return rec if _field(rec, fields, "I") == k else None
+        if name == "PARM" and "Name" in fields:
+            ofs = fields["Name"][0]
+            pname = rec[ofs:ofs + 16].rstrip(b"\0").decode(errors="replace")
+            if pname in swap:
+                return rec[:ofs] + swap[pname].encode().ljust(16, b"\0") + rec[ofs + 16:]
+        return rec
+    return copy_dataflash(path, out, edit)
+
+
+CUT_BIN_KEEP = {"FMT": 1, "FMTU": 1, "UNIT": 1, "MULT": 1, "PARM": 1, "MSG": 1, "MODE": 1, "ORGN": 1,
+                "MAG": 2, "ATT": 2, "GPS": 1, "BAT": 5}      # name: keep every n-th record
+CUT_TLOG_KEEP = {"HEARTBEAT": 4, "PARAM_VALUE": 1, "RAW_IMU": 1, "SCALED_IMU2": 1, "SCALED_IMU3": 1,
+                 "ATTITUDE": 1, "GPS_RAW_INT": 2, "GLOBAL_POSITION_INT": 4, "SYS_STATUS": 2,
+                 "BATTERY_STATUS": 8, "SENSOR_OFFSETS": 8, "STATUSTEXT": 1, "SYSTEM_TIME": 8}
+
+
+def cut_sitl_flight(run: Path, out: Path) -> list[Path]:
+    """A small copy of a recorded SITL flight (``record_sitl``) for tests/data: the .BIN with the
+    records the in-flight fit reads (MAG and ATT every 2nd record: 5 Hz; BAT 2 Hz; GPS, PARM, ...),
+    the .tlog with its compass, attitude, position, battery and parameter messages, and truth.json."""
+    from pymavlink import mavutil
+    out.mkdir(parents=True, exist_ok=True)
+    seen: dict[tuple, int] = {}
+
+    def edit(name: str, fields: dict, rec: bytes):
+        if name == "FMT":
+            return rec
+        every = CUT_BIN_KEEP.get(name)
+        if every is None:
+            return None
+        key = (name, _field(rec, fields, "I") if "I" in fields and name == "MAG" else 0)
+        seen[key] = seen.get(key, -1) + 1
+        return rec if seen[key] % every == 0 else None
+    copy_dataflash(run / "flight.BIN", out / "flight.BIN", edit)
+    conn = mavutil.mavlink_connection(str(run / "telemetry.tlog"))
+    kept: dict[str, int] = {}
+    with open(out / "telemetry.tlog", "wb") as f:
+        while True:
+            m = conn.recv_match()
+            if m is None:
+                break
+            every = CUT_TLOG_KEEP.get(m.get_type())
+            if every is None:
+                continue
+            kept[m.get_type()] = kept.get(m.get_type(), -1) + 1
+            if kept[m.get_type()] % every == 0:
+                f.write(struct.pack(">Q", int(m._timestamp * 1e6)) + m.get_msgbuf())
+    conn.close()
+    shutil.copy(run / "truth.json", out / "truth.json")
+    return [out / "flight.BIN", out / "telemetry.tlog", out / "truth.json"]
+
+
+def run_magfit(path: Path, mag: int = 1, reduce: int = 1, timeout_s: float = 1800.0, iterations: int = 1000) -> dict:
+    """pymavlink's magfit_WMM.py on compass index ``mag - 1`` of a DataFlash log (the same model as
+    ours: --elliptical --cmot; attitude ATT; ``--iter`` raised from its 100 to ``iterations``: SLSQP on
+    its 13 parameters ends "Iteration limit reached" at 100 on a 3-minute flight), through
+    ``dataflash_for_compass``.  Returns {"ofs": COMPASS_OFS (3,), "cmot": (3,), "runtime_s"} or {"error": ...}."""
+    if path.suffix.lower() != ".bin":
+        return {"error": "magfit_WMM reads DataFlash logs only (PARM, MAG, ATT, BAT, GPS records)"}
     try:
         import scipy  # noqa: F401  (magfit_WMM needs scipy and matplotlib: the "bench" extra)
         import matplotlib  # noqa: F401
     except ImportError as err:
         return {"error": f"magfit_WMM needs {err.name}"}
-    cmd = [sys.executable, str(MAGFIT), "--att-source", "ATT", "--mag", str(mag), "--elliptical", "--cmot",
-           "--reduce", str(reduce), str(path)]
-    t0 = time.perf_counter()
-    try:
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=dict(os.environ, MPLBACKEND="Agg"))
-    except subprocess.TimeoutExpired:
-        return {"error": f"timeout after {timeout_s:.0f} s", "runtime_s": timeout_s}
+    with tempfile.TemporaryDirectory() as d:
+        one = dataflash_for_compass(path, mag - 1, Path(d) / "compass.bin")
+        cmd = [sys.executable, str(MAGFIT), "--att-source", "ATT", "--mag", "1", "--elliptical", "--cmot",
+               "--reduce", str(reduce), "--iter", str(iterations), "--save-plot", str(one)]
+        t0 = time.perf_counter()
+        try:
+            out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s,
+                                 env=dict(os.environ, MPLBACKEND="Agg"))
+        except subprocess.TimeoutExpired:
+            return {"error": f"timeout after {timeout_s:.0f} s", "runtime_s": timeout_s}
     dt = time.perf_counter() - t0
     m = re.search(r"New: Vector3\(([-\d.]+), ([-\d.]+), ([-\d.]+)\).*cmot: Vector3\(([-\d.]+), ([-\d.]+), ([-\d.]+)\)",
                   out.stdout)
@@ -284,43 +423,118 @@ def _magfit_row(sim, seed: int, kind: str, path: Path, reduce: int, ours: Row) -
 # ------------------------------------------------------------------------------------ SITL
 
 SITL = ROOT.parent / "shared" / "sitl"
-SITL_TRUTH_OFS = {0: np.array([120.0, -80.0, 60.0]), 1: np.array([5.0, 13.0, -18.0]), 2: np.array([5.0, 13.0, -18.0])}
+sys.path.insert(0, str(ROOT / "tests" / "sitl"))      # harness.Sitl: the one way this project starts SITL
+SITL_INSTANCES = range(15, 20)                         # -I 15..19 (benchmarks/sitl.py and its tests take 10..14)
+SITL_PORTS = range(14635, 14640)                       # our MAVLink listener (loopback UDP), one per instance
+SITL_SITES = (("Canberra", (-35.3632, 149.1652, 584.0)), ("Hangzhou", (30.3, 120.1, 10.0)),
+              ("Tromsø", (69.68, 18.94, 20.0)), ("Boulder", (40.015, -105.27, 1655.0)),
+              ("Cape Town", (-33.92, 18.42, 30.0)))
 
 
-SITL_INSTANCE = 5          # -I 5: SITL's own ports + 50; our MAVLink listener on loopback UDP below
-SITL_PORT = 14655
+@dataclass(frozen=True)
+class SitlFlight:
+    """One recorded ArduCopter SITL flight and its truth: per compass n (1..3) SIM_MAGn_OFS (mG),
+    DIA, ODI; SIM_MAG_MOT (mG/A, body frame, all compasses); no calibration dance.  The corrections
+    in force are an uncalibrated vehicle's for compasses 2 and 3 (COMPASS_OFSn 0.001, DIA 1, ODI 0,
+    COMPASS_MOTn 0: COMPASS_USE2/3 = 0) and the truth for compass 1, which the EKF uses (offsets,
+    soft iron and, from ``compensated_motor`` on, COMPASS_MOT: seeds 1–3 were flown with it 0, and
+    the EKF's yaw then followed the motor field: 33 mG of x error from the .tlog's ATTITUDE on seed 3).
+    Every correction in force is stripped before the fit.  Truth: COMPASS_OFSn = SIM_MAGn_OFS,
+    the field per ampere = SIM_MAG_MOT (COMPASS_MOT = −SIM_MAG_MOT)."""
+    seed: int
+    site: str
+    home: tuple[float, float, float, float]          # lat, lon deg, alt m, initial yaw deg
+    ofs_mG: tuple[tuple[float, float, float], ...]
+    dia: tuple[tuple[float, float, float], ...]
+    odi: tuple[tuple[float, float, float], ...]
+    mot_mG_per_A: tuple[float, float, float]
+    compensated_motor: bool = True
+    vertices: int = 10
+    radius_m: tuple[float, float] = (40.0, 90.0)     # the route's vertices from home (the first three flights: 50–110)
+
+    @staticmethod
+    def of_seed(seed: int) -> "SitlFlight":
+        """Distinct truth, site and heading per seed (SIM_MAG_MOT of 2–5 mG/A per axis, mixed signs)."""
+        rng = np.random.default_rng(1000 + seed)
+        site, (lat, lon, alt) = SITL_SITES[seed % len(SITL_SITES)]
+        ofs = tuple(tuple(float(round(v)) for v in rng.uniform(-150, 150, 3)) for _ in range(3))
+        dia = tuple(tuple(float(round(v, 3)) for v in rng.uniform(0.95, 1.05, 3)) for _ in range(3))
+        odi = tuple(tuple(float(round(v, 3)) for v in rng.uniform(-0.03, 0.03, 3)) for _ in range(3))
+        mot = tuple(float(round(v, 1)) for v in rng.uniform(2, 5, 3) * rng.choice([-1, 1], 3))
+        old = seed <= 3                        # the first three flights: compass 1's motor field uncompensated, 7 vertices
+        return SitlFlight(seed, site, (lat, lon, alt, float(rng.integers(0, 360))), ofs, dia, odi, mot,
+                          compensated_motor=not old, vertices=7 if old else 10)
+
+    def params(self) -> dict[str, float]:
+        out = {"ARMING_CHECK": 0, "COMPASS_USE2": 0, "COMPASS_USE3": 0, "COMPASS_MOTCT": 2, "LOG_DISARMED": 0}
+        for n in (1, 2, 3):
+            sfx = "" if n == 1 else str(n)
+            for key, vals in (("OFS", self.ofs_mG), ("DIA", self.dia), ("ODI", self.odi)):
+                for axis, v in zip("XYZ", vals[n - 1]):
+                    out[f"SIM_MAG{n}_{key}_{axis}"] = v
+                    inforce = v if n == 1 else {"OFS": 0.001, "DIA": 1.0, "ODI": 0.0}[key]
+                    out[f"COMPASS_{key}{sfx}_{axis}"] = inforce
+            for axis, v in zip("XYZ", self.mot_mG_per_A):
+                out[f"COMPASS_MOT{sfx}_{axis}"] = -v if (n == 1 and self.compensated_motor) else 0.0
+        for axis, v in zip("XYZ", self.mot_mG_per_A):
+            out[f"SIM_MAG_MOT_{axis}"] = v
+        return out
+
+    def truth_ofs(self, k: int) -> np.ndarray:
+        """COMPASS_OFS of compass index k (0-based)."""
+        return np.asarray(self.ofs_mG[k], float)
+
+    def truth_mot(self) -> np.ndarray:
+        """COMPASS_MOT (ArduPilot adds COMPASS_MOT × current to the field: −SIM_MAG_MOT)."""
+        return -np.asarray(self.mot_mG_per_A, float)
+
+    def route(self) -> list[tuple[float, float, float, float]]:
+        """(north m, east m, alt m, ground speed m/s) targets: a hexagon-ish loop of legs at random
+        bearings (every heading), each at its own speed (3–11 m/s) and height (15–60 m), with a
+        vertical climb and a descent in place between some legs, so that the current (climb: high,
+        descent: low, speed changes) varies independently of the attitude."""
+        rng = np.random.default_rng(2000 + self.seed)
+        bearings = np.sort(rng.uniform(0, 2 * np.pi, self.vertices)) + rng.uniform(0, 2 * np.pi)
+        pts = []
+        for i, b in enumerate(bearings):
+            r = rng.uniform(50, 110) if self.vertices == 7 else rng.uniform(*self.radius_m)
+            alt = float(rng.uniform(15, 60))
+            pts.append((r * np.cos(b), r * np.sin(b), alt, float(rng.uniform(3, 11))))
+            if i in (1, 4) or (self.vertices > 7 and i == 7):   # climb / descend in place: current without tilt
+                pts.append((r * np.cos(b), r * np.sin(b), 70.0 if alt < 40 else 12.0, 5.0))
+        pts.append((0.0, 0.0, 20.0, 6.0))
+        return pts
 
 
-def record_sitl(tmp: Path, circle_s: float = 150.0, speedup: int = 5, port: int = SITL_PORT,
-                timeout_s: float = 600.0) -> tuple[Path | None, str, Path | None]:
-    """Fly ArduPilot SITL (../shared/sitl, instance -I ``SITL_INSTANCE``, MAVLink to udp
-    127.0.0.1:``port``): take off to 30 m, circle (every heading) for ``circle_s`` s of vehicle
-    time, land.  Compass 1 has SIM_MAG1_OFS = (120, −80, 60) mG and COMPASS_OFS = (1, 1, 1) in force
-    (uncalibrated; COMPASS_USE = 0, the EKF takes compass 2), compasses 2 and 3 the defaults (5, 13, −18) both ways;
-    the truth is COMPASS_OFSn = SIM_MAGn_OFS.  The telemetry received (4 Hz streams and the parameter list) is kept as a .tlog.
-    Returns (the DataFlash .BIN, note, the .tlog)."""
+def record_sitl(tmp: Path, flight: SitlFlight, instance: int = 15, port: int = 14635,
+                timeout_s: float = 600.0, speedup: float = 1.0, land: bool = True
+                ) -> tuple[Path | None, str, Path | None]:
+    """Fly ArduPilot SITL (../shared/sitl, harness.Sitl, ``-I instance``, MAVLink to udp
+    127.0.0.1:``port``, at ``speedup`` (1 for the benchmark: a station's .tlog is stamped by the wall
+    clock; the .tlog kept here is stamped by the vehicle's) through
+    ``flight.route()`` in GUIDED (take off to 20 m, MAV_CMD_DO_CHANGE_SPEED + DO_REPOSITION per
+    target, land unless ``land`` is False), the throttle stick held at mid by RC override.  The telemetry received (4 Hz
+    streams, the parameter list at the start and the end) is kept as a .tlog stamped with the
+    vehicle's clock.  Returns (the DataFlash .BIN, note, the .tlog); the truth goes to truth.json."""
+    import json
+    from harness import SITL_BINARY, Sitl
     from pymavlink import mavutil
-    binary = SITL / "arducopter"
-    if not binary.is_file():
+    if SITL_BINARY is None:
         return None, "no ../shared/sitl/arducopter", None
-    run = tmp / "sitl"
-    run.mkdir(exist_ok=True)
-    t = SITL_TRUTH_OFS[0]
-    (run / "truth.parm").write_text(f"SIM_MAG1_OFS_X {t[0]}\nSIM_MAG1_OFS_Y {t[1]}\nSIM_MAG1_OFS_Z {t[2]}\n"
-                                    "COMPASS_OFS_X 1\nCOMPASS_OFS_Y 1\nCOMPASS_OFS_Z 1\nARMING_CHECK 0\n"
-                                    "COMPASS_USE 0\n"
-                                    "CIRCLE_RADIUS 3000\nCIRCLE_RATE 15\n")
-    cmd = [str(binary), "--model", "quad", "--speedup", str(speedup), "-w", "-I", str(SITL_INSTANCE),
-           "--defaults", f"{SITL / 'copter.parm'},{run / 'truth.parm'}", "--home", "-35.3632,149.1652,584,0",
-           "--serial0", f"udpclient:127.0.0.1:{port}"]
-    proc = subprocess.Popen(cmd, cwd=run, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    if instance not in SITL_INSTANCES or port not in SITL_PORTS:
+        return None, f"SITL instance {instance}/port {port} outside -I {SITL_INSTANCES.start}..{SITL_INSTANCES.stop - 1}", None
+    sitl = Sitl(instance, port, speedup=speedup, extra=flight.params(), limit_s=timeout_s + 30, home=flight.home)
+    run = tmp
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "truth.json").write_text(json.dumps({"recorded": f"benchmarks/real_logs.py record_sitl, -I {instance}, 1x, "
+                                                            f"{time.strftime('%Y-%m-%d', time.gmtime())}",
+                                                "flight": flight.__dict__, "params": flight.params()}, indent=1))
     deadline = time.monotonic() + timeout_s
+    tlog_file = open(run / "telemetry.tlog", "wb")
+    m = None
     try:
         m = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}")
-        # pymavlink's UDP link does not write its logfile: each message is kept here, stamped with the
-        # vehicle's clock (time_boot_ms / time_usec since boot, else the last seen): at --speedup N the
-        # wall clock runs N times slower than the flight, and a real ground station sees real time
-        tlog_file = open(run / "telemetry.tlog", "wb")
+        sitl.start()
         t0_us, boot_us = int(time.time() * 1e6), [0]
 
         def keep(msg) -> None:
@@ -338,87 +552,185 @@ def record_sitl(tmp: Path, circle_s: float = 150.0, speedup: int = 5, port: int 
             return None, "SITL sent no heartbeat", None
         m.mav.request_data_stream_send(m.target_system, m.target_component, mavutil.mavlink.MAV_DATA_STREAM_ALL, 4, 1)
         m.param_fetch_all()
-
-        def boot_s() -> float:
-            msg = m.recv_match(type="ATTITUDE", blocking=True, timeout=5)
-            return -1.0 if msg is None else msg.time_boot_ms / 1000.0
-
         last_rc = [0.0]
+        pos = {"n": 0.0, "e": 0.0, "alt": 0.0}
 
-        def hold_throttle() -> None:
-            """Throttle stick at mid (RC_CHANNELS_OVERRIDE, 2 Hz): CIRCLE takes the climb rate from it,
-            and SITL's idle stick (1000) made the vehicle descend into the ground (measured)."""
-            if time.monotonic() - last_rc[0] > 0.5:
-                last_rc[0] = time.monotonic()
-                m.mav.rc_channels_override_send(m.target_system, m.target_component, 0, 0, 1500, 0, 0, 0, 0, 0)
-
-        def wait_until(cond, limit_s: float) -> bool:
-            t0 = boot_s()
-            while time.monotonic() < deadline:
-                hold_throttle()
+        def pump(limit_s: float, cond=lambda: False) -> bool:
+            """Read the link (keeping every message) until ``cond()`` or ``limit_s`` s pass."""
+            end = min(time.monotonic() + limit_s, deadline)
+            while time.monotonic() < end:
+                if time.monotonic() - last_rc[0] > 0.5:
+                    last_rc[0] = time.monotonic()
+                    m.mav.rc_channels_override_send(m.target_system, m.target_component, 0, 0, 1500, 0, 0, 0, 0, 0)
+                msg = m.recv_match(blocking=True, timeout=0.5)
+                if msg is not None and msg.get_type() == "GLOBAL_POSITION_INT":
+                    # from home, in the frame of the targets (LOCAL_POSITION_NED is from the EKF origin,
+                    # whose height differed from home's by more than the 2 m arrival gate at Canberra)
+                    pos.update(n=(msg.lat * 1e-7 - flight.home[0]) * 111_320.0,
+                               e=(msg.lon * 1e-7 - flight.home[1]) * 111_320.0 * np.cos(np.radians(flight.home[0])),
+                               alt=msg.relative_alt * 1e-3)
                 if cond():
                     return True
-                if boot_s() - t0 > limit_s:
-                    return False
             return False
 
         def armed() -> bool:
-            hb = m.recv_match(type="HEARTBEAT", blocking=True, timeout=5)
-            return hb is not None and bool(hb.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            return bool(m.motors_armed())
 
-        def try_arm() -> bool:
+        arm_end = time.monotonic() + 180
+        while not armed() and time.monotonic() < arm_end:
             m.set_mode("GUIDED")
             m.arducopter_arm()
-            return armed() or armed()
-
-        if not wait_until(try_arm, 180):
+            pump(3.0, armed)
+        if not armed():
             return None, "SITL would not arm in GUIDED within 180 s", None
         m.mav.command_long_send(m.target_system, m.target_component, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF,
-                                0, 0, 0, 0, 0, 0, 0, 30)
-
-        def high() -> bool:
-            g = m.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=5)
-            return g is not None and g.relative_alt > 25_000
-
-        if not wait_until(high, 90):
-            return None, "SITL did not climb to 25 m", None
-        m.set_mode("CIRCLE")
-        wait_until(lambda: False, circle_s)
-        m.set_mode("LAND")
-        wait_until(lambda: not armed(), 120)
+                                0, 0, 0, 0, 0, 0, 0, 20)
+        if not pump(60, lambda: pos["alt"] > 18):
+            return None, "SITL did not climb to 18 m", None
+        lat0, lon0 = flight.home[0], flight.home[1]
+        for n, e, alt, speed in flight.route():
+            m.mav.command_long_send(m.target_system, m.target_component, mavutil.mavlink.MAV_CMD_DO_CHANGE_SPEED,
+                                    0, 1, speed, -1, 0, 0, 0, 0)
+            lat = lat0 + n / 111_320.0
+            lon = lon0 + e / (111_320.0 * np.cos(np.radians(lat0)))
+            m.mav.set_position_target_global_int_send(0, m.target_system, m.target_component, 6, 0b110111111000,
+                                                      int(lat * 1e7), int(lon * 1e7), alt, 0, 0, 0, 0, 0, 0, 0, 0)
+            pump(60, lambda: np.hypot(pos["n"] - n, pos["e"] - e) < 4 and abs(pos["alt"] - alt) < 2)
+        if land:                     # (a test stops in the air: the .BIN is readable up to its last record)
+            m.set_mode("LAND")
+            pump(90, lambda: not armed())
         m.param_fetch_all()          # the parameters once more at the end, as a ground station would
-        wait_until(lambda: False, 5)
+        pump(5 / speedup)
     finally:
-        if "tlog_file" in locals():
-            tlog_file.close()
-        proc.terminate()
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-    logs = sorted((run / "logs").glob("*.BIN"))
+        tlog_file.close()
+        sitl.stop(keep=True)
+        logs = sitl.bin_logs()
+        if logs:
+            shutil.copy(logs[-1], run / "flight.BIN")
+        if sitl.run_dir is not None:
+            shutil.rmtree(sitl.run_dir, ignore_errors=True)
+        if m is not None:
+            m.close()
     tlog = run / "telemetry.tlog"
-    return (logs[-1], "", tlog if tlog.is_file() else None) if logs else (None, "SITL wrote no .BIN", None)
+    if not logs:
+        return None, "SITL wrote no .BIN", None
+    return run / "flight.BIN", "", tlog if tlog.is_file() else None
 
 
-def sitl_rows(tmp: Path, magfit_reduce: int | None) -> list[Row]:
-    path, note, tlog = record_sitl(tmp)
-    if path is None:
-        return [Row("SITL circle flight .BIN", None, f"not recorded: {note}", "", None, "", None, None, 0.0)]
-    rows = []
-    for label, p in (("SITL circle flight .BIN", path), ("SITL circle flight telemetry .tlog", tlog)):
-        if p is None:
+def _motor_ours(r: dict) -> tuple[np.ndarray | None, str]:
+    """Our field per ampere (mG/A, the field the current adds: SIM_MAG_MOT's sense) and where from:
+    the WMM fit's motor term when it was fitted, else the separate interference fit."""
+    w = r.get("inflight") or {}
+    if "f_x" in (w.get("fitted") or []) and w.get("motor_mG_per_unit") and None not in w["motor_mG_per_unit"]:
+        return np.asarray(w["motor_mG_per_unit"], float), "wmm"
+    mot = r.get("motor") or {}
+    if mot.get("status") == "ok" and mot.get("motor_mG_per_unit"):
+        return np.asarray(mot["motor_mG_per_unit"], float), "motor fit"
+    return None, (mot.get("status") or "not fitted")
+
+
+def load_sitl_flight(run: Path):
+    """(SitlFlight, .BIN, .tlog) of a flight recorded by ``record_sitl`` into ``run`` (truth.json)."""
+    import json
+    d = json.loads((run / "truth.json").read_text())["flight"]
+    f = SitlFlight(**{k: (tuple(tuple(x) if isinstance(x, list) else x for x in v) if isinstance(v, list) else v)
+                      for k, v in d.items()})
+    return f, run / "flight.BIN", run / "telemetry.tlog"
+
+
+def sitl_rows(tmp: Path, magfit_reduce: int | None, seeds: list[int], recorded: Path | None = None
+              ) -> tuple[list[Row], list[str]]:
+    """Record (or, with ``recorded``, re-read from recorded/seed<N>/) one SITL route flight per seed,
+    up to five at once on -I 15..19, and fit both its logs.  Returns the rows of the main table and
+    the per-compass SITL table (truth, ours .BIN, ours .tlog, 1σ, magfit_WMM; motor field)."""
+    from concurrent.futures import ThreadPoolExecutor
+    runs: dict[int, tuple] = {}
+    if recorded is not None:
+        for s in seeds:
+            if (recorded / f"seed{s}" / "truth.json").is_file():
+                runs[s] = load_sitl_flight(recorded / f"seed{s}")
+    todo = [s for s in seeds if s not in runs]
+
+    def fly(i_s):
+        i, s = i_s
+        f = SitlFlight.of_seed(s)
+        path, note, tlog = record_sitl((recorded or tmp) / f"seed{s}", f, SITL_INSTANCES[i], SITL_PORTS[i])
+        return s, f, path, note, tlog
+    for start in range(0, len(todo), len(SITL_INSTANCES)):
+        with ThreadPoolExecutor(len(SITL_INSTANCES)) as ex:
+            for s, f, path, note, tlog in ex.map(fly, enumerate(todo[start:start + len(SITL_INSTANCES)])):
+                runs[s] = (f, path, tlog) if path is not None else (f, None, note)
+    def magfit(job):
+        """magfit_WMM on compass k of seed s's .BIN, kept beside it (magfit_c<k>_r<reduce>.json: 0.5–3 min each)."""
+        import json
+        s, k = job
+        cache = Path(runs[s][1]).parent / f"magfit_c{k}_r{magfit_reduce}.json"
+        if cache.is_file():
+            d = json.loads(cache.read_text())
+        else:
+            d = run_magfit(Path(runs[s][1]), k + 1, magfit_reduce)
+            d = {key: (v.tolist() if isinstance(v, np.ndarray) else v) for key, v in d.items()}
+            if "ofs" in d:
+                cache.write_text(json.dumps(d))
+        return job, {key: (np.asarray(v, float) if key in ("ofs", "cmot") else v) for key, v in d.items()}
+    jobs = [(s, k) for s in seeds if runs[s][1] is not None for k in range(3)] if magfit_reduce is not None else []
+    with ThreadPoolExecutor(2) as ex:
+        peers = dict(ex.map(magfit, jobs))
+    rows, table = [], []
+    for s in seeds:
+        f, path, tlog = runs[s]
+        label = f"SITL route {s} ({f.site})"
+        if path is None:
+            rows.append(Row(label, None, f"not recorded: {tlog}", "", None, "", None, None, 0.0))
             continue
-        log, results, dt = calibrate_file(p)
-        rows += [Row(label, r["compass"], r["status"], (r.get("method") or "-") + _att(r), ours_ofs(r),
-                     "SIM_MAG_OFS", SITL_TRUTH_OFS.get(r["compass"]), 5.0, dt, named(r), _sd(r)) for r in results]
-    if magfit_reduce is not None and rows:
-        mf = run_magfit(path, 1, magfit_reduce)
-        versus = (rows[0].err_mG if rows[0].err_mG is not None else float("inf"), rows[0].seconds)
-        rows.append(Row("SITL circle flight .BIN", 0, "ok" if "ofs" in mf else f"error: {mf.get('error')}",
-                        f"magfit_WMM --reduce {magfit_reduce}", mf.get("ofs"), "SIM_MAG_OFS", SITL_TRUTH_OFS[0], None,
-                        mf.get("runtime_s", 0.0), versus=versus))
-    return rows
+        got = {}
+        for kind, p in (("bin", path), ("tlog", tlog)):
+            if p is None or not Path(p).is_file():
+                continue
+            log, results, dt = calibrate_file(Path(p))
+            for r in results:
+                k = r["compass"]
+                got[(kind, k)] = r
+                rows.append(Row(f"{label} .{'BIN' if kind == 'bin' else 'tlog'}", k, r["status"],
+                                (r.get("method") or "-") + _att(r), ours_ofs(r), "SIM_MAG_OFS", f.truth_ofs(k), 5.0,
+                                dt, named(r), _sd(r)))
+        for k in range(3):
+            mf = peers.get((s, k), {"error": "not run"})
+            if "ofs" in mf:
+                rows.append(Row(f"{label} .BIN", k, "ok", f"magfit_WMM --reduce {magfit_reduce}", mf["ofs"], "SIM_MAG_OFS",
+                                f.truth_ofs(k), None, mf["runtime_s"]))
+            cells = [label, str(k), _vec(f.truth_ofs(k))]
+            for kind in ("bin", "tlog"):
+                r = got.get((kind, k))
+                o = None if r is None else ours_ofs(r)
+                sd = None if r is None else _sd(r)
+                err = None if o is None else float(np.max(np.abs(o - f.truth_ofs(k))))
+                cells.append("-" if r is None else f"{r['status']} {_vec(o)} Δ {'-' if err is None else f'{err:.1f}'}")
+                cells.append("-" if sd is None else "[" + ", ".join(f"{x:.1f}" for x in sd) + "]")
+            if "ofs" in mf:
+                cells.append(f"{_vec(mf['ofs'])} Δ {float(np.max(np.abs(mf['ofs'] - f.truth_ofs(k)))):.1f}")
+            else:
+                cells.append(f"no result ({mf['error']})")
+            mot_truth = np.asarray(f.mot_mG_per_A, float)
+            cells.append(_vec1(mot_truth))
+            for kind in ("bin", "tlog"):
+                r = got.get((kind, k))
+                mv, src = (None, "-") if r is None else _motor_ours(r)
+                cells.append(f"{src}" if mv is None else
+                             f"{_vec1(mv)} {100 * np.linalg.norm(mv - mot_truth) / np.linalg.norm(mot_truth):.0f} %")
+            cells.append("-" if "cmot" not in mf else
+                         f"{_vec1(-mf['cmot'])} {100 * np.linalg.norm(-mf['cmot'] - mot_truth) / np.linalg.norm(mot_truth):.0f} %")
+            table.append("| " + " | ".join(cells) + " |")
+    return rows, table
+
+
+SITL_HEAD = ("| flight | compass | truth COMPASS_OFS | ours .BIN (Δ max mG) | 1σ .BIN | ours .tlog (Δ max mG) | 1σ .tlog | "
+             "magfit_WMM .BIN (Δ max mG) | SIM_MAG_MOT mG/A | ours .BIN (error) | ours .tlog (error) | magfit_WMM −cmot |\n"
+             + "|" + "---|" * 12)
+
+
+def _vec1(v) -> str:
+    return "[" + ", ".join(f"{x:.2f}" for x in v) + "]"
 
 
 # ------------------------------------------------------------------------------------ table
@@ -449,16 +761,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--magfit-reduce", type=int, default=4, help="magfit_WMM --reduce (1: every record)")
     ap.add_argument("--no-magfit", action="store_true")
-    ap.add_argument("--sitl", action="store_true", help="also record and fit an ArduPilot SITL circle flight")
+    ap.add_argument("--sitl", type=int, nargs="?", default=0, const=5, metavar="N",
+                    help="also record and fit N (default 5) ArduPilot SITL route flights (seeds 1..N, 1x, up to 5 at once)")
+    ap.add_argument("--sitl-recorded", type=Path, default=None, metavar="DIR",
+                    help="keep the SITL flights in DIR/seed<N>/ and re-use those already there")
     ap.add_argument("--no-sim", action="store_true", help="real logs (and --sitl) only")
     a = ap.parse_args(argv)
     seeds = [1] if (a.quick or a.smoke) else list(range(1, a.seeds + 1))
     reduce = None if (a.no_magfit or a.smoke) else (10 if a.quick else a.magfit_reduce)
-    rows, motor = ([] if a.smoke else real_rows(None if a.no_magfit else (10 if a.quick else 1))), []
+    rows, motor, sitl_table = ([] if a.smoke else real_rows(None if a.no_magfit else (10 if a.quick else 1))), [], []
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         if a.sitl:
-            rows += sitl_rows(tmp, reduce if reduce is not None else None)
+            sr, sitl_table = sitl_rows(tmp, reduce, list(range(1, a.sitl + 1)), a.sitl_recorded)
+            rows += sr
         for s in ([] if a.no_sim else seeds):
             rows += dance_rows(s, tmp)
             fr, mr = flight_rows(s, tmp, ("timeus_instance",) if a.smoke else LAYOUTS, reduce,
@@ -469,6 +785,10 @@ def main(argv: list[str] | None = None) -> int:
     print("\nMotor field per ampere (in-flight fit on the telemetry log) against the truth")
     print("| log | compass | truth mG/A | error % | target % | verdict |\n|---|---|---|---|---|---|")
     print("\n".join(motor))
+    if sitl_table:
+        print("\nArduPilot SITL route flights: offsets (COMPASS_OFS, mG) and the motor field per ampere against SIM truth")
+        print(SITL_HEAD)
+        print("\n".join(sitl_table))
     return 0
 
 

@@ -86,6 +86,27 @@ def _from_inflight(r: dict, fit, cf: CompassField) -> tuple:
     return np.asarray(fit.offsets_mG, float), np.asarray(fit.matrix, float)
 
 
+def window_motor_bias(window, cf: CompassField, x, wmm, limit_mG: float) -> str:
+    """Why a calibration window is not used, or "": a window fit has no motor term, so a window
+    flown with the motors drawing current carries the motor field f·I (the in-flight fit's f, mG per
+    ampere or per unit throttle) in its offsets.  Measured on ArduPilot SITL (SIM_MAG_MOT (−2.2, −3.1,
+    −4.9) mG/A, 24 A): a window fit recommended with 1σ ≤ 1 mG and 80 mG off.  Refused when
+    |f| × the window's mean |signal| exceeds ``limit_mG``."""
+    if window is None or x is None or x.signal is None or wmm is None or "f_x" not in wmm.fitted:
+        return ""
+    t = cf.t_s[x.idx]
+    inside = (t >= window.start_s) & (t <= window.end_s) & np.isfinite(x.signal)
+    if not inside.any():
+        return ""
+    level = float(np.mean(np.abs(x.signal[inside])))
+    bias = float(np.linalg.norm(wmm.motor_mG_per_unit)) * level
+    if bias <= limit_mG:
+        return ""
+    unit = "A" if x.signal_name == "current_A" else "throttle"
+    return (f"calibration window {window.start_s:.0f}-{window.end_s:.0f} s not used: flown at {level:.3g} {unit}, "
+            f"its offsets carry {bias:.0f} mG of motor field (limit {limit_mG:g} mG; the in-flight fit has the motor term)")
+
+
 def _failure_status(step, wmm, notes: list[str]) -> str:
     """The reason named when neither a window nor the in-flight fit gave offsets."""
     if wmm is not None and wmm.status in SPECIFIC_INFLIGHT_STATUSES:
@@ -178,10 +199,17 @@ def calibrate_compass(log: FlightLog, cf: CompassField, ctx: LogContext, setting
         return r, None
     step = window_step(log, cf, ctx, settings)
     r["windows"] = window_dicts(step.search, cf.t_s)
-    cal = _from_window(r, step, cf) if step.search.chosen is not None else None
     x = flight_inputs(log, cf, settings.inflight_max_samples, ctx) if ctx.field is not None and settings.inflight_fit else None
     wmm = inflight_step(cf, x, ctx, settings) if x is not None else None
     r["inflight"] = wmm_dict(wmm, cf.t_s) if wmm is not None else None
+    use_window = step.search.chosen is not None
+    if use_window:
+        why = window_motor_bias(step.search.chosen_window, cf, x, wmm, settings.window_max_motor_field_mG)
+        if why:
+            use_window = False
+            notes.append(why)
+            r["windows"][step.search.chosen].update(chosen=False, reason=why)
+    cal = _from_window(r, step, cf) if use_window else None
     motor = _motor(r, log, cf, x, ctx, settings)
     used = None
     if cal is not None:
