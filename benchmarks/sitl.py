@@ -327,8 +327,11 @@ class SitlFlight:
     truth is, the site (--home lat, lon, alt m, yaw deg), the legs (north, east m from home), and
     what is done in flight: GPS away for 60 s from the second leg, or the anomaly (SIM_MAG_ALY, 150,
     -100, 200 mG at the ground, 1/8 at SIM_MAG_ALY_HGT 5 m) switched on by a parameter once
-    airborne ("inflight") or set before take-off and flown onto in a descent ("preset", with
-    ARMING_CHECK 0: the anomaly under a landed vehicle fails the pre-arm compass checks).
+    airborne at 4 m ("inflight": it appears in time), or switched on at 25 m, where it is 1/216 of
+    that (1.2 mG), and flown onto in a descent to 2 m and the climb back ("descent": it rises and
+    falls with the place flown).  The SITL anomaly depends on the height alone, so one set before
+    take-off is under the vehicle from the start: the detector learns it on the ground and alarms
+    at the climb out of it, for the whole flight (measured: "rising with time" at take-off).
     ``expect``: "none" (a clean flight: no alarm), "motor" (learnt, no alarm) or "anomaly"."""
     extra: dict
     alt_m: float
@@ -347,9 +350,9 @@ FLIGHTS = {
     "motor": SitlFlight(MOTOR, 15.0, f"motor field {list(MOTOR_TRUTH_mG_PER_A)} mG/A (SIM_MAG_MOT)", expect="motor"),
     "anomaly": SitlFlight({}, 4.0, "anomaly [150, -100, 200] mG at the ground, 1/8 at 5 m, from takeoff + 5 s: "
                           "alarms low", anomaly="inflight", expect="anomaly"),
-    "anomaly_descent": SitlFlight({**ANOMALY, "ARMING_CHECK": 0, "WPNAV_SPEED": 300}, 15.0,
-                                  "anomaly set before take-off; descend 15 -> 2 m onto it over 25 m and climb "
-                                  "back: alarms fixed in place", anomaly="preset", expect="anomaly"),
+    "anomaly_descent": SitlFlight({"WPNAV_SPEED": 300}, 25.0,
+                                  "anomaly on at 25 m (1.2 mG); descend to 2 m onto it and climb back over "
+                                  "25 m: alarms fixed in place", anomaly="descent", expect="anomaly"),
     "gps_off": SitlFlight({}, 15.0, "no alarm (GPS away 60 s from the second leg)", gps_off=True),
     # clean flights nobody tuned for: sites, routes, speeds, wind, a motor field with varying current
     "clean_tromso": SitlFlight({}, 20.0, "no alarm (Tromso, inclination 78 deg)", home=TROMSO),
@@ -389,7 +392,7 @@ def run_flight(name: str, out: dict, instance: int = 14) -> None:
         res["armed"] = arm(session, watch)
         command(session, MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, alt)
         wait_for(lambda: watch.position and watch.position[2] > alt - 1.5, 60)
-        if f.anomaly == "inflight":
+        if f.anomaly in ("inflight", "descent"):
             time.sleep(5)
             res["anomaly_set_failed"] = set_params(session, ANOMALY)
 
@@ -404,7 +407,7 @@ def run_flight(name: str, out: dict, instance: int = 14) -> None:
             if f.gps_off and i == 1:
                 set_params(session, {"SIM_GPS1_ENABLE": 0})
                 res["gps_off_unix"] = time.time()
-            if f.anomaly == "preset" and i == 1:      # down onto the anomaly and up again, 25 m of track
+            if f.anomaly == "descent" and i == 1:     # down onto the anomaly and up again, 25 m of track
                 fly_to(dn / 2, de / 2, 2.0)
                 fly_to(dn / 2 + 25.0, de / 2, alt)
             fly_to(dn, de, alt)
@@ -431,6 +434,12 @@ def run_flight(name: str, out: dict, instance: int = 14) -> None:
         res["events"] = [e["text"] for e in session.snapshot()["events"] if "vehicle:" in e["text"]]
         res["prearm"] = sorted({t for t in res["events"] if "PreArm" in t})[:3]
     res["bin"] = max(sitl.bin_logs(), key=lambda p: p.stat().st_size, default=None)
+    if out.get("_keep"):                  # the flight's two logs kept for analysing again
+        keep = Path(out["_keep"])
+        keep.mkdir(parents=True, exist_ok=True)
+        for kind in ("bin", "tlog"):
+            if res.get(kind) is not None:
+                shutil.copy(res[kind], keep / f"{name}.{'BIN' if kind == 'bin' else 'tlog'}")
     analyse_flight_logs(res)
     out.setdefault("flights", {})[name] = res
 
@@ -848,12 +857,13 @@ def main() -> int:
                     + ",".join(FLIGHTS) + " (2-4 min each at real time, ~3.5 min with boot and landing); '' for none")
     ap.add_argument("--instance", type=int, default=14, choices=range(10, 15),
                     help="the flights' SITL instance -I (10..14; UDP port 14601 + it): one per process run in parallel")
+    ap.add_argument("--keep", metavar="DIR", help="copy each flight's .BIN and session .tlog here (NAME.BIN, NAME.tlog)")
     args = ap.parse_args()
     if SITL_BINARY is None:
         print(f"skipped: {MISSING}")
         return 0
     only = set(args.only.split(","))
-    out: dict = {}
+    out: dict = {"_keep": args.keep}
     print(f"# benchmarks/sitl.py --speedup {args.speedup:g}  ({datetime.datetime.utcnow():%Y-%m-%d %H:%M} UTC)")
     runs = []
     if only & {"streams", "onboard", "wizard"}:

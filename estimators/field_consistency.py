@@ -120,7 +120,7 @@ class FieldConsistencySettings:
     min_rate_hz: float = 10.0           # slower IMU data (telemetry): off
     max_gap_s: float = 0.5              # a longer IMU step: heading re-started, settle before testing
     settle_s: float = 2.0
-    segment_gap_s: float = 10.0         # a longer gap (or time going back) starts from scratch
+    segment_gap_s: float = 4.5          # a longer gap (or time going back) starts from scratch
 
 
 def status_text(code: int) -> str:
