@@ -124,7 +124,7 @@ class FieldModelFilter:
         return eps
 
     def restart_heading(self, heading_sd_rad: float) -> None:
-        """ψ_f started again (at the magnetic heading of m − b − f·x̃, after an IMU gap): its error ε
+        """ψ_f started again (after an IMU gap, at the heading where h fits m − b − f·x̃): its error ε
         is new, unknown to ``heading_sd_rad`` and no longer tied to what was learnt with the old
         one, so ε is 0 with its prior variance and no covariance with h, b, f or β (otherwise the
         filter would take the new ψ_f's error as already known and split it wrongly into b)."""
@@ -136,8 +136,8 @@ class FieldModelFilter:
     def signal(self, x: float) -> float:
         """x̃ = x − x₀; while the signal is unknown (NaN: none yet, or lost in a telemetry gap
         longer than the caller holds it) its last value (0 before the first): the current does
-        not fall to x₀ because its telemetry stopped (a 4 s gap at 19 A with 2.6 mG/A left
-        50 mG in the residual and in ψ_f's restart, population clean flight 150)."""
+        not fall to x₀ because its telemetry stopped, so f·x̃ is not dropped from the prediction
+        and from ψ_f's restart after the gap."""
         if not math.isfinite(x):
             return self._last_xt
         if self.x0 is None:
