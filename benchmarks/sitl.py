@@ -30,6 +30,7 @@ import shutil
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -313,45 +314,106 @@ def run_logs(out: dict) -> None:
 
 
 MOTOR_TRUTH_mG_PER_A = (3.0, -2.0, 4.0)
-FLIGHTS = {   # name: (extra defaults, legs' altitude m, what the truth is)
-    "clean": ({}, 15.0, "no alarm"),
-    "motor": ({f"SIM_MAG_MOT_{a}": v for a, v in zip("XYZ", MOTOR_TRUTH_mG_PER_A)}, 15.0,
-              f"motor field {list(MOTOR_TRUTH_mG_PER_A)} mG/A (SIM_MAG_MOT)"),
-    # set once airborne: on the ground the anomaly fails ArduPilot's pre-arm compass checks
-    "anomaly": ({}, 4.0, "anomaly [150, -100, 200] mG at the ground, 1/8 at 5 m, from takeoff + 5 s: alarms low"),
-    "gps_off": ({}, 15.0, "no alarm (GPS away 60 s from the second leg)"),
+MOTOR = {f"SIM_MAG_MOT_{a}": v for a, v in zip("XYZ", MOTOR_TRUTH_mG_PER_A)}
+SQUARE = ((80, 0), (80, 80), (0, 80), (0, 0))                 # north, east m from home
+SURVEY = ((200, 0), (200, 40), (0, 40), (0, 80), (200, 80), (0, 0))
+STOP_GO = ((40, 0), (40, 40), (80, 40), (80, 80), (0, 80), (0, 0))
+WIND = {"SIM_WIND_SPD": 7.0, "SIM_WIND_DIR": 60.0, "SIM_WIND_TURB": 2.0}
+
+
+@dataclass(frozen=True)
+class SitlFlight:
+    """One GUIDED flight: extra defaults (SIM truth, speed, wind), the legs' altitude [m], what the
+    truth is, the site (--home lat, lon, alt m, yaw deg), the legs (north, east m from home), and
+    what is done in flight: GPS away for 60 s from the second leg, or the anomaly (SIM_MAG_ALY, 150,
+    -100, 200 mG at the ground, 1/8 at SIM_MAG_ALY_HGT 5 m) switched on by a parameter once
+    airborne at 4 m ("inflight": it appears in time), or switched on at 25 m, where it is 1/216 of
+    that (1.2 mG), and flown onto in a descent to 2 m and the climb back ("descent": it rises and
+    falls with the place flown).  The SITL anomaly depends on the height alone, so one set before
+    take-off is under the vehicle from the start: the detector learns it on the ground and alarms
+    at the climb out of it, for the whole flight (measured: "rising with time" at take-off).
+    ``expect``: "none" (a clean flight: no alarm), "motor" (learnt, no alarm) or "anomaly"."""
+    extra: dict
+    alt_m: float
+    truth: str
+    home: tuple = HOME
+    legs: tuple = SQUARE
+    gps_off: bool = False
+    anomaly: str | None = None
+    expect: str = "none"
+
+
+ANOMALY = {"SIM_MAG_ALY_HGT": 5.0, "SIM_MAG_ALY_X": 150.0, "SIM_MAG_ALY_Y": -100.0, "SIM_MAG_ALY_Z": 200.0}
+TROMSO, SOUTH, EQUATOR = (69.65, 18.96, 20.0, 0.0), (-45.87, 170.5, 50.0, 0.0), (0.5, 32.6, 1150.0, 0.0)
+FLIGHTS = {
+    "clean": SitlFlight({}, 15.0, "no alarm"),
+    "motor": SitlFlight(MOTOR, 15.0, f"motor field {list(MOTOR_TRUTH_mG_PER_A)} mG/A (SIM_MAG_MOT)", expect="motor"),
+    "anomaly": SitlFlight({}, 4.0, "anomaly [150, -100, 200] mG at the ground, 1/8 at 5 m, from takeoff + 5 s: "
+                          "alarms low", anomaly="inflight", expect="anomaly"),
+    "anomaly_descent": SitlFlight({"WPNAV_SPEED": 300}, 25.0,
+                                  "anomaly on at 25 m (1.2 mG); descend to 2 m onto it and climb back over "
+                                  "25 m: alarms fixed in place", anomaly="descent", expect="anomaly"),
+    "gps_off": SitlFlight({}, 15.0, "no alarm (GPS away 60 s from the second leg)", gps_off=True),
+    # clean flights nobody tuned for: sites, routes, speeds, wind, a motor field with varying current
+    "clean_tromso": SitlFlight({}, 20.0, "no alarm (Tromso, inclination 78 deg)", home=TROMSO),
+    "clean_south": SitlFlight({"WPNAV_SPEED": 1000}, 25.0, "no alarm (New Zealand, inclination -71 deg, 10 m/s)",
+                              home=SOUTH),
+    "clean_equator": SitlFlight({}, 15.0, "no alarm (Uganda, inclination -20 deg)", home=EQUATOR, legs=STOP_GO),
+    "clean_survey_fast": SitlFlight({"WPNAV_SPEED": 1200}, 30.0, "no alarm (200 m survey legs at 12 m/s)",
+                                    legs=SURVEY),
+    "clean_slow": SitlFlight({"WPNAV_SPEED": 250}, 10.0, "no alarm (stop-and-go at 2.5 m/s)", legs=STOP_GO[:4]),
+    "clean_wind": SitlFlight(WIND, 15.0, "no alarm (wind 7 m/s, turbulence 2)"),
+    "motor_wind": SitlFlight({**MOTOR, **WIND, "WPNAV_SPEED": 1000}, 20.0,
+                             "motor field with current varying in wind and 10 m/s legs: no alarm", legs=STOP_GO,
+                             expect="motor"),
+    "motor_tromso": SitlFlight({**MOTOR, "WPNAV_SPEED": 800}, 15.0, "motor field at Tromso: no alarm",
+                               home=TROMSO, legs=SURVEY[:4], expect="motor"),
+    "gps_off_wind": SitlFlight(WIND, 15.0, "no alarm (GPS away 60 s, wind 7 m/s)", home=SOUTH, gps_off=True),
+    "gps_off_motor": SitlFlight({**MOTOR, "WPNAV_SPEED": 800}, 20.0, "no alarm (GPS away 60 s, motor field)",
+                                home=TROMSO, legs=STOP_GO, gps_off=True, expect="motor"),
 }
 
 
-def run_flight(name: str, out: dict) -> None:
-    """A 2-minute GUIDED flight at real time (the .tlog's arrival times are wall clock, the .BIN's
-    the simulation's: a speedup would squeeze one against the other): takeoff, an 80 m square,
-    land.  Session .tlog and .BIN analysed alike."""
-    extra, alt, _ = FLIGHTS[name]
+def _offset(home: tuple, dn: float, de: float) -> tuple[float, float]:
+    return home[0] + dn / 111320.0, home[1] + de / (111320.0 * np.cos(np.radians(home[0])))
+
+
+def run_flight(name: str, out: dict, instance: int = 14) -> None:
+    """A GUIDED flight at real time (the .tlog's arrival times are wall clock, the .BIN's the
+    simulation's: a speedup would squeeze one against the other): takeoff, the scenario's legs,
+    land.  Session .tlog and .BIN analysed alike.  SITL instance ``instance`` (10..14), UDP port
+    14601 + instance."""
+    f = FLIGHTS[name]
+    alt = f.alt_m
     res: dict = {}
-    with sitl_run(out, f"sitl-bench-{name}-", 14, 14615,
-                  model="quad", speedup=1, extra=extra, limit_s=400) as (sitl, session, link):
+    with sitl_run(out, f"sitl-bench-{name}-", instance, 14601 + instance, model="quad", speedup=1, extra=f.extra,
+                  limit_s=600, home=f.home) as (sitl, session, link):
         watch = Watch(link)
         res["armed"] = arm(session, watch)
         command(session, MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, alt)
         wait_for(lambda: watch.position and watch.position[2] > alt - 1.5, 60)
-        if name == "anomaly":
+        if f.anomaly in ("inflight", "descent"):
             time.sleep(5)
-            res["anomaly_set_failed"] = set_params(session, {"SIM_MAG_ALY_HGT": 5.0, "SIM_MAG_ALY_X": 150.0,
-                                                             "SIM_MAG_ALY_Y": -100.0, "SIM_MAG_ALY_Z": 200.0})
-        lat0, lon0 = HOME[0], HOME[1]
-        for i, (dn, de) in enumerate(((80, 0), (80, 80), (0, 80), (0, 0))):
-            if name == "gps_off" and i == 1:
+            res["anomaly_set_failed"] = set_params(session, ANOMALY)
+
+        def fly_to(dn: float, de: float, a: float, timeout_s: float = 60.0) -> None:
+            lat, lon = _offset(f.home, dn, de)
+            goto(session, lat, lon, a)
+            wait_for(lambda: watch.position and np.hypot((watch.position[0] - lat) * 111320.0,
+                                                         (watch.position[1] - lon) * 111320.0 *
+                                                         np.cos(np.radians(lat))) < 3
+                     and abs(watch.position[2] - a) < 1.5, timeout_s)
+        for i, (dn, de) in enumerate(f.legs):
+            if f.gps_off and i == 1:
                 set_params(session, {"SIM_GPS1_ENABLE": 0})
                 res["gps_off_unix"] = time.time()
-            lat = lat0 + dn / 111320.0
-            lon = lon0 + de / (111320.0 * np.cos(np.radians(lat0)))
-            goto(session, lat, lon, alt)
-            wait_for(lambda: watch.position and np.hypot((watch.position[0] - lat) * 111320.0,
-                                                         (watch.position[1] - lon) * 96000.0) < 3, 40)
-            if name == "gps_off" and "gps_off_unix" in res and time.time() - res["gps_off_unix"] > 60:
+            if f.anomaly == "descent" and i == 1:     # down onto the anomaly and up again, 25 m of track
+                fly_to(dn / 2, de / 2, 2.0)
+                fly_to(dn / 2 + 25.0, de / 2, alt)
+            fly_to(dn, de, alt)
+            if f.gps_off and "gps_off_unix" in res and time.time() - res["gps_off_unix"] > 60:
                 set_params(session, {"SIM_GPS1_ENABLE": 1})
-        if name == "gps_off":
+        if f.gps_off:
             wait_for(lambda: time.time() - res["gps_off_unix"] > 60, 70)
             set_params(session, {"SIM_GPS1_ENABLE": 1})
         set_mode(session, COPTER_LAND)
@@ -372,6 +434,12 @@ def run_flight(name: str, out: dict) -> None:
         res["events"] = [e["text"] for e in session.snapshot()["events"] if "vehicle:" in e["text"]]
         res["prearm"] = sorted({t for t in res["events"] if "PreArm" in t})[:3]
     res["bin"] = max(sitl.bin_logs(), key=lambda p: p.stat().st_size, default=None)
+    if out.get("_keep"):                  # the flight's two logs kept for analysing again
+        keep = Path(out["_keep"])
+        keep.mkdir(parents=True, exist_ok=True)
+        for kind in ("bin", "tlog"):
+            if res.get(kind) is not None:
+                shutil.copy(res[kind], keep / f"{name}.{'BIN' if kind == 'bin' else 'tlog'}")
     analyse_flight_logs(res)
     out.setdefault("flights", {})[name] = res
 
@@ -637,7 +705,7 @@ def print_flights(out: dict) -> None:
         bm, tm = r.get("bin_motor", {}), r.get("tlog_motor", {})
         armed = r.get("armed") if r.get("armed") else f"no: {'; '.join(r.get('prearm') or [])}"
         ba, ta = r.get("bin_alarms", []), r.get("tlog_alarms", [])
-        rows.append((name, armed, _alarm_text(ba, 0.0), _alarm_text(ta, 0.0), FLIGHTS[name][2],
+        rows.append((name, armed, _alarm_text(ba, 0.0), _alarm_text(ta, 0.0), FLIGHTS[name].truth,
                      f"{bm.get('status')} {fmt(bm.get('mG_per_A'))} / {tm.get('status')} {fmt(tm.get('mG_per_A'))}"))
         mb, nb, db = alarm_match(ba, ta)
         mt, nt, dt = alarm_match(ta, ba)
@@ -736,10 +804,10 @@ def summary_rows(out: dict) -> list[tuple]:
         mb, nb, _ = alarm_match(ba, ta)
         mt, nt, _ = alarm_match(ta, ba)
         same = mb == nb and mt == nt
-        if name in ("clean", "gps_off"):
+        if FLIGHTS[name].expect == "none":
             rows.append((f"5 flight {name}", f"alarms .BIN {nb}, .tlog {nt}", "no alarm", "—", "no alarm; same on both",
                          nb == 0 and nt == 0))
-        elif name == "motor":
+        elif FLIGHTS[name].expect == "motor":
             m = r.get("bin_motor") or {}
             e = _max_err([m.get("mG_per_A")], [MOTOR_TRUTH_mG_PER_A])
             explained = r.get("bin_explained", []) + r.get("live_alarms", [])
@@ -747,13 +815,17 @@ def summary_rows(out: dict) -> list[tuple]:
             learnt = e is not None and e <= 0.1 * float(np.linalg.norm(MOTOR_TRUTH_mG_PER_A))
             said = "no alarm" if not (nb or nt) else ("every alarm 'moving with current'" if moving
                                                         else "an alarm not explained 'moving with current'")
-            rows.append(("5 flight motor", f"{fmt(m.get('mG_per_A'))} mG/A ({fmt(e)} off); {said}",
+            rows.append((f"5 flight {name}", f"{fmt(m.get('mG_per_A'))} mG/A ({fmt(e)} off); {said}",
                          f"{list(MOTOR_TRUTH_mG_PER_A)} mG/A", "—",
                          "learnt within 10 %; no alarm, or each explained moving with current; same on both",
                          learnt and moving and same))
         else:
-            rows.append((f"5 flight {name}", f"alarms .BIN {nb}, .tlog {nt}, matched {mb}/{nb}, {mt}/{nt}",
-                         FLIGHTS[name][2][:40], "—", "same kinds, start within 0.5 s", same))
+            kinds = sorted({e.split(";")[0].replace("likely ", "").split(" at ")[0]
+                            for _, _, e in r.get("bin_explained", []) + r.get("tlog_explained", []) if e})
+            rows.append((f"5 flight {name}", f"alarms .BIN {nb}, .tlog {nt}, matched {mb}/{nb}, {mt}/{nt}; "
+                         f"{', '.join(kinds) or 'unexplained'}", FLIGHTS[name].truth[:40], "—",
+                         "alarms, same kinds, start within 0.5 s; fixed in place", same and nb > 0 and
+                         "fixed in place" in kinds))
     return rows
 
 
@@ -781,14 +853,17 @@ def main() -> int:
     ap.add_argument("--trust-speedup", type=float, default=1.0,
                     help="the trust scenario's speedup (at 8x the wizard finds a 0.55 deg misalignment of every "
                          "compass that real time does not: the station stamps packets at wall time)")
-    ap.add_argument("--flights", default="clean,motor,anomaly,gps_off", help="comma-separated of clean,motor,"
-                    "anomaly,gps_off (2 min each at real time, ~3.5 min with boot and landing); '' for none")
+    ap.add_argument("--flights", default="clean,motor,anomaly,gps_off", help="comma-separated of "
+                    + ",".join(FLIGHTS) + " (2-4 min each at real time, ~3.5 min with boot and landing); '' for none")
+    ap.add_argument("--instance", type=int, default=14, choices=range(10, 15),
+                    help="the flights' SITL instance -I (10..14; UDP port 14601 + it): one per process run in parallel")
+    ap.add_argument("--keep", metavar="DIR", help="copy each flight's .BIN and session .tlog here (NAME.BIN, NAME.tlog)")
     args = ap.parse_args()
     if SITL_BINARY is None:
         print(f"skipped: {MISSING}")
         return 0
     only = set(args.only.split(","))
-    out: dict = {}
+    out: dict = {"_keep": args.keep}
     print(f"# benchmarks/sitl.py --speedup {args.speedup:g}  ({datetime.datetime.utcnow():%Y-%m-%d %H:%M} UTC)")
     runs = []
     if only & {"streams", "onboard", "wizard"}:
@@ -802,7 +877,10 @@ def main() -> int:
     if "trust" in only:
         runs.append(("trust", lambda: run_trust(args.trust_speedup, out)))
     for name in filter(None, args.flights.split(",")):
-        runs.append((f"flight {name}", lambda name=name: run_flight(name, out)))
+        if name not in FLIGHTS:
+            print(f"unknown flight {name!r}: one of {', '.join(FLIGHTS)}")
+            return 2
+        runs.append((f"flight {name}", lambda name=name: run_flight(name, out, args.instance)))
     for what, run in runs:            # one scenario failing does not lose the others' figures
         try:
             run()
@@ -821,6 +899,11 @@ def main() -> int:
     table("summary: per scenario, ours vs the truth vs ArduPilot's own result",
           ("scenario", "ours", "truth", "ArduPilot's own", "target", "met"), rows)
     print(f"\n{sum(bool(r[5]) for r in rows)}/{len(rows)} targets met")
+    clean = [n for n in (out.get("flights") or {}) if FLIGHTS[n].expect in ("none", "motor")]
+    if clean:
+        alarmed = [n for n in clean if out["flights"][n].get("bin_alarms") or out["flights"][n].get("tlog_alarms")]
+        print(f"clean SITL flights (no disturbance): {len(clean)}, with a combined alarm on the .BIN or .tlog: "
+              f"{len(alarmed)} {alarmed}")
     print_notes(out)
     for d in out.get("_dirs", []):          # SITL run folders and session recordings, once analysed
         shutil.rmtree(d, ignore_errors=True)

@@ -104,7 +104,7 @@ class DetectionSettings:
     corroborate_hold_s: float = 0.5       # ... held this long (a single noisy sample is no evidence)
     strong: float = 2.0
     release_s: float = 2.0
-    segment_gap_s: float = 2.0            # a longer gap in the data starts a new segment (re-learn)
+    segment_gap_s: float = 4.5            # a longer gap in the data starts a new segment (re-learn)
     max_tilt_deg: float = 45.0            # callers blank steeper attitudes (hand-held dance, tumbling)
     min_imu_rate_hz: float = 10.0         # callers skip the heading test on slower IMU data (telemetry)
     vector: FieldConsistencySettings = field(default_factory=FieldConsistencySettings)  # field-vector test

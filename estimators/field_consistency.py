@@ -120,7 +120,7 @@ class FieldConsistencySettings:
     min_rate_hz: float = 10.0           # slower IMU data (telemetry): off
     max_gap_s: float = 0.5              # a longer IMU step: heading re-started, settle before testing
     settle_s: float = 2.0
-    segment_gap_s: float = 2.0          # a longer gap (or time going back) starts from scratch
+    segment_gap_s: float = 4.5          # a longer gap (or time going back) starts from scratch
 
 
 def status_text(code: int) -> str:
@@ -186,6 +186,8 @@ class FieldConsistency:
         self.settle_until = settle_until
         self._recent_x.clear()
         self.tilt.clear_history()
+        if getattr(self, "model", None) is not None:     # ψ_f starts again at the magnetic heading
+            self.model.restart_heading(math.radians(self.s.model_heading_sd_deg))
 
     @property
     def h(self) -> list | None:
@@ -239,7 +241,7 @@ class FieldConsistency:
         if not rate_hz >= s.min_rate_hz:
             return self._off(t, OFF_LOW_RATE)
         if self.psi is None:
-            return self._off(t, OFF_ATTITUDE)
+            return self._off(t, SETTLING if t < self.settle_until else OFF_ATTITUDE)
         c = dcm_body_to_ned_float(roll_rad, pitch_rad, self.psi)
         if self.model is None:
             if t - self._att_since < s.model_start_s:
@@ -277,9 +279,21 @@ class FieldConsistency:
         after learning the field pulls it only as far as the model can tell a heading error from a
         body offset."""
         if self.psi is None:
+            if self.model is not None and self._t < self.settle_until:
+                # after a gap the field held may be from before it, the tilt is not: at 72°
+                # inclination a 6° pitch change made ψ_f 26° off (population clean flight 150);
+                # ψ_f starts again once the field has come back (the end of settling)
+                return
             c = dcm_body_to_ned_float(roll, pitch, 0.0)     # tilt only: the field levelled
             self.psi = float(-math.atan2(c[3] * m[0] + c[4] * m[1] + c[5] * m[2],
                                          c[0] * m[0] + c[1] * m[1] + c[2] * m[2]))
+            if self.model is not None:
+                # a restart after a gap: the heading at which the model's own Earth field h fits
+                # (the levelled field's direction turned onto h's: ψ = atan2(h_E, h_N) − atan2(v_E, v_N)),
+                # so a heading error the model had taken into h_E carries over the gap and, on the
+                # heading flown before it, ψ_f goes on where it was
+                h = self.model.h
+                self.psi = _wrap(self.psi + math.atan2(h[1], h[0]))
             return
         q, r = float(gyro[1]), float(gyro[2])
         cos_p = math.cos(pitch)

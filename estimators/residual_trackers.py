@@ -87,6 +87,7 @@ class FieldModelFilter:
         self.bias_walk_rad_s2, self.gyro_scale = bias_walk_rad_s2, gyro_scale
         self.corr_s = corr_s
         self.x0: float | None = None
+        self._last_xt = 0.0
         self.excitation = 0.0
 
     @property
@@ -122,13 +123,27 @@ class FieldModelFilter:
         self.theta[0] = 0.0
         return eps
 
+    def restart_heading(self, heading_sd_rad: float) -> None:
+        """ψ_f started again (after an IMU gap, at the heading where h fits m − b − f·x̃): its error ε
+        is new, unknown to ``heading_sd_rad`` and no longer tied to what was learnt with the old
+        one, so ε is 0 with its prior variance and no covariance with h, b, f or β (otherwise the
+        filter would take the new ψ_f's error as already known and split it wrongly into b)."""
+        self.theta[0] = 0.0
+        self.P[0, :] = 0.0
+        self.P[:, 0] = 0.0
+        self.P[0, 0] = heading_sd_rad ** 2
+
     def signal(self, x: float) -> float:
-        """x̃ = x − x₀ (0 without a signal)."""
+        """x̃ = x − x₀; while the signal is unknown (NaN: none yet, or lost in a telemetry gap
+        longer than the caller holds it) its last value (0 before the first): the current does
+        not fall to x₀ because its telemetry stopped, so f·x̃ is not dropped from the prediction
+        and from ψ_f's restart after the gap."""
         if not math.isfinite(x):
-            return 0.0
+            return self._last_xt
         if self.x0 is None:
             self.x0 = float(x)
-        return float(x) - self.x0
+        self._last_xt = float(x) - self.x0
+        return self._last_xt
 
     def jacobian(self, c_bt: np.ndarray, xt: float) -> np.ndarray:
         """H (3 × 11) for the body-from-navigation matrix c_bt = R(δ)Cᵀ and the signal x̃."""

@@ -89,12 +89,36 @@ def test_gaps_settle_and_long_gaps_or_seeks_start_again():
     step = fc.update(t[-1] + 1.0, mag[-1], roll[-1], pitch[-1], True, gyro[-1], cur[-1], 50.0, True)
     assert step.status == SETTLING                             # 1 s telemetry gap: settle, keep what is learned
     step = fc.update(t[-1] + 5.0, mag[-1], roll[-1], pitch[-1], True, gyro[-1], cur[-1], 50.0, True)
-    assert step.status == SETTLING and fc.model is None        # 5 s gap: a new segment, from scratch
-    for dt in np.arange(5.02, 10.1, 0.02):
+    assert step.status == SETTLING and fc.model is not None    # 4 s telemetry gap: the same
+    step = fc.update(t[-1] + 16.0, mag[-1], roll[-1], pitch[-1], True, gyro[-1], cur[-1], 50.0, True)
+    assert step.status == SETTLING and fc.model is None        # 11 s gap: a new segment, from scratch
+    for dt in np.arange(16.02, 21.1, 0.02):
         step = fc.update(t[-1] + dt, mag[-1], roll[-1], pitch[-1], True, gyro[-1], cur[-1], 50.0, True)
     assert step.status == LEARNING                             # ... learning once the attitude has settled 5 s
     step = fc.update(10.0, mag[0], roll[0], pitch[0], True, gyro[0], cur[0], 50.0, True)
     assert step.status == SETTLING and fc.model is None        # time went back (seek): start again
+
+
+def test_a_telemetry_gap_keeps_the_model_and_the_test_is_on_again_after_settling():
+    """A 4 s gap (every message lost) with the vehicle rolled 10° after it, the first samples
+    carrying the field held from before: the learnt model is kept and the test is on again 2 s
+    after the gap (not after 20 s of learning), with no alarm.  (The stale field against the new
+    tilt is population clean flight 150: tests/test_detection.py.)"""
+    t, mag, roll, pitch, gyro, cur = _flight(n_s=90.0)
+    before = t < 60.0
+    after = t >= 64.0
+    roll = np.where(after, roll + np.radians(10.0), roll)
+    yaw_rate = np.where((np.mod(t, 30.0) >= 25.0) & (np.mod(t, 30.0) < 29.5), math.radians(40.0), 0.0)
+    c = dcm_body_to_ned(roll, pitch, np.cumsum(yaw_rate) / 50.0 + 0.3)        # as _flight's
+    rng = np.random.default_rng(1)
+    mag = np.einsum("nji,j->ni", c, H_MAG) + B_BODY + cur[:, None] * F_BODY + rng.normal(0, 2.0, (len(t), 3))
+    stale = after & (t < 64.5)
+    mag[stale] = mag[np.flatnonzero(before)[-1]]              # held from before the gap
+    keep = before | after
+    r = _run(t[keep], mag[keep], roll[keep], pitch[keep], gyro[keep], cur[keep])
+    tk = t[keep]
+    assert np.all(r.status[(tk > 66.5) & (tk < 70.0)] == ON)    # on again after settling, not learning 20 s
+    assert np.nanmax(r.z[tk > 30.0]) < 1.0
 
 
 def test_batch_and_per_sample_identical():
