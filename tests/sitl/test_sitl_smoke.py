@@ -169,6 +169,7 @@ def test_session_tlog_calibrates_every_compass_to_the_truth(rig_run):
         assert np.allclose(ofs, RIG_TRUTH[r["compass"] + 1]["OFS"], atol=2.0), (r["compass"], ofs)
 
 
+@pytest.mark.serial     # 5 s to resume, 0.5 s between the clocks of a 1x SITL
 def test_reboot_live_data_resumes_within_5_s_and_no_frozen_attitude(start_sitl, tmp_path):
     """After the station's reboot command the stock vehicle streams nothing again: the station
     says "no attitude data" meanwhile, asks again, and the data is back within 5 s.  Before it, an
