@@ -3,10 +3,10 @@ a headless Debian chromium through Playwright, and a small synthetic rotation da
 known calibration truth."""
 from __future__ import annotations
 
-import time
-
 import math
+import os
 import socket
+import time
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +64,24 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+# ------------------------------------------------------------------------------ parallel runs
+
+# ./test's parallel phase (pytest-xdist --dist loadfile --no-loadscope-reorder) hands out whole
+# modules in this order, the longest first (measured with --durations; an order only: a module
+# left out runs after these), so that no long module starts last and runs alone at the end
+LONGEST_FIRST = ("test_fleet_cluster.py", "test_browser.py", "test_browser_calibration.py", "test_browser_pages.py",
+                 "test_station_walkthrough.py", "test_benchmarks.py", "test_ingest_vectorised.py",
+                 "test_inflight_quality.py", "test_browser_calibration_in_use.py", "test_calibration_in_use.py",
+                 "test_gcs_vehicles.py", "test_analysis.py", "test_cautions.py", "test_station_sources.py",
+                 "test_calibrate_real_logs.py", "test_fuzz.py", "test_security.py", "test_fleet.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    if os.environ.get("PYTEST_XDIST_WORKER"):      # every worker sorts its collection alike
+        rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+        items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
 # ------------------------------------------------------------------------------ synthetic truth

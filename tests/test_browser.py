@@ -103,6 +103,7 @@ def test_new_source_starts_clean(shared_station, new_page):
     assert page.locator("#tests tr[data-test='path'] .state").inner_text() == "off"
 
 
+@pytest.mark.serial     # the state of the seek within 2 s
 def test_seek_rebuilds_the_review(shared_station, new_page):
     """Defect 5: pause, slide back to 60 s: vehicle, route, line and alarms of 60 s, at once;
     the timeline's alarm marker takes the replay to just before the alarm."""

@@ -174,6 +174,7 @@ def test_signed_write_through_the_forwarding_process_and_signed_packets_pass_unc
     assert forwarded and all(is_signed_packet(p) for p in forwarded)     # the vehicle's signatures kept
 
 
+@pytest.mark.serial     # added forwarding latency in ms against the busy station's
 def test_forward_latency_benchmark_quick_with_the_station_busy():
     """benchmarks/forward_latency.py --quick, station process "hog" (estimating the stream, replaying
     a log and holding the interpreter lock in ~40 ms calls): every packet both ways, and the

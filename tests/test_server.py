@@ -111,6 +111,7 @@ def test_replay_controls_line_and_downloads(client, mission_recording):
     assert client.get("/api/state").json()["source"]["kind"] == "none"
 
 
+@pytest.mark.serial     # counts pushes per wall-clock second
 def test_websocket_pushes_at_least_10hz_and_survives_disconnects(station_no_viser, client, mission_recording):
     url = station_no_viser.url.replace("http://", "ws://") + "/ws"
     client.post("/api/replay/start", json={"recording": mission_recording, "speed": 2})

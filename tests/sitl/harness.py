@@ -9,11 +9,18 @@ a later defaults file at boot, or by PARAM_SET through the station's link (``set
 (``--model calibration``) turns as MAV_CMD_DO_SET_SERVO on outputs 5-8 says.  Used by the smoke
 tests (tests/sitl/) and by benchmarks/sitl.py.  ``SITL_BINARY`` is None when the firmware is absent:
 callers skip and say so (``MISSING``).
+
+``Sitl()`` without an instance and port claims a free pair at ``start()`` (``claim``): a lock file
+per instance and per port in the temporary folder (held until ``stop()``), so two pytest-xdist
+workers or a benchmark beside the suite never start the same ``-I N``, and an instance whose ports
+another SITL already holds (TCP 5762/5763 + 10 N, UDP 5501 + 10 N) is passed over.
 """
 from __future__ import annotations
 
+import fcntl
 import math
 import os
+import socket
 import shutil
 import signal
 import subprocess
@@ -69,12 +76,65 @@ def rig_pwm(angle_rad: float) -> int:
     return int(round(1000 + (angle_rad + math.pi) * 1000 / (2 * math.pi)))
 
 
+def _lock(name: str):
+    """An exclusive lock on <tmp>/magstation-sitl-<name>.lock (the open file, held until closed), or None."""
+    f = open(Path(tempfile.gettempdir()) / f"magstation-sitl-{name}.lock", "w")
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.close()
+        return None
+    return f
+
+
+def _bindable(kind: int, port: int) -> bool:
+    with socket.socket(socket.AF_INET, kind) as s:
+        try:
+            s.bind(("0.0.0.0" if kind == socket.SOCK_STREAM else "127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _instance_free(n: int) -> bool:
+    """No process holds the ports SITL -I n binds (TCP 5762/5763 + 10 n on every address, UDP 5501 + 10 n)."""
+    return (_bindable(socket.SOCK_STREAM, 5762 + 10 * n) and _bindable(socket.SOCK_STREAM, 5763 + 10 * n)
+            and _bindable(socket.SOCK_DGRAM, 5501 + 10 * n))
+
+
+def claim(instance: int | None = None, port: int | None = None, timeout_s: float = 120.0) -> tuple[int, int, list]:
+    """A free (instance, UDP port) of INSTANCES x PORTS and the locks holding them (see the module
+    docstring); a given ``instance`` or ``port`` is waited for while another holder has it.
+    Raises TimeoutError when none comes free within ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        for n in ([instance] if instance is not None else INSTANCES):
+            held = _lock(f"I{n}")
+            if held is None:
+                continue
+            if not _instance_free(n):
+                held.close()
+                continue
+            for p in ([port] if port is not None else PORTS):
+                held_port = _lock(f"udp{p}")
+                if held_port is None:
+                    continue
+                if _bindable(socket.SOCK_DGRAM, p):
+                    return n, p, [held, held_port]
+                held_port.close()
+            held.close()
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no free SITL instance of -I {INSTANCES.start}..{INSTANCES.stop - 1} / UDP port "
+                               f"of {PORTS.start}-{PORTS.stop - 1} within {timeout_s:.0f} s")
+        time.sleep(0.5)
+
+
 @dataclass
 class Sitl:
     """One ArduCopter SITL process (see module docstring).  ``extra``: parameters written to a
-    last defaults file (SIM truth, stream rates ...)."""
-    instance: int
-    port: int
+    last defaults file (SIM truth, stream rates ...).  ``instance``/``port`` None: claimed at start."""
+    instance: int | None = None
+    port: int | None = None
     model: str = "quad"
     speedup: float = 1.0
     extra: dict[str, float] = field(default_factory=dict)
@@ -82,11 +142,12 @@ class Sitl:
     home: tuple = HOME
     run_dir: Path | None = None
     proc: subprocess.Popen | None = None
+    locks: list = field(default_factory=list)
 
     def __post_init__(self) -> None:
         if SITL_BINARY is None:
             raise FileNotFoundError(MISSING)
-        if self.instance not in INSTANCES or self.port not in PORTS:
+        if self.instance not in (None, *INSTANCES) or self.port not in (None, *PORTS):
             raise ValueError(f"the SITL harness uses -I {INSTANCES.start}..{INSTANCES.stop - 1} and UDP ports "
                              f"{PORTS.start}-{PORTS.stop - 1}")
 
@@ -99,6 +160,7 @@ class Sitl:
         return self.run_dir / "logs"
 
     def start(self) -> "Sitl":
+        self.instance, self.port, self.locks = claim(self.instance, self.port)
         self.run_dir = Path(tempfile.mkdtemp(prefix=f"sitl{self.instance}-"))
         defaults = [SITL_DIR / "copter.parm"]
         if self.model == "calibration":
@@ -137,6 +199,9 @@ class Sitl:
             except subprocess.TimeoutExpired:
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait(timeout=5)
+        for held in self.locks:
+            held.close()
+        self.locks = []
         if not keep and self.run_dir is not None:
             shutil.rmtree(self.run_dir, ignore_errors=True)
 

@@ -14,12 +14,13 @@ __all__ = ["start_sitl", "station_for"]
 
 @pytest.fixture
 def start_sitl():
-    """start_sitl(instance, port, **options) -> a running Sitl, stopped (by its PID) after the test."""
+    """start_sitl(instance=None, port=None, **options) -> a running Sitl (a free instance and port
+    claimed when not given), stopped (by its PID) after the test."""
     if SITL_BINARY is None:
         pytest.skip(MISSING)
     started: list[Sitl] = []
 
-    def start(instance: int, port: int, **options) -> Sitl:
+    def start(instance: int | None = None, port: int | None = None, **options) -> Sitl:
         sitl = Sitl(instance, port, **options).start()
         started.append(sitl)
         return sitl

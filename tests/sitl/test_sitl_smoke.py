@@ -28,7 +28,7 @@ def rig_run(tmp_path_factory):
     if SITL_BINARY is None:
         pytest.skip(MISSING)
     rec = tmp_path_factory.mktemp("rig-recordings")
-    sitl = Sitl(10, 14612, model="calibration", speedup=8, extra=RIG_PARAMS, limit_s=240).start()
+    sitl = Sitl(model="calibration", speedup=8, extra=RIG_PARAMS, limit_s=240).start()
     seen: dict = {}
     try:
         session = station_for(sitl, rec)
@@ -169,6 +169,7 @@ def test_session_tlog_calibrates_every_compass_to_the_truth(rig_run):
         assert np.allclose(ofs, RIG_TRUTH[r["compass"] + 1]["OFS"], atol=2.0), (r["compass"], ofs)
 
 
+@pytest.mark.serial     # 5 s to resume, 0.5 s between the clocks of a 1x SITL
 def test_reboot_live_data_resumes_within_5_s_and_no_frozen_attitude(start_sitl, tmp_path):
     """After the station's reboot command the stock vehicle streams nothing again: the station
     says "no attitude data" meanwhile, asks again, and the data is back within 5 s.  Before it, an
@@ -177,7 +178,7 @@ def test_reboot_live_data_resumes_within_5_s_and_no_frozen_attitude(start_sitl, 
     0.5 s, the issue's target (their UNIX clocks differ: GPS time against the station's receive
     time; 0.003 s measured on a calm machine, 0.26 s with a load average of 15, when the "1x"
     simulation runs slower than the wall clock the .tlog is stamped with)."""
-    sitl = start_sitl(11, 14622, model="quad", speedup=1, limit_s=120, extra={"LOG_DISARMED": 1})
+    sitl = start_sitl(model="quad", speedup=1, limit_s=120, extra={"LOG_DISARMED": 1})
     session = station_for(sitl, tmp_path)
     try:
         link = station_link(session)
