@@ -72,10 +72,30 @@ def _fd2_to_devnull() -> Iterator[None]:
             os.close(saved)
 
 
+def _close_reader(reader) -> None:
+    """Close a DFReader's map and file; its file even when the map cannot close yet (a view of it is
+    still alive: the garbage collector frees the map, and an mmap outlives its file descriptor)."""
+    data_map, handle = getattr(reader, "data_map", None), getattr(reader, "filehandle", None)
+    if data_map is not None:
+        try:
+            data_map.close()
+        except (BufferError, OSError, ValueError):
+            pass
+    if handle is not None:
+        handle.close()
+
+
 def _open_reader(path: Path):
     from pymavlink import DFReader
 
     class QuietReader(DFReader.DFReader_binary):
+        def __init__(self, *args, **kwargs):
+            try:
+                super().__init__(*args, **kwargs)
+            except BaseException:     # pymavlink leaves its file open when the header cannot be read
+                _close_reader(self)
+                raise
+
         def init_arrays_fast(self, progress_callback=None):
             with _fd2_to_devnull():
                 super().init_arrays_fast(progress_callback=progress_callback)
@@ -112,10 +132,7 @@ def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Flig
             if log is None:
                 log = _read_messages_per_record(path, progress, reader)
         finally:
-            try:
-                reader.close()
-            except (BufferError, OSError, ValueError):   # a view of its mmap still alive: GC closes it
-                pass
+            _close_reader(reader)
     log.warnings.update(counts)
     return log
 
