@@ -2,7 +2,7 @@
 came from, and keeping the choice across restarts (the fleet history DB, ``fleet_db.set_in_use``).
 
 Sources (``SOURCES``):
-  ``log``        the calibration dance found in the replayed log itself (``Session.fit_log_calibration``)
+  ``log``        the calibration dance found in the replayed log itself (``review.log_own_calibration``)
   ``recording``  the dance of another recording of the folder (``calibrate_log``, a rotation window)
   ``wizard``     the wizard's last successful result (accepting it chooses it too)
   ``history``    the airframe's latest calibration in the fleet history

@@ -16,6 +16,7 @@ the live link and analyze do.
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,9 +27,12 @@ from groundstation.jobs.analyze import FlightAnalysis, analyze_flight, finished_
 from groundstation.jobs.inputs import FieldPolicy
 from groundstation.jobs.navigation import OUTAGE_MIN_S, gps_outages, ins_runs
 from groundstation.jobs.record import COL, evidence_text
+from groundstation.jsonsafe import jsonable
 from groundstation.samples import FlightLog
 
-__all__ = ["Review", "build_review", "finished_rows", "line_mission"]
+logger = logging.getLogger(__name__)
+
+__all__ = ["Review", "build_review", "finished_rows", "line_mission", "log_own_calibration"]
 
 SEGMENT_GAP_S = 2.0          # a gap in all the data this long is a telemetry dropout on the timeline
 
@@ -134,3 +138,22 @@ def _messages(log: FlightLog) -> list[dict]:
     """The vehicle's own text messages (STATUSTEXT), at most 200."""
     return [{"t_s": round(s.t_s, 2), "end_s": None, "kind": "message", "label": s.text[:120]}
             for s in log.status if s.kind == "statustext"][:200]
+
+
+def log_own_calibration(flight_log: FlightLog) -> dict | None:
+    """A replayed log that contains a calibration dance calibrates its own magnetometer
+    (calibrate_log on the whole log; None unless the fit is 'ok' and from a rotation window)."""
+    from groundstation.jobs.calibrate import calibrate_log
+
+    if len(flight_log.mag) < 200:
+        return None
+    try:
+        result = calibrate_log(flight_log)
+    except Exception:
+        logger.exception("calibration of the replayed log failed")
+        return None
+    # only a rotation window (a calibration dance) observes every offset axis; an in-flight fit
+    # against the WMM from level flight does not beat the autopilot's own correction (on the
+    # real ArduCopter log it raised a field alarm the autopilot-corrected field does not)
+    ok = result.get("status") == "ok" and result.get("method") == "window"
+    return jsonable(result) if ok else None

@@ -25,14 +25,13 @@ from collections import deque
 from pathlib import Path
 from typing import Callable
 
-from groundstation.jsonsafe import jsonable
 from groundstation.samples import FlightLog, MissionSample, ParamSample, Sample, StatusSample
 from groundstation.station.hub.calibration import CalibrationControl
 from groundstation.station.hub.flight import FlightState
 from groundstation.station.hub.in_use import CalibrationInUse
 from groundstation.station.hub.recordings import RecordingsFolder
 from groundstation.station.hub.param_watch import autopilot_change, on_compass_params_changed, param_trust
-from groundstation.station.hub.review import build_review
+from groundstation.station.hub.review import build_review, log_own_calibration
 from groundstation.station.hub.sources import (ConflictError, NotFoundError, SessionError, SourceControl,
                                                check_speed)
 from groundstation.station.hub.vehicle import VehicleLink, passive_refusal
@@ -312,7 +311,7 @@ class Session(SessionViews):
         params_note = self.in_use.fill_params(flight_log)         # serve --params
         if params_note:
             self.event(f"parameters: {params_note}", t_s=0.0)
-        own = self.fit_log_calibration(flight_log)
+        own = log_own_calibration(flight_log)
         with self._lock:
             line = self.flight.line
             path = self.sources.replay_path
@@ -344,25 +343,6 @@ class Session(SessionViews):
         before = (f.n_shown, f.gps_shown)
         f.show_until(t_s)
         return (f.n_shown, f.gps_shown) != before
-
-    @staticmethod
-    def fit_log_calibration(flight_log: FlightLog) -> dict | None:
-        """A replayed log that contains a calibration dance calibrates its own magnetometer
-        (calibrate_log on the whole log; None unless the fit is 'ok' and from a rotation window)."""
-        from groundstation.jobs.calibrate import calibrate_log
-
-        if len(flight_log.mag) < 200:
-            return None
-        try:
-            result = calibrate_log(flight_log)
-        except Exception:
-            log.exception("calibration of the replayed log failed")
-            return None
-        # only a rotation window (a calibration dance) observes every offset axis; an in-flight fit
-        # against the WMM from level flight does not beat the autopilot's own correction (on the
-        # real ArduCopter log it raised a field alarm the autopilot-corrected field does not)
-        ok = result.get("status") == "ok" and result.get("method") == "window"
-        return jsonable(result) if ok else None
 
     def use_calibration(self, calibration: dict | None) -> None:
         """The calibration headings and detection use from now on (lock held); a replay is
