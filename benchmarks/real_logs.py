@@ -506,7 +506,7 @@ class SitlFlight:
         return pts
 
 
-def record_sitl(tmp: Path, flight: SitlFlight, instance: int = 15, port: int = 14635,
+def record_sitl(tmp: Path, flight: SitlFlight, instance: int | None = 15, port: int | None = 14635,
                 timeout_s: float = 600.0, speedup: float = 1.0, land: bool = True
                 ) -> tuple[Path | None, str, Path | None]:
     """Fly ArduPilot SITL (../shared/sitl, harness.Sitl, ``-I instance``, MAVLink to udp
@@ -521,11 +521,13 @@ def record_sitl(tmp: Path, flight: SitlFlight, instance: int = 15, port: int = 1
     from pymavlink import mavutil
     if SITL_BINARY is None:
         return None, "no ../shared/sitl/arducopter", None
-    if instance not in SITL_INSTANCES or port not in SITL_PORTS:
+    if (instance is not None and instance not in SITL_INSTANCES) or (port is not None and port not in SITL_PORTS):
         return None, f"SITL instance {instance}/port {port} outside -I {SITL_INSTANCES.start}..{SITL_INSTANCES.stop - 1}", None
     sitl = Sitl(instance, port, speedup=speedup, extra=flight.params(), limit_s=timeout_s + 30, home=flight.home)
     run = tmp
     run.mkdir(parents=True, exist_ok=True)
+    sitl.start()                          # claims the instance and our UDP port (None: the harness picks free ones)
+    instance, port = sitl.instance, sitl.port
     (run / "truth.json").write_text(json.dumps({"recorded": f"benchmarks/real_logs.py record_sitl, -I {instance}, 1x, "
                                                             f"{time.strftime('%Y-%m-%d', time.gmtime())}",
                                                 "flight": flight.__dict__, "params": flight.params()}, indent=1))
@@ -534,7 +536,6 @@ def record_sitl(tmp: Path, flight: SitlFlight, instance: int = 15, port: int = 1
     m = None
     try:
         m = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}")
-        sitl.start()
         t0_us, boot_us = int(time.time() * 1e6), [0]
 
         def keep(msg) -> None:

@@ -3,7 +3,7 @@ GUIDED route (legs in every direction, a climb and a descent in place: the curre
 the attitude), three compasses with their own SIM_MAGn_OFS/DIA/ODI and a motor field SIM_MAG_MOT,
 no dance; `magstation calibrate`'s in-flight fit of the .BIN against that truth.  The route, the
 truth and the recorder are benchmarks/real_logs.py's (SitlFlight, record_sitl); the benchmark flies
-longer flights at 1x, this one flies a small route at 8x (-I 19) and stops in the air, to stay under a minute (measured:
+longer flights at 1x, this one flies a small route at 8x (an instance the harness picks) and stops in the air, to stay under a minute (measured:
 27 s of flight, 14 s of fitting)."""
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ def test_short_sitl_route_gives_the_motor_field_and_offsets_within_their_stated_
         pytest.skip(MISSING)
     import real_logs as rl
     flight = replace(rl.SitlFlight.of_seed(11), vertices=6, radius_m=(25.0, 45.0))
-    path, note, tlog = rl.record_sitl(tmp_path / "run", flight, instance=19, port=14639, timeout_s=120, speedup=8, land=False)
+    path, note, tlog = rl.record_sitl(tmp_path / "run", flight, instance=None, port=None, timeout_s=120, speedup=8, land=False)
     assert path is not None, note
     log, results, _ = rl.calibrate_file(path)
     mot = np.asarray(flight.mot_mG_per_A, float)
