@@ -103,6 +103,7 @@ def test_walkthrough(shared_station, new_page, artifacts):
             assert abs(fv.params[name] - value) <= 1e-5 * max(1.0, abs(value)), name
     truth = sim.truth["mag"]["offsets_mG"]
     assert max(abs(a - b) for a, b in zip(result["offsets_mG"], truth)) < 5.0
-    assert api(st, "GET", "/api/state")["tests"]["field_correction"]["kind"] == "autopilot"   # written: on board now
+    kind = lambda: api(st, "GET", "/api/state")["tests"]["field_correction"]["kind"]  # noqa: E731
+    assert wait_until(lambda: kind() == "autopilot", 30), kind()     # written: on board once the echoes are in
     api(st, "POST", "/api/source/stop")
     assert errors == []
