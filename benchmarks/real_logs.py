@@ -526,15 +526,15 @@ def record_sitl(tmp: Path, flight: SitlFlight, instance: int | None = 15, port: 
     sitl = Sitl(instance, port, speedup=speedup, extra=flight.params(), limit_s=timeout_s + 30, home=flight.home)
     run = tmp
     run.mkdir(parents=True, exist_ok=True)
-    sitl.start()                          # claims the instance and our UDP port (None: the harness picks free ones)
-    instance, port = sitl.instance, sitl.port
-    (run / "truth.json").write_text(json.dumps({"recorded": f"benchmarks/real_logs.py record_sitl, -I {instance}, 1x, "
-                                                            f"{time.strftime('%Y-%m-%d', time.gmtime())}",
-                                                "flight": flight.__dict__, "params": flight.params()}, indent=1))
     deadline = time.monotonic() + timeout_s
     tlog_file = open(run / "telemetry.tlog", "wb")
     m = None
     try:
+        sitl.start()                      # claims the instance and our UDP port (None: the harness picks free ones)
+        instance, port = sitl.instance, sitl.port
+        (run / "truth.json").write_text(json.dumps({"recorded": f"benchmarks/real_logs.py record_sitl, -I {instance}, 1x, "
+                                                                f"{time.strftime('%Y-%m-%d', time.gmtime())}",
+                                                    "flight": flight.__dict__, "params": flight.params()}, indent=1))
         m = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}")
         t0_us, boot_us = int(time.time() * 1e6), [0]
 
