@@ -15,7 +15,17 @@ function writeToken(refresh) {
 }
 writeToken(false).catch(() => {});   // fetched ahead, so a click goes out at once
 
-async function api(method, path, body) {
+// A page's state changes reach the station in the order the user made them (a pause then a seek
+// must not arrive as a seek then a pause on a busy machine): each write waits for the one before.
+let writesDone = Promise.resolve();
+function api(method, path, body) {
+  if (method === "GET" || method === "HEAD") return request(method, path, body);
+  const sent = writesDone.then(() => request(method, path, body));
+  writesDone = sent.catch(() => {});
+  return sent;
+}
+
+async function request(method, path, body) {
   const opts = { method, headers: {}, credentials: "same-origin" };
   if (body !== undefined) { opts.headers["Content-Type"] = "application/json"; opts.body = JSON.stringify(body); }
   const writes = method !== "GET" && method !== "HEAD";

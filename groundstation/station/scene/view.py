@@ -71,7 +71,7 @@ class Scene:
         self.anomalies_shown = 0       # anomaly markers drawn (tests read it)
         self.frames = 0
         self.activity = "flight"
-        self._framed: dict[int, str] = {}            # client id -> activity its camera shows
+        self._framed: dict[int, tuple[str, float]] = {}   # client id -> (activity, aspect) its camera was framed for
         self._cloud_key = self._route_key = None
         self._route_frame: RouteFrame | None = None
         self._build()
@@ -155,20 +155,23 @@ class Scene:
     def _frame_clients(self) -> None:
         """Point every browser whose camera shows another activity at the current one."""
         for cid, client in list(self.server.get_clients().items()):
-            if self._framed.get(cid) == self.activity:
-                continue
             try:
                 cam = client.camera
                 aspect = cam.aspect if cam.image_height else 16 / 9
                 fov = cam.fov or math.radians(60)
             except AssertionError:      # its camera has not reported yet
                 continue
+            # framed again when the activity changes or the view's shape does (the page lays out
+            # after its first camera report; a window resized): a drag alone keeps the user's view
+            framing = (self.activity, round(aspect, 2))
+            if self._framed.get(cid) == framing:
+                continue
             box = CAL_BOX if self.activity == "calibration" else FLIGHT_BOX
             pos, look = camera_for_box(*box, ELEVATION_DEG[self.activity], fov, aspect)
             cam.up_direction = (0.0, 0.0, 1.0)
             cam.position = tuple(pos)
             cam.look_at = tuple(look)
-            self._framed[cid] = self.activity
+            self._framed[cid] = framing
 
     # ------------------------------------------------------------------------------ updating
     def _loop(self) -> None:
