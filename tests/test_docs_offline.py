@@ -42,7 +42,9 @@ def test_api_docs_render_offline(station_no_viser, offline_page, artifacts):
     page.wait_for_selector(".swagger-ui .info .title:has-text('MagStation')")
     page.wait_for_function("document.querySelectorAll('.swagger-ui .opblock').length >= 10")
     assert page.locator(".swagger-ui .opblock-summary-path[data-path='/api/state']").count() >= 1
-    page.screenshot(path=str(artifacts / "docs_offline.png"))
+    for w, h in ((1280, 720), (1920, 1080)):
+        page.set_viewport_size({"width": w, "height": h})
+        page.screenshot(path=str(artifacts / f"docs_offline_{w}.png"))
     assert page.request.get(st.url + "/redoc").status == 404      # its page would fetch a CDN logo
     assert errors == [] and foreign == []
 

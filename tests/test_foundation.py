@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import ast
+from collections import Counter
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -73,6 +75,46 @@ def test_replay_loops_and_unpaced_iteration():
     rep.due()
     assert rep.loops == 1 and rep.index == 0
     assert len(list(Replayer(log))) == len(rep.samples)
+
+
+def test_a_replay_of_the_first_part_holds_at_its_end_and_goes_on_with_the_whole_file(tmp_path):
+    """Issue 29: a large log plays from its first part (``read_log_start``) while the rest is
+    read; that replay holds at the part's end (not finished, not looped), and the whole file's
+    replayer goes on from there: every sample of the whole log given once, in order."""
+    from groundstation.io.logs import read_log_start
+
+    path = tmp_path / "whole.tlog"
+    shutil.copy(ROOT / "recordings" / "demo.tlog", path)
+    whole = read_log(path)
+    part = read_log_start(path, 300_000)
+    assert part.source == str(path) and 20.0 < part.imu[-1, 0] < whole.imu[-1, 0] - 100.0
+    n = len(part.imu)                                       # the part's times are the whole file's
+    np.testing.assert_array_equal(part.imu[:n - 1], whole.imu[:n - 1])
+    clock = FakeClock()
+    rep = Replayer(part, speed=1.0, loop=True, clock=clock)
+    rep.more_to_come = True
+    given = rep.due()
+    clock.now += 60.0
+    given += rep.due()
+    clock.now += 1000.0                                       # far past the part's end
+    given += rep.due()
+    assert rep.index == len(rep.samples) and not rep.finished and rep.loops == 0
+    nxt = rep.continued(whole)
+    assert nxt.position_s == pytest.approx(rep.position_s) and not nxt.more_to_come
+    clock.now += 1000.0
+    given += nxt.due()
+    times = [s.t_s for s in given]
+    assert times == sorted(times)
+    # every sample of the whole log once, but for its mission (read after the part: at t 0, the
+    # station takes it from the whole log, Session.whole_replay_read)
+    key = lambda s: (type(s).__name__, s.t_s)  # noqa: E731
+    expected = [key(s) for s in Replayer(whole).samples[0:len(Replayer(whole).samples)]]
+    assert Counter(map(key, given)) == Counter(k for k in expected if k[0] != "MissionSample")
+    assert len(part.mission) == 0 and len(whole.mission) == 2
+    bin_whole, bin_part = read_log(DATA / "reference.bin"), read_log_start(DATA / "reference.bin", 40_000)
+    n = len(bin_part.mag)                                    # a DataFlash .bin alike
+    assert 100 < n < len(bin_whole.mag) and np.array_equal(bin_part.mag[:n - 1], bin_whole.mag[:n - 1])
+    assert nxt.loops == 1                                         # the whole one loops, as asked
 
 
 def test_cli_info(capsys):

@@ -257,3 +257,40 @@ def test_a_long_replay_plays_while_it_is_analysed(tmp_path):
                                    err_msg=name)
     assert np.isfinite(shown[:, COL["field_mG"]]).all() and np.isfinite(shown[:, COL["cross_track_m"]]).any()
     assert position >= shown[-1, COL["t_s"]]                       # the analysis took over where it was
+
+
+def test_a_large_log_plays_from_its_first_part_while_the_rest_is_read(tmp_path, monkeypatch):
+    """Issue 29: a log over START_ABOVE_BYTES starts playing from its first START_BYTES (here the
+    demo's 1.4 MB file with a 0.3 MB part); the page says it reads the rest; then the replay goes
+    on with the whole file (its mission's preset line included) and the whole-log analysis is the
+    one of the file read at once."""
+    from groundstation.station.hub import sources
+
+    path = tmp_path / "big.tlog"
+    shutil.copy(DEMO, path)
+    plain = Session(tmp_path / "plain", record_live=False)
+    try:
+        plain.start_replay(path, speed=1.0)
+        assert wait_for(lambda: not plain.snapshot()["analysing"], 60)
+        plain.replay_pause(True)
+        whole_rows, whole_line = plain.flight.review.rows, plain.flight.line
+        whole_duration = plain.snapshot()["replay"]["duration_s"]
+    finally:
+        plain.close()
+    monkeypatch.setattr(sources, "START_BYTES", 300_000)
+    monkeypatch.setattr(sources, "START_ABOVE_BYTES", 1_000_000)
+    hub = Session(tmp_path / "parts", record_live=False)
+    try:
+        hub.start_replay(path, speed=1.0)
+        first = hub.snapshot()["replay"]
+        assert first["reading"] and first["duration_s"] < whole_duration - 100.0, first
+        assert hub.flight.line is None                   # the demo's mission is after the first part
+        assert wait_for(lambda: not hub.snapshot()["analysing"], 60)
+        got = hub.snapshot()
+        assert not got["replay"]["reading"] and got["replay"]["duration_s"] == whole_duration
+        assert hub.flight.line == whole_line and whole_line["source"] == "mission"
+        assert any("read to its end" in e["text"] for e in got["events"])
+        np.testing.assert_array_equal(hub.flight.review.rows, whole_rows)
+        assert hub.sources.rx_count > 0
+    finally:
+        hub.close()

@@ -87,6 +87,7 @@ def test_walkthrough(shared_station, new_page, artifacts):
     with FakeVehicle(sim.messages, port, speed=6.0) as fv:
         has(page, "#result-card", timeout_ms=120_000)                         # ~15 s on an idle machine
         assert page.locator("#result-status").inner_text() == "ok"
+        has(page, "#live-fit", "fitted field")                               # the result's field, not a running fit's
         assert "WMM" not in page.locator("#warnings").inner_text()        # fitted field agrees with WMM
         png, px = view_pixels_until(page, {"orange": 100, "blue": 300, "green": 300, "amber": 300})
         assert st.scene.cloud_points_shown > 500

@@ -177,7 +177,7 @@ function renderReplay(s) {
   $("pause").textContent = r.paused ? "Resume" : "Pause";
   $("seek").max = r.duration_s;
   if (!seeking) $("seek").value = r.t_s;
-  $("replay-time").textContent = fmt(r.t_s, 1) + " / " + fmt(r.duration_s, 1) + " s ×" + r.speed + (r.finished ? " (finished)" : "");
+  $("replay-time").textContent = fmt(r.t_s, 1) + " / " + fmt(r.duration_s, 1) + " s ×" + r.speed + (r.finished ? " (finished)" : "") + (r.reading ? " (reading the rest of the log…)" : "");
   const key = s.source.name + "|" + s.analysing + "|" + r.duration_s + "|" + s.alarm_count + "|" + (s.line ? s.line.a + s.line.b : "");
   if (key !== timelineKey && !s.analysing) { timelineKey = key; loadTimeline(); }
 }

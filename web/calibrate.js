@@ -52,8 +52,11 @@ function renderControl(w) {
   $("start").disabled = w.state === "running";
   $("finish").disabled = w.state !== "running" || w.mode === "fixed_yaw";
   const primary = w.compasses.find((c) => c.index === 0);
-  $("live-fit").textContent = w.state === "idle" || w.mode === "fixed_yaw" ? "" : w.samples + " samples" +
-    (w.live_field_mG ? (primary && primary.trusted ? " · live field " : " · preliminary field ") + fmt(w.live_field_mG, 0) + " mG" : "") +
+  // the field: fitted (a result), live (a trusted running fit) or preliminary (an early one)
+  const fitted = w.result && w.result.status === "ok" && w.result.field_strength_mG;
+  const fieldText = fitted ? " · fitted field " + fmt(w.result.field_strength_mG, 0) + " mG" :
+    (w.live_field_mG ? (primary && primary.trusted ? " · live field " : " · preliminary field ") + fmt(w.live_field_mG, 0) + " mG" : "");
+  $("live-fit").textContent = w.state === "idle" || w.mode === "fixed_yaw" ? "" : w.samples + " samples" + fieldText +
     (w.expected_field_mG ? " · WMM " + fmt(w.expected_field_mG, 0) + " mG" : "");
   renderWrite(w.param_write);
 }

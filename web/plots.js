@@ -64,7 +64,13 @@ function drawPlot(canvas, series, opts) {
   g.textAlign = "right"; g.textBaseline = "middle";
   for (const k of yt) { const y = Y(k.value); g.beginPath(); g.moveTo(L, y); g.lineTo(L + pw, y); g.stroke(); g.fillText(k.label, L - 4, y); }
   g.textAlign = "center"; g.textBaseline = "top";
-  for (const k of niceTicks(t0, t1, Math.max(2, Math.floor(pw / 90)))) { const x = X(k.value); if (x >= L && x <= L + pw) g.fillText(k.label, x, T + ph + 3); }
+  // time ticks; the last one carries the unit ("170 s")
+  const tt = niceTicks(t0, t1, Math.max(2, Math.floor(pw / 90))).filter((k) => X(k.value) >= L && X(k.value) <= L + pw);
+  tt.forEach((k, i) => {
+    const text = i === tt.length - 1 ? k.label + " s" : k.label;
+    g.fillText(text, Math.min(X(k.value), w - 1 - g.measureText(text).width / 2), T + ph + 3);   // kept on the canvas
+  });
+  canvas.dataset.tticks = tt.map((k) => k.label).join(" ");
   g.save(); g.beginPath(); g.rect(L, T, pw, ph); g.clip();
   for (const r of opts.refs || []) {
     if (r.value === null) continue;

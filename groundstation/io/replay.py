@@ -29,6 +29,7 @@ class Replayer:
         self.clock = clock
         self.speed = float(speed)
         self.paused = False
+        self.more_to_come = False     # the log is the first part of a file still being read: hold at its end
         self.index = 0
         self.loops = 0
         self._anchor_wall = clock()
@@ -47,7 +48,7 @@ class Replayer:
 
     @property
     def finished(self) -> bool:
-        return self.index >= len(self.samples) and not self.loop
+        return self.index >= len(self.samples) and not self.loop and not self.more_to_come
 
     def __iter__(self) -> Iterator[Sample]:
         """All remaining samples at once, unpaced (analysis)."""
@@ -65,7 +66,7 @@ class Replayer:
         end = min(max(int(np.searchsorted(self._times, now_t, side="right")), self.index), self.index + max_samples)
         out = self.samples[self.index:end]
         self.index = end
-        if self.index >= len(self.samples) and self.loop:
+        if self.index >= len(self.samples) and self.loop and not self.more_to_come:
             self.loops += 1
             self.seek(0.0)
         return out
@@ -97,3 +98,17 @@ class Replayer:
         self.index = int(np.searchsorted(self._times, t, side="left"))
         self._anchor_log_t = t
         self._anchor_wall = self.clock()
+
+    def continued(self, log: FlightLog) -> "Replayer":
+        """A replayer of ``log`` (the whole file this replayer's log is the first part of) that
+        goes on where this one is: same clock, speed, pause and loop, the samples already given
+        not given again."""
+        nxt = Replayer(log, speed=self.speed, loop=self.loop, clock=self.clock)
+        nxt.paused, nxt.loops = self.paused, self.loops
+        nxt._anchor_wall, nxt._anchor_log_t = self._anchor_wall, self._anchor_log_t
+        if self.index > 0:     # past the samples of the last time given, as many as were given at it
+            last = self._times[self.index - 1]
+            given_at_last = self.index - int(np.searchsorted(self._times, last, side="left"))
+            first_at_last = int(np.searchsorted(nxt._times, last, side="left"))
+            nxt.index = min(first_at_last + given_at_last, len(nxt._times))
+        return nxt

@@ -19,6 +19,7 @@ the whole FlightLog; there is no chunked API yet.
 from __future__ import annotations
 
 import os
+import tempfile
 from dataclasses import replace
 from pathlib import Path
 
@@ -33,7 +34,7 @@ from .dataflash import read_dataflash
 from .tlog import read_tlog, tlog_records
 from .ulog import read_ulog
 
-__all__ = ["READERS", "read_log", "load_many", "summarize_rates", "iter_samples", "IngestError",
+__all__ = ["READERS", "read_log", "read_log_start", "START_SUFFIXES", "load_many", "summarize_rates", "iter_samples", "IngestError",
            "LogBuilder", "clean_table", "tlog_records"]
 
 READERS: dict[str, Callable[[Path, Callable[[float], None] | None], FlightLog]] = {
@@ -70,6 +71,30 @@ def read_log(path: str | os.PathLike, progress: Callable[[float], None] | None =
     _drop_absurd_params(log)
     if not (log.params or any(len(t) for t in (log.mag, log.imu, log.attitude, log.gps))):
         raise IngestError(f"{path.name}: no readable messages (is it really a {path.suffix} file?)")
+    return log
+
+
+START_SUFFIXES = (".tlog", ".bin")      # logs whose first part reads as a log of its own
+
+
+def read_log_start(path: str | os.PathLike, nbytes: int) -> FlightLog:
+    """The first ``nbytes`` of a .tlog or DataFlash .bin read as a log of their own (a replay
+    plays them while the whole file is read): copied to a private temporary file and read by
+    ``read_log``; the record cut at the end counts as a truncated tail.  Its times are the
+    whole file's on that part (the boot clock's offset is a running minimum; a file re-based
+    later in its length may differ).  Raises IngestError as read_log."""
+    path = Path(path)
+    if path.suffix.lower() not in START_SUFFIXES:
+        raise IngestError(f"{path.name}: only {' and '.join(START_SUFFIXES)} logs are read in parts")
+    with tempfile.TemporaryDirectory(prefix="magstation-start-") as tmp:
+        part = Path(tmp) / ("start" + path.suffix.lower())
+        try:
+            with open(path, "rb") as src, open(part, "wb") as dst:
+                dst.write(src.read(max(int(nbytes), 0)))
+        except OSError as err:
+            raise IngestError(f"{path.name}: cannot be read ({err.strerror or err})") from None
+        log = read_log(part)
+    log.source = str(path)
     return log
 
 

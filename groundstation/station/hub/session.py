@@ -276,17 +276,29 @@ class Session(SessionViews):
         with self._lock:
             self._new_source(flight_log.start_unix_s, flight_log.autopilot, flight_log.params,
                              list(flight_log.mission))
-            if len(flight_log.mission) >= 2:
-                self.flight.set_line({"a": [float(v) for v in flight_log.mission[0][:2]],
-                                      "b": [float(v) for v in flight_log.mission[-1][:2]], "source": "mission"})
-                self.event("preset line set from the log's mission", t_s=0.0)
+            self._line_from_log_mission(flight_log)
             self.sources.start_replay(path, flight_log, replayer)
-            self.event(f"replaying {path.name} ({replayer.duration_s:.0f} s) at x{speed:g}: analysing it meanwhile",
-                       t_s=0.0)
+            length = ("from its first part while the rest is read" if replayer.more_to_come else
+                      f"({replayer.duration_s:.0f} s)")
+            self.event(f"replaying {path.name} {length} at x{speed:g}: analysing it meanwhile", t_s=0.0)
             if not len(flight_log.mag):
                 self.event(f"{path.name} has no magnetometer samples: no heading, calibration or "
                            "interference tests for this log", level="warning", t_s=0.0)
             self.changed()
+
+    def _line_from_log_mission(self, flight_log: FlightLog) -> None:
+        if len(flight_log.mission) >= 2:
+            self.flight.set_line({"a": [float(v) for v in flight_log.mission[0][:2]],
+                                  "b": [float(v) for v in flight_log.mission[-1][:2]], "source": "mission"})
+            self.event("preset line set from the log's mission", t_s=0.0)
+
+    def whole_replay_read(self, flight_log: FlightLog) -> None:
+        """A replay playing from the first part of its file has the whole file now (lock held):
+        a mission found after that part sets the preset line, as one at the start does."""
+        if flight_log.mission and not self._log_mission:
+            self._log_mission = list(flight_log.mission)
+            if self.flight.line is None:
+                self._line_from_log_mission(flight_log)
 
     def _new_source(self, start_unix_s: float | None, autopilot: str | None, params: dict,
                     mission: list | None, keep_wizard: bool = False) -> None:
