@@ -14,7 +14,12 @@ The likely kind, by the first rule that holds:
   height h within h to the side, |B| stays above half its peak over 1.3–3.0 h of track (computed
   over dipole orientations), so 60 m holds masses up to ~20–45 m below.  A disturbance that varies
   in time spans the track flown meanwhile (seed 002's ramps and bump: 90–140 m at 6 m/s), or
-  none when the vehicle hovers.  Its position is that of the peak;
+  none when the vehicle hovers.  Or, flown down onto the place and up again (a mass below a
+  hover; ArduPilot SITL's SIM_MAG_ALY, whose field depends on the height alone): over at most
+  ``place_max_m`` of track between the crossings, the vehicle came down by ``place_min_climb_m``
+  or more to the peak and rose again as much after it, the peak at its lowest (``_down_and_up``):
+  a field that varies in time does not peak where a descent turns into a climb but by chance.
+  Its position is that of the peak;
 * "rising with time" (a ramp, a step): otherwise.
 Growth rate: the least-squares slope of |r̄| over the ``lead_s`` up to the alarm's start [mG/s].
 Units: mG, s, m, degrees of latitude/longitude.
@@ -38,6 +43,7 @@ class ExplainSettings:
     shape_s: float = 20.0            # before the alarm: where the rise of a field tied to a place is looked for
     place_min_m: float = 10.0        # ground track flown between the half-peak crossings (module docstring)
     place_max_m: float = 60.0
+    place_min_climb_m: float = 2.0   # a descent onto a place and the climb off it (module docstring)
 
 
 def _slope(t: np.ndarray, y: np.ndarray) -> float:
@@ -54,26 +60,54 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(a[ok], b[ok])[0, 1])
 
 
-def _half_peak_track_m(t: np.ndarray, size: np.ndarray, north_m: np.ndarray, east_m: np.ndarray,
-                       lo: int, k: int, hi: int) -> float:
-    """Ground track flown [m] from the last step below half of ``size[k]`` before k (from ``lo``)
-    to the first after k (up to ``hi``); NaN when either side never falls to half."""
+def _half_peak_crossings(size: np.ndarray, lo: int, k: int, hi: int) -> tuple[int, int] | None:
+    """(the last step below half of ``size[k]`` before k, from ``lo``; the first after k, up to
+    ``hi``); None when either side never falls to half."""
     if not np.isfinite(size[k]):
-        return float("nan")
+        return None
     low = np.flatnonzero(size[lo:hi + 1] < 0.5 * size[k]) + lo
     before, after = low[low < k], low[low > k]
     if not len(before) or not len(after):
-        return float("nan")
-    a, b = before[-1], after[0]
-    fixes = np.unique(np.r_[np.searchsorted(t, np.arange(t[a], t[b], 1.0)), b])   # 1 s apart: GPS noise adds little
+        return None
+    return int(before[-1]), int(after[0])
+
+
+def _track_m(t: np.ndarray, north_m: np.ndarray, east_m: np.ndarray, a: int, b: int) -> float:
+    """Ground track flown [m] from step a to step b, from fixes 1 s apart (GPS noise adds little)."""
+    fixes = np.unique(np.r_[np.searchsorted(t, np.arange(t[a], t[b], 1.0)), b])
     return float(np.nansum(np.hypot(np.diff(north_m[fixes]), np.diff(east_m[fixes]))))
 
 
+def _smoothed(x: np.ndarray, half: int) -> np.ndarray:
+    """Mean of the finite values within ``half`` steps either side (GPS height noise)."""
+    ok = np.isfinite(x)
+    c = np.r_[0.0, np.cumsum(np.where(ok, x, 0.0))]
+    m = np.r_[0, np.cumsum(ok)]
+    i = np.arange(len(x))
+    lo, hi = np.maximum(i - half, 0), np.minimum(i + half + 1, len(x))
+    count = m[hi] - m[lo]
+    return np.where(count > 0, (c[hi] - c[lo]) / np.maximum(count, 1), np.nan)
+
+
+def _down_and_up(up_m: np.ndarray, lo: int, k: int, hi: int, least_m: float) -> bool:
+    """The vehicle came down to the peak (step k) and rose again: in steps lo..hi (the alarm and
+    the ``shape_s`` before it) the height (smoothed over 1/40 of the span either side) fell by at
+    least ``least_m`` before k and rose by as much after it, and at k it was within
+    max(1 m, a quarter of that) of its lowest.  (|r̄| lags the field by its averaging, so the
+    half-peak crossings themselves lie closer to the peak's height than the field's do.)"""
+    h = _smoothed(np.asarray(up_m, dtype=float)[lo:hi + 1], max(1, (hi - lo) // 40))
+    j = k - lo
+    if not (0 < j < len(h) - 1 and np.isfinite(h[j])):
+        return False
+    fell, rose = np.nanmax(h[:j + 1]) - h[j], np.nanmax(h[j:]) - h[j]
+    return bool(min(fell, rose) >= least_m and h[j] - np.nanmin(h) <= max(1.0, 0.25 * min(fell, rose)))
+
+
 def explain_alarm(t_s, residual_mG, motor_signal, north_m, east_m, lat_deg, lon_deg, scores: dict,
-                  i0: int, i1: int, settings: ExplainSettings | None = None) -> dict:
+                  i0: int, i1: int, settings: ExplainSettings | None = None, up_m=None) -> dict:
     """One alarm (steps i0..i1) in numbers: disturbance_mG (body, at the largest |r̄|),
     growth_mG_s, tests (names whose score reached 1), kind, position (of the peak, when fixed in
-    place), current_correlation."""
+    place), current_correlation.  ``up_m``: the height [m, any datum] per step, or None."""
     s = settings or ExplainSettings()
     t = np.asarray(t_s, dtype=float)
     r = np.asarray(residual_mG, dtype=float).reshape(-1, 3)
@@ -97,9 +131,15 @@ def explain_alarm(t_s, residual_mG, motor_signal, north_m, east_m, lat_deg, lon_
     if np.isfinite(c) and c >= s.current_corr and len(xs) and np.ptp(xs) >= s.current_min_span:
         out["kind"] = KINDS[0]
         return out
-    width_m = _half_peak_track_m(t, size, np.asarray(north_m, dtype=float), np.asarray(east_m, dtype=float),
-                                 int(np.searchsorted(t, t[i0] - s.shape_s)), k, i1)
-    if np.isfinite(width_m) and s.place_min_m <= width_m <= s.place_max_m:
+    lo = int(np.searchsorted(t, t[i0] - s.shape_s))
+    crossings = _half_peak_crossings(size, lo, k, i1)
+    placed = False
+    if crossings is not None:
+        a, b = crossings
+        width_m = _track_m(t, np.asarray(north_m, dtype=float), np.asarray(east_m, dtype=float), a, b)
+        placed = s.place_min_m <= width_m <= s.place_max_m or (
+            up_m is not None and width_m <= s.place_max_m and _down_and_up(up_m, lo, k, i1, s.place_min_climb_m))
+    if placed:
         out["kind"] = KINDS[1]
         la, lo = float(np.asarray(lat_deg, float)[k]), float(np.asarray(lon_deg, float)[k])
         out["position"] = {"lat": round(la, 7), "lon": round(lo, 7)} if np.isfinite(la) and np.isfinite(lo) else None

@@ -77,14 +77,16 @@ def test_a_magnetised_mass_on_the_ground_is_fixed_in_place_where_it_lies(tmp_pat
     _same_explanations(live, alarms)
 
 
-def _bump_explained(north_m: np.ndarray, t: np.ndarray, size_mG: np.ndarray) -> dict:
+def _bump_explained(north_m: np.ndarray, t: np.ndarray, size_mG: np.ndarray, up_m: np.ndarray | None = None,
+                    tail_s: float = 2.0) -> dict:
+    """The explanation of an alarm from |r̄| > 60 mG to ``tail_s`` after it falls below."""
     n = len(t)
     residual = size_mG[:, None] * np.array([0.6, 0.0, 0.8])
     z = np.where(size_mG > 60.0, 2.0, 0.1)
-    i0, i1 = int(np.argmax(size_mG > 60.0)), int(np.flatnonzero(size_mG > 60.0)[-1]) + 100
+    i0, i1 = int(np.argmax(size_mG > 60.0)), int(np.flatnonzero(size_mG > 60.0)[-1]) + int(tail_s / 0.02)
     lat = 30.0 + north_m / 111_320.0
     return explain_alarm(t, residual, np.full(n, 20.0), north_m, np.zeros(n), lat, np.full(n, 120.0),
-                         {"field_vector": z}, i0, min(i1, n - 1))
+                         {"field_vector": z}, i0, min(i1, n - 1), up_m=up_m)
 
 
 def test_a_bump_in_time_is_not_tied_to_a_place_but_a_pass_over_a_mass_is():
@@ -99,6 +101,26 @@ def test_a_bump_in_time_is_not_tied_to_a_place_but_a_pass_over_a_mass_is():
     size = np.linalg.norm(anomaly_field_ned_mG(mass, np.c_[north, np.zeros(len(t)), np.full(len(t), -20.0)]), axis=1)
     e = _bump_explained(north, t, size)
     assert e["kind"] == "fixed in place" and abs((e["position"]["lat"] - 30.0) * 111_320.0 - 240.0) < 5.0
+
+
+def test_a_descent_onto_a_place_and_the_climb_off_it_is_fixed_in_place_a_bump_meanwhile_is_not():
+    """Hovering over one spot: down from 25 m to 2 m and up again over the field of ArduPilot
+    SITL's SIM_MAG_ALY (200 mG at the ground, 1/8 of it at 5 m: (5 / (5 + h))^3) is "fixed in
+    place"; a bump in time of the same size while the height stays, or while the vehicle only
+    descends, is not; nor is the descent without its height."""
+    t = np.arange(0.0, 120.0, 0.02)
+    up = np.interp(t, [0.0, 30.0, 60.0, 70.0, 100.0, 120.0], [25.0, 25.0, 2.0, 2.0, 25.0, 25.0])
+    sitl = 200.0 * (5.0 / (5.0 + up)) ** 3
+    still = np.zeros(len(t))
+    noise = np.repeat(np.random.default_rng(1).normal(0.0, 0.7, len(t) // 10 + 1), 10)[:len(t)]   # 5 Hz GPS height
+    # the alarm ends 8 s after |r̄| falls below 60 mG (the detector clears), 10 m up again
+    assert _bump_explained(still, t, sitl, up + noise, tail_s=8.0)["kind"] == "fixed in place"
+    assert _bump_explained(still, t, sitl, tail_s=8.0)["kind"] == "rising with time"     # no height: no evidence
+    bump = 73.0 * np.sin(np.pi * np.clip((t - 40.0) / 45.0, 0.0, 1.0)) ** 2
+    for hover in (np.full(len(t), 10.0), 10.0 + noise):
+        assert _bump_explained(still, t, bump, hover, tail_s=8.0)["kind"] == "rising with time"
+    down_only = np.interp(t, [0.0, 40.0, 85.0, 120.0], [25.0, 25.0, 2.0, 2.0])
+    assert _bump_explained(still, t, bump, down_only, tail_s=8.0)["kind"] == "rising with time"
 
 
 def test_the_anomaly_field_is_the_dipole_field():

@@ -3,7 +3,7 @@
 ``explain_span(steps, start_s, end_s)`` runs ``estimators.detection_explain.explain_alarm`` on
 the steps of one alarm (and the ``shape_s`` before it): steps is a dict of equal-length arrays
 (``STEP_KEYS``: t_s, the field-vector test's residual r̄ [mG, body], the motor signal, the held
-GPS lat/lon [deg] and the four test scores).  North/east are metres from the first fix inside
+GPS lat/lon [deg] and altitude [m] and the four test scores).  North/east are metres from the first fix inside
 that window, so a live history that has dropped its oldest steps explains an alarm exactly as the
 whole log does.  ``ExplainHistory`` keeps those arrays for a live link (bounded);
 ``explanation_text`` says an explanation in words for the page and the events.
@@ -19,7 +19,7 @@ from groundstation.jobs.words import score_name
 __all__ = ["STEP_KEYS", "SCORE_NAMES", "explain_span", "explanation_text", "ExplainHistory"]
 
 SCORE_NAMES = ("heading_difference", "path_deviation", "field_strength_inclination", "field_vector")
-STEP_KEYS = ("t_s", "rx", "ry", "rz", "motor", "lat_deg", "lon_deg") + SCORE_NAMES
+STEP_KEYS = ("t_s", "rx", "ry", "rz", "motor", "lat_deg", "lon_deg", "alt_m") + SCORE_NAMES
 
 
 def explain_span(steps: dict, start_s: float, end_s: float | None,
@@ -42,7 +42,7 @@ def explain_span(steps: dict, start_s: float, end_s: float | None,
                    else (np.full(len(tw), np.nan), np.full(len(tw), np.nan)))
     residual = np.c_[w["rx"], w["ry"], w["rz"]]
     return explain_alarm(tw, residual, w["motor"], north, east, lat, lon, {k: w[k] for k in SCORE_NAMES},
-                         i0, i1, s)
+                         i0, i1, s, up_m=w["alt_m"])
 
 
 def explanation_text(e: dict | None, signal: str = "current_A") -> str:

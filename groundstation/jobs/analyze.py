@@ -73,8 +73,9 @@ class FlightAnalysis:
         """Per-step explanation inputs (``jobs.alarm_explain.STEP_KEYS``) of the whole log."""
         x, det = self.x, self.det
         r = x["vector"].residual_mG
-        return dict(zip(STEP_KEYS, (x["t"], r[:, 0], r[:, 1], r[:, 2], x["motor_held"], x["gps_held"][:, 3],
-                                    x["gps_held"][:, 4], det.z_heading, det.z_path, det.z_field, det.z_vector)))
+        gps = x["gps_held"]
+        return dict(zip(STEP_KEYS, (x["t"], r[:, 0], r[:, 1], r[:, 2], x["motor_held"], gps[:, 3], gps[:, 4],
+                                    gps[:, 8], det.z_heading, det.z_path, det.z_field, det.z_vector)))
 
 
 def motor_field_report(x: dict) -> dict | None:

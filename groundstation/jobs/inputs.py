@@ -48,7 +48,7 @@ GPS_TIMEOUT_S = 1.0          # a GPS or magnetometer value older than this is no
 ATTITUDE_TIMEOUT_S = 0.5     # the autopilot's roll/pitch, for the field inclination and the steep gate
 RATE_WINDOW = 25             # IMU intervals in the rolling rate estimate
 GPS_COLUMNS = ("cross_track_m", "cross_track_signed_m", "trusted", "lat_deg", "lon_deg", "vn_mps", "ve_mps",
-               "fix_type")
+               "fix_type", "alt_m")
 
 
 def heading_deg(heading_rad) -> np.ndarray:
@@ -199,6 +199,7 @@ def gps_rows(gps: np.ndarray, legs: list, settings: DetectionSettings) -> np.nda
     out[:, 2] = (g[:, 7] >= settings.rtk_min_fix).astype(float)
     out[:, 3:7] = g[:, [1, 2, 4, 5]]
     out[:, 7] = g[:, 7]
+    out[:, 8] = g[:, 3]
     return out
 
 

@@ -230,7 +230,7 @@ class LiveAnalyzer:
             zs[i] = (step.z_heading, step.z_path, step.z_field, step.z_vector)
             self.last_step = step
         self.explain_history.append(t_s=t, rx=residual[:, 0], ry=residual[:, 1], rz=residual[:, 2], motor=motor,
-                                   lat_deg=gps[:, 3], lon_deg=gps[:, 4],
+                                   lat_deg=gps[:, 3], lon_deg=gps[:, 4], alt_m=gps[:, 8],
                                    **{name: zs[:, j] for j, name in enumerate(SCORE_NAMES)})
         self.alarm_active = bool(combined[-1])
         self.alarm_kinds = list(self.detector.alarm_kinds) if self.alarm_active else []
