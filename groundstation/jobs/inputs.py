@@ -259,7 +259,10 @@ def imu_rate_hz(t_s: np.ndarray, start: int = 0) -> np.ndarray:
         med[first - start:] = np.median(windows[first - RATE_WINDOW:n - RATE_WINDOW], axis=1)
     idx = np.arange(start, n)
     with np.errstate(divide="ignore"):
-        return np.where(med > 0, 1.0 / np.maximum(med, 1e-300), np.where(idx == 0, 0.0, np.inf))
+        rate = np.where(med > 0, 1.0 / np.maximum(med, 1e-300), np.where(idx == 0, 0.0, np.inf))
+    # to 1e-6 Hz: a 10 Hz stream timed on the boot clock (0.1 s steps as boot_s + offset in
+    # floating point) is 10 Hz, not 9.999999999 below the 10 Hz minimum
+    return np.round(rate, 6)
 
 
 def too_steep(roll_rad, pitch_rad, settings: DetectionSettings):
