@@ -335,10 +335,12 @@ def _with_field_model(cov: np.ndarray, data: FieldData, sol: Solution, active: n
     """The covariance plus the reference field's: cov + S Σ_H Sᵀ, S the change of the solution per 1σ
     of each NED component of the reference field (``field_model_sd_mG``, re-solved with the field
     shifted; a model error is one bias over the whole flight, so no resampling of the samples sees
-    it).  In level flight the body z axis sees the vertical field D at one level, and b_z trades
-    one for one with an error of D (and with the z scale): measured on the ArduPilot SITL route
-    flight at Canberra (seed 15, D ≈ −530 mG), the three compasses' z offsets all −8.7 mG off
-    against our WMM and −3 to −4 mG against SITL's own field table, while the stated 1σ was 3 mG."""
+    it).  In level flight the body z axis sees the vertical field D at one level: b_z = mean m_z −
+    a_z·D, and a_z is measured through the horizontal field H tilting into z, so it scales with the
+    model's H.  Measured on the ArduPilot SITL route flight at Canberra (seed 15, D ≈ −530 mG,
+    H ≈ 235 mG, compass 1): the reference's N +3 mG moves every diagonal term −1.2 % and b_z −8.2 mG;
+    D +3 / −3 mG moves b_z −4.4 / +7.9 mG.  The three compasses' z offsets were all −8.7 mG off
+    against our WMM and −3 to −4 mG against SITL's own field table, with a stated 1σ of 3 mG."""
     sd = np.asarray(s.field_model_sd_mG, float)
     if not np.any(sd > 0) or not np.all(np.isfinite(cov)):
         return cov
