@@ -766,15 +766,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="also record and fit N (default 5) ArduPilot SITL route flights (seeds 1..N, 1x, up to 5 at once)")
     ap.add_argument("--sitl-recorded", type=Path, default=None, metavar="DIR",
                     help="keep the SITL flights in DIR/seed<N>/ and re-use those already there")
+    ap.add_argument("--sitl-first", type=int, default=1, metavar="S",
+                    help="the first SITL seed (seeds S..S+N-1; seeds not looked at while developing)")
     ap.add_argument("--no-sim", action="store_true", help="real logs (and --sitl) only")
+    ap.add_argument("--no-real", action="store_true", help="without the logs under ../shared/data")
     a = ap.parse_args(argv)
     seeds = [1] if (a.quick or a.smoke) else list(range(1, a.seeds + 1))
     reduce = None if (a.no_magfit or a.smoke) else (10 if a.quick else a.magfit_reduce)
-    rows, motor, sitl_table = ([] if a.smoke else real_rows(None if a.no_magfit else (10 if a.quick else 1))), [], []
+    rows, motor, sitl_table = ([] if a.smoke or a.no_real else real_rows(None if a.no_magfit else (10 if a.quick else 1))), [], []
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         if a.sitl:
-            sr, sitl_table = sitl_rows(tmp, reduce, list(range(1, a.sitl + 1)), a.sitl_recorded)
+            sr, sitl_table = sitl_rows(tmp, reduce, list(range(a.sitl_first, a.sitl_first + a.sitl)), a.sitl_recorded)
             rows += sr
         for s in ([] if a.no_sim else seeds):
             rows += dance_rows(s, tmp)

@@ -30,7 +30,7 @@ field is predicted, so offsets are observable from ordinary flight (the idea of 
 
 An answer with its quality (issue 28): the offsets' covariance is marginal over the terms held at
 nominal by this fit's choice, each variance raised to its jackknife variance (time blocks, heading
-sectors); a flight dominated by one line flown both ways (``heading_imbalance`` > 0.9) holds soft
+sectors), plus the reference field's own uncertainty carried through the fit (``field_model_sd_mG``); a flight dominated by one line flown both ways (``heading_imbalance`` > 0.9) holds soft
 iron at nominal with its prior in the 1σ.  ``recommended`` when the worst 1σ ≤ ``max_offset_sd_mG``;
 else status "weak" (offsets, 1σ, the reason and the flight that would pin them down); refused only
 when unobservable (< ``min_heading_coverage`` of the headings, 1σ > ``max_answer_sd_mG``).
@@ -92,6 +92,10 @@ class WmmFitSettings:
     cell_weighting: bool | None = False           # sphere cells, rare directions weighted up (None: when soft iron is
                                                   # held).  Off: measured to add bias here (docs/inflight-calibration.md)
     jackknife_blocks: int = 8                     # contiguous time blocks for the jackknife 1σ (0: none)
+    # the reference field's own 1σ per NED component [mG], in the stated 1σ (``_with_field_model``): the WMM
+    # error model (WMM2020 technical report, Chulliat et al. 2020, sec. 3: X 131, Y 94, Z 157 nT, the model
+    # against the observed field, crustal field included); (0, 0, 0): the reference taken as exact
+    field_model_sd_mG: tuple[float, float, float] = (1.31, 0.94, 1.57)
     sphere_bands: int = 8                         # equal-area cells: bands of equal Δz × sectors per band
     sphere_sectors: int = 10
 
@@ -301,7 +305,7 @@ def _fit_terms(data: FieldData, model: str, p0: np.ndarray, auto: np.ndarray, fo
     p_init[:3] = _initial_offsets(data, matrix_from_params(p0))
     sol = solve(data, p_init, p0, _options(model, active, s))
     for _ in range(3):
-        sd = np.sqrt(np.clip(np.diag(sol.covariance), 0, None))
+        sd = np.sqrt(np.clip(np.diag(sol.support_covariance), 0, None))
         weak = auto & active & ~(sd < s.supported_ratio * prior)
         if not weak.any():
             break
@@ -323,7 +327,32 @@ def _fit_terms(data: FieldData, model: str, p0: np.ndarray, auto: np.ndarray, fo
     every = forced | auto | (np.zeros(12, bool) if held is None else held)   # + terms the fit chose to hold
     marginal = solve(data, sol.params, p0, replace(_options(model, every, s), max_iter=0))
     cov = _with_jackknife(marginal.covariance, data, sol, active, p0, model, s)
-    return replace(sol, covariance=cov), active
+    return replace(sol, covariance=_with_field_model(cov, data, sol, active, p0, model, s)), active
+
+
+def _with_field_model(cov: np.ndarray, data: FieldData, sol: Solution, active: np.ndarray, p0: np.ndarray,
+                      model: str, s: WmmFitSettings) -> np.ndarray:
+    """The covariance plus the reference field's: cov + S Σ_H Sᵀ, S the change of the solution per 1σ
+    of each NED component of the reference field (``field_model_sd_mG``, re-solved with the field
+    shifted; a model error is one bias over the whole flight, so no resampling of the samples sees
+    it).  In level flight the body z axis sees the vertical field D at one level: b_z = mean m_z −
+    a_z·D, and a_z is measured through the horizontal field H tilting into z, so it scales with the
+    model's H.  Measured on the ArduPilot SITL route flight at Canberra (seed 15, D ≈ −530 mG,
+    H ≈ 235 mG, compass 1): the reference's N +3 mG moves every diagonal term −1.2 % and b_z −8.2 mG;
+    D +3 / −3 mG moves b_z −4.4 / +7.9 mG.  The three compasses' z offsets were all −8.7 mG off
+    against our WMM and −3 to −4 mG against SITL's own field table, with a stated 1σ of 3 mG."""
+    sd = np.asarray(s.field_model_sd_mG, float)
+    if not np.any(sd > 0) or not np.all(np.isfinite(cov)):
+        return cov
+    H = np.asarray(data.field_ned_mG, float)
+    opts = replace(_options(model, active, s), max_iter=8)
+    base = solve(data, sol.params, p0, opts).params
+    S = np.zeros((12, 3))
+    for j in np.flatnonzero(sd > 0):
+        shifted = FieldData(data.mag_raw_mG, data.roll_rad, data.pitch_rad, data.yaw_rad, data.motor_signal,
+                            H + sd[j] * np.eye(3)[j], data.weight)
+        S[:, j] = solve(shifted, sol.params, p0, opts).params - base
+    return cov + S @ S.T
 
 
 def _subset(data: FieldData, keep: np.ndarray) -> FieldData:
@@ -584,7 +613,8 @@ def heldout_residual_mG(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned
     residual does not reward a source for the terms it lets the fit bend to (unlike the residual
     after the fit), and an attitude that is late, noisy or wrong in tilt shows in it directly.
     """
-    s = replace(settings, jackknife_blocks=0, min_heading_coverage=0.0, max_answer_sd_mG=float("inf"))
+    s = replace(settings, jackknife_blocks=0, field_model_sd_mG=(0.0, 0.0, 0.0), min_heading_coverage=0.0,
+                max_answer_sd_mG=float("inf"))
     raw = np.asarray(mag_raw_mG, float).reshape(-1, 3)
     n = len(raw)
     cols = [np.asarray(a, float).ravel() for a in (roll_rad, pitch_rad, yaw_rad)]

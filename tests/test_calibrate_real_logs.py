@@ -17,6 +17,7 @@ from groundstation.jobs.compass_raw import compass_fields
 from groundstation.samples import CompassTable
 from groundstation.sim.ardupilot import ArduSimConfig, default_compasses, simulate_ardupilot
 from groundstation.sim.ardupilot_flight import FlightPlan
+from groundstation.sim.scenarios import simulate
 
 NAMED = {"ok", "weak", "insufficient_coverage", "attitude_depends_on_compass", "insufficient_data", "no_parameters",
          "offsets_out_of_range"}
@@ -337,18 +338,39 @@ def test_sitl_route_flight_offsets_and_motor_field_match_the_sim_truth(name):
 
 def test_a_window_flown_under_motor_current_is_not_used():
     """A calibration window's fit has no motor term: with the in-flight fit's motor field 5.3 mG/A
-    and 24 A in the window, its offsets carry 127 mG (refused, named); at 0.5 A, 2.7 mG (used)."""
+    and 24 A all through the window, its offsets carry 127 mG and no sample is below 5 mG (refused,
+    named); at 0.5 A, 2.7 mG (used as it is)."""
     from types import SimpleNamespace as NS
 
-    from groundstation.jobs.calibrate.compass import window_motor_bias
+    from estimators.cal_windows import WindowSettings
+    from groundstation.jobs.calibrate.compass import motor_free_window
     t = np.arange(0.0, 100.0, 0.5)
     cf = NS(t_s=t)
-    window = NS(start_s=20.0, end_s=60.0)
+    window = NS(start_s=20.0, end_s=60.0, source="motion")
     wmm = NS(fitted=("b_x", "f_x", "f_y", "f_z"), motor_mG_per_unit=np.array([-2.2, -3.1, -3.7]))
-    flying = NS(idx=np.arange(len(t)), signal=np.where((t > 10) & (t < 90), 24.0, 0.0), signal_name="current_A")
-    why = window_motor_bias(window, cf, flying, wmm, 5.0)
-    assert "not used" in why and "127 mG" in why and "24 A" in why, why
-    idle = NS(idx=flying.idx, signal=np.full(len(t), 0.5), signal_name="current_A")
-    assert window_motor_bias(window, cf, idle, wmm, 5.0) == ""
+    flying = np.where((t > 10) & (t < 90), 24.0, 0.0)
+    used, mask, why = motor_free_window(window, cf, flying, "current_A", wmm, 5.0, WindowSettings())
+    assert used is None and "not used" in why and "127 mG" in why and "24 A" in why, why
+    used, mask, why = motor_free_window(window, cf, np.full(len(t), 0.5), "current_A", wmm, 5.0, WindowSettings())
+    assert used is window and why == "" and mask.sum() == 81
     no_motor = NS(fitted=("b_x",), motor_mG_per_unit=np.zeros(3))
-    assert window_motor_bias(window, cf, flying, no_motor, 5.0) == ""
+    assert motor_free_window(window, cf, flying, "current_A", no_motor, 5.0, WindowSettings())[0] is window
+
+
+def test_a_window_spanning_the_dance_and_the_powered_flight_is_fitted_on_its_low_current_samples(tmp_path):
+    """The demo log (a 80 s dance at 0 A, then a 120 s mission over a magnetised mass at ~20 A) is
+    one calibration window: fitted whole, its offsets carry the motor field (tens of mG); fitted
+    again on its samples whose motor field is ≤ 5 mG (the dance), within 1 mG of the sim's truth."""
+    truth_all = simulate("demo", 2, mission="mission-anomaly", duration_s=120.0)
+    path = truth_all.write(tmp_path / "anomaly.tlog")
+    truth = truth_all.truth["parts"][0]["mag"]
+    r = calibrate_log(read_log(path))
+    assert r["status"] == "ok" and r["method"] == "window", r["message"]
+    chosen = [w for w in r["windows"] if w["chosen"]]
+    assert len(chosen) == 1 and chosen[0]["source"].endswith("+low_signal") and chosen[0]["end_s"] <= 81.0, r["windows"]
+    err = np.asarray(r["offsets_mG"], float) - np.asarray(truth["offsets_mG"], float)
+    assert np.max(np.abs(err)) <= 1.0, err
+    refused = [w for w in r["windows"] if w["reason"].startswith("calibration window")]
+    whole_err = np.asarray(refused[0]["offsets_mG"], float) - np.asarray(truth["offsets_mG"], float)
+    assert np.max(np.abs(whole_err)) > 10.0, whole_err          # the refit is what made the difference
+    assert "its low-current samples" in r["recommendation"] and r["recommended"]

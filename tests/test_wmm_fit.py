@@ -82,8 +82,8 @@ def test_gates_and_outliers():
     yaw = d["yaw"].copy()
     yaw[600:700] += np.radians(50)                                   # an attitude source gone bad
     r = fit_wmm(d["t"], raw, d["roll"], d["pitch"], yaw, H_NED, motor_signal=d["current"], attitude_rate_deg_s=rate,
-                gps_vel_ne_mps=vel, settings=WmmFitSettings(yaw_source="independent"))
-    assert r.status == "ok", r.message
+                gps_vel_ne_mps=vel, settings=WmmFitSettings(yaw_source="independent", field_model_sd_mG=(0.0, 0.0, 0.0)))
+    assert r.status == "ok", r.message        # the simulated field is the reference exactly: no model 1σ
     assert r.rejected["fast_rotation"] == 40 and r.rejected["course_disagreement"] >= 90
     assert r.rejected["outliers"] >= 20
     np.testing.assert_allclose(r.offsets_mG, d["b"], atol=3.0)
@@ -190,3 +190,36 @@ def test_gps_course_checks_the_fitted_heading_change():
     slow = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED, motor_signal=d["current"],
                    gps_vel_ne_mps=vel * 0.5, corrected_in_force_mG=cin)     # 4 m/s: below the 5 m/s gate
     assert slow.course["status"] == "too_little_straight_flight" and "not checked" in slow.course["verdict"]
+
+
+def test_autocorrelation_time_of_a_known_process():
+    """τ of an AR(1) series is (1 + ρ)/(1 − ρ): 19 at ρ = 0.9, 1 for white noise; capped at n/50."""
+    from estimators.field_model import autocorrelation_time
+    rng = np.random.default_rng(0)
+    e = rng.normal(size=20_000)
+    x = np.empty_like(e)
+    x[0] = e[0]
+    for i in range(1, len(e)):
+        x[i] = 0.9 * x[i - 1] + e[i]
+    tau, rho1 = autocorrelation_time(x)
+    assert tau == pytest.approx(19.0, rel=0.15) and rho1 == pytest.approx(0.9, abs=0.02)
+    assert autocorrelation_time(e)[0] == pytest.approx(1.0, abs=0.3)
+    assert autocorrelation_time(x[:500])[0] <= 10.0                   # 500 samples resolve τ ≤ 10 only
+
+
+def test_an_error_of_the_reference_field_is_in_the_stated_one_sigma():
+    """The reference field's own error (``field_model_sd_mG``) enters the stated 1σ as the fit's
+    change per 1σ of each NED component: b_z's added variance is Σ_j (b_z(H + σ_j e_j) − b_z(H))²,
+    measured here by fitting again with the reference shifted; the offsets themselves unchanged."""
+    d = level_flight(seed=2, noise_mG=1.0)
+    sd_H = np.array([1.31, 0.94, 1.57])
+    def fit(H, sd):
+        return fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H, motor_signal=d["current"],
+                       settings=WmmFitSettings(field_model_sd_mG=tuple(sd)))
+    exact, model = fit(H_NED, (0.0, 0.0, 0.0)), fit(H_NED, sd_H)
+    np.testing.assert_allclose(model.offsets_mG, exact.offsets_mG, atol=1e-6)
+    moved = np.array([fit(np.asarray(H_NED, float) + sd_H[j] * np.eye(3)[j], (0.0, 0.0, 0.0)).offsets_mG - exact.offsets_mG
+                      for j in range(3)])                                  # (3 components, 3 offsets)
+    added = model.offsets_sd_mG ** 2 - exact.offsets_sd_mG ** 2
+    assert np.max(np.sum(moved ** 2, axis=0)) > 0.5                      # the reference matters here
+    np.testing.assert_allclose(added, np.sum(moved ** 2, axis=0), rtol=0.25, atol=0.05)

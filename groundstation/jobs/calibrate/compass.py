@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from estimators.cal_windows import CalWindow, WindowSettings, judge_window
 from estimators.calibration import apply_calibration
 from estimators.compass_corrections import ardupilot_param_names
 from groundstation.io.params import export_params, px4_rotation, rotation_enum_matrix, wmm_scale
@@ -19,12 +20,13 @@ from groundstation.samples import FlightLog, finite_or_none
 from .checks import orientation_dict, orientation_reference, orientation_step, reorient
 from .context import LogContext, onboard_report
 from .frame import LOG_RAW_UNKNOWN_STATUSES, corrections_record
-from .inflight import flight_inputs, heading_change, inflight_step, motor_dict, motor_step, offsets_covariance, wmm_dict
+from .inflight import (flight_inputs, heading_change, inflight_step, motor_dict, motor_signal, motor_step, offsets_covariance,
+                       wmm_dict)
 from .result import empty_result
 from .settings import CalibrateSettings, settings_record
-from .windows import misalignment, window_dicts, window_step
+from .windows import misalignment, window_dict, window_dicts, window_mask, window_step
 
-__all__ = ["calibrate_compass", "SPECIFIC_INFLIGHT_STATUSES"]
+__all__ = ["calibrate_compass", "motor_free_window", "SPECIFIC_INFLIGHT_STATUSES"]
 
 # in-flight statuses that say more than "not enough data" (otherwise the window verdict is reported)
 SPECIFIC_INFLIGHT_STATUSES = ("attitude_depends_on_compass", "offsets_out_of_range")
@@ -62,10 +64,8 @@ def _start(log: FlightLog, cf: CompassField, ctx: LogContext, settings: Calibrat
     return r
 
 
-def _from_window(r: dict, step, cf: CompassField) -> tuple:
-    w = step.search.chosen_window
+def _from_window(r: dict, w: CalWindow, sel: np.ndarray, cf: CompassField) -> tuple:
     fit = w.fit
-    sel = (cf.t_s >= w.start_s) & (cf.t_s <= w.end_s)
     r.update(method="window", window_s=[round(float(cf.t_s[sel][0]), 2), round(float(cf.t_s[sel][-1]), 2)], samples=int(fit.n_used),
              coverage=round(float(w.coverage), 3), field_strength_mG=finite_or_none(fit.field_strength_mG),
              residual_rms_mG=finite_or_none(fit.residual_rms_mG), condition_number=finite_or_none(fit.condition_number),
@@ -86,25 +86,62 @@ def _from_inflight(r: dict, fit, cf: CompassField) -> tuple:
     return np.asarray(fit.offsets_mG, float), np.asarray(fit.matrix, float)
 
 
-def window_motor_bias(window, cf: CompassField, x, wmm, limit_mG: float) -> str:
-    """Why a calibration window is not used, or "": a window fit has no motor term, so a window
-    flown with the motors drawing current carries the motor field f·I (the in-flight fit's f, mG per
-    ampere or per unit throttle) in its offsets.  Measured on ArduPilot SITL (SIM_MAG_MOT (−2.2, −3.1,
-    −4.9) mG/A, 24 A): a window fit recommended with 1σ ≤ 1 mG and 80 mG off.  Refused when
-    |f| × the window's mean |signal| exceeds ``limit_mG``."""
-    if window is None or x is None or x.signal is None or wmm is None or "f_x" not in wmm.fitted:
-        return ""
-    t = cf.t_s[x.idx]
-    inside = (t >= window.start_s) & (t <= window.end_s) & np.isfinite(x.signal)
+LOW_SIGNAL_SHARE = 0.1      # motor field unknown: "low" = the bottom tenth of the window's signal range
+LOW_SIGNAL_MAX_FRACTION = 0.9  # ... and refitted only when the rest (powered samples) is more than a tenth
+
+
+def motor_free_window(window, cf: CompassField, signal: np.ndarray | None, signal_name: str, wmm, limit_mG: float,
+                      ws: WindowSettings) -> tuple[CalWindow | None, np.ndarray | None, str]:
+    """The calibration window to use, the samples its fit takes, and a note.  A window fit has no
+    motor term, so a window flown with the motors drawing current carries the motor field f·I in
+    its offsets.  Measured on ArduPilot SITL (SIM_MAG_MOT (−2.2, −3.1, −4.9) mG/A, 24 A): a window
+    fit recommended with 1σ ≤ 1 mG and 80 mG off; on the simulated demo (a dance at 0 A, then a
+    mission at 20 A, one window), 20 mG off.
+
+    With the in-flight fit's motor term f (mG per ampere or per unit throttle): when |f| × the
+    window's mean |signal| exceeds ``limit_mG``, the window is fitted again on its samples where
+    |f|·|signal| ≤ ``limit_mG`` and judged as any window (estimators.cal_windows.judge_window);
+    (None, None, why) when those are not sufficient.  Without it (f unknown), a window holding both
+    low-signal samples (the bottom ``LOW_SIGNAL_SHARE`` of its signal range) and more than a tenth of
+    powered ones is fitted on the low-signal ones when they are sufficient, else used whole.
+    The window unchanged (its whole time span) when there is no signal."""
+    whole = (window, None if window is None else window_mask(cf, window), "")
+    if window is None or signal is None:
+        return whole
+    inside = whole[1] & np.isfinite(signal)
     if not inside.any():
-        return ""
-    level = float(np.mean(np.abs(x.signal[inside])))
-    bias = float(np.linalg.norm(wmm.motor_mG_per_unit)) * level
-    if bias <= limit_mG:
-        return ""
-    unit = "A" if x.signal_name == "current_A" else "throttle"
-    return (f"calibration window {window.start_s:.0f}-{window.end_s:.0f} s not used: flown at {level:.3g} {unit}, "
-            f"its offsets carry {bias:.0f} mG of motor field (limit {limit_mG:g} mG; the in-flight fit has the motor term)")
+        return whole
+    unit = "A" if signal_name == "current_A" else "throttle"
+    level = float(np.mean(np.abs(signal[inside])))
+    known = wmm is not None and "f_x" in wmm.fitted
+    if known:
+        per_unit = float(np.linalg.norm(wmm.motor_mG_per_unit))
+        if per_unit * level <= limit_mG:
+            return whole
+        why = (f"calibration window {window.start_s:.0f}-{window.end_s:.0f} s flown at {level:.3g} {unit}: its "
+               f"offsets carry {per_unit * level:.0f} mG of motor field (limit {limit_mG:g} mG)")
+        low = inside & (per_unit * np.abs(signal) <= limit_mG)
+        below = f"{limit_mG / per_unit:.3g} {unit}"
+    else:
+        lo, hi = float(np.min(np.abs(signal[inside]))), float(np.max(np.abs(signal[inside])))
+        low = inside & (np.abs(signal) <= lo + LOW_SIGNAL_SHARE * (hi - lo))
+        if not hi > lo or low.sum() > LOW_SIGNAL_MAX_FRACTION * inside.sum():
+            return whole
+        why = (f"calibration window {window.start_s:.0f}-{window.end_s:.0f} s flown at {lo:.3g}-{hi:.3g} {unit} with "
+               "the motor field unknown (the in-flight fit has no motor term)")
+        below = f"{lo + LOW_SIGNAL_SHARE * (hi - lo):.3g} {unit}"
+    t = cf.t_s[low]
+    refit = judge_window(float(t[0]), float(t[-1]), window.source + "+low_signal", cf.raw_mG[low], ws) \
+        if low.sum() >= ws.min_samples else None
+    if refit is None or not refit.sufficient:
+        detail = (f"only {int(low.sum())} samples at ≤ {below}" if refit is None else
+                  f"its {refit.n_samples} samples at ≤ {below} are not enough ({refit.reason})")
+        if known:
+            return None, None, f"{why}; not used: {detail} (the in-flight fit has the motor term)"
+        return window, whole[1], f"{why}; used whole: {detail}"
+    return refit, low, (f"{why}: fitted again on its {refit.n_samples} samples at ≤ {below}"
+                        + (f" (motor field ≤ {limit_mG:g} mG; " if known else " (")
+                        + f"coverage {refit.coverage:.0%}, offsets 1σ ≤ {np.max(refit.offsets_sd_mG):.1f} mG)")
 
 
 def _failure_status(step, wmm, notes: list[str]) -> str:
@@ -202,19 +239,22 @@ def calibrate_compass(log: FlightLog, cf: CompassField, ctx: LogContext, setting
     x = flight_inputs(log, cf, settings.inflight_max_samples, ctx) if ctx.field is not None and settings.inflight_fit else None
     wmm = inflight_step(cf, x, ctx, settings) if x is not None else None
     r["inflight"] = wmm_dict(wmm, cf.t_s) if wmm is not None else None
-    use_window = step.search.chosen is not None
-    if use_window:
-        why = window_motor_bias(step.search.chosen_window, cf, x, wmm, settings.window_max_motor_field_mG)
-        if why:
-            use_window = False
-            notes.append(why)
-            r["windows"][step.search.chosen].update(chosen=False, reason=why)
-    cal = _from_window(r, step, cf) if use_window else None
+    signal, signal_name = motor_signal(log, cf) if x is not None else (None, "")
+    window, mask, why = motor_free_window(step.search.chosen_window, cf, signal, signal_name, wmm,
+                                          settings.window_max_motor_field_mG, step.search.settings)
+    refitted = window is not step.search.chosen_window
+    if why:
+        notes.append(why)
+    if refitted:
+        r["windows"][step.search.chosen].update(chosen=False, reason=why)
+        if window is not None:
+            r["windows"].append(window_dict(window, True, cf.t_s))
+    cal = _from_window(r, window, mask, cf) if window is not None else None
     motor = _motor(r, log, cf, x, ctx, settings)
     used = None
     if cal is not None:
         r.update(recommended=True, recommendation=f"recommended: fitted on a calibration window "
-                 f"(coverage {r['coverage']:.0%})")
+                 f"(coverage {r['coverage']:.0%}" + (", its low-current samples)" if refitted else ")"))
     elif motor is not None and motor.wmm is not None and motor.wmm.status == "ok":
         used = motor.wmm
         cal = _from_inflight(r, motor.wmm, cf)
@@ -222,7 +262,7 @@ def calibrate_compass(log: FlightLog, cf: CompassField, ctx: LogContext, setting
         used = wmm          # weak: an answer with its 1σ, marked not recommended (status "weak")
         cal = _from_inflight(r, wmm, cf)
         motor = None if wmm is None or "f_x" not in wmm.fitted else motor
-    r, cal = _finish(r, log, cf, ctx, settings, step, wmm, motor, cal, notes)
+    r, cal = _finish(r, log, cf, ctx, settings, step, (window, mask), wmm, motor, cal, notes)
     if cal is None:
         r.update(recommended=False, recommendation=r.get("recommendation") or (wmm.reason if wmm is not None else
                  "no answer: " + r["message"].split("; ")[0]))
@@ -232,8 +272,8 @@ def calibrate_compass(log: FlightLog, cf: CompassField, ctx: LogContext, setting
     return r, cal
 
 
-def _body_matrix(r: dict, log: FlightLog, cf: CompassField, ctx: LogContext, settings: CalibrateSettings, step,
-                 cal: tuple, check, notes: list[str]) -> np.ndarray:
+def _body_matrix(r: dict, log: FlightLog, cf: CompassField, ctx: LogContext, settings: CalibrateSettings,
+                 window: tuple, cal: tuple, check, notes: list[str]) -> np.ndarray:
     """The result's matrix maps the log's raw frame to the body: with the rotation the orientation
     check found (Q = R_best R_inuseᵀ), else with the small misalignment estimated from the
     attitude on a calibration window (seed 004), else the fitted symmetric matrix."""
@@ -243,7 +283,7 @@ def _body_matrix(r: dict, log: FlightLog, cf: CompassField, ctx: LogContext, set
         return Q @ C
     if r["method"] != "window":
         return C
-    R, angles, note = misalignment(log, cf, ctx, step.search.chosen_window, C, settings)
+    R, angles, note = misalignment(log, cf, ctx, *window, C, settings)
     if note:
         notes.append(note)
     if R is None:
@@ -267,7 +307,7 @@ def _orientation_without_calibration(r: dict, log: FlightLog, cf: CompassField, 
     return []
 
 
-def _finish(r, log, cf, ctx, settings, step, wmm, motor, cal, notes) -> tuple[dict, tuple | None]:
+def _finish(r, log, cf, ctx, settings, step, window, wmm, motor, cal, notes) -> tuple[dict, tuple | None]:
     if cal is None:
         why = [f"calibration windows: {step.search.message}"]
         if wmm is not None:
@@ -283,7 +323,7 @@ def _finish(r, log, cf, ctx, settings, step, wmm, motor, cal, notes) -> tuple[di
     ref = orientation_reference(ctx, None if wmm is None else wmm.yaw_dependence, settings)
     check = orientation_step(log, cf, (b, C), ctx, settings, ref) if settings.orientation_check else None
     r["orientation"] = orientation_dict(check, ref)
-    C_body = _body_matrix(r, log, cf, ctx, settings, step, (b, C), check, notes)
+    C_body = _body_matrix(r, log, cf, ctx, settings, window, (b, C), check, notes)
     r.update(offsets_mG=_vec(b, 4), matrix=[_vec(row, 6) for row in C_body])
     if cf.status in LOG_RAW_UNKNOWN_STATUSES:
         r.update(status="ok", relative_to="unknown", corrections_in_force=None, message="; ".join(

@@ -15,7 +15,7 @@ from .context import LogContext, attitude_for, field_for, gps_velocity_for
 from .settings import CalibrateSettings
 
 __all__ = ["FlightInputs", "flight_inputs", "inflight_step", "motor_step", "wmm_dict", "motor_dict", "offsets_covariance",
-           "heading_change", "attitude_sources", "choose_attitude", "log_attitude_name", "AHRS_SOURCE"]
+           "heading_change", "motor_signal", "attitude_sources", "choose_attitude", "log_attitude_name", "AHRS_SOURCE"]
 
 AHRS_SOURCE = "ahrs"                # our AHRS (estimators.ahrs_batch) on the log's IMU and field
 AHRS_MIN_IMU_RATE_HZ = 10.0         # slower IMU logs (telemetry) do not carry the rotation between samples
@@ -41,9 +41,9 @@ class FlightInputs:
     field_ned_mG: np.ndarray | None = None      # (N,3) WMM at each sample (None: the one field of LogContext)
 
 
-def _signal(log: FlightLog, cf: CompassField) -> tuple[np.ndarray | None, str]:
-    """The motor signal ArduPilot would use: throttle when COMPASS_MOTCT = 1, else the current,
-    else the throttle."""
+def motor_signal(log: FlightLog, cf: CompassField) -> tuple[np.ndarray | None, str]:
+    """The motor signal ArduPilot would use at every sample of the compass, and its name: throttle
+    when COMPASS_MOTCT = 1, else the current, else the throttle."""
     current, throttle = motor_signals(log, cf.t_s)
     has = lambda x: x is not None and np.isfinite(x).sum() > 1  # noqa: E731
     if cf.motor_in_force.get("type") == 1 and has(throttle):
@@ -65,7 +65,7 @@ def flight_inputs(log: FlightLog, cf: CompassField, max_samples: int, ctx: LogCo
     idx = np.arange(0, len(cf.t_s), max(1, int(np.ceil(len(cf.t_s) / max(max_samples, 1)))))
     t = cf.t_s[idx]
     att = attitude_for(log, t, table)
-    signal, name = _signal(log, cf)
+    signal, name = motor_signal(log, cf)
     return FlightInputs(idx, att.roll_rad, att.pitch_rad, att.yaw_rad, att.rate_deg_s, gps_velocity_for(log, t),
                         None if signal is None else signal[idx], name, None if ctx is None else field_for(log, ctx, t))
 

@@ -27,7 +27,8 @@ class CalibrateSettings:
     ``attitude_source``: the attitude the in-flight fits use ("auto": chosen by the
     held-out residual, jobs/calibrate/inflight.choose_attitude; or one by name).
     ``window_max_motor_field_mG``: a calibration window whose mean motor field (the in-flight fit's
-    motor term × the window's mean current or throttle) exceeds this is not used.
+    motor term × the window's mean current or throttle) exceeds this is fitted again on its samples
+    whose motor field is below it, and not used when those are not sufficient.
     ``inflight_max_samples``: the in-flight and motor fits take every k-th sample beyond this many
     (attitude errors are slow, so a 50 Hz log holds little more than its 2 Hz subset; the fit's
     covariance already allows for correlated residuals).
@@ -45,7 +46,7 @@ class CalibrateSettings:
     consistency_max_dt_s: float = 0.6
     orientation_max_rate_deg_s: float = 60.0
     inflight_max_samples: int = 1500
-    window_max_motor_field_mG: float = 5.0   # a window flown with more motor field than this is not used (compass.window_motor_bias)
+    window_max_motor_field_mG: float = 5.0   # a window flown with more motor field than this is fitted on its low-current samples (compass.motor_free_window)
     attitude_source: str = "auto"       # "auto": chosen per log by the held-out residual; or a name (ATT, XKF1, ahrs …)
 
 

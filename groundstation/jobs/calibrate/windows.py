@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from estimators.cal_windows import WindowSearch, field_direction_rate_deg_s, find_calibration_windows, judge_window
+from estimators.cal_windows import CalWindow, WindowSearch, field_direction_rate_deg_s, find_calibration_windows, judge_window
 from estimators.calibration import apply_calibration, estimate_misalignment
 from groundstation.jobs.compass_raw import CompassField
 from groundstation.samples import FlightLog
@@ -15,7 +15,8 @@ from groundstation.samples import FlightLog
 from .context import LogContext, attitude_for, marker_spans
 from .settings import CalibrateSettings
 
-__all__ = ["WindowStep", "window_step", "window_dicts", "misalignment", "MIN_MISALIGNMENT_SAMPLES"]
+__all__ = ["WindowStep", "window_step", "window_dicts", "window_dict", "window_mask", "misalignment",
+           "MIN_MISALIGNMENT_SAMPLES"]
 
 MIN_MISALIGNMENT_SAMPLES = 50
 
@@ -35,15 +36,20 @@ def _rate(log: FlightLog, cf: CompassField, field_strength_mG: float) -> np.ndar
     return np.where(np.isfinite(rate), rate, proxy)
 
 
-def misalignment(log: FlightLog, cf: CompassField, ctx: LogContext, window, C: np.ndarray,
+def window_mask(cf: CompassField, window) -> np.ndarray:
+    """The compass's samples inside a window's time span (the samples its fit was given)."""
+    return (cf.t_s >= window.start_s) & (cf.t_s <= window.end_s)
+
+
+def misalignment(log: FlightLog, cf: CompassField, ctx: LogContext, window, mask: np.ndarray, C: np.ndarray,
                  settings: CalibrateSettings) -> tuple[np.ndarray | None, list | None, str]:
     """Sensor-to-body rotation of the window's calibrated samples from the attitude and the WMM
     (seed 004 step 2): (R, angles deg, note); R None when not estimated or not small (a rotation
-    beyond ``max_misalignment_deg`` is a mounting orientation, the orientation check's business)."""
+    beyond ``max_misalignment_deg`` is a mounting orientation, the orientation check's business).
+    ``mask``: the samples the window's fit was given (``window_mask``, or a subset of it)."""
     if ctx.field is None or len(log.attitude) < 2 or window is None:
         return None, None, ""
-    sel = (cf.t_s >= window.start_s) & (cf.t_s <= window.end_s)
-    finite = sel & cf.valid
+    finite = mask & cf.valid
     t = cf.t_s[finite][window.fit.inliers]
     cal = apply_calibration(cf.raw_mG[finite][window.fit.inliers], window.fit.offsets_mG, C)
     att = attitude_for(log, t)
@@ -106,19 +112,20 @@ def _num(v, nd=2):
     return round(v, nd) if np.isfinite(v) else None
 
 
-def window_dicts(search: WindowSearch, t_s: np.ndarray) -> list[dict]:
-    """Every window found, JSON-ready (bounds clipped to the compass's samples ``t_s``); ``chosen``
-    marks the one the parameters come from."""
-    out = []
+def window_dict(w: CalWindow, chosen: bool, t_s: np.ndarray) -> dict:
+    """One window, JSON-ready (bounds clipped to the compass's samples ``t_s``)."""
     lo, hi = (float(t_s[0]), float(t_s[-1])) if len(t_s) else (0.0, 0.0)
-    for i, w in enumerate(search.windows):
-        fit = w.fit if w.fit is not None and w.fit.ok else None
-        out.append({"start_s": _num(max(w.start_s, lo)), "end_s": _num(min(w.end_s, hi)), "source": w.source, "samples": w.n_samples,
-                    "model": w.model or None, "coverage": _num(w.coverage, 3), "planarity": _num(w.planarity, 3),
-                    "offsets_mG": [_num(v, 1) for v in fit.offsets_mG] if fit else None,
-                    "offsets_sd_mG": [_num(v, 2) for v in w.offsets_sd_mG],
-                    "residual_rms_mG": _num(fit.residual_rms_mG) if fit else None,
-                    "field_strength_mG": _num(fit.field_strength_mG, 1) if fit else None,
-                    "axis_ratio": _num(w.axis_ratio, 3), "sufficient": bool(w.sufficient), "reason": w.reason,
-                    "chosen": i == search.chosen})
-    return out
+    fit = w.fit if w.fit is not None and w.fit.ok else None
+    return {"start_s": _num(max(w.start_s, lo)), "end_s": _num(min(w.end_s, hi)), "source": w.source, "samples": w.n_samples,
+            "model": w.model or None, "coverage": _num(w.coverage, 3), "planarity": _num(w.planarity, 3),
+            "offsets_mG": [_num(v, 1) for v in fit.offsets_mG] if fit else None,
+            "offsets_sd_mG": [_num(v, 2) for v in w.offsets_sd_mG],
+            "residual_rms_mG": _num(fit.residual_rms_mG) if fit else None,
+            "field_strength_mG": _num(fit.field_strength_mG, 1) if fit else None,
+            "axis_ratio": _num(w.axis_ratio, 3), "sufficient": bool(w.sufficient), "reason": w.reason,
+            "chosen": bool(chosen)}
+
+
+def window_dicts(search: WindowSearch, t_s: np.ndarray) -> list[dict]:
+    """Every window found (``window_dict``); ``chosen`` marks the one the parameters come from."""
+    return [window_dict(w, i == search.chosen, t_s) for i, w in enumerate(search.windows)]
