@@ -277,10 +277,11 @@ def test_a_magnetic_anomaly_is_marked_where_it_lies(shared_station, new_page, ar
     st = shared_station
     truth = json.loads((st.session.recordings.dir / "anomaly.truth.json").read_text())["parts"][1]["anomaly"]
     replay(st, "anomaly.tlog")
-    # the log's own window spans the powered flight (15 A): calibrate refuses it since the window motor
-    # guard (issue 28), so the station is given the calibration of the dance part, as a user would
-    st.session.use_calibration(dance_calibration(st.session.recordings.dir / "anomaly.tlog", before_s=80.0))
+    # the log's own window spans the powered flight (15 A): the station fits it again on its
+    # low-current samples, the dance (issue 28), and uses that
     assert wait_until(lambda: not api(st, "GET", "/api/state")["analysing"], 60)
+    own = st.session.log_calibration
+    assert own is not None and own["status"] == "ok" and own["window_s"][1] < 90.0, own and own.get("window_s")
     api(st, "POST", "/api/replay/seek", json={"t_s": 284.0})
     assert wait_until(lambda: st.scene.anomalies_shown >= 2, 60), st.scene.anomalies_shown
     alarms = api(st, "GET", "/api/alarms")
@@ -362,25 +363,3 @@ def test_upload_and_recordings_list(shared_station, new_page, tmp_path):
     page.wait_for_selector("#source-error:has-text('does not look like a .tlog file')")
     page.click("#replay")
     page.wait_for_selector(f"#status:has-text('{name}')")
-
-
-def dance_calibration(path, before_s: float) -> dict:
-    """``calibrate`` of a log's first ``before_s`` seconds (its calibration dance) as the station's
-    calibration dict."""
-    import copy
-
-    import numpy as np
-
-    from groundstation.io.logs import read_log
-    from groundstation.jobs.calibrate import calibrate_log
-    from groundstation.jsonsafe import jsonable
-
-    log = read_log(path)
-    cut = copy.copy(log)
-    for name in ("mag", "imu", "attitude", "gps", "battery"):
-        table = getattr(log, name)
-        if isinstance(table, np.ndarray) and table.ndim == 2 and len(table):
-            setattr(cut, name, table[table[:, 0] < before_s])
-    result = calibrate_log(cut)
-    assert result["status"] == "ok" and result["method"] == "window", result.get("message")
-    return jsonable(result)
