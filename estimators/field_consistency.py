@@ -44,7 +44,12 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   by 5°.  Learning (h, b, f and the pull of ψ_f) pauses while z ≥ ``freeze_z`` (at most
   ``freeze_max_s``) so a slow ramp is not learned away; when the residual of a large alarm falls
   back to the noise apart from a heading error of ψ_f (``_reanchor``) the disturbance has ended:
-  the model learns again for ``relearn_s`` and the score restarts from 0.
+  the model learns again for ``relearn_s`` and the score restarts from 0.  A relearning (the
+  first big turn's, or the one after an alarm) ends at once when the residual reaches
+  ``unexplained_q`` σ: a model error left by a turn is a few σ, a disturbance starting in it is
+  tens (population fast ramps 40 and 49); σ does not follow such a residual either (it did while
+  the CUSUM is held in a fast turn, and a step that spins a compass-following vehicle raised σ
+  from 4 to 125 mG, population step 43).
 
 Switch-off (status per step, reason in words): no field (no calibrated field, field test off),
 IMU rate below ``min_rate_hz`` (telemetry), attitude not valid or too steep, learning, settling
@@ -110,6 +115,10 @@ class FieldConsistencySettings:
     reanchor_heading_deg: float = 10.0  # (a heading error of ψ_f up to this much is not counted) ...
     reanchor_s: float = 1.5             # ... for this long ends the episode: ...
     relearn_s: float = 5.0              # ... the model learns again this long (as in a turn)
+    unexplained_q: float = 8.0          # a residual this many σ is no turn's model error: it ends a relearning
+                                        # (the first turn's or after an alarm), is not held in a fast turn and
+                                        # σ does not follow it (clean population flights: ≤ 4.5σ in a
+                                        # relearning, ≤ 5.4σ in a held turn; a 250 mG ramp: 40σ)
     smooth_s: float = 0.5               # low-pass of the residual vector
     noise_floor_mG: float = 4.0         # σ is at least this
     noise_track_s: float = 60.0         # σ² follows the residual's mean square this slowly after learning
@@ -181,6 +190,7 @@ class FieldConsistency:
         self.z = 0.0
         self._frozen_since = None
         self._peak_q, self._low_since = 0.0, None
+        self._q = 0.0                                # the last step's q
         self.relearn_until = -math.inf
         self._turn_hold_until = -math.inf
         self.settle_until = settle_until
@@ -395,7 +405,9 @@ class FieldConsistency:
             self._noise_sum += size * size
             self._noise_n += 1
             self._noise_ms = self._noise_sum / self._noise_n
-        elif not (learning or turn) and self._noise_n and self.z < s.freeze_z:     # follows the noise, slowly
+        elif not (learning or turn) and self._noise_n and self.z < s.freeze_z and self._q < s.unexplained_q:
+            # follows the noise, slowly (not a residual no turn explains: held in a fast turn, it
+            # raised σ from 4 to 125 mG under a 276 mG step, population step 43)
             self._noise_ms += (1.0 - math.exp(-dt / s.noise_track_s)) * (size * size - self._noise_ms)
         if self._noise_n:
             self.noise_mG = max(s.noise_floor_mG, math.sqrt(self._noise_ms))
@@ -405,7 +417,11 @@ class FieldConsistency:
         cov = HPHt + lag_cov if lag_cov is not None else HPHt.copy()
         cov.flat[::4] += sigma * sigma / 3.0
         rv = np.asarray(r, dtype=float)
-        q = math.sqrt(max(float(rv @ inv3(cov) @ rv) / 3.0, 0.0))
+        q = self._q = math.sqrt(max(float(rv @ inv3(cov) @ rv) / 3.0, 0.0))
+        if turn and not learning and q >= s.unexplained_q:
+            # a residual no turn explains: the relearning ends and the test judges it
+            turn = False
+            self.turn_until = self.relearn_until = t
         if learning or turn or t < self.settle_until:
             # learning or relearning a turn, the test is on but blind: score 0, not NaN (so a
             # heading difference alone does not alarm while the field-vector test cannot judge)
@@ -413,7 +429,7 @@ class FieldConsistency:
             z = 0.0 if (turn or learning) else float("nan")
             return FieldStep(t, z, q, tuple(r), LEARNING if (learning or turn) else SETTLING, tuple(self.f))
         q_other, eps = self._non_heading_q(c, r, sigma)
-        first_turn = self._fast_turn(t, q_other, eps)
+        first_turn = self._fast_turn(t, q, q_other, eps)
         if not first_turn:
             self.S = min(max(0.0, self.S + dt * (q - s.cusum_drift)), s.cusum_cap * s.cusum_threshold_s)
         self.z = self.S / s.cusum_threshold_s
@@ -422,17 +438,20 @@ class FieldConsistency:
         self._reanchor(t, q_other, frozen)
         return FieldStep(t, self.z, q, tuple(r), ON, tuple(self.f))
 
-    def _fast_turn(self, t: float, q_other: float, eps: float) -> bool:
+    def _fast_turn(self, t: float, q: float, q_other: float, eps: float) -> bool:
         """True while the CUSUM holds for a fast turn (over ``first_turn_hold_deg_s``) and
-        ``post_turn_s`` after it.  A fast turn leaves ψ_f a few degrees off (the gyro's scale and
-        timing over 100°+): when the hold ends, a residual that is a heading error ε alone (the rest
-        under (κ + ``reanchor_margin``) σ, |ε| ≤ ``reanchor_heading_deg``) is taken out of ψ_f."""
+        ``post_turn_s`` after it, unless the residual is ``unexplained_q`` σ or more (clean
+        population turns leave at most 5.4σ; a step that spins a compass-following vehicle at
+        40°/s for its whole 13 s leaves 10-13σ, population step 8).  A fast turn leaves ψ_f a few
+        degrees off (the gyro's scale and timing over 100°+): when the hold ends, a residual that
+        is a heading error ε alone (the rest under (κ + ``reanchor_margin``) σ, |ε| ≤
+        ``reanchor_heading_deg``) is taken out of ψ_f."""
         s = self.s
         if abs(self.yaw_rate_rad_s) > math.radians(s.first_turn_hold_deg_s):
             self._turn_hold_until = t + s.post_turn_s
-            return True
+            return q < s.unexplained_q
         if t < self._turn_hold_until:
-            return True
+            return q < s.unexplained_q
         if self._turn_hold_until > -math.inf:
             self._turn_hold_until = -math.inf
             if q_other < s.cusum_drift + s.reanchor_margin and math.isfinite(eps):
