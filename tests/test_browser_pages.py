@@ -201,9 +201,13 @@ def test_replayed_dance_drives_the_wizard_step_by_step(station, new_page, http, 
     page = new_page()
     replay_demo(http, 20.0, seek=50.0)
     open_page(page, station, "/calibrate.html")
+    steps: set = set()              # every step the wizard was in, seen at each change of the hub
+    hub = station.session            # (at x20 the tumble lasts about a second: polling can miss it)
+    watch = lambda: steps.add(hub.calibration.wizard.step)  # noqa: E731
+    hub.add_listener(watch)
     page.locator("#start").dispatch_event("click")
     assert wait_until(lambda: ok(http.get("/api/calibration"))["state"] == "running", 20)
-    seen_x, steps, rewound = [], set(), False
+    seen_x, rewound = [], False
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         s = ok(http.get("/api/state"))
@@ -219,6 +223,7 @@ def test_replayed_dance_drives_the_wizard_step_by_step(station, new_page, http, 
         if w["state"] != "running":
             break
         time.sleep(0.1)
+    hub.remove_listener(watch)
     assert rewound
     assert {"x", "y", "z", "tumble"} <= steps, steps
     assert w["state"] == "result" and w["result"]["status"] == "ok", (w["state"], w["result"])

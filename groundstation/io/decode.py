@@ -67,16 +67,6 @@ def source_name(instance: int) -> str:
 PLAUSIBLE_FIELD_mG = (150.0, 1000.0)
 PLAUSIBLE_WMM_RATIO = (0.5, 2.0)
 MG_UNIT = (("mG", 1.0),)
-# RAW_IMU's time_usec is "UNIX epoch or time since system boot" (MAVLink XML); below this it is the
-# boot clock (ArduPilot: AP_HAL::micros64, the clock of every time_boot_ms) and is timed on it
-BOOT_USEC_MAX = 10 ** 14          # 3.2 years of up-time; epoch microseconds are above 1.5e15
-
-
-def raw_imu_boot_ms(time_usec):
-    """RAW_IMU's time_usec as boot milliseconds (float), NaN where it is not a boot time (0, or
-    UNIX epoch).  Scalar or array."""
-    u = np.asarray(time_usec, dtype=np.float64)
-    return np.where((u > 0) & (u < BOOT_USEC_MAX), u / 1000.0, np.nan)
 # HIGHRES_IMU xmag..zmag: gauss says the MAVLink XML; ArduPilot (4.7, GCS_Common.cpp
 # send_highres_imu) sends get_field() * 1000, i.e. mG x 1000.  The magnitudes differ 10^6-fold.
 HIGHRES_MAG_UNITS = (("gauss (the MAVLink definition)", MG_PER_GAUSS),
@@ -344,11 +334,7 @@ class MavlinkDecoder:
 
     def _scaled_imu(self, instance: int) -> Callable:
         def decode(msg, arrival_s: float) -> list[Sample]:
-            if msg.get_type() == "RAW_IMU":            # on the boot clock when it is one (not arrival: radio bursts)
-                boot_ms = float(raw_imu_boot_ms(msg.time_usec))
-                t = arrival_s if math.isnan(boot_ms) else self.clock(boot_ms, arrival_s)
-            else:
-                t = self._t(msg, arrival_s)
+            t = arrival_s if msg.get_type() == "RAW_IMU" else self._t(msg, arrival_s)
             out: list[Sample] = []
             mag = (float(msg.xmag), float(msg.ymag), float(msg.zmag))
             if mag != (0.0, 0.0, 0.0):  # all-zero = no compass on this instance

@@ -260,9 +260,9 @@ def imu_rate_hz(t_s: np.ndarray, start: int = 0) -> np.ndarray:
     idx = np.arange(start, n)
     with np.errstate(divide="ignore"):
         rate = np.where(med > 0, 1.0 / np.maximum(med, 1e-300), np.where(idx == 0, 0.0, np.inf))
-    # to 1e-6 Hz: a 10 Hz stream timed on the boot clock (0.1 s steps as boot_s + offset in
-    # floating point) is 10 Hz, not 9.999999999 below the 10 Hz minimum
-    return np.round(rate, 6)
+    # to 0.01 Hz: a 10 Hz stream is 10 Hz, not 9.9999 Hz below the 10 Hz minimum (its times on
+    # the microseconds of a .tlog, or as boot_s + offset in floating point)
+    return np.round(rate, 2)
 
 
 def too_steep(roll_rad, pitch_rad, settings: DetectionSettings):

@@ -200,11 +200,6 @@ class _ColumnDecoder:
                 self.quat, rows, f = self.quat[valid], rows[valid], f[valid]
             parts[_ID[name]] = (rows, f["time_boot_ms"].astype(np.int64))
             del f                                       # decoded again where used: memory, not time
-        rows = self.accepted(_ID["RAW_IMU"])           # its time_usec where it is a boot time
-        boot_ms = dec.raw_imu_boot_ms(self.rec.fields(_ID["RAW_IMU"], rows)["time_usec"]) if len(rows) else np.zeros(0)
-        on_clock = np.isfinite(boot_ms)
-        self.raw_imu_rows, self.raw_imu_on_clock = rows, on_clock
-        parts[_ID["RAW_IMU"]] = (rows[on_clock], boot_ms[on_clock])
         rows = np.concatenate([p[0] for p in parts.values()])
         boot = np.concatenate([p[1] for p in parts.values()])
         order = np.argsort(rows, kind="stable")
@@ -238,9 +233,8 @@ class _ColumnDecoder:
     def _scaled(self, times: dict[int, np.ndarray]) -> None:
         for msg_id, instance in _SCALED.items():
             if msg_id == _ID["RAW_IMU"]:
-                rows = self.raw_imu_rows
-                f, t = self.rec.fields(msg_id, rows), self.rec.arrival[rows].astype(float)
-                t[self.raw_imu_on_clock] = times[msg_id]
+                rows = self.accepted(msg_id)
+                f, t = self.rec.fields(msg_id, rows), self.rec.arrival[rows]
             else:
                 rows = self.parts[msg_id]
                 f = self.rec.fields(msg_id, rows)

@@ -98,9 +98,7 @@ class FlightState:
     def push(self, samples: list[Sample]) -> None:
         """Live samples (any order); those due go through the analyzer, a few at a time (at a
         high IMU rate one call per packet would cost more than the analysis itself)."""
-        # the primary sensors are chosen in arrival order (the lowest instance heard: RAW_IMU and
-        # SCALED_IMU2 of one loop arrive together, but their times may lie either way round)
-        self._due += self.reorder.push([s for s in samples if self.analyzer.accepts(s)])
+        self._due += self.reorder.push(samples)
         self.flush_due()
 
     def flush_due(self) -> None:
