@@ -1,8 +1,8 @@
 """`magstation simulate SCENARIO --live udpout:HOST:PORT`: a simulated vehicle one command away.
 Both commands of the README's tour as processes on loopback: `magstation serve --connect udpin:...`
-and the live calibration dance; the station's wizard fits it, the accepted parameters are written
-to the simulated vehicle and read back (its PARAM_VALUE echoes), and the station says the field is
-corrected on board.  Truth: the scenario's own (groundstation.sim.scenarios)."""
+and the live calibration dance, the wizard driven in chromium; the station's wizard fits it, the
+accepted parameters are written to the simulated vehicle and read back (its PARAM_VALUE echoes),
+and the station says the field is corrected on board.  Truth: the scenario's own (groundstation.sim.scenarios)."""
 from __future__ import annotations
 
 import os
@@ -15,7 +15,7 @@ import time
 import httpx
 import pytest
 
-from conftest import free_tcp_port, free_udp_port
+from conftest import CHROMIUM, CHROMIUM_ARGS, free_tcp_port, free_udp_port
 from groundstation.sim.scenarios import simulate
 
 CLI = [sys.executable, "-m", "groundstation.cli"]
@@ -64,28 +64,40 @@ def test_live_errors_are_one_line():
         assert r.returncode == 1 and words in r.stderr and r.stderr.count("\n") == 1, (args, r.stderr)
 
 
-def test_simulate_live_drives_the_station_and_the_wizard(tmp_path):
+def test_simulate_live_drives_the_station_and_the_wizard(tmp_path, playwright_instance, artifacts):
+    """The README's tour in chromium: the station page of `magstation serve` shows the simulated
+    vehicle; on the calibration page Start, the dance streamed by `simulate --live` fills the
+    steps, the result card shows 'ok', Accept writes the parameters and the vehicle confirms them."""
     udp, port = free_udp_port(), free_tcp_port()
     url = f"http://127.0.0.1:{port}"
     station = _start(["serve", "--connect", f"udpin:127.0.0.1:{udp}", "--port", str(port),
                       "--viser-port", str(free_tcp_port())], fleet_db=tmp_path / "fleet.sqlite")
     vehicle = None
+    browser = playwright_instance.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
     try:
         _wait(lambda: httpx.get(url + "/api/state", timeout=5).json()["source"]["kind"] == "live", 60,
               "the station", [station])
-        assert httpx.post(url + "/api/calibration/start", timeout=10).status_code == 200
+        page = browser.new_context(viewport={"width": 1280, "height": 720}).new_page()
+        page.set_default_timeout(60_000)
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(url + "/calibrate.html")
+        page.wait_for_selector("#instruction:has-text('press Start')")
+        page.click("#start")
+        assert _wait(lambda: httpx.get(url + "/api/calibration", timeout=5).json()["state"] == "running", 30,
+                     "the wizard to start", [station])
         vehicle = _start(["simulate", "calibration", "--live", f"udpout:127.0.0.1:{udp}", "--speed", "6"])
         first = _wait(lambda: vehicle.stdout.readline(), 60, "the vehicle's first line", [vehicle])
         assert first.startswith("streaming 'calibration' (") and f"udpin:127.0.0.1:{udp}" in first
-        _wait(lambda: httpx.get(url + "/api/state", timeout=5).json()["source"]["autopilot"] == "ardupilot", 60,
-              "the vehicle's heartbeat", [station, vehicle])
-        cal = _wait(lambda: (lambda c: c if c.get("result") else None)(
-            httpx.get(url + "/api/calibration", timeout=5).json()), 180, "the wizard's fit", [station, vehicle])
-        result = cal["result"]
-        assert result["status"] == "ok", result
+        page.wait_for_selector("#status:has-text('ardupilot')")
+        page.wait_for_selector("#result-card:not([hidden])", timeout=180_000)
+        assert page.locator("#result-status").inner_text() == "ok"
+        result = httpx.get(url + "/api/calibration", timeout=5).json()["result"]
         truth = simulate("calibration", 0).truth["mag"]["offsets_mG"]
         assert max(abs(a - b) for a, b in zip(result["offsets_mG"], truth)) < 5.0
-        assert httpx.post(url + "/api/calibration/accept", timeout=30).status_code == 200
+        page.click("#accept")
+        page.wait_for_selector("#param-write .good", timeout=90_000)   # every parameter echoed by the vehicle
+        page.screenshot(path=str(artifacts / "simulate_live_written.png"))
         # written and confirmed by the vehicle's PARAM_VALUE echoes: the field is corrected on board now
         _wait(lambda: httpx.get(url + "/api/state", timeout=5).json()["tests"]["field_correction"]["kind"]
               == "autopilot", 90, "the vehicle to confirm the parameters", [station, vehicle])
@@ -93,7 +105,9 @@ def test_simulate_live_drives_the_station_and_the_wizard(tmp_path):
         with sqlite3.connect(tmp_path / "fleet.sqlite") as db:
             rows = db.execute("SELECT ofs_x_mG, ofs_y_mG, ofs_z_mG FROM calibrations WHERE compass = 0").fetchall()
         assert rows and max(abs(a - b) for a, b in zip(rows[-1], result["offsets_mG"])) < 0.01, rows
+        assert errors == [], errors
     finally:
+        browser.close()
         out_v = _stop(vehicle) if vehicle is not None else ""
         out_s = _stop(station)
     assert "Traceback" not in out_v + out_s, out_v + out_s
