@@ -51,7 +51,10 @@ def _stop(p: subprocess.Popen) -> str:
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait(5)
-    return p.stdout.read() if p.stdout else ""
+    if p.stdout is None:
+        return ""
+    with p.stdout:                 # closed here: a pipe left to the garbage collector warns in a later test
+        return p.stdout.read()
 
 
 def test_live_errors_are_one_line():
