@@ -134,13 +134,16 @@ def view_pixels(page, settle_ms: int = 1500) -> tuple[bytes, dict]:
     return png, {"size": (w, h), **classify(im, exclude=[(w - VISER_PANEL[0], 0, w, VISER_PANEL[1])])}
 
 
-def view_pixels_until(page, least: dict[str, int], timeout_s: float = 90.0) -> tuple[bytes, dict]:
-    """``view_pixels`` again until every colour class has at least its count (the view loads and
-    draws in its own time on a loaded machine); the last screenshot either way."""
+def view_pixels_until(page, least: dict[str, int], timeout_s: float = 90.0, framed=()) -> tuple[bytes, dict]:
+    """``view_pixels`` again until every colour class has at least its count and the classes in
+    ``framed`` lie inside the view (the view loads, draws and is framed for its final shape in
+    its own time on a loaded machine); the last screenshot either way."""
     deadline = time.monotonic() + timeout_s
     while True:
         png, px = view_pixels(page, 1500)
-        if all(px[name][0] >= n for name, n in least.items()) or time.monotonic() > deadline:
+        drawn = all(px[name][0] >= n for name, n in least.items())
+        if (drawn and all(px[name][1] is not None and inside(px[name][1], px["size"]) for name in framed)) \
+                or time.monotonic() > deadline:
             return png, px
 
 

@@ -209,7 +209,7 @@ def test_view_frames_the_activity(shared_station, new_page, artifacts):
         page = new_page(*size, view=True)
         open_page(page, st)
         has(page, "#alarm-banner.alarm")
-        png, px = view_pixels_until(page, FLIGHT_PIXELS)
+        png, px = view_pixels_until(page, FLIGHT_PIXELS, framed=("violet", "cyan", "orange"))
         (artifacts / f"frame_flight_{size[0]}.png").write_bytes(png)
         w, h = px["size"]
         for name, least in FLIGHT_PIXELS.items():
@@ -227,7 +227,7 @@ def test_view_frames_the_activity(shared_station, new_page, artifacts):
         page = new_page(*size, view=True)
         open_page(page, st, "/calibrate.html")
         has(page, "#result-card")
-        png, px = view_pixels_until(page, CALIBRATION_PIXELS)
+        png, px = view_pixels_until(page, CALIBRATION_PIXELS, framed=tuple(CALIBRATION_PIXELS))
         (artifacts / f"frame_calibration_{size[0]}.png").write_bytes(png)
         for name, least in CALIBRATION_PIXELS.items():
             assert px[name][0] >= least, (size, name, px)

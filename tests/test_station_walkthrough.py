@@ -36,7 +36,8 @@ def test_walkthrough(shared_station, new_page, artifacts):
     has(page, "#pause", "Resume")
     _seek(page, 175.0)
     has(page, "#alarm-banner.alarm")
-    png, px = view_pixels_until(page, {"violet": 100, "red": 100, "cyan": 100, "orange": 100})
+    png, px = view_pixels_until(page, {"violet": 100, "red": 100, "cyan": 100, "orange": 100},
+                                framed=("violet", "red", "cyan", "orange"))
     (artifacts / "walkthrough_1_demo.png").write_bytes(png)
     for name in ("violet", "red", "cyan", "orange"):
         assert px[name][0] >= 100 and inside(px[name][1], px["size"]), (name, px)
@@ -89,7 +90,8 @@ def test_walkthrough(shared_station, new_page, artifacts):
         assert page.locator("#result-status").inner_text() == "ok"
         has(page, "#live-fit", "fitted field")                               # the result's field, not a running fit's
         assert "WMM" not in page.locator("#warnings").inner_text()        # fitted field agrees with WMM
-        png, px = view_pixels_until(page, {"orange": 100, "blue": 300, "green": 300, "amber": 300})
+        png, px = view_pixels_until(page, {"orange": 100, "blue": 300, "green": 300, "amber": 300},
+                                    framed=("orange", "blue", "green", "amber"))
         assert st.scene.cloud_points_shown > 500
         (artifacts / "walkthrough_5_calibration.png").write_bytes(png)
         for name, least in (("orange", 100), ("blue", 300), ("green", 300), ("amber", 300)):
