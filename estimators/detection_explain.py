@@ -131,14 +131,15 @@ def explain_alarm(t_s, residual_mG, motor_signal, north_m, east_m, lat_deg, lon_
     if np.isfinite(c) and c >= s.current_corr and len(xs) and np.ptp(xs) >= s.current_min_span:
         out["kind"] = KINDS[0]
         return out
-    lo = int(np.searchsorted(t, t[i0] - s.shape_s))
-    crossings = _half_peak_crossings(size, lo, k, i1)
+    shape_start = int(np.searchsorted(t, t[i0] - s.shape_s))
+    crossings = _half_peak_crossings(size, shape_start, k, i1)
     placed = False
     if crossings is not None:
         a, b = crossings
         width_m = _track_m(t, np.asarray(north_m, dtype=float), np.asarray(east_m, dtype=float), a, b)
         placed = s.place_min_m <= width_m <= s.place_max_m or (
-            up_m is not None and width_m <= s.place_max_m and _down_and_up(up_m, lo, k, i1, s.place_min_climb_m))
+            up_m is not None and width_m <= s.place_max_m
+            and _down_and_up(up_m, shape_start, k, i1, s.place_min_climb_m))
     if placed:
         out["kind"] = KINDS[1]
         la, lo = float(np.asarray(lat_deg, float)[k]), float(np.asarray(lon_deg, float)[k])

@@ -70,7 +70,6 @@ function drawPlot(canvas, series, opts) {
     const text = i === tt.length - 1 ? k.label + " s" : k.label;
     g.fillText(text, Math.min(X(k.value), w - 1 - g.measureText(text).width / 2), T + ph + 3);   // kept on the canvas
   });
-  canvas.dataset.tticks = tt.map((k) => k.label).join(" ");
   g.save(); g.beginPath(); g.rect(L, T, pw, ph); g.clip();
   for (const r of opts.refs || []) {
     if (r.value === null) continue;
