@@ -12,9 +12,15 @@ from functools import lru_cache
 
 import numpy as np
 from geomaglib import util as geoid_util
+from wmm import uncertainty as _wmm_uncertainty
 from wmm import wmm_calc
 
 NT_PER_MG = 100.0
+
+# WMM2025's error model, 1σ of the model against the observed field (crustal field included) per NED
+# component, as wmm-calculator ships it (WMM2025 technical report, Chulliat et al. 2025: X 137, Y 89, Z 141 nT)
+WMM_ERROR_NED_mG: tuple[float, float, float] = tuple(
+    float(_wmm_uncertainty.err_model[k]) / NT_PER_MG for k in ("X", "Y", "Z"))
 
 
 @dataclass(frozen=True)

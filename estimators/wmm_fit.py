@@ -46,6 +46,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from estimators.geomag import WMM_ERROR_NED_mG
 from estimators.field_model import (PARAM_NAMES, FieldData, Solution, SolverOptions, corrected_field,
                                     matrix_from_params, nominal_params, residuals, solve)
 from estimators.rotations import dcm_body_to_ned, wrap_angle_rad
@@ -92,10 +93,10 @@ class WmmFitSettings:
     cell_weighting: bool | None = False           # sphere cells, rare directions weighted up (None: when soft iron is
                                                   # held).  Off: measured to add bias here (docs/inflight-calibration.md)
     jackknife_blocks: int = 8                     # contiguous time blocks for the jackknife 1σ (0: none)
-    # the reference field's own 1σ per NED component [mG], in the stated 1σ (``_with_field_model``): the WMM
-    # error model (WMM2020 technical report, Chulliat et al. 2020, sec. 3: X 131, Y 94, Z 157 nT, the model
-    # against the observed field, crustal field included); (0, 0, 0): the reference taken as exact
-    field_model_sd_mG: tuple[float, float, float] = (1.31, 0.94, 1.57)
+    # the reference field's own 1σ per NED component [mG], in the stated 1σ (``_with_field_model``): WMM2025's
+    # error model as wmm-calculator ships it (``geomag.WMM_ERROR_NED_mG``: 1.37, 0.89, 1.41 mG);
+    # (0, 0, 0): the reference taken as exact
+    field_model_sd_mG: tuple[float, float, float] = WMM_ERROR_NED_mG
     sphere_bands: int = 8                         # equal-area cells: bands of equal Δz × sectors per band
     sphere_sectors: int = 10
 

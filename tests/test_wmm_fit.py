@@ -212,7 +212,7 @@ def test_an_error_of_the_reference_field_is_in_the_stated_one_sigma():
     change per 1σ of each NED component: b_z's added variance is Σ_j (b_z(H + σ_j e_j) − b_z(H))²,
     measured here by fitting again with the reference shifted; the offsets themselves unchanged."""
     d = level_flight(seed=2, noise_mG=1.0)
-    sd_H = np.array([1.31, 0.94, 1.57])
+    sd_H = np.array(WmmFitSettings().field_model_sd_mG)
     def fit(H, sd):
         return fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H, motor_signal=d["current"],
                        settings=WmmFitSettings(field_model_sd_mG=tuple(sd)))
@@ -223,3 +223,12 @@ def test_an_error_of_the_reference_field_is_in_the_stated_one_sigma():
     added = model.offsets_sd_mG ** 2 - exact.offsets_sd_mG ** 2
     assert np.max(np.sum(moved ** 2, axis=0)) > 0.5                      # the reference matters here
     np.testing.assert_allclose(added, np.sum(moved ** 2, axis=0), rtol=0.25, atol=0.05)
+
+
+def test_the_reference_field_error_is_the_wmm_packages_own():
+    """The default 1σ of the reference field is WMM2025's error model as NOAA's package ships it (nT → mG),
+    read from the package, not typed in: X 137, Y 89, Z 141 nT in WMM2025's technical report."""
+    from wmm import uncertainty
+    expected = [uncertainty.err_model[k] / 100.0 for k in ("X", "Y", "Z")]
+    assert WmmFitSettings().field_model_sd_mG == pytest.approx(expected)
+    assert expected == pytest.approx([1.37, 0.89, 1.41])                  # WMM2025 (WMM2020 was 1.31, 0.94, 1.57)
