@@ -407,8 +407,14 @@ class FieldConsistency:
             self._noise_ms = self._noise_sum / self._noise_n
         elif not (learning or turn) and self._noise_n and self.z < s.freeze_z and self._q < s.unexplained_q:
             # follows the noise, slowly (not a residual no turn explains: held in a fast turn, it
-            # raised σ from 4 to 125 mG under a 276 mG step, population step 43)
-            self._noise_ms += (1.0 - math.exp(-dt / s.noise_track_s)) * (size * size - self._noise_ms)
+            # raised σ from 4 to 125 mG under a 276 mG step, population step 43), and only the part
+            # of |r̄|² the model's own uncertainty H P Hᵀ does not explain: σ² follows
+            # min(|r̄|², σ² r̄ᵀ Σ⁻¹ r̄ / 3) with Σ = σ²/3 I + H P Hᵀ (+ lag), = |r̄|² when P = 0.
+            # In a fast turn ψ_f's uncertainty (the gyro's scale) is in Σ; counted in σ too, a
+            # payload switched on in a 40°/s turn raised σ 7 -> 21 mG and was never scored
+            # (population payload 9), a fast ramp starting in one 7 -> 85 mG (fast 38).
+            self._noise_ms += (1.0 - math.exp(-dt / s.noise_track_s)) * (
+                self._noise_sample(r, size, HPHt, lag_cov) - self._noise_ms)
         if self._noise_n:
             self.noise_mG = max(s.noise_floor_mG, math.sqrt(self._noise_ms))
         sigma = self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG
@@ -437,6 +443,16 @@ class FieldConsistency:
         self._frozen_since = (self._frozen_since if self._frozen_since is not None else t) if frozen else None
         self._reanchor(t, q_other, frozen)
         return FieldStep(t, self.z, q, tuple(r), ON, tuple(self.f))
+
+    def _noise_sample(self, r: list, size_mG: float, HPHt: np.ndarray, lag_cov: np.ndarray | None) -> float:
+        """The residual's square σ² follows [mG²]: |r̄|², less what the model's uncertainty
+        explains, min(|r̄|², σ² · r̄ᵀ Σ⁻¹ r̄ / 3) with Σ = σ²/3 I + H P Hᵀ (+ the signal's lag term)
+        and σ the current noise (so with P = 0 it is |r̄|², the mean square of before)."""
+        sigma = self.noise_mG if math.isfinite(self.noise_mG) else self.s.noise_floor_mG
+        cov = HPHt + lag_cov if lag_cov is not None else HPHt.copy()
+        cov.flat[::4] += sigma * sigma / 3.0
+        rv = np.asarray(r, dtype=float)
+        return min(size_mG * size_mG, max(float(rv @ inv3(cov) @ rv) / 3.0, 0.0) * sigma * sigma)
 
     def _fast_turn(self, t: float, q: float, q_other: float, eps: float) -> bool:
         """True while the CUSUM holds for a fast turn (over ``first_turn_hold_deg_s``) and
