@@ -319,7 +319,7 @@ def test_large_vehicle_fixed_yaw_with_gps_course_and_entered_heading(station, pa
     open_page(page, station)
     set_checked(page, "#modes input[value='fixed_yaw']", True)
     press(page, "#start")
-    shown(page, "#fixed-card:not([hidden])", 5000)
+    shown(page, "#fixed-card:not([hidden])", 20_000)   # 5 s ran out at load 11 (two suites at once)
     fv = FakeVehicle(msgs, port, speed=3.0)
     fv.hold_before = sent_after(msgs, 15.0)         # standing at the start of the line until the walk starts
     with fv:
