@@ -64,6 +64,9 @@ def browser(playwright_instance, station):
 def page(browser, station):
     ctx = browser.new_context(viewport={"width": 1280, "height": 720})
     pg = ctx.new_page()
+    # screenshots wait for a compositor frame, which the software-rendered 3-D view can starve for
+    # over 30 s (Playwright's default) while the other worker runs four live hubs (CI, 2 cores)
+    pg.set_default_timeout(WAIT_MS * 2)
     pg.errors = []
     pg.on("console", lambda m: pg.errors.append(m.text) if m.type == "error" else None)
     pg.on("pageerror", lambda e: pg.errors.append(str(e)))
@@ -294,8 +297,13 @@ def test_onboard_calibrator_beside_ours(station, page, api, shots):
         w = wait_api(api, lambda w: w["state"] == "result", timeout_s=120)
         shown(page, "#ob-accept:not([disabled])", WAIT_MS)
         page.screenshot(path=str(shots / "14_onboard_reported.png"))
+        ours = {c["index"]: (c["result"] or {}).get("status") for c in w["compasses"]}
         for c in w["onboard"]["compasses"]:
-            assert c["report"]["success"] and c["compare"]["max_offset_difference_mG"] < 5.0
+            assert c["report"] and c["report"]["success"], c
+            # our fit of the same samples beside it (compare is None when ours did not pass: say why)
+            assert c["compare"] is not None, (ours, [(c2["result"] or {}).get("reasons") for c2 in w["compasses"]],
+                                              w["samples"], w["coverage"])
+            assert c["compare"]["max_offset_difference_mG"] < 5.0, c["compare"]
             assert len(c["sections"]) > 40                      # the completion mask arrived
         report0 = w["onboard"]["compasses"][0]["report"]
         press(page, "#ob-accept")

@@ -174,6 +174,12 @@ def test_signed_write_through_the_forwarding_process_and_signed_packets_pass_unc
     assert forwarded and all(is_signed_packet(p) for p in forwarded)     # the vehicle's signatures kept
 
 
+# The station's own copy this late (median) proves its process was busy: an idle station's copy is
+# under 1 ms late. 20 ms was not reached in three runs in a clean-clone suite (15.3 ms; the forwarder's p99
+# was 0.25 ms beside it).
+BUSY_STATION_MS = 10.0
+
+
 @pytest.mark.serial     # added forwarding latency in ms against the busy station's
 def test_forward_latency_benchmark_quick_with_the_station_busy():
     """benchmarks/forward_latency.py --quick, station process "hog" (estimating the stream, replaying
@@ -194,9 +200,9 @@ def test_forward_latency_benchmark_quick_with_the_station_busy():
         # "-": the busy station had not even opened its recording within the run (seen at load 2 in
         # the full suite): its copy is later than any packet forwarded
         fwd_p50, fwd_p99, station_p50, _ = (float("inf") if v == "-" else float(v) for v in row.groups())
-        if station_p50 > 20.0:
+        if station_p50 > BUSY_STATION_MS:
             break
-    assert station_p50 > 20.0, out.stdout           # the station's process really was busy
+    assert station_p50 > BUSY_STATION_MS, out.stdout    # the station's process really was busy
     assert fwd_p50 < 5.0 and fwd_p99 < station_p50 / 2, out.stdout
 
 
