@@ -26,7 +26,7 @@ def shown(page, selector: str, timeout_ms: float = WAIT_MS) -> None:
     own waits poll on animation frames, which the software-rendered 3-D view can starve for
     seconds on a loaded machine (tests/browser_checks.py, ``wait_js``)."""
     if not wait_until(lambda: page.locator(selector).first.is_visible(), timeout_ms / 1000.0, 0.1):
-        state = page.evaluate("[document.getElementById('status').textContent, (document.getElementById('hint')||{}).textContent, document.querySelector('#steps li.current') && document.querySelector('#steps li.current').dataset.step]")
+        state = page.evaluate("[document.getElementById('status').textContent, (document.getElementById('hint')||{}).textContent, document.querySelector('#steps li.current') && document.querySelector('#steps li.current').dataset.step, document.getElementById('cal-error').textContent, document.querySelector('#modes input:checked').value, document.getElementById('start').textContent, !document.getElementById('discard-confirm').hidden]")
         raise AssertionError(f"{selector} not shown; page: {state}; errors: {getattr(page, 'errors', None)}")
 
 
@@ -60,9 +60,12 @@ def browser(playwright_instance, station):
     b.close()
 
 
-@pytest.fixture
-def page(browser, station):
+def _page(browser, station, view: bool):
+    """A 1280x720 page; without ``view`` the 3-D view's server is not reached: its software WebGL
+    took 0.8 of a core while a dance streamed (tests that do not look at the view leave it out)."""
     ctx = browser.new_context(viewport={"width": 1280, "height": 720})
+    if not view:
+        ctx.route(f"http://127.0.0.1:{station.viser_port}/**", lambda route: route.abort())
     pg = ctx.new_page()
     # screenshots wait for a compositor frame, which the software-rendered 3-D view can starve for
     # over 30 s (Playwright's default) while the other worker runs four live hubs (CI, 2 cores)
@@ -70,8 +73,22 @@ def page(browser, station):
     pg.errors = []
     pg.on("console", lambda m: pg.errors.append(m.text) if m.type == "error" else None)
     pg.on("pageerror", lambda e: pg.errors.append(str(e)))
+    return pg
+
+
+@pytest.fixture
+def page(browser, station):
+    pg = _page(browser, station, view=False)
     yield pg
-    ctx.close()
+    pg.context.close()
+
+
+@pytest.fixture
+def view_page(browser, station):
+    """A page with the 3-D view (the result's cloud and ellipsoid are screenshotted)."""
+    pg = _page(browser, station, view=True)
+    yield pg
+    pg.context.close()
 
 
 @pytest.fixture(scope="module")
@@ -197,10 +214,11 @@ def test_link_drop_pauses_and_resumes_the_step(station, page, api, shots):
 
 
 # ------------------------------------------------------------------ the full guided flow
-def test_three_compasses_orientation_write_reboot_and_heading_check(station, page, api, shots, browser):
+def test_three_compasses_orientation_write_reboot_and_heading_check(station, view_page, api, shots, browser):
     """Compasses mounted at YAW_90 and ROLL_180 (COMPASS_ORIENT still 0): a clean dance gives no
     field warning, three passing compasses with their orientation, written and confirmed; reboot
     (confirmed), then the heading check at a known bearing and the deviation card."""
+    page = view_page
     hw = make_hardware(three_compasses((ROTATION_YAW_90, ROTATION_ROLL_180, 0)))
     msgs = pack_stream(guided_dance_attitude(), hw)
     after = pack_stream(hold_attitude(135.0, 120.0, rate_hz=25.0), hw, start_unix=msgs[-1][0] + 60, boot_offset_s=4.0)
@@ -275,7 +293,10 @@ def test_three_compasses_orientation_write_reboot_and_heading_check(station, pag
 
 
 # ------------------------------------------------------------------ onboard calibration
-def test_onboard_calibrator_beside_ours(station, page, api, shots):
+def test_onboard_calibrator_beside_ours(station, view_page, api, shots):
+    # with the 3-D view blocked the onboard card did not show after Start in 2 of 2 module runs
+    # (mode 'onboard' checked, no error shown; it passed alone): kept with the view until explained
+    page = view_page
     hw = make_hardware(three_compasses())
     dance = hold_attitude(30.0, 4.0, rate_hz=25.0, wobble_deg=0.0).then(guided_dance_attitude(tilts=TILTS + MORE_TILTS))
     msgs = pack_stream(dance, hw)

@@ -71,16 +71,19 @@ def test_simulate_live_drives_the_station_and_the_wizard(tmp_path, playwright_in
     """The README's tour in chromium: the station page of `magstation serve` shows the simulated
     vehicle; on the calibration page Start, the dance streamed by `simulate --live` fills the
     steps, the result card shows 'ok', Accept writes the parameters and the vehicle confirms them."""
-    udp, port = free_udp_port(), free_tcp_port()
+    udp, port, viser_port = free_udp_port(), free_tcp_port(), free_tcp_port()
     url = f"http://127.0.0.1:{port}"
     station = _start(["serve", "--connect", f"udpin:127.0.0.1:{udp}", "--port", str(port),
-                      "--viser-port", str(free_tcp_port())], fleet_db=tmp_path / "fleet.sqlite")
+                      "--viser-port", str(viser_port)], fleet_db=tmp_path / "fleet.sqlite")
     vehicle = None
     browser = playwright_instance.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
     try:
         _wait(lambda: httpx.get(url + "/api/state", timeout=5).json()["source"]["kind"] == "live", 60,
               "the station", [station])
-        page = browser.new_context(viewport={"width": 1280, "height": 720}).new_page()
+        ctx = browser.new_context(viewport={"width": 1280, "height": 720})
+        # the 3-D view is not looked at here: its software WebGL would take most of a core
+        ctx.route(f"http://127.0.0.1:{viser_port}/**", lambda route: route.abort())
+        page = ctx.new_page()
         page.set_default_timeout(60_000)
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))
