@@ -184,6 +184,28 @@ def test_the_autopilot_tilt_counts_only_where_ours_confirms_it():
     np.testing.assert_allclose(pitch, [0.1, 0.1, 0.1, 0.1])
 
 
+def test_the_lasting_tilt_gap_starts_from_agreement():
+    """checked_tilt with its lasting gap (TILT_GAP_S low-pass): at the start our AHRS is 10° off in
+    pitch and converges in 10 s (population slow 2, seed 0: a climb at take-off) while the
+    autopilot is right.  The gap starts from agreement, so the autopilot's tilt counts from the
+    first step (from 7.1 s here when the low-pass started at the first gap; in slow 2 from 15 s, and our
+    wrong tilt went into the field test's whole learning time).  An autopilot that drifts away
+    open-loop (0.5°/s from 20 s on) is still dropped once its lasting gap passes TILT_AGREE_DEG.
+    Both with ``StepState()`` as batch and live start it."""
+    from types import SimpleNamespace
+    from groundstation.jobs.inputs import TILT_AGREE_DEG, StepState, checked_tilt
+    t = np.arange(0.0, 60.0, 0.1)
+    truth = np.radians(5.0) * np.ones(len(t))
+    ours = SimpleNamespace(roll_rad=np.zeros(len(t)), pitch_rad=truth + np.radians(10.0) * np.clip(1 - t / 10.0, 0, 1))
+    ap = np.c_[np.zeros(len(t)), truth + np.radians(0.5) * np.clip(t - 20.0, 0.0, None)]
+    _, pitch = checked_tilt(ours, ap, t, StepState())
+    used_ap = np.isclose(pitch, ap[:, 1])
+    assert used_ap[t < 20.0].all()
+    # the low-pass lags a 0.5°/s drift by ~5°: the gap passes 8° at 36 s, its lasting value at ~46 s
+    gap_deg = np.degrees(ap[:, 1] - ours.pitch_rad)
+    assert gap_deg[t >= 40.0].min() > TILT_AGREE_DEG and not used_ap[t >= 50.0].any()
+
+
 def test_a_held_autopilot_tilt_is_brought_forward_by_our_change_since_its_sample():
     """brought_forward: a vehicle pitching at 30°/s, streamed at 2 Hz (held up to 0.5 s), our AHRS
     5° off in pitch and 3° in roll but with the right rates.  Held, the autopilot's pitch is up to
@@ -390,3 +412,26 @@ def test_a_disturbance_switched_on_in_a_fast_turn_is_not_learnt_as_noise(tmp_pat
     assert payload is not None and payload <= 8.0
     fast, _ = _population_latency_s("fast", 38, tmp_path, 8.0)
     assert fast is not None and fast <= 2.5
+
+
+def test_a_slow_ramp_after_a_take_off_our_ahrs_had_not_converged_on(tmp_path):
+    """Population slow ramp 2 (seed 0: 50 Hz IMU, 5 Hz ATTITUDE, 14 mG/s from 155.8 s).  At take-off
+    our AHRS was 10° off in pitch; the lasting tilt gap started from that first gap, so the field
+    test used our tilt for its whole learning time (4-15 s), learnt ψ_f 17° off with the body
+    offset making up for it, took σ ≈ 19 mG, alarmed from 79 to 113 s at the first turns (before
+    the onset) and detected the ramp after 8.2 s.  With the gap starting from agreement (and the
+    2 Hz-held tilt brought forward) the ramp is detected within 4 s (2.9 s measured) and nothing
+    alarms before it."""
+    from groundstation.io.logs import read_log
+    from groundstation.jobs.inputs import detection_inputs
+    from groundstation.sim.population import draw_flight, write_flight
+    path, truth = write_flight(draw_flight(2, 0, "slow"), tmp_path / "slow2.tlog")
+    x = detection_inputs(read_log(path))
+    ef = x["ef"]
+    det = detect(x["t"], x["e"], x["d"], x["trusted"], x["strength"], x["incl"], x["heading"], x["yaw_rate"],
+                 ef.field_strength_mG, ef.inclination_deg, DetectionSettings(), z_vector=x["z_vector"])
+    alarms = alarm_intervals(x["t"], det.combined)
+    onset = truth["onset_s"]
+    assert truth["max_heading_turn_deg"] >= 5.0
+    assert [a for a in alarms if a[0] < onset - 0.5] == []
+    assert alarms and 0.0 <= alarms[0][0] - onset <= 4.0

@@ -367,7 +367,11 @@ def _lasting_gap(t: np.ndarray, gr: np.ndarray, gp: np.ndarray, state: "StepStat
         r, p = rl[i], pl[i]
         if math.isfinite(r) and math.isfinite(p):
             if state.tilt_gap is None or state.tilt_gap_t is None or tl[i] < state.tilt_gap_t:
-                state.tilt_gap = (r, p)
+                # the gap starts from agreement, not from its first value: at the start our AHRS may
+                # not have converged (10° of pitch in a climb, population slow 2), and a first gap
+                # held for TILT_GAP_S put our wrong tilt into the whole learning time; an autopilot
+                # drifting open-loop drifts away from agreement
+                state.tilt_gap = (0.0, 0.0)
             else:
                 a = 1.0 - math.exp(-(tl[i] - state.tilt_gap_t) / TILT_GAP_S)
                 state.tilt_gap = (state.tilt_gap[0] + a * (r - state.tilt_gap[0]),
