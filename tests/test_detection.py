@@ -184,6 +184,63 @@ def test_the_autopilot_tilt_counts_only_where_ours_confirms_it():
     np.testing.assert_allclose(pitch, [0.1, 0.1, 0.1, 0.1])
 
 
+def test_the_lasting_tilt_gap_starts_from_agreement():
+    """checked_tilt with its lasting gap (TILT_GAP_S low-pass): at the start our AHRS is 10° off in
+    pitch and converges in 10 s (population slow 2, seed 0: a climb at take-off) while the
+    autopilot is right.  The gap starts from agreement, so the autopilot's tilt counts from the
+    first step (from 7.1 s here when the low-pass started at the first gap; in slow 2 from 15 s, and our
+    wrong tilt went into the field test's whole learning time).  An autopilot that drifts away
+    open-loop (0.5°/s from 20 s on) is still dropped once its lasting gap passes TILT_AGREE_DEG.
+    Both with ``StepState()`` as batch and live start it."""
+    from types import SimpleNamespace
+    from groundstation.jobs.inputs import TILT_AGREE_DEG, StepState, checked_tilt
+    t = np.arange(0.0, 60.0, 0.1)
+    truth = np.radians(5.0) * np.ones(len(t))
+    ours = SimpleNamespace(roll_rad=np.zeros(len(t)), pitch_rad=truth + np.radians(10.0) * np.clip(1 - t / 10.0, 0, 1))
+    ap = np.c_[np.zeros(len(t)), truth + np.radians(0.5) * np.clip(t - 20.0, 0.0, None)]
+    _, pitch = checked_tilt(ours, ap, t, StepState())
+    used_ap = np.isclose(pitch, ap[:, 1])
+    assert used_ap[t < 20.0].all()
+    # the low-pass lags a 0.5°/s drift by ~5°: the gap passes 8° at 36 s, its lasting value at ~46 s
+    gap_deg = np.degrees(ap[:, 1] - ours.pitch_rad)
+    assert gap_deg[t >= 40.0].min() > TILT_AGREE_DEG and not used_ap[t >= 50.0].any()
+
+
+def test_a_held_autopilot_tilt_is_brought_forward_by_our_change_since_its_sample():
+    """brought_forward: a vehicle pitching at 30°/s, streamed at 2 Hz (held up to 0.5 s), our AHRS
+    5° off in pitch and 3° in roll but with the right rates.  Held, the autopilot's pitch is up to
+    15° stale (0.5 s × 30°/s); brought forward from its sample time by our change it is the truth
+    to 1e-9; the same steps one at a time (live) give the same numbers as all at once (batch)."""
+    from types import SimpleNamespace
+    from groundstation.jobs.inputs import ATTITUDE_TIMEOUT_S, StepState, brought_forward, hold_last
+    t = np.arange(0.0, 6.0, 0.02)
+    true_pitch = np.radians(30.0) * np.sin(t)            # up to 30°/s
+    true_roll = np.radians(20.0) * np.sin(0.7 * t)
+    ours = SimpleNamespace(roll_rad=true_roll + np.radians(3.0), pitch_rad=true_pitch - np.radians(5.0))
+    t_att = np.arange(0.01, 6.0, 0.5)                    # 2 Hz
+    att = np.c_[np.radians(20.0) * np.sin(0.7 * t_att), np.radians(30.0) * np.sin(t_att)]
+    held = hold_last(t_att, att, t, ATTITUDE_TIMEOUT_S)
+    att_t = hold_last(t_att, t_att, t, ATTITUDE_TIMEOUT_S)
+    on = np.isfinite(att_t)
+    # the held value's error: at most ~15° of pitch (the truth between samples is not interpolated)
+    assert np.degrees(np.nanmax(np.abs(held[on, 1] - true_pitch[on]))) > 10.0
+    # the sample times fall between steps: our attitude at the step before each sample (≤ 0.02 s
+    # earlier, ≤ 0.6° of change) is what the change is counted from
+    out = brought_forward(t, ours, held, att_t, StepState())
+    j = np.searchsorted(t, att_t[on], side="right") - 1
+    ref_err = np.degrees(np.abs(true_pitch[j] - np.radians(30.0) * np.sin(att_t[on])))
+    err = np.degrees(np.abs(out[on, 1] - true_pitch[on]))
+    np.testing.assert_allclose(err, ref_err, atol=1e-9)
+    assert err.max() < 0.7
+    assert np.degrees(np.abs(out[on, 0] - true_roll[on])).max() < 0.5
+    assert np.all(np.isnan(out[~on]))                    # nothing held: nothing brought
+    live, state = [], StepState()
+    for i in range(len(t)):
+        one = SimpleNamespace(roll_rad=ours.roll_rad[i:i + 1], pitch_rad=ours.pitch_rad[i:i + 1])
+        live.append(brought_forward(t[i:i + 1], one, held[i:i + 1], att_t[i:i + 1], state)[0])
+    np.testing.assert_array_equal(np.array(live), out)
+
+
 def test_the_field_tests_never_use_the_autopilot_heading(tmp_path):
     """The same log with the autopilot's ATTITUDE yaw drifting 0.5°/s (and its roll jumping 25° off
     for half a minute) gives the heading difference and the field-vector score of the untouched log."""
@@ -298,17 +355,22 @@ def test_a_telemetry_gap_keeps_what_was_learnt_without_a_false_alarm(tmp_path):
     assert alarm_intervals(t, det.combined) == []
 
 
-def _population_latency_s(kind: str, index: int, tmp_path, unexplained_q: float) -> tuple[float | None, dict]:
+def _population_latency_s(kind: str, index: int, tmp_path, unexplained_q: float,
+                          fast_turn_q: float | None = None, **over) -> tuple[float | None, dict]:
     """First combined alarm after a population flight's (seed 0) onset, by the truth, starting
     before its end + 5 s (benchmarks/detection.py's rule), with the field-vector test's
-    ``unexplained_q`` set (inf: the code before it)."""
+    ``unexplained_q`` set (inf: the code before it, fast_turn_q inf too), ``fast_turn_q``
+    (None: its default) and any other field-vector setting in ``over``."""
     from dataclasses import replace
     from estimators.field_consistency import FieldConsistencySettings
     from groundstation.io.logs import read_log
     from groundstation.jobs.inputs import detection_inputs
     from groundstation.sim.population import draw_flight, write_flight
     path, truth = write_flight(draw_flight(index, 0, kind), tmp_path / f"{kind}{index}.tlog")
-    settings = replace(DetectionSettings(), vector=replace(FieldConsistencySettings(), unexplained_q=unexplained_q))
+    if fast_turn_q is None:
+        fast_turn_q = float("inf") if unexplained_q == float("inf") else FieldConsistencySettings().fast_turn_q
+    settings = replace(DetectionSettings(), vector=replace(FieldConsistencySettings(), unexplained_q=unexplained_q,
+                                                           fast_turn_q=fast_turn_q, **over))
     x = detection_inputs(read_log(path), settings=settings)
     ef = x["ef"]
     det = detect(x["t"], x["e"], x["d"], x["trusted"], x["strength"], x["incl"], x["heading"], x["yaw_rate"],
@@ -355,3 +417,62 @@ def test_a_disturbance_switched_on_in_a_fast_turn_is_not_learnt_as_noise(tmp_pat
     assert payload is not None and payload <= 8.0
     fast, _ = _population_latency_s("fast", 38, tmp_path, 8.0)
     assert fast is not None and fast <= 2.5
+
+
+def test_a_slow_ramp_after_a_take_off_our_ahrs_had_not_converged_on(tmp_path):
+    """Population slow ramp 2 (seed 0: 50 Hz IMU, 5 Hz ATTITUDE, 14 mG/s from 155.8 s).  At take-off
+    our AHRS was 10° off in pitch; the lasting tilt gap started from that first gap, so the field
+    test used our tilt for its whole learning time (4-15 s), learnt ψ_f 17° off with the body
+    offset making up for it, took σ ≈ 19 mG, alarmed from 79 to 113 s at the first turns (before
+    the onset) and detected the ramp after 8.2 s.  With the gap starting from agreement (and the
+    2 Hz-held tilt brought forward) the ramp is detected within 4 s (2.9 s measured) and nothing
+    alarms before it."""
+    from groundstation.io.logs import read_log
+    from groundstation.jobs.inputs import detection_inputs
+    from groundstation.sim.population import draw_flight, write_flight
+    path, truth = write_flight(draw_flight(2, 0, "slow"), tmp_path / "slow2.tlog")
+    x = detection_inputs(read_log(path))
+    ef = x["ef"]
+    det = detect(x["t"], x["e"], x["d"], x["trusted"], x["strength"], x["incl"], x["heading"], x["yaw_rate"],
+                 ef.field_strength_mG, ef.inclination_deg, DetectionSettings(), z_vector=x["z_vector"])
+    alarms = alarm_intervals(x["t"], det.combined)
+    onset = truth["onset_s"]
+    assert truth["max_heading_turn_deg"] >= 5.0
+    assert [a for a in alarms if a[0] < onset - 0.5] == []
+    assert alarms and 0.0 <= alarms[0][0] - onset <= 4.0
+
+
+def test_a_ramp_in_a_fast_turn_is_not_held_once_it_is_5_sigma(tmp_path):
+    """Population slow ramp 37 (seed 0: 20 mG/s from 55.1 s, a 40°/s turn from 56.6 s, then the
+    first turn's relearning) and fast ramp 32 (46 mG/s from 81.5 s, 1.1 s into the first 40°/s
+    turn, in its relearning).  The field-vector CUSUM held in turns over 20°/s while q < 8 (q was
+    4.4-5.4 in slow 37's turn): slow 37 after 5.9 s, fast 32 after 2.8 s.  With the autopilot's
+    tilt brought forward, clean population turns leave at most 3.76σ (3.25σ in a relearning in a
+    fast turn), so a turn no longer holds a residual of ``fast_turn_q`` = 5σ: slow 37 within
+    3 s (2.05 s measured), fast 32 within 2.5 s (2.34 s measured)."""
+    from estimators.field_consistency import FieldConsistencySettings
+    eight = FieldConsistencySettings().unexplained_q
+    old, truth = _population_latency_s("slow", 37, tmp_path, eight, fast_turn_q=eight, turn_evidence=False)
+    assert truth["max_heading_turn_deg"] >= 5.0 and old is not None and old > 5.0
+    new, _ = _population_latency_s("slow", 37, tmp_path, eight, turn_evidence=False)
+    assert new is not None and new <= 3.0
+    old, _ = _population_latency_s("fast", 32, tmp_path, eight, fast_turn_q=eight, turn_evidence=False)
+    assert old is not None and old > 2.6
+    new, _ = _population_latency_s("fast", 32, tmp_path, eight, turn_evidence=False)
+    assert new is not None and new <= 2.5
+
+
+def test_a_fast_turns_evidence_counts_once_the_residual_is_no_turns(tmp_path):
+    """Population fast ramp 32 (seed 0): the ramp starts 1.1 s into the first 40°/s turn, q passes
+    κ = 3 at about 1.3 s and ``fast_turn_q`` = 5 at about 2.1 s.  The CUSUM held apart over the
+    turn (the relearning's and the hold's, less what a heading error of ψ_f explains) now counts
+    from there instead of starting at 0: within 2.2 s of the onset (2.16 s measured; 2.34 s
+    without).  A clean turn never reaches 5σ (≤ 3.76σ on the clean population), so what it sums
+    is dropped.  Only while the nose turns over 20°/s: a gyro reading 4 % high leaves 5.0σ in the
+    second after a 180° turn
+    (tests/test_field_consistency.py::test_a_heading_error_left_by_a_fast_turn_is_dropped_not_alarmed)."""
+    eight = 8.0
+    old, truth = _population_latency_s("fast", 32, tmp_path, eight, turn_evidence=False)
+    assert truth["max_heading_turn_deg"] >= 5.0 and old is not None and old > 2.25
+    new, _ = _population_latency_s("fast", 32, tmp_path, eight)
+    assert new is not None and new <= 2.2

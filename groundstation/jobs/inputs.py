@@ -14,11 +14,11 @@ the same pieces, so a log gives the same alarms replayed, streamed live or analy
 * ``imu_rate_hz``: the IMU rate from the median of the last RATE_WINDOW intervals (the heading
   test needs ``min_imu_rate_hz``);
 * ``step_inputs``: heading difference, field strength/inclination, steep-attitude gate and
-  turn rate on the IMU steps, carrying its gate state (``StepState``) from call to call.
+  turn rate on the IMU steps, carrying its gate state (``StepState``) from call to call; the tilt
+  of the field tests comes from ``groundstation.jobs.tilt`` (re-exported here).
 """
 from __future__ import annotations
 
-import math
 import statistics
 import time
 from dataclasses import dataclass, field
@@ -35,12 +35,13 @@ from estimators.rotations import wrap_angle_rad
 from groundstation.io.params import ardupilot_never_calibrated, unapply_onboard_calibration
 from groundstation.jobs.calibration_check import calibration_arrays
 from groundstation.jobs.compass_raw import compass_field
+from groundstation.jobs.tilt import TILT_AGREE_DEG, TILT_GAP_S, TILT_JUMP_DEG, brought_forward, checked_tilt
 from groundstation.samples import CompassTable, FlightLog, finite_or_none
 
 __all__ = ["detection_inputs", "primary_raw", "primary_field", "mission_legs",
            "cross_track_legs", "hold_last", "Held", "field_reference", "field_policy", "FieldPolicy", "gps_rows",
            "GPS_COLUMNS", "imu_rate_hz", "step_inputs", "StepState", "too_steep", "rotation_rate", "rounded",
-           "checked_tilt", "TILT_AGREE_DEG", "TILT_GAP_S", "TILT_JUMP_DEG",
+           "checked_tilt", "brought_forward", "TILT_AGREE_DEG", "TILT_GAP_S", "TILT_JUMP_DEG",
            "heading_deg", "GPS_TIMEOUT_S", "ATTITUDE_TIMEOUT_S", "RATE_WINDOW", "vector_test_inputs", "earth_prior_mG",
            "motor_signal_table", "MOTOR_TIMEOUT_S"]
 
@@ -239,6 +240,12 @@ class Held:
             return self._v
         return self._nan
 
+    def time_at(self, t_s: float) -> float:
+        """The held value's sample time under ``at``'s rule (NaN when ``at`` gives NaN)."""
+        if self._t is not None and self._t <= t_s and t_s - self._t <= self.timeout_s:
+            return self._t
+        return float("nan")
+
 
 def imu_rate_hz(t_s: np.ndarray, start: int = 0) -> np.ndarray:
     """IMU rate at each step: 1 / median of the last RATE_WINDOW intervals ending there (0 at
@@ -282,75 +289,23 @@ def rounded(x, nd=3):
 
 
 # ----------------------------------------------------------------------------- per IMU step
-TILT_AGREE_DEG = 8.0         # the autopilot's roll/pitch count only while their lasting gap to ours is this small
-TILT_GAP_S = 10.0            # the gap is low-passed with this time constant (ours errs for seconds, a drift lasts)
-TILT_JUMP_DEG = 20.0         # ... and a gap this large at any one step (a jump of the autopilot) counts at once
-
-
-# One attitude (issues 27, 30): the detector's reference is the default AHRS, the attitude shown;
-# the field tests take its tilt or the autopilot's where ours confirms it (``checked_tilt``), never
-# the autopilot's heading.  Below ``min_imu_rate_hz`` the attitude-based tests are off and say why.
-def checked_tilt(chain, att_rp: np.ndarray, t_s=None, state: "StepState | None" = None) -> tuple[np.ndarray, np.ndarray]:
-    """(roll, pitch) [rad] for the field tests: the autopilot's GPS-aided roll and pitch where fresh
-    and their lasting gap to our AHRS's is within TILT_AGREE_DEG, else ours.
-
-    Our AHRS tilts by 5-10° for a second or two in a hard manoeuvre (a 50-80 mG field-vector
-    residual), the GPS-aided autopilot does not; an autopilot drifting open-loop in a GPS outage
-    drifts for tens of seconds.  So the gap g = autopilot − ours is low-passed with TILT_GAP_S,
-    ḡ ← ḡ + (1 − e^(−Δt/τ)) (g − ḡ) on the steps where the autopilot is fresh (held otherwise), and
-    the autopilot counts while |ḡ| ≤ TILT_AGREE_DEG and |g| ≤ TILT_JUMP_DEG on both axes (a jump of
-    its estimate counts at once; our AHRS's manoeuvre errors measured up to 13°, population clean
-    flight 173).  ``t_s`` and ``state``
-    (``StepState``, carried from call to call live) give the steps' times and the filter's state;
-    without them each step is judged on its own gap (|g|)."""
-    roll, pitch = np.asarray(chain.roll_rad, dtype=float), np.asarray(chain.pitch_rad, dtype=float)
-    ar, ap = np.asarray(att_rp[:, 0], dtype=float), np.asarray(att_rp[:, 1], dtype=float)
-    lim = np.radians(TILT_AGREE_DEG)
-    with np.errstate(invalid="ignore"):
-        gr, gp = wrap_angle_rad(ar - roll), ap - pitch
-        jump = np.radians(TILT_JUMP_DEG)
-        agree = np.isfinite(ar) & np.isfinite(ap) & (np.abs(gr) <= jump) & (np.abs(gp) <= jump)
-    if t_s is not None and state is not None:
-        gr, gp = _lasting_gap(np.asarray(t_s, dtype=float), gr, gp, state)
-    with np.errstate(invalid="ignore"):
-        agree &= (np.abs(gr) <= lim) & (np.abs(gp) <= lim)
-    return np.where(agree, ar, roll), np.where(agree, ap, pitch)
-
-
-def _lasting_gap(t: np.ndarray, gr: np.ndarray, gp: np.ndarray, state: "StepState") -> tuple[np.ndarray, np.ndarray]:
-    """The autopilot-minus-ours tilt gap low-passed with TILT_GAP_S (``checked_tilt``), per step."""
-    out_r, out_p = np.full(len(t), np.nan), np.full(len(t), np.nan)
-    tl, rl, pl = t.tolist(), gr.tolist(), gp.tolist()
-    for i in range(len(tl)):
-        r, p = rl[i], pl[i]
-        if math.isfinite(r) and math.isfinite(p):
-            if state.tilt_gap is None or state.tilt_gap_t is None or tl[i] < state.tilt_gap_t:
-                state.tilt_gap = (r, p)
-            else:
-                a = 1.0 - math.exp(-(tl[i] - state.tilt_gap_t) / TILT_GAP_S)
-                state.tilt_gap = (state.tilt_gap[0] + a * (r - state.tilt_gap[0]),
-                                  state.tilt_gap[1] + a * (p - state.tilt_gap[1]))
-            state.tilt_gap_t = tl[i]
-        if state.tilt_gap is not None:
-            out_r[i], out_p[i] = state.tilt_gap
-    return out_r, out_p
-
-
 @dataclass
 class StepState:
     """What the per-step gates carry from one call to the next (the live form calls per sample)."""
     last_steep_t: float = -np.inf
     tilt_gap: tuple | None = None        # the autopilot-minus-ours tilt gap, low-passed (``checked_tilt``)
     tilt_gap_t: float | None = None
+    ours: tuple = (np.zeros(0), np.zeros(0), np.zeros(0))   # our (t, roll, pitch) over the last steps (``brought_forward``)
 
 
 def step_inputs(t, chain, mag_held, att_rp, gps_held, rate_hz, gyro, policy: FieldPolicy,
-                settings: DetectionSettings, state: StepState) -> dict:
+                settings: DetectionSettings, state: StepState, att_t=None) -> dict:
     """The detector's inputs on IMU steps (arrays of any length, one for live).
 
     chain: object with roll_rad, pitch_rad, yaw_rad, mag_heading_rad, valid arrays (our attitude,
     the default AHRS, on these steps); mag_held (n, 3) calibrated field; att_rp (n, 2) the
-    autopilot's roll and pitch (``checked_tilt``); gps_held (n, len(GPS_COLUMNS)); rate_hz (n,) IMU
+    autopilot's roll and pitch (``checked_tilt``), att_t (n,) their sample times (``brought_forward``;
+    None: used as held); gps_held (n, len(GPS_COLUMNS)); rate_hz (n,) IMU
     rate; gyro (n, 3).  Below ``min_imu_rate_hz`` our attitude
     is not trusted: the heading and field tests are off there.
     Returns e, d, trusted, strength, incl, heading, yaw_rate (the detector's arguments) and
@@ -358,6 +313,8 @@ def step_inputs(t, chain, mag_held, att_rp, gps_held, rate_hz, gyro, policy: Fie
     """
     t = np.asarray(t, dtype=float)
     valid = np.asarray(chain.valid, dtype=bool)
+    if att_t is not None:
+        att_rp = brought_forward(t, chain, att_rp, att_t, state)
     roll, pitch = checked_tilt(chain, att_rp, t, state)
     field_mG = np.linalg.norm(mag_held, axis=1)
     incl = field_inclination_deg(mag_held, roll, pitch)
@@ -475,7 +432,8 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
     gps_held = hold_last(g[:, 0], gps, t, GPS_TIMEOUT_S)
     rate = imu_rate_hz(t)
     x = step_inputs(t, chain, hold_last(mag_cal[:, 0], mag_cal[:, 1:4], t, GPS_TIMEOUT_S), att_held[:, :2],
-                    gps_held, rate, imu[:, 1:4], policy, settings, StepState())
+                    gps_held, rate, imu[:, 1:4], policy, settings, StepState(),
+                    att_t=hold_last(att[:, 0], att[:, 0], t, ATTITUDE_TIMEOUT_S))
     motor, motor_name = motor_signal_table(log)
     motor_held = hold_last(motor[:, 0], motor[:, 1], t, MOTOR_TIMEOUT_S)
     roll_v, pitch_v, ok_v, gyro_v = vector_test_inputs(chain, x, imu[:, 1:4], x["steep"])

@@ -192,7 +192,7 @@ class LiveAnalyzer:
         return (t, st.roll_rad, st.pitch_rad, st.yaw_rad, st.mag_heading_rad, st.heading_true_rad, bool(st.valid),
                 gyro, self._mag.at(t)[0], self._att.at(t)[0], self._gps.at(t)[0], self.chain.declination_deg,
                 np.asarray(st.gyro_bias_rad_s, dtype=float), self._motor_at(t),
-                sh.roll_rad, sh.pitch_rad, sh.heading_true_rad, bool(sh.valid))
+                sh.roll_rad, sh.pitch_rad, sh.heading_true_rad, bool(sh.valid), self._att.time_at(t))
 
     def _motor_at(self, t: float) -> float:
         """The motor signal (``motor_signal_table``'s rule on what has arrived: a current that
@@ -211,7 +211,8 @@ class LiveAnalyzer:
         history = np.asarray(self._imu_t, dtype=float)
         rate = imu_rate_hz(np.concatenate([history, t]), start=len(history))
         self._imu_t.extend(t.tolist())
-        x = step_inputs(t, chain, mag, att[:, :2], gps, rate, gyro, self.policy, self.settings, self._steps)
+        x = step_inputs(t, chain, mag, att[:, :2], gps, rate, gyro, self.policy, self.settings, self._steps,
+                        att_t=np.asarray(cols[18], dtype=float))
         chain.gyro_bias_rad_s = np.vstack(cols[12])
         motor = np.asarray(cols[13], dtype=float)
         z_vector, residual = self._vector_steps(t, chain, mag, att, gyro, motor, rate, x)
