@@ -146,7 +146,8 @@ def _came_down_onto(t: np.ndarray, size: np.ndarray, up_m: np.ndarray, lo: int, 
     before = int(np.searchsorted(t, t[rest] - s.lead_s))
     coming = _slope(t[before:rest + 1], size[before:rest + 1])
     at_rest = _slope(t[settled:hi + 1], size[settled:hi + 1])
-    if not (np.isfinite(coming) and coming > 0 and np.isfinite(at_rest) and abs(at_rest) <= s.rest_slope_ratio * coming):
+    if not (np.isfinite(coming) and coming > 0 and np.isfinite(at_rest)
+            and abs(at_rest) <= s.rest_slope_ratio * coming):
         return None
     return lo + int(below[-1])
 

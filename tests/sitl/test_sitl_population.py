@@ -62,8 +62,8 @@ def test_a_short_population_flight_is_flown_tabled_and_analysed_again_from_its_k
         r = out["flights"][name]
         assert r["armed"] is True, r.get("prearm")
         assert r["flight"] is short
-        for kind in ("bin", "tlog"):
-            assert isinstance(r[f"{kind}_combined"], list) and r[f"{kind}_duration"] > 20.0, kind
+        for kind, least_s in (("bin", 20.0), ("tlog", 5.0)):          # the .tlog on the wall clock: 8x shorter
+            assert isinstance(r[f"{kind}_combined"], list) and r[f"{kind}_duration"] > least_s, kind
         assert r["tlog_late"]["max"] >= 0.0
         printed = io.StringIO()
         with contextlib.redirect_stdout(printed):
