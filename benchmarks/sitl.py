@@ -11,6 +11,10 @@ Scenarios, each printed as one table: ours vs the truth vs ArduPilot's own resul
                .tlog of the wizard run: the same offsets, the same alarms, one report per compass.
 5. flights   -- (--flights) 2-minute GUIDED flights at real time: clean, with SIM_MAG_MOT, low over a
                SIM_MAG_ALY anomaly, with SIM_GPS1_ENABLE 0 for 60 s: alarms on the .BIN vs on the .tlog.
+   population (--population N) clean flights drawn from wide priors (population_flight: sites by
+               inclination -60..75 deg, routes, headings, speeds, SIM_MAG_MOT with COMPASS_MOT partly
+               set, wind, GPS outages), one table of their combined alarms on the .BIN and the .tlog;
+               --keep DIR keeps the logs, --analyse-kept DIR analyses them again without flying.
 7. fixed_yaw -- large-vehicle mode: the rig held at a known yaw, the station sends
                MAV_CMD_FIXED_MAG_CAL_YAW; the firmware's offsets and ours vs SIM_MAGn_OFS.
 6. trust     -- the rig spun about 8 axes with the guided wizard live: our calibration of the session
@@ -19,7 +23,8 @@ Scenarios, each printed as one table: ours vs the truth vs ArduPilot's own resul
 Ports 14613-14619 (-I 12..16).  Bounded by `timeout` per SITL run.
 
 Run:  nice -n 10 .venv/bin/python benchmarks/sitl.py [--speedup 8] [--only streams,wizard,onboard,logs,fixed_yaw,trust]
-          [--flights clean,motor,anomaly,gps_off]
+          [--flights clean,motor,anomaly,gps_off] [--population N --population-seed S] [--instance 20..29]
+          [--keep DIR] [--analyse-kept DIR]
 """
 from __future__ import annotations
 
@@ -325,14 +330,16 @@ WIND = {"SIM_WIND_SPD": 7.0, "SIM_WIND_DIR": 60.0, "SIM_WIND_TURB": 2.0}
 class SitlFlight:
     """One GUIDED flight: extra defaults (SIM truth, speed, wind), the legs' altitude [m], what the
     truth is, the site (--home lat, lon, alt m, yaw deg), the legs (north, east m from home), and
-    what is done in flight: GPS away for 60 s from the second leg, or the anomaly (SIM_MAG_ALY, 150,
+    what is done in flight: GPS away for ``gps_off_s`` (60 s) from the second leg, or the anomaly (SIM_MAG_ALY, 150,
     -100, 200 mG at the ground, 1/8 at SIM_MAG_ALY_HGT 5 m) switched on by a parameter once
     airborne at 4 m ("inflight": it appears in time), or switched on at 25 m, where it is 1/216 of
     that (1.2 mG), and flown onto in a descent to 2 m and the climb back ("descent": it rises and
     falls with the place flown).  The SITL anomaly depends on the height alone, so one set before
     take-off is under the vehicle from the start: the detector learns it on the ground and alarms
     at the climb out of it, for the whole flight (measured: "rising with time" at take-off).
-    ``expect``: "none" (a clean flight: no alarm), "motor" (learnt, no alarm) or "anomaly"."""
+    ``expect``: "none" (a clean flight: no alarm), "motor" (learnt, no alarm) or "anomaly".  A leg is
+    (north, east) at ``alt_m`` and the speed WPNAV_SPEED says, or (north, east, alt m, speed m/s)
+    (MAV_CMD_DO_CHANGE_SPEED before it; the population's, ``population_flight``)."""
     extra: dict
     alt_m: float
     truth: str
@@ -341,6 +348,9 @@ class SitlFlight:
     gps_off: bool = False
     anomaly: str | None = None
     expect: str = "none"
+    gps_off_s: float = 60.0                       # the outage's length when ``gps_off``
+    motor_truth: tuple | None = MOTOR_TRUTH_mG_PER_A   # the field per ampere left after COMPASS_MOT (expect "motor")
+    site: str = ""                                # the population's: "lat, lon (inclination)" for the table
 
 
 ANOMALY = {"SIM_MAG_ALY_HGT": 5.0, "SIM_MAG_ALY_X": 150.0, "SIM_MAG_ALY_Y": -100.0, "SIM_MAG_ALY_Z": 200.0}
@@ -374,19 +384,95 @@ FLIGHTS = {
 }
 
 
+MAV_CMD_DO_CHANGE_SPEED = 178
+FLIGHT_INSTANCES = (*range(10, 15), *range(20, 30))   # 10..14 (UDP 14601 + I) or, beside the suite, 20..29
+
+
+def flight_port(instance: int) -> int:
+    """The station's UDP port for the flights' SITL -I ``instance``: 14601 + I for 10..14, and
+    14620 + I for 20..29 (harness.BENCH_PORTS, outside the suite's 14610-14639)."""
+    return 14601 + instance if instance < 20 else 14620 + instance
+
+
+def population_flight(seed: int, k: int) -> tuple[str, SitlFlight]:
+    """Clean flight ``k`` of population ``seed``, drawn from wide priors nobody tuned for:
+    - site: an inclination drawn uniformly in -60..75 deg, then a random place (|lat| <= 72) whose
+      WMM inclination is within 4 deg of it; home altitude 0-600 m; initial heading 0-360 deg;
+    - route: 3-5 legs to random points 30-120 m from home (scaled so the legs take about 80-140 s),
+      each at its own height (10-40 m) and speed (3-12 m/s), then home; WP_YAW_BEHAVIOR 0, 1 or 2
+      (fixed heading, nose to the next point, or nose to it except RTL): headings of every kind;
+    - motor field (70 %): SIM_MAG_MOT of 0.5-6 mG/A in a random body direction, COMPASS_MOT
+      set to -(0-100 %) of it (0 in a third of them: not compensated), COMPASS_MOTCT 2 (current);
+    - wind (50 %): 0-8 m/s from anywhere, turbulence 0-2;
+    - a GPS outage (35 %): SIM_GPS1_ENABLE 0 for 20-45 s from the second leg.
+    Every draw from numpy's default_rng((seed, k)).  No disturbance: every flight is "no alarm"
+    ("motor": the residual field per ampere learnt, no alarm).  Returns (name, flight)."""
+    import warnings
+
+    from estimators.geomag import earth_field
+    warnings.filterwarnings("ignore", message=".*blackout zone.*")   # the WMM's caution near the poles
+    rng = np.random.default_rng((seed, k))
+    target = rng.uniform(-60.0, 75.0)
+    for _ in range(5000):
+        lat, lon = float(rng.uniform(-72.0, 72.0)), float(rng.uniform(-180.0, 180.0))
+        inc = earth_field(lat, lon, 0.0, 2026.9).inclination_deg
+        if abs(inc - target) <= 4.0:
+            break
+    home = (round(lat, 4), round(lon, 4), float(round(rng.uniform(0, 600))), float(round(rng.uniform(0, 360))))
+    n = int(rng.integers(3, 6))
+    bearings = np.sort(rng.uniform(0, 2 * np.pi, n)) + rng.uniform(0, 2 * np.pi)
+    pts = [(r * np.cos(b), r * np.sin(b)) for b, r in zip(bearings, rng.uniform(30, 120, n))]
+    alts = rng.uniform(10, 40, n + 1)
+    speeds = rng.uniform(3, 12, n + 1)
+    path = np.vstack([(0.0, 0.0), *pts, (0.0, 0.0)])
+    leg_s = float(np.sum(np.hypot(*np.diff(path, axis=0).T) / speeds))
+    scale = float(np.clip(rng.uniform(80, 140) / leg_s, 0.5, 2.0))
+    legs = tuple((round(float(x * scale), 1), round(float(y * scale), 1), round(float(a), 1), round(float(v), 1))
+                 for (x, y), a, v in zip([*pts, (0.0, 0.0)], alts, speeds))
+    extra: dict = {"WP_YAW_BEHAVIOR": int(rng.choice([0, 1, 2]))}
+    motor, what = None, []
+    if rng.uniform() < 0.7:
+        d = rng.normal(size=3)
+        mot = d / np.linalg.norm(d) * rng.uniform(0.5, 6.0)
+        comp = 0.0 if rng.uniform() < 1 / 3 else float(rng.uniform(0.0, 1.0))
+        extra.update({f"SIM_MAG_MOT_{a}": round(float(v), 2) for a, v in zip("XYZ", mot)})
+        extra.update({f"COMPASS_MOT{sfx}_{a}": round(float(-comp * v), 2) for sfx in ("", "2", "3")
+                      for a, v in zip("XYZ", mot)})
+        extra["COMPASS_MOTCT"] = 2
+        motor = tuple(round(float(extra[f"SIM_MAG_MOT_{a}"] + extra[f"COMPASS_MOT_{a}"]), 2) for a in "XYZ")
+        what.append(f"SIM_MAG_MOT {np.linalg.norm(mot):.1f} mG/A, {100 * comp:.0f} % compensated")
+    if rng.uniform() < 0.5:
+        extra.update({"SIM_WIND_SPD": round(float(rng.uniform(0, 8)), 1),
+                      "SIM_WIND_DIR": round(float(rng.uniform(0, 360))),
+                      "SIM_WIND_TURB": round(float(rng.uniform(0, 2)), 1)})
+        what.append(f"wind {extra['SIM_WIND_SPD']:g} m/s")
+    gps_off_s = float(round(rng.uniform(20, 45))) if rng.uniform() < 0.35 else 0.0
+    if gps_off_s:
+        what.append(f"GPS off {gps_off_s:.0f} s")
+    site = f"{home[0]:.1f}, {home[1]:.1f} (inc {earth_field(home[0], home[1], 0.0, 2026.9).inclination_deg:.0f})"
+    truth = f"no alarm ({site}; {n + 1} legs; yaw {extra['WP_YAW_BEHAVIOR']}; {'; '.join(what) or 'plain'})"
+    return f"pop{seed}_{k}", SitlFlight(extra, float(round(alts[0], 1)), truth, home=home, legs=legs,
+                                        gps_off=bool(gps_off_s), gps_off_s=gps_off_s or 60.0,
+                                        expect="motor" if motor else "none", motor_truth=motor, site=site)
+
+
 def _offset(home: tuple, dn: float, de: float) -> tuple[float, float]:
     return home[0] + dn / 111320.0, home[1] + de / (111320.0 * np.cos(np.radians(home[0])))
 
 
-def run_flight(name: str, out: dict, instance: int = 14) -> None:
+def run_flight(name: str, out: dict, instance: int | None = 14, flight: SitlFlight | None = None,
+               speedup: float = 1.0) -> None:
     """A GUIDED flight at real time (the .tlog's arrival times are wall clock, the .BIN's the
     simulation's: a speedup would squeeze one against the other): takeoff, the scenario's legs,
-    land.  Session .tlog and .BIN analysed alike.  SITL instance ``instance`` (10..14), UDP port
-    14601 + instance."""
-    f = FLIGHTS[name]
+    land.  Session .tlog and .BIN analysed alike.  ``flight``: FLIGHTS[name] unless given (the
+    population's).  SITL instance ``instance`` and its UDP port (``flight_port``; None: the harness
+    claims a free pair).  ``speedup`` other than 1 is for the smoke test only (the mechanics, not
+    the .tlog's timing)."""
+    f = flight or FLIGHTS[name]
     alt = f.alt_m
-    res: dict = {}
-    with sitl_run(out, f"sitl-bench-{name}-", instance, 14601 + instance, model="quad", speedup=1, extra=f.extra,
+    res: dict = {"flight": f}
+    with sitl_run(out, f"sitl-bench-{name}-", instance, None if instance is None else flight_port(instance),
+                  model="quad", speedup=speedup, extra=f.extra,
                   limit_s=600, home=f.home) as (sitl, session, link):
         watch = Watch(link)
         res["armed"] = arm(session, watch)
@@ -396,26 +482,34 @@ def run_flight(name: str, out: dict, instance: int = 14) -> None:
             time.sleep(5)
             res["anomaly_set_failed"] = set_params(session, ANOMALY)
 
-        def fly_to(dn: float, de: float, a: float, timeout_s: float = 60.0) -> None:
+        def fly_to(dn: float, de: float, a: float, timeout_s: float = 90.0) -> None:
             lat, lon = _offset(f.home, dn, de)
             goto(session, lat, lon, a)
             wait_for(lambda: watch.position and np.hypot((watch.position[0] - lat) * 111320.0,
                                                          (watch.position[1] - lon) * 111320.0 *
                                                          np.cos(np.radians(lat))) < 3
                      and abs(watch.position[2] - a) < 1.5, timeout_s)
-        for i, (dn, de) in enumerate(f.legs):
+
+        def gps_back() -> None:
+            if "gps_off_unix" in res and "gps_on_unix" not in res and time.time() - res["gps_off_unix"] > f.gps_off_s:
+                set_params(session, {"SIM_GPS1_ENABLE": 1})
+                res["gps_on_unix"] = time.time()
+        for i, leg in enumerate(f.legs):
+            dn, de = leg[:2]
+            a = leg[2] if len(leg) > 2 else alt
+            if len(leg) > 3:
+                command(session, MAV_CMD_DO_CHANGE_SPEED, 1, leg[3], -1)
             if f.gps_off and i == 1:
                 set_params(session, {"SIM_GPS1_ENABLE": 0})
                 res["gps_off_unix"] = time.time()
             if f.anomaly == "descent" and i == 1:     # down onto the anomaly and up again, 25 m of track
                 fly_to(dn / 2, de / 2, 2.0)
                 fly_to(dn / 2 + 25.0, de / 2, alt)
-            fly_to(dn, de, alt)
-            if f.gps_off and "gps_off_unix" in res and time.time() - res["gps_off_unix"] > 60:
-                set_params(session, {"SIM_GPS1_ENABLE": 1})
-        if f.gps_off:
-            wait_for(lambda: time.time() - res["gps_off_unix"] > 60, 70)
-            set_params(session, {"SIM_GPS1_ENABLE": 1})
+            fly_to(dn, de, a)
+            gps_back()
+        if f.gps_off and "gps_off_unix" in res:
+            wait_for(lambda: time.time() - res["gps_off_unix"] > f.gps_off_s, f.gps_off_s + 10)
+            gps_back()
         set_mode(session, COPTER_LAND)
         wait_for(lambda: not watch.armed, 120)
         time.sleep(2)
@@ -444,6 +538,22 @@ def run_flight(name: str, out: dict, instance: int = 14) -> None:
     out.setdefault("flights", {})[name] = res
 
 
+def analyse_kept(folder: Path, name: str, out: dict) -> None:
+    """``analyse_flight_logs`` on a flight kept by --keep (folder/NAME.BIN, NAME.tlog), its flight
+    from its name (FLIGHTS, or popSEED_K: ``population_flight``); no live view, no armed flag."""
+    if name.startswith("pop"):
+        seed, k = (int(v) for v in name[3:].split("_"))
+        flight = population_flight(seed, k)[1]
+    else:
+        flight = FLIGHTS[name]
+    res: dict = {"flight": flight, "armed": "kept"}
+    for kind, ext in (("bin", "BIN"), ("tlog", "tlog")):
+        if (folder / f"{name}.{ext}").is_file():
+            res[kind] = folder / f"{name}.{ext}"
+    analyse_flight_logs(res)
+    out.setdefault("flights", {})[name] = res
+
+
 def analyse_flight_logs(res: dict) -> None:
     """analyze on the flight's .BIN and session .tlog (res["bin"], res["tlog"]): alarms on the boot
     clock and on each log's UNIX clock, explanations, motor field, the detector's inputs."""
@@ -461,18 +571,124 @@ def analyse_flight_logs(res: dict) -> None:
                                       for a in summary.get("alarms", [])]
         res[f"{kind}_explained"] = [(a["kind"], round(boot + a["start_s"], 2), a.get("explanation_text") or "")
                                     for a in summary.get("alarms", []) if a.get("explanation_text")]
+        res[f"{kind}_combined"] = [(round(boot + a["start_s"], 1), None if a.get("end_s") is None else
+                                    round(boot + a["end_s"], 1), a.get("explanation_text") or "")
+                                   for a in summary.get("alarms", []) if a["kind"] == "combined"]
         res[f"{kind}_motor"] = summary.get("motor_field") or {}
         res[f"{kind}_duration"] = log.duration_s
-        res[f"{kind}_inputs"] = flight_inputs(log)
+        res[f"{kind}_inputs"] = flight_inputs(log, diagnose=bool(summary.get("alarms")))
+    if res.get("tlog") is not None:
+        res["tlog_late"] = raw_imu_late_s(res["tlog"])
+        if res.get("tlog_combined"):         # the diagnosis: the same .tlog with RAW_IMU on the boot clock
+            with raw_imu_on_boot_clock():
+                log = read_log(res["tlog"])
+            summary, _ = analyze_log(log)
+            boot = boot_offset_s(res["tlog"], log)
+            res["tlog_combined_boot_clock"] = [(round(boot + a["start_s"], 1), None if a.get("end_s") is None else
+                                                round(boot + a["end_s"], 1), a.get("explanation_text") or "")
+                                               for a in summary.get("alarms", []) if a["kind"] == "combined"]
 
 
 
-def flight_inputs(log) -> dict:
+def raw_imu_late_s(tlog: Path) -> dict:
+    """How late the session .tlog's RAW_IMU arrived against the vehicle's clock: per packet its
+    arrival minus its time_usec (ArduPilot's boot clock), less the smallest such value up to then
+    (the reader's boot-clock anchor, groundstation.io.decode._BootClock).  The reader times RAW_IMU
+    (our AHRS, the compass) on arrival and ATTITUDE (the autopilot's tilt) on that boot clock, so
+    this is how far apart the two stand in the .tlog: it grows for good when the SITL falls behind
+    the wall clock (a loaded machine).  {median, p95, max} [s]."""
+    from pymavlink import mavutil
+
+    late = []
+    conn = mavutil.mavlink_connection(str(tlog))
+    try:
+        while (m := conn.recv_match(type="RAW_IMU")) is not None:
+            if m.get_srcSystem() == 1 and m.time_usec < 1e14:
+                late.append(m._timestamp - m.time_usec * 1e-6)
+    finally:
+        conn.close()
+    if not late:
+        return {}
+    d = np.asarray(late) - np.minimum.accumulate(late)
+    return {"median": float(np.median(d)), "p95": float(np.percentile(d, 95)), "max": float(d.max())}
+
+
+@contextlib.contextmanager
+def raw_imu_on_boot_clock():
+    """A diagnosis, not the station's reading: while open, the .tlog reader
+    (groundstation.io.logs.mavlink_columns._ColumnDecoder) times RAW_IMU by its time_usec on the
+    boot clock of ATTITUDE and SCALED_IMUn (where time_usec < 1e14 us: ArduPilot's micros64), as
+    commit e9e9156 did before e88fe7f put it back on arrival.  Its _clock and _scaled are the
+    reader's of 2026-12-05 with that one change; restored on exit."""
+    from groundstation.io import decode as dec
+    from groundstation.io.logs import mavlink_columns as mc
+
+    cls, ids = mc._ColumnDecoder, mc._ID
+    kept = cls._clock, cls._scaled
+
+    def _clock(self):
+        parts = {}
+        for name in ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "ATTITUDE", "ATTITUDE_QUATERNION",
+                     "GLOBAL_POSITION_INT"):
+            rows = self.accepted(ids[name])
+            f = self.rec.fields(ids[name], rows)
+            if name == "ATTITUDE":
+                self.att_ok = np.isfinite(f["roll"]) & np.isfinite(f["pitch"]) & np.isfinite(f["yaw"])
+                rows, f = rows[self.att_ok], f[self.att_ok]
+            elif name == "ATTITUDE_QUATERNION":
+                self.quat, valid = dec.normalised_quaternion(f["q1"], f["q2"], f["q3"], f["q4"])
+                self.quat_bad = int((~valid).sum())
+                self.quat, rows, f = self.quat[valid], rows[valid], f[valid]
+            parts[ids[name]] = (rows, f["time_boot_ms"].astype(float))
+        rows = self.accepted(ids["RAW_IMU"])
+        us = self.rec.fields(ids["RAW_IMU"], rows)["time_usec"].astype(float) if len(rows) else np.zeros(0)
+        self.raw_on = us < 1e14
+        self.raw_rows = rows
+        parts[ids["RAW_IMU"]] = (rows[self.raw_on], us[self.raw_on] / 1000.0)
+        rows = np.concatenate([p[0] for p in parts.values()])
+        boot = np.concatenate([p[1] for p in parts.values()])
+        order = np.argsort(rows, kind="stable")
+        t = np.empty(len(rows))
+        t[order] = dec._BootClock().times(boot[order], self.rec.arrival[rows[order]])
+        out, k = {}, 0
+        self.parts = {i: p[0] for i, p in parts.items()}
+        for i, (r, _) in parts.items():
+            out[i] = t[k:k + len(r)]
+            k += len(r)
+        return out
+
+    def _scaled(self, times):
+        for msg_id, instance in mc._SCALED.items():
+            if msg_id == ids["RAW_IMU"]:
+                rows = self.raw_rows
+                f, t = self.rec.fields(msg_id, rows), self.rec.arrival[rows].astype(float)
+                t[self.raw_on] = times[msg_id]
+            else:
+                rows = self.parts[msg_id]
+                f, t = self.rec.fields(msg_id, rows), times[msg_id]
+            if not len(rows):
+                continue
+            mag = np.column_stack([f["xmag"], f["ymag"], f["zmag"]])
+            self._judge(instance, rows, t, mag.astype(float), dec.MG_UNIT)
+            has = (mag != 0).any(axis=1)
+            self.table("mag", rows[has], t[has], *mag[has].T, np.nan, np.nan, np.nan, instance)
+            gyro, acc = dec.scaled_imu_to_si(np.column_stack([f["xgyro"], f["ygyro"], f["zgyro"]]),
+                                             np.column_stack([f["xacc"], f["yacc"], f["zacc"]]))
+            self.table("imu", rows, t, *gyro.T, *acc.T, instance)
+    try:
+        cls._clock, cls._scaled = _clock, _scaled
+        yield
+    finally:
+        cls._clock, cls._scaled = kept
+
+
+def flight_inputs(log, diagnose: bool = True) -> dict:
     """What the detector is given on a flight log, for the leg-start alarms of clean flights: the
     IMU, compass and attitude rates, the largest tilt the autopilot reports, the largest difference
     between our AHRS's roll/pitch and the autopilot's (which the field tests use only within
     jobs.inputs.TILT_AGREE_DEG of ours), and the alarms analyze gives when the autopilot's tilt is
-    taken everywhere (a diagnosis: the limit patched for one call, then restored)."""
+    taken everywhere (a diagnosis: the limit patched for one call, then restored; only when
+    ``diagnose``, i.e. the log alarms: a second analyze of the log)."""
     import groundstation.jobs.inputs as inputs
     from groundstation.jobs.analyze import analyze_log
 
@@ -485,10 +701,11 @@ def flight_inputs(log) -> dict:
         d_tilt = np.degrees(np.maximum(np.abs(np.angle(np.exp(1j * (ch.roll_rad - att[:, 0])))),
                                        np.abs(ch.pitch_rad - att[:, 1])))
         tilt_ap = np.degrees(np.hypot(att[:, 0], att[:, 1]))
-    kept = inputs.TILT_AGREE_DEG
+    kept, with_ap = inputs.TILT_AGREE_DEG, []
     try:
         inputs.TILT_AGREE_DEG = 90.0
-        with_ap = analyze_log(log)[0].get("alarms", [])
+        if diagnose:
+            with_ap = analyze_log(log)[0].get("alarms", [])
     finally:
         inputs.TILT_AGREE_DEG = kept
     return {"imu_hz": rate(log.imu), "mag_hz": rate(log.mag), "attitude_hz": rate(log.attitude),
@@ -705,7 +922,7 @@ def print_flights(out: dict) -> None:
         bm, tm = r.get("bin_motor", {}), r.get("tlog_motor", {})
         armed = r.get("armed") if r.get("armed") else f"no: {'; '.join(r.get('prearm') or [])}"
         ba, ta = r.get("bin_alarms", []), r.get("tlog_alarms", [])
-        rows.append((name, armed, _alarm_text(ba, 0.0), _alarm_text(ta, 0.0), FLIGHTS[name].truth,
+        rows.append((name, armed, _alarm_text(ba, 0.0), _alarm_text(ta, 0.0), r["flight"].truth,
                      f"{bm.get('status')} {fmt(bm.get('mG_per_A'))} / {tm.get('status')} {fmt(tm.get('mG_per_A'))}"))
         mb, nb, db = alarm_match(ba, ta)
         mt, nt, dt = alarm_match(ta, ba)
@@ -740,6 +957,42 @@ def print_flights(out: dict) -> None:
         table("5b. reboot at real time after the clean flight (landed)", ("", "ours", "target"),
               [("'no attitude data' shown meanwhile", clean.get("stale_seen"), True),
                ("live data after the reboot command [s]", clean.get("reboot_resume_s"), "<= 5")])
+
+
+def print_population(out: dict) -> None:
+    """One row per population flight (``--population``): its draw, the combined alarms on the .BIN
+    and on the session .tlog (start-end s of the boot clock, explanation), the single-test alarms
+    besides, the motor field learnt against what COMPASS_MOT leaves, the .tlog's IMU rate."""
+    rows = []
+    for name, r in (out.get("flights") or {}).items():
+        f = r["flight"]
+        if not name.startswith("pop"):
+            continue
+        mot = [f.extra.get(f"SIM_MAG_MOT_{a}", 0.0) for a in "XYZ"]
+        motor = (f"{np.linalg.norm(mot):.1f} -> {np.linalg.norm(f.motor_truth):.1f}" if f.motor_truth else "0")
+        learnt = " / ".join(fmt(np.linalg.norm(m["mG_per_A"]), 1) if (m := r.get(f"{k}_motor") or {}).get("mG_per_A")
+                            else (m.get("status") or "—") for k in ("bin", "tlog"))
+
+        def comb(kind: str) -> str:
+            c = r.get(f"{kind}_combined")
+            if c is None:
+                return "—"
+            return str(len(c)) + "".join(f"; {a:.1f}-{fmt(b, 1)} s {e[:60]}" for a, b, e in c[:2])
+        singles = "/".join(str(len([a for a in r.get(f"{k}_alarms", []) if a[0] != "combined"])) for k in ("bin", "tlog"))
+        wind = f.extra.get("SIM_WIND_SPD")
+        rows.append((name, f.site, f"{len(f.legs)} legs, yaw {f.extra.get('WP_YAW_BEHAVIOR')}", motor,
+                     f"{f.gps_off_s:.0f} s" if f.gps_off else "—", f"{wind:g}" if wind is not None else "—",
+                     "kept" if r.get("armed") == "kept" else "yes" if r.get("armed") else "no",
+                     comb("bin"), comb("tlog"), singles, learnt,
+                     fmt((r.get("tlog_inputs") or {}).get("imu_hz"), 1),
+                     f"{fmt((r.get('tlog_late') or {}).get('median'))} / {fmt((r.get('tlog_late') or {}).get('max'))}",
+                     str(len(r["tlog_combined_boot_clock"])) if "tlog_combined_boot_clock" in r else "—"))
+    if rows:
+        table("5p. population of clean flights (combined alarms: count; start-end s of the boot clock, explanation)",
+              ("flight", "site lat, lon (inclination deg)", "route", "motor field mG/A (SIM_MAG_MOT -> left)",
+               "GPS outage", "wind m/s", "armed", "combined .BIN", "combined .tlog", "single-test .BIN/.tlog",
+               "motor learnt mG/A .BIN / .tlog", ".tlog IMU Hz", ".tlog RAW_IMU late s median / max",
+               "combined .tlog, RAW_IMU on the boot clock (diagnosis)"), rows)
 
 
 def _max_err(vals: list, truths: list) -> float | None:
@@ -804,26 +1057,29 @@ def summary_rows(out: dict) -> list[tuple]:
         mb, nb, _ = alarm_match(ba, ta)
         mt, nt, _ = alarm_match(ta, ba)
         same = mb == nb and mt == nt
-        if FLIGHTS[name].expect == "none":
+        f = r["flight"]
+        if f.expect == "none":
             rows.append((f"5 flight {name}", f"alarms .BIN {nb}, .tlog {nt}", "no alarm", "—", "no alarm; same on both",
                          nb == 0 and nt == 0))
-        elif FLIGHTS[name].expect == "motor":
+        elif f.expect == "motor":
             m = r.get("bin_motor") or {}
-            e = _max_err([m.get("mG_per_A")], [MOTOR_TRUTH_mG_PER_A])
-            explained = r.get("bin_explained", []) + r.get("live_alarms", [])
+            e = _max_err([m.get("mG_per_A")], [f.motor_truth])
+            explained = r.get("bin_explained", []) + r.get("tlog_explained", []) + r.get("live_alarms", [])
             moving = all("moving with current" in x for _, _, x in explained)
-            learnt = e is not None and e <= 0.1 * float(np.linalg.norm(MOTOR_TRUTH_mG_PER_A))
+            # within 10 %, or 0.1 mG/A of a field COMPASS_MOT nearly removed (the population's)
+            learnt = e is not None and e <= max(0.1 * float(np.linalg.norm(f.motor_truth)), 0.1)
             said = "no alarm" if not (nb or nt) else ("every alarm 'moving with current'" if moving
                                                         else "an alarm not explained 'moving with current'")
             rows.append((f"5 flight {name}", f"{fmt(m.get('mG_per_A'))} mG/A ({fmt(e)} off); {said}",
-                         f"{list(MOTOR_TRUTH_mG_PER_A)} mG/A", "—",
-                         "learnt within 10 %; no alarm, or each explained moving with current; same on both",
+                         f"{list(f.motor_truth)} mG/A", "—",
+                         "learnt within 10 % (or 0.1 mG/A); no alarm, or each explained moving with current; "
+                         "same on both",
                          learnt and moving and same))
         else:
             kinds = sorted({e.split(";")[0].replace("likely ", "").split(" at ")[0]
                             for _, _, e in r.get("bin_explained", []) + r.get("tlog_explained", []) if e})
             rows.append((f"5 flight {name}", f"alarms .BIN {nb}, .tlog {nt}, matched {mb}/{nb}, {mt}/{nt}; "
-                         f"{', '.join(kinds) or 'unexplained'}", FLIGHTS[name].truth[:40], "—",
+                         f"{', '.join(kinds) or 'unexplained'}", f.truth[:40], "—",
                          "alarms, same kinds, start within 0.5 s; fixed in place", same and nb > 0 and
                          "fixed in place" in kinds))
     return rows
@@ -855,8 +1111,17 @@ def main() -> int:
                          "compass that real time does not: the station stamps packets at wall time)")
     ap.add_argument("--flights", default="clean,motor,anomaly,gps_off", help="comma-separated of "
                     + ",".join(FLIGHTS) + " (2-4 min each at real time, ~3.5 min with boot and landing); '' for none")
-    ap.add_argument("--instance", type=int, default=14, choices=range(10, 15),
-                    help="the flights' SITL instance -I (10..14; UDP port 14601 + it): one per process run in parallel")
+    ap.add_argument("--instance", type=int, default=14, choices=FLIGHT_INSTANCES,
+                    help="the flights' SITL instance -I (10..14: UDP port 14601 + it; 20..29, beside the test suite: "
+                         "14620 + it): one per process run in parallel")
+    ap.add_argument("--population", type=int, default=0, metavar="N",
+                    help="also fly N clean flights drawn from wide priors (population_flight: sites, routes, "
+                         "headings, speeds, SIM_MAG_MOT with COMPASS_MOT partly set, wind, GPS outages), "
+                         "~4 min each at real time, one after the other")
+    ap.add_argument("--population-seed", type=int, default=0)
+    ap.add_argument("--analyse-kept", metavar="DIR", help="fly nothing: analyse again the flights kept in DIR by "
+                    "--keep (NAME.BIN, NAME.tlog; NAME a flight of --flights or popSEED_K) and print their tables")
+    ap.add_argument("--population-from", type=int, default=0, metavar="K", help="start at flight K of the population")
     ap.add_argument("--keep", metavar="DIR", help="copy each flight's .BIN and session .tlog here (NAME.BIN, NAME.tlog)")
     args = ap.parse_args()
     if SITL_BINARY is None:
@@ -881,11 +1146,26 @@ def main() -> int:
             print(f"unknown flight {name!r}: one of {', '.join(FLIGHTS)}")
             return 2
         runs.append((f"flight {name}", lambda name=name: run_flight(name, out, args.instance)))
+    for k in range(args.population_from, args.population_from + args.population):
+        name, flight = population_flight(args.population_seed, k)
+        runs.append((f"flight {name}", lambda name=name, flight=flight: run_flight(name, out, args.instance, flight)))
+    if args.analyse_kept:
+        runs = [(f"flight {name}", lambda name=name: analyse_kept(Path(args.analyse_kept), name, out))
+                for name in sorted({p.stem for p in Path(args.analyse_kept).glob("*.BIN")},
+                                   key=lambda n: (n.startswith("pop"), n.split("_")[0], int(n.split("_")[-1])
+                                                  if n.startswith("pop") else 0, n))]
     for what, run in runs:            # one scenario failing does not lose the others' figures
         try:
             run()
         except Exception as err:      # noqa: BLE001 (reported, the run goes on)
             print(f"{what}: failed: {type(err).__name__}: {err}"[:300])
+        r = (out.get("flights") or {}).get(what.removeprefix("flight "))
+        if what.startswith("flight ") and r is not None:   # as it goes: a long run cut short keeps its figures
+            print(f"{what} ({datetime.datetime.utcnow():%H:%M} UTC): {r['flight'].truth}; armed {r.get('armed')}; "
+                  f"combined .BIN {r.get('bin_combined')}, .tlog {r.get('tlog_combined')}; all .BIN "
+                  f"{r.get('bin_alarms')}, .tlog {r.get('tlog_alarms')}; motor .BIN "
+                  f"{(r.get('bin_motor') or {}).get('mG_per_A')} .tlog {(r.get('tlog_motor') or {}).get('mG_per_A')} "
+                  f"(truth {r['flight'].motor_truth if r['flight'].expect == 'motor' else None})", flush=True)
     print_tables(out)
     if "trust_cal" in out:
         rows = trust_verdict(out)
@@ -895,11 +1175,12 @@ def main() -> int:
         failed = [r[0] for r in rows if not r[4]]
         print(f"\ntrust: {len(rows) - len(failed)}/{len(rows)} pass" + (f"; failed: {failed}" if failed else ""))
     print_flights(out)
+    print_population(out)
     rows = summary_rows(out)
     table("summary: per scenario, ours vs the truth vs ArduPilot's own result",
           ("scenario", "ours", "truth", "ArduPilot's own", "target", "met"), rows)
     print(f"\n{sum(bool(r[5]) for r in rows)}/{len(rows)} targets met")
-    clean = [n for n in (out.get("flights") or {}) if FLIGHTS[n].expect in ("none", "motor")]
+    clean = [n for n, r in (out.get("flights") or {}).items() if r["flight"].expect in ("none", "motor")]
     if clean:
         alarmed = [n for n in clean if out["flights"][n].get("bin_alarms") or out["flights"][n].get("tlog_alarms")]
         print(f"clean SITL flights (no disturbance): {len(clean)}, with a combined alarm on the .BIN or .tlog: "

@@ -19,6 +19,12 @@ The likely kind, by the first rule that holds:
   ``place_max_m`` of track between the crossings, the vehicle came down by ``place_min_climb_m``
   or more to the peak and rose again as much after it, the peak at its lowest (``_down_and_up``):
   a field that varies in time does not peak where a descent turns into a climb but by chance.
+  Or, flown down onto the place to stay there (a landing, a hover low): the height fell by
+  ``place_min_climb_m`` or more while |r̄| rose through half its peak, and once the descent ended
+  (the height within ``rest_band_m`` of the peak's) |r̄| held steady: after ``settle_s`` (r̄'s own
+  lag) and for at least ``rest_min_s``, its slope at most ``rest_slope_ratio`` of the slope over the
+  ``lead_s`` before the descent ended (``_came_down_onto``).  A field that varies in time goes on
+  varying when the vehicle stops; a place's field stops with it.
   Its position is that of the peak;
 * "rising with time" (a ramp, a step): otherwise.
 Growth rate: the least-squares slope of |r̄| over the ``lead_s`` up to the alarm's start [mG/s].
@@ -44,6 +50,10 @@ class ExplainSettings:
     place_min_m: float = 10.0        # ground track flown between the half-peak crossings (module docstring)
     place_max_m: float = 60.0
     place_min_climb_m: float = 2.0   # a descent onto a place and the climb off it (module docstring)
+    rest_band_m: float = 0.5         # a descent onto a place to stay: "stopped" = within this of the peak's height
+    settle_s: float = 2.0            # ... r̄'s lag after the vehicle stops
+    rest_min_s: float = 1.5          # ... steady for at least this long after settle_s
+    rest_slope_ratio: float = 0.25   # ... its slope at rest over the slope as it came down
 
 
 def _slope(t: np.ndarray, y: np.ndarray) -> float:
@@ -103,6 +113,45 @@ def _down_and_up(up_m: np.ndarray, lo: int, k: int, hi: int, least_m: float) -> 
     return bool(min(fell, rose) >= least_m and h[j] - np.nanmin(h) <= max(1.0, 0.25 * min(fell, rose)))
 
 
+def _came_down_onto(t: np.ndarray, size: np.ndarray, up_m: np.ndarray, lo: int, k: int, hi: int,
+                    s: "ExplainSettings") -> int | None:
+    """The vehicle came down onto the place of the peak (step k) and stayed (module docstring): in
+    steps lo..hi (the ``shape_s`` before the alarm and the alarm) the height (smoothed as in
+    ``_down_and_up``) fell by ``place_min_climb_m`` or more to the peak's; the descent ended at the
+    last step before k higher than ``rest_band_m`` above the peak's height, with |r̄| already at half
+    its peak or more and below half somewhere before in the window; the height stayed within
+    ``rest_band_m`` from there to hi, over at least ``settle_s + rest_min_s``; and |r̄|'s slope after
+    ``settle_s`` is at most ``rest_slope_ratio`` of its slope over the ``lead_s`` before the descent
+    ended (which must be rising).  Returns the step where |r̄| first rose through half its peak (the
+    track is measured from there), or None."""
+    h = _smoothed(np.asarray(up_m, dtype=float)[lo:hi + 1], max(1, (hi - lo) // 40))
+    j = k - lo
+    if not (0 < j < len(h) and np.isfinite(h[j]) and np.isfinite(size[k])):
+        return None
+    if np.nanmax(h[:j + 1]) - h[j] < s.place_min_climb_m:
+        return None
+    above = np.flatnonzero(h[:j] > h[j] + s.rest_band_m)
+    if not len(above):
+        return None
+    rest = lo + int(above[-1]) + 1                      # the descent's end
+    if np.nanmax(np.abs(h[rest - lo:] - h[j])) > s.rest_band_m:
+        return None                                     # did not stay down
+    half = 0.5 * size[k]
+    below = np.flatnonzero(size[lo:rest] < half)
+    if not len(below) or not size[rest] >= half:
+        return None                                     # |r̄| did not rise through half its peak coming down
+    settled = int(np.searchsorted(t, t[rest] + s.settle_s))
+    if settled >= hi or t[hi] - t[settled] < s.rest_min_s:
+        return None
+    before = int(np.searchsorted(t, t[rest] - s.lead_s))
+    coming = _slope(t[before:rest + 1], size[before:rest + 1])
+    at_rest = _slope(t[settled:hi + 1], size[settled:hi + 1])
+    if not (np.isfinite(coming) and coming > 0 and np.isfinite(at_rest)
+            and abs(at_rest) <= s.rest_slope_ratio * coming):
+        return None
+    return lo + int(below[-1])
+
+
 def explain_alarm(t_s, residual_mG, motor_signal, north_m, east_m, lat_deg, lon_deg, scores: dict,
                   i0: int, i1: int, settings: ExplainSettings | None = None, up_m=None) -> dict:
     """One alarm (steps i0..i1) in numbers: disturbance_mG (body, at the largest |r̄|),
@@ -140,6 +189,10 @@ def explain_alarm(t_s, residual_mG, motor_signal, north_m, east_m, lat_deg, lon_
         placed = s.place_min_m <= width_m <= s.place_max_m or (
             up_m is not None and width_m <= s.place_max_m
             and _down_and_up(up_m, shape_start, k, i1, s.place_min_climb_m))
+    if not placed and up_m is not None:
+        a = _came_down_onto(t, size, up_m, shape_start, k, i1, s)
+        placed = a is not None and _track_m(t, np.asarray(north_m, dtype=float), np.asarray(east_m, dtype=float),
+                                            a, i1) <= s.place_max_m
     if placed:
         out["kind"] = KINDS[1]
         la, lo = float(np.asarray(lat_deg, float)[k]), float(np.asarray(lon_deg, float)[k])

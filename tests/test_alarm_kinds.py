@@ -123,6 +123,34 @@ def test_a_descent_onto_a_place_and_the_climb_off_it_is_fixed_in_place_a_bump_me
     assert _bump_explained(still, t, bump, down_only, tail_s=8.0)["kind"] == "rising with time"
 
 
+def test_a_landing_onto_a_place_is_fixed_in_place_a_ramp_in_time_meanwhile_is_not():
+    """Down from 25 m onto SITL's SIM_MAG_ALY field (as above) at 1 m/s and landed there for 15 s:
+    |r̄| (lagging the field by 0.7 s) rises with the descent and holds once the vehicle stops:
+    "fixed in place" (measured on the SITL landing, docs/detection.md).  A ramp in time over the
+    same descent goes on rising on the ground; a step while landed did not come with the descent:
+    both "rising with time"; without the height there is no evidence."""
+    t = np.arange(0.0, 60.0, 0.02)
+    up = np.interp(t, [0.0, 20.0, 45.0, 60.0], [25.0, 25.0, 0.0, 0.0])
+    noise = np.repeat(np.random.default_rng(2).normal(0.0, 0.05, len(t) // 10 + 1), 10)[:len(t)]
+    a = 1.0 - np.exp(-0.02 / 0.7)
+
+    def lagged(x: np.ndarray) -> np.ndarray:
+        out = np.empty(len(x))
+        out[0] = x[0]
+        for i in range(1, len(x)):
+            out[i] = out[i - 1] + a * (x[i] - out[i - 1])
+        return out
+    sitl = lagged(200.0 * (5.0 / (5.0 + up)) ** 3)
+    still = np.zeros(len(t))
+    e = _bump_explained(still, t, sitl, up + noise)
+    assert e["kind"] == "fixed in place" and e["position"] is not None, e
+    assert _bump_explained(still, t, sitl)["kind"] == "rising with time"                  # no height
+    ramp = lagged(np.clip(6.0 * (t - 30.0), 0.0, None))                                # 6 mG/s from 30 s on
+    assert _bump_explained(still, t, ramp, up + noise)["kind"] == "rising with time"
+    step = lagged(np.where(t > 50.0, 150.0, 0.0))                                       # on the ground at 50 s
+    assert _bump_explained(still, t, step, up + noise)["kind"] == "rising with time"
+
+
 def test_the_anomaly_field_is_the_dipole_field():
     """The simulator's dipole (Jackson eq. 5.56) against closed-form points: on the axis 2m/r³,
     on the equator −m/r³ [mG for A·m², m]."""

@@ -35,6 +35,10 @@ MISSING = f"ArduPilot SITL firmware not found at {SITL_DIR / 'arducopter'} (../s
 HOME = (30.3, 120.1, 10.0, 0.0)           # lat, lon, alt m, yaw deg (the README's site)
 PORTS = range(14610, 14640)               # this harness's UDP ports
 INSTANCES = range(10, 20)                 # -I 10..19 (every SITL port + 10 N); other users take 1..9
+# benchmarks flown beside the suite: -I 20..29 with UDP ports 14640-14649, taken only when named
+# (never claimed for a caller that names none), so a benchmark never waits for the suite nor it for one
+BENCH_INSTANCES = range(20, 30)
+BENCH_PORTS = range(14640, 14650)
 MAV_CMD_DO_SET_SERVO = 183
 MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN = 246
 
@@ -147,9 +151,11 @@ class Sitl:
     def __post_init__(self) -> None:
         if SITL_BINARY is None:
             raise FileNotFoundError(MISSING)
-        if self.instance not in (None, *INSTANCES) or self.port not in (None, *PORTS):
+        if (self.instance not in (None, *INSTANCES, *BENCH_INSTANCES)
+                or self.port not in (None, *PORTS, *BENCH_PORTS)):
             raise ValueError(f"the SITL harness uses -I {INSTANCES.start}..{INSTANCES.stop - 1} and UDP ports "
-                             f"{PORTS.start}-{PORTS.stop - 1}")
+                             f"{PORTS.start}-{PORTS.stop - 1} (benchmarks, named: -I {BENCH_INSTANCES.start}.."
+                             f"{BENCH_INSTANCES.stop - 1}, {BENCH_PORTS.start}-{BENCH_PORTS.stop - 1})")
 
     @property
     def pid(self) -> int | None:
