@@ -615,71 +615,18 @@ def raw_imu_late_s(tlog: Path) -> dict:
 
 @contextlib.contextmanager
 def raw_imu_on_boot_clock():
-    """A diagnosis, not the station's reading: while open, the .tlog reader
-    (groundstation.io.logs.mavlink_columns._ColumnDecoder) times RAW_IMU by its time_usec on the
-    boot clock of ATTITUDE and SCALED_IMUn (where time_usec < 1e14 us: ArduPilot's micros64), as
-    commit e9e9156 did before e88fe7f put it back on arrival.  Its _clock and _scaled are the
-    reader's of 2026-12-05 with that one change; restored on exit."""
-    from groundstation.io import decode as dec
+    """A diagnosis, not the station's reading: while open, the .tlog reader times RAW_IMU by its
+    time_usec on the boot clock of ATTITUDE and SCALED_IMUn (where time_usec < 1e14 us: ArduPilot's
+    micros64), as commit e9e9156 did before e88fe7f put it back on arrival (the reader's switch
+    ``_ColumnDecoder.raw_imu_on_boot_clock``); restored on exit."""
     from groundstation.io.logs import mavlink_columns as mc
 
-    cls, ids = mc._ColumnDecoder, mc._ID
-    kept = cls._clock, cls._scaled
-
-    def _clock(self):
-        parts = {}
-        for name in ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "ATTITUDE", "ATTITUDE_QUATERNION",
-                     "GLOBAL_POSITION_INT"):
-            rows = self.accepted(ids[name])
-            f = self.rec.fields(ids[name], rows)
-            if name == "ATTITUDE":
-                self.att_ok = np.isfinite(f["roll"]) & np.isfinite(f["pitch"]) & np.isfinite(f["yaw"])
-                rows, f = rows[self.att_ok], f[self.att_ok]
-            elif name == "ATTITUDE_QUATERNION":
-                self.quat, valid = dec.normalised_quaternion(f["q1"], f["q2"], f["q3"], f["q4"])
-                self.quat_bad = int((~valid).sum())
-                self.quat, rows, f = self.quat[valid], rows[valid], f[valid]
-            parts[ids[name]] = (rows, f["time_boot_ms"].astype(float))
-        rows = self.accepted(ids["RAW_IMU"])
-        us = self.rec.fields(ids["RAW_IMU"], rows)["time_usec"].astype(float) if len(rows) else np.zeros(0)
-        self.raw_on = us < 1e14
-        self.raw_rows = rows
-        parts[ids["RAW_IMU"]] = (rows[self.raw_on], us[self.raw_on] / 1000.0)
-        rows = np.concatenate([p[0] for p in parts.values()])
-        boot = np.concatenate([p[1] for p in parts.values()])
-        order = np.argsort(rows, kind="stable")
-        t = np.empty(len(rows))
-        t[order] = dec._BootClock().times(boot[order], self.rec.arrival[rows[order]])
-        out, k = {}, 0
-        self.parts = {i: p[0] for i, p in parts.items()}
-        for i, (r, _) in parts.items():
-            out[i] = t[k:k + len(r)]
-            k += len(r)
-        return out
-
-    def _scaled(self, times):
-        for msg_id, instance in mc._SCALED.items():
-            if msg_id == ids["RAW_IMU"]:
-                rows = self.raw_rows
-                f, t = self.rec.fields(msg_id, rows), self.rec.arrival[rows].astype(float)
-                t[self.raw_on] = times[msg_id]
-            else:
-                rows = self.parts[msg_id]
-                f, t = self.rec.fields(msg_id, rows), times[msg_id]
-            if not len(rows):
-                continue
-            mag = np.column_stack([f["xmag"], f["ymag"], f["zmag"]])
-            self._judge(instance, rows, t, mag.astype(float), dec.MG_UNIT)
-            has = (mag != 0).any(axis=1)
-            self.table("mag", rows[has], t[has], *mag[has].T, np.nan, np.nan, np.nan, instance)
-            gyro, acc = dec.scaled_imu_to_si(np.column_stack([f["xgyro"], f["ygyro"], f["zgyro"]]),
-                                             np.column_stack([f["xacc"], f["yacc"], f["zacc"]]))
-            self.table("imu", rows, t, *gyro.T, *acc.T, instance)
+    kept = mc._ColumnDecoder.raw_imu_on_boot_clock
     try:
-        cls._clock, cls._scaled = _clock, _scaled
+        mc._ColumnDecoder.raw_imu_on_boot_clock = True
         yield
     finally:
-        cls._clock, cls._scaled = kept
+        mc._ColumnDecoder.raw_imu_on_boot_clock = kept
 
 
 def flight_inputs(log, diagnose: bool = True) -> dict:
