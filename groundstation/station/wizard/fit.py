@@ -125,7 +125,9 @@ def fit_compass(k: int, mag: np.ndarray, autopilot: str, params: dict[str, float
             result = _calibrate(t_s, raw @ q.T, data)
             result["message"] = (f"orientation {ROTATION_NAMES.get(current, current)} -> "
                                  f"{orientation['detected_name']} applied; " + result["message"]).strip("; ")
-    result["message"] = "; ".join(p for p in (note, result.get("message")) if p)
+    # a failed fit's own reason first: the page shows the message's first part
+    parts = (note, result.get("message")) if result.get("status") == "ok" else (result.get("message"), note)
+    result["message"] = "; ".join(p for p in parts if p)
     result["compass"] = k
     result["orientation"] = orientation
     if result.get("status") == "ok":       # the live count (``disturbances``) only flags; the final fit confirms
