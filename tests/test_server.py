@@ -198,6 +198,54 @@ def test_scene_decimates_50k_points_and_orients_vehicle(recordings_dir):
         scene.close()
 
 
+def test_a_connection_to_the_3d_view_that_sends_nothing_prints_no_traceback(recordings_dir, caplog):
+    """A port probe or a browser's preconnect to the 3-D view's port, closed before its request:
+    the station's console stays clean (the websockets server printed a traceback for it), and the
+    view still serves its page afterwards."""
+    import socket
+
+    from conftest import free_tcp_port
+    from groundstation.station.hub.session import Session
+    from groundstation.station.scene import Scene
+
+    scene = Scene(Session(recordings_dir), port=free_tcp_port())
+    try:
+        for request in (b"", b"", b"GARBAGE\r\n\r\n"):
+            with socket.create_connection(("127.0.0.1", scene.port), timeout=5) as probe:
+                probe.sendall(request)
+                time.sleep(0.3)
+        time.sleep(1.0)
+        assert httpx.get(f"http://127.0.0.1:{scene.port}/", timeout=10).status_code == 200
+    finally:
+        scene.close()
+    told = [r.getMessage() for r in caplog.records if r.exc_info or "handshake" in r.getMessage()]
+    assert told == [], told
+
+
+def test_a_framing_the_browser_lost_is_sent_again_but_a_later_drag_is_kept(monkeypatch):
+    """The 3-D view's camera rule: a pose other than the one sent, reported in the first seconds
+    after sending (the viewer's own start-up camera landing after ours on a loaded machine), is
+    framed again; the same report later is the user's drag and kept."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from groundstation.station.scene import view
+
+    pos, look = np.array([-20.0, 0.0, 8.0]), np.array([0.0, 0.0, 0.0])
+    now = [100.0]
+    monkeypatch.setattr(view.time, "monotonic", lambda: now[0])
+    kept = SimpleNamespace(position=tuple(pos + [0.1, 0.0, 0.0]), look_at=tuple(look))   # 0.5 % off: ours
+    other = SimpleNamespace(position=(30.0, 5.0, 9.0), look_at=(1.0, 2.0, 0.0))          # somebody else's
+    lo, hi = view.REFRAME_CHECK_S
+    for age_s, cam, lost in ((0.5 * lo, other, False),      # its report may predate ours
+                             (0.5 * (lo + hi), kept, False),
+                             (0.5 * (lo + hi), other, True),
+                             (hi + 1.0, other, False)):      # a drag
+        now[0] = 100.0 + age_s
+        assert view.Scene._pose_lost(cam, pos, look, 100.0) is lost, (age_s, cam)
+
+
 def test_alarm_list_carries_the_explanation(client, recordings_dir):
     """GET /api/alarms on the demo after its interference episode: the alarm's explanation (the
     disturbance vector in the body frame, growth, tests, likely kind) in numbers and in words."""

@@ -8,6 +8,7 @@ import re
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -149,6 +150,51 @@ def test_connect_that_reaches_nothing_stops_nothing(hub, folder, capfd):
     hub.connect(f"udpin:127.0.0.1:{free_udp_port()}")
     hub.stop()
     assert len(list(folder.glob("session-*"))) == 1
+
+
+def test_a_calibration_started_while_the_link_switches_over_stays_for_it(hub, folder, monkeypatch):
+    """Start pressed after the connecting link heard its vehicle but before the station had
+    switched to it (the old source stopping takes a moment on a busy machine) is meant for the
+    new vehicle: the wizard keeps running on the new link, as it does when pressed earlier."""
+    _replay(hub, folder / "demo.tlog", speed=1.0)
+    udp = free_udp_port()
+    hub.connect(f"udpin:127.0.0.1:{udp}")
+    stop = hub.sources.stop
+    in_switch = threading.Event()
+
+    def slow_stop():
+        in_switch.set()
+        time.sleep(1.0)
+        stop()
+    monkeypatch.setattr(hub.sources, "stop", slow_stop)
+    sim = simulate("mission-clean", 0, duration_s=4.0)
+    with FakeVehicle(sim.messages, udp, speed=2.0) as fv:
+        assert in_switch.wait(10)                       # first packet heard, the old source stopping
+        assert hub.sources.pending is None and hub.snapshot()["source"]["kind"] == "replay"
+        hub.wizard_start("onboard")                     # a replay has no calibrator: not refused, meant for the link
+        assert hub.snapshot()["wizard"]["waiting_for"] == f"udpin:127.0.0.1:{udp}"
+        assert wait_for(lambda: hub.snapshot()["source"]["kind"] == "live", timeout=10)
+        w = hub.snapshot()["wizard"]
+        assert (w["state"], w["mode"], w["waiting_for"]) == ("running", "onboard", None)
+        assert wait_for(lambda: any(c[0] == 42424 for c in fv.commands), timeout=10)   # DO_START_MAG_CAL, to it
+    assert hub.sources.switching is None
+    hub.wizard_reset()
+
+
+def test_a_calibration_started_while_a_link_connects_waits_for_its_vehicle(hub, folder):
+    """Start pressed while a link connects and a replay still plays: the wizard waits for the new
+    vehicle (the replay's samples do not fill its steps) and says so; Stop, and it is reset."""
+    _replay(hub, folder / "dance.tlog", speed=4.0)
+    udp = free_udp_port()
+    hub.connect(f"udpin:127.0.0.1:{udp}")
+    hub.wizard_start("guided")
+    time.sleep(2.0)                                     # 8 s of the replayed dance
+    w = hub.snapshot()["wizard"]
+    assert w["state"] == "running" and w["waiting_for"] == f"udpin:127.0.0.1:{udp}"
+    assert w["progress_deg"] == {"x": 0.0, "y": 0.0, "z": 0.0} and w["instruction"].startswith("Waiting for the vehicle")
+    assert hub.snapshot()["replay"]["t_s"] > 4.0          # not rewound for the calibration
+    hub.stop()
+    assert hub.snapshot()["wizard"]["state"] == "idle"
 
 
 def test_downloads_of_a_ulog_replay(hub, folder):

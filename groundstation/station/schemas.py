@@ -141,6 +141,8 @@ class Wizard(BaseModel):
     state: str = Field(description="idle | running | result | accepted")
     mode: str = Field(description="guided | onboard | fixed_yaw")
     paused: bool = Field(description="link lost during the dance")
+    waiting_for: str | None = Field(None, description="started while this link was connecting: it starts on "
+                                                      "that link's vehicle when its first packet arrives")
     banner: dict[str, Any] | None
     step: str | None
     step_index: int

@@ -158,7 +158,10 @@ class CalibrationControl:
         self._hub.event(why)
 
     # ------------------------------------------------------------------ the dance
-    def start(self, mode: str = "guided") -> None:
+    def start(self, mode: str = "guided", connecting: str | None = None) -> None:
+        """Start the wizard.  ``connecting``: the name of a link being connected, whose vehicle
+        the operator means: nothing is sent or read from the current source's vehicle; the wizard
+        shows it is waiting and starts on the new vehicle when the hub switches to it."""
         hub = self._hub
         if mode not in MODES:
             raise SessionError(f"mode must be one of {', '.join(MODES)}")
@@ -166,6 +169,12 @@ class CalibrationControl:
             w = self.wizard
             if w.state == "running":
                 return  # a second client pressing Start joins the running wizard
+            if connecting is not None:
+                w.start(mode)
+                w.waiting_for = connecting
+                hub.event(f"calibration starts when {connecting} hears its vehicle")
+                hub.changed()
+                return
             if mode == "onboard":
                 if hub.vehicle.autopilot == "px4":
                     raise ConflictError("the onboard calibrator over MAVLink (MAV_CMD_DO_START_MAG_CAL) is "
@@ -180,6 +189,19 @@ class CalibrationControl:
                        "onboard": "onboard calibration started (MAV_CMD_DO_START_MAG_CAL): turn about X",
                        "fixed_yaw": "large-vehicle calibration: enter the heading"}[mode])
             hub.changed()
+
+    def start_on_new_link(self, mode: str, url: str) -> None:
+        """A calibration started while ``url`` was connecting, on its vehicle now (lock held): its
+        parameters, its link for the commands; a refusal is told in the events."""
+        try:
+            self.start(mode)
+        except SessionError as err:
+            self._hub.event(f"calibration not started on {url}: {err}", level="warning")
+
+    def link_cancelled(self) -> None:
+        """The connecting link was given up: a calibration waiting for its vehicle is reset."""
+        if self.wizard.waiting_for is not None:
+            self.reset()
 
     def new_source(self) -> None:
         """A new source: the wizard starts over, silently (lock held; nothing is sent, the old

@@ -254,15 +254,16 @@ class Session(SessionViews):
     def switch_to_live(self, url: str, link, recording, samples: list[Sample]) -> None:
         self.sources.stop()
         with self._lock:
-            # a calibration started while this link was connecting is meant for its vehicle
-            # and a result not yet on a vehicle stays for the new link (reconnect, then write it)
-            keep_wizard = ((self._wizard_for_link is not None and self._wizard_for_link is link)
-                           or self.calibration.unwritten_result())
-            self._new_source(start_unix_s=None, autopilot=None, params={}, mission=None, keep_wizard=keep_wizard)
+            # a calibration started while this link was connecting is meant for its vehicle; a
+            # result not yet on a vehicle stays for the new link (reconnect, then write it)
+            meant, mode = self._wizard_for_link is link and self.wizard.state == "running", self.wizard.mode
+            self._new_source(None, None, {}, None, keep_wizard=self.calibration.unwritten_result())
             self.sources.start_live(url, link, recording)
             self.event(f"listening on {url}" + (", recording from the first packet" if recording else ""))
             if samples:
-                self.process_batch(samples)
+                self.process_batch(samples)      # its first packets: link up, the vehicle found
+            if meant:
+                self.calibration.start_on_new_link(mode, url)
             self.changed()
 
     def start_replay(self, path: str | Path, speed: float = 1.0, loop: bool = False,
@@ -387,6 +388,7 @@ class Session(SessionViews):
         with self._lock:
             name = self.sources.name
             self.sources.cancel_pending()
+            self.calibration.link_cancelled()
         self.sources.stop()
         with self._lock:
             if name:
@@ -431,12 +433,11 @@ class Session(SessionViews):
     # ------------------------------------------------------------------ calibration (hub/calibration.py)
     def wizard_start(self, mode: str = "guided") -> None:
         with self._lock:
-            pending = self.sources.pending
-            self._wizard_for_link = pending[1] if pending is not None else None
+            url, self._wizard_for_link = self.sources.connecting()
             running = self.wizard.state == "running"
-            self.calibration.start(mode)
+            self.calibration.start(mode, connecting=url)
             r = self.sources.replay
-            if r is not None and not running and mode != "fixed_yaw":
+            if r is not None and url is None and not running and mode != "fixed_yaw":
                 # a recording cannot follow the steps: it plays its dance from the start, in order,
                 # as a vehicle turned by hand would (started mid-log, step 1 met the tumble instead)
                 self.replay_seek(0.0)

@@ -108,6 +108,9 @@ class SourceControl:
         self.rx_count = 0
         self.rx_last_unix: float | None = None
         self.pending: tuple | None = None  # (url, link, recording, stop event) armed while a source runs
+        # (url, link) of the armed link that heard its vehicle, from leaving ``pending`` until the
+        # hub has switched to it (under the hub lock): a Start pressed in between is meant for it too
+        self.switching: tuple | None = None
         self._finished_told = False
 
     @property
@@ -153,6 +156,7 @@ class SourceControl:
         link.attach_forwarder(self.forwarder)
         self.replay = self.replay_path = None
         self.kind, self.name, self.link_state = "live", url, "waiting"
+        self.switching = None                  # switched
         self.rx_count, self.rx_last_unix = 0, None
         self._start_worker(self._run_live)
 
@@ -388,9 +392,16 @@ class SourceControl:
                 with self._lock:
                     if self.pending is None or self.pending[1] is not link:
                         return
+                    self.switching = (url, link)   # set before pending is cleared: no gap
                     self.pending = None
                 self._feed.switch_to_live(url, link, recording, got)
                 return
+
+    def connecting(self) -> tuple:
+        """(url, link) of the link being connected or switched to, whose vehicle a calibration
+        started now is meant for; (None, None): the current source's.  Read under the hub lock."""
+        pending = self.pending
+        return pending[:2] if pending is not None else (self.switching or (None, None))
 
 
 def _poll(link, feed: Feed, stop: threading.Event) -> list[Sample]:

@@ -33,6 +33,9 @@ from groundstation.station.scene.geometry import (S_FLIP, UNIT_SPHERE, RouteFram
 
 log = logging.getLogger(__name__)
 UPDATE_HZ = 15.0
+# a browser's reported pose is checked against the framing sent from this long after sending until
+# this long: before, its report may predate ours; after, a different pose is the user's drag
+REFRAME_CHECK_S = (0.5, 4.0)
 CLOUD_DISPLAY_POINTS = 6000
 ROUTE_DISPLAY_POINTS = 6000
 # calibration layout (viser units): vehicle, raw cloud, corrected sphere left to right
@@ -60,6 +63,18 @@ ANOMALY_AMBER = (255, 170, 0)
 __all__ = ["Scene", "CLOUD_DISPLAY_POINTS", "ROUTE_DISPLAY_POINTS"]
 
 
+class _NoHalfOpenConnections(logging.Filter):
+    """A connection to the 3-D view's port that closes before its request (a port probe, a
+    browser's preconnect) is nothing to report: the websockets server logged it with a traceback
+    until viser installed the same filter on the first request it served."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.getMessage() != "opening handshake failed"
+
+
+logging.getLogger("websockets.server").addFilter(_NoHalfOpenConnections())
+
+
 class Scene:
     def __init__(self, session: Session, host: str = "127.0.0.1", port: int = 8080) -> None:
         self.session = session
@@ -71,7 +86,8 @@ class Scene:
         self.anomalies_shown = 0       # anomaly markers drawn (tests read it)
         self.frames = 0
         self.activity = "flight"
-        self._framed: dict[int, tuple[str, float]] = {}   # client id -> (activity, aspect) its camera was framed for
+        # client id -> (activity, aspect) its camera was framed for, the pose sent and when
+        self._framed: dict[int, tuple[tuple[str, float], np.ndarray, np.ndarray, float]] = {}
         self._cloud_key = self._route_key = None
         self._route_frame: RouteFrame | None = None
         self._build()
@@ -167,14 +183,28 @@ class Scene:
             # framed again when the activity changes or the view's shape does (the page lays out
             # after its first camera report; a window resized): a drag alone keeps the user's view
             framing = (self.activity, round(aspect, 2))
-            if self._framed.get(cid) == framing:
+            done = self._framed.get(cid)
+            if done is not None and done[0] == framing and not self._pose_lost(cam, *done[1:]):
                 continue
             box = CAL_BOX if self.activity == "calibration" else FLIGHT_BOX
             pos, look = camera_for_box(*box, ELEVATION_DEG[self.activity], fov, aspect)
             cam.up_direction = (0.0, 0.0, 1.0)
             cam.position = tuple(pos)
             cam.look_at = tuple(look)
-            self._framed[cid] = framing
+            first_s = done[3] if done is not None and done[0] == framing else time.monotonic()
+            self._framed[cid] = (framing, pos, look, first_s)
+
+    @staticmethod
+    def _pose_lost(cam, pos: np.ndarray, look: np.ndarray, sent_s: float) -> bool:
+        """The browser reports a pose other than the one first sent ``sent_s`` ago, within the first
+        seconds after sending (on a loaded machine the viewer's own start-up camera can land after
+        ours): send it again.  Later a different pose is the user's drag, and kept."""
+        age_s = time.monotonic() - sent_s
+        if not REFRAME_CHECK_S[0] <= age_s <= REFRAME_CHECK_S[1]:
+            return False
+        scale = max(float(np.linalg.norm(pos - look)), 1e-6)
+        return (float(np.linalg.norm(np.asarray(cam.position) - pos)) > 0.02 * scale
+                or float(np.linalg.norm(np.asarray(cam.look_at) - look)) > 0.02 * scale)
 
     # ------------------------------------------------------------------------------ updating
     def _loop(self) -> None:

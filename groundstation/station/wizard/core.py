@@ -54,6 +54,7 @@ class CalibrationWizard:
     # ------------------------------------------------------------------ lifecycle
     def reset(self) -> None:
         self.state, self.mode = "idle", "guided"
+        self.waiting_for: str | None = None  # started for a link still connecting: its name
         self.att.clear(); self.imu.clear(); self.gps.clear()
         self.progress.reset()
         self.tracks: dict[int, CompassTrack] = {}
@@ -109,6 +110,8 @@ class CalibrationWizard:
 
     # ------------------------------------------------------------------ samples
     def on_sample(self, s: Sample) -> None:
+        if self.waiting_for is not None:  # the current source's vehicle is not the one meant
+            return
         if self.state == "idle":          # nothing to collect: only the WMM field at the first fix
             if isinstance(s, GpsSample):
                 self._on_gps(s)
@@ -310,6 +313,7 @@ class CalibrationWizard:
         pose = next_pose(self.cells, field_unit_ned(self.field_ned_mG)) if self._collecting() and self.step_index >= 3 else None
         return {
             "state": self.state, "mode": self.mode, "paused": self.paused, "banner": self.banner,
+            "waiting_for": self.waiting_for,
             "step": step, "step_index": self.step_index if self.state == "running" else (-1 if self.state == "idle" else 4),
             "instruction": instruction(self, pose), "hint": self.hint(),
             "progress_deg": {a: round(float(v), 1) for a, v in zip("xyz", self.progress.progress_deg)},

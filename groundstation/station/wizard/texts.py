@@ -124,6 +124,8 @@ def instruction(w, pose: dict | None = None) -> str:
     if w.state == "idle":
         return "Choose the mode, then press Start and follow the steps."
     if w.state == "running":
+        if w.waiting_for is not None:
+            return f"Waiting for the vehicle on {w.waiting_for}: the steps start when its first packet arrives."
         if w.paused:
             return "Link lost: calibration paused. Keep the vehicle still until the link returns."
         step = w.step
