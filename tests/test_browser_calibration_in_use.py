@@ -104,10 +104,12 @@ def test_choose_the_demo_dance_then_the_alarm_and_the_choice_persists(folder, ex
         st.close()
     st = _station(folder)                          # a restart: the airframe's choice comes back
     try:
+        page = browser_page(st)                    # open before the replay: its chooser follows the choice
         api(st, "POST", "/api/replay/start", json={"recording": "mission-fast.tlog", "speed": 20.0})
         assert wait_until(lambda: not api(st, "GET", "/api/state")["analysing"], WAIT_S)
         choice = api(st, "GET", "/api/state")["calibration_choice"]
         assert choice["source"] == "recording" and "demo.tlog" in choice["label"], choice
+        wait_js(page, "document.getElementById('cal-choice').value === 'recording:demo.tlog'", WAIT_S * 1000)
         api(st, "POST", "/api/replay/seek", json={"t_s": api(st, "GET", "/api/state")["replay"]["duration_s"]})
         combined = [a for a in api(st, "GET", "/api/analysis")["alarms"] if a["kind"] == "combined"]
         assert combined and combined[0]["start_s"] == pytest.approx(expected["first_alarm_s"], abs=0.5)

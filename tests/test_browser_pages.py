@@ -32,6 +32,7 @@ def station(tmp_path_factory):
     d = tmp_path_factory.mktemp("pages") / "recordings"
     d.mkdir()
     shutil.copy(ROOT / "recordings" / "demo.tlog", d / "demo.tlog")
+    shutil.copy(ROOT / "recordings" / "mission-clean.tlog", d / "mission-clean.tlog")   # the longest bundled name
     shutil.copy(ROOT / "recordings" / "mission-fast.tlog", d / UPLOAD_NAME)
     st = Station(port=0, viser_port=free_tcp_port(), recordings_dir=d, record_live=False).start()
     yield st
@@ -139,17 +140,23 @@ def test_recordings_table_and_preset_line_fit(station, new_page, http, shots):
         wait_js(page, "document.querySelectorAll('#recordings tr[data-name]').length >= 2")
         fit = page.evaluate("""() => {
           const box = document.querySelector('.recordings'), t = document.getElementById('recordings');
-          const cut = [...t.querySelectorAll('th')].filter(c => c.scrollWidth > c.clientWidth + 1).map(c => c.textContent);
-          const cutCells = [...t.querySelectorAll('tr[data-name] td')].filter(c => c.cellIndex > 0 && c.scrollWidth > c.clientWidth + 1)
+          const cut = [...t.querySelectorAll('th')].filter(c => c.scrollWidth > c.clientWidth).map(c => c.textContent);
+          const cutCells = [...t.querySelectorAll('tr[data-name] td')].filter(c => c.cellIndex > 0 && c.scrollWidth > c.clientWidth)
             .map(c => c.textContent);
+          const names = [...t.querySelectorAll('tr[data-name]:not([data-name^="upload-"]) td:first-child')].map(c => c.textContent);
+          const cutNames = [...t.querySelectorAll('tr[data-name]:not([data-name^="upload-"]) td:first-child')]
+            .filter(c => c.scrollWidth > c.clientWidth).map(c => c.textContent);
           const tops = ['a-lat', 'a-lon', 'b-lat', 'b-lon'].map(id => document.getElementById(id).getBoundingClientRect().top);
           const up = t.querySelector('tr[data-name^="upload-"]');
-          return {overflow: t.scrollWidth - box.clientWidth, cut, cutCells, tops,
+          const choice = document.getElementById('cal-choice').getBoundingClientRect().right,
+                card = document.getElementById('cal-card').getBoundingClientRect().right;
+          return {overflow: t.scrollWidth - box.clientWidth, cut, cutCells, names, cutNames, tops, choice, card,
                   upload: up.cells[0].textContent, title: up.title};
         }""")
         assert fit["overflow"] <= 0, fit
-        assert fit["cut"] == [] and fit["cutCells"] == [], fit
+        assert fit["cut"] == [] and fit["cutCells"] == [] and fit["cutNames"] == [], fit   # the bundled names whole
         assert max(fit["tops"]) - min(fit["tops"]) < 1, fit
+        assert fit["choice"] <= fit["card"], fit                  # the calibration chooser stays in its card
         assert fit["upload"].startswith("↑ a_very_long_field_log"), fit
         assert UPLOAD_NAME in fit["title"], fit
         page.screenshot(path=str(shots / f"station_source_{w}.png"), clip={"x": 0, "y": 0, "width": 460, "height": h})

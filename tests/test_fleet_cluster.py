@@ -246,6 +246,10 @@ def test_fleet_page_lists_airframes_and_the_drift_alert(fleet, reviewed, playwri
         for w, h in ((1280, 720), (1920, 1080)):        # the two sizes of the screenshots
             page.set_viewport_size({"width": w, "height": h})
             page.wait_for_function("document.querySelector('#chart polyline') !== null", polling=200, timeout=30_000)
+            # drawn in its own pixels at every width: the text and the dots keep their shape
+            page.wait_for_function("(() => { const c = document.getElementById('chart');"
+                                   " return Math.abs(c.viewBox.baseVal.width - c.getBoundingClientRect().width) < 2; })()",
+                                   polling=200, timeout=30_000)
             page.screenshot(path=str(artifacts / f"fleet_page_{w}.png"))
             overflow = page.evaluate("document.documentElement.scrollWidth - document.documentElement.clientWidth")
             assert overflow <= 0, (w, overflow)           # nothing runs off the right edge

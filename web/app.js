@@ -299,10 +299,11 @@ $("line-clear").onclick = guarded("line-error", () => api("DELETE", "/api/line")
 for (const id of ["dl-log", "dl-json", "dl-csv"]) $(id).onclick = (ev) => { if ($(id).classList.contains("disabled")) ev.preventDefault(); };
 
 // ---- Calibration in use: where the station's calibration comes from, per vehicle/airframe (self-contained).
-let inUseKey = null;
+let inUseKey = null, choiceTouched = false;   // touched: the operator picked an option not yet used
+$("cal-choice").onchange = () => { choiceTouched = true; };
 async function loadInUseOptions() {
   const d = await api("GET", "/api/calibration/in-use");
-  const sel = $("cal-choice"), keep = sel.value;
+  const sel = $("cal-choice"), keep = choiceTouched ? sel.value : null;
   sel.innerHTML = d.options.map((o) => `<option value="${escapeHtml(o.source + (o.name ? ":" + o.name : ""))}">` +
     `${escapeHtml(o.label)}</option>`).join("");
   const cur = d.current.source + (d.current.source === "recording" ? ":" + d.current.label.replace(/^the dance in /, "") : "");
@@ -321,6 +322,7 @@ function renderInUse(s) {
 $("cal-use").onclick = guarded("cal-error", async () => {
   const v = $("cal-choice").value, i = v.indexOf(":");
   const body = i < 0 ? { source: v } : { source: v.slice(0, i), name: v.slice(i + 1) };
+  choiceTouched = false;
   $("cal-in-use").textContent = "fitting / applying…";
   await api("POST", "/api/calibration/in-use", body);
 });

@@ -35,8 +35,13 @@ function showReplayOffer() {
   $("replay-go").onclick = () => startReplay(name);   // a click, never on page load
 }
 
+// drawn in the chart's own pixels (a stretched viewBox widened the text and the dots), again on resize
+let shownHistory = null;
+window.addEventListener("resize", () => { if (shownHistory) drawHistory(shownHistory); });
 function drawHistory(h) {
-  const svg = $("chart"), W = 900, H = 260, pad = 36;
+  shownHistory = h;
+  const svg = $("chart"), W = Math.max(300, Math.round(svg.getBoundingClientRect().width) || 900), H = 260, pad = 36;
+  svg.setAttribute("viewBox", `0 0 ${W} ${H}`);
   // the first compass (the drift alert names any other)
   const flights = h.flights.filter((f) => !f.compass && f.start_unix_s && f.fit_ofs_x_mG !== null);
   if (!flights.length) { svg.innerHTML = "<text x='20' y='30'>no fitted flights</text>"; return; }
