@@ -191,6 +191,10 @@ def test_link_drop_pauses_and_resumes_the_step(station, page, api, shots):
     t_still = 2.0 + 370 / 35 + 1.0 + 200 / 35
     port = connect(api)
     open_page(page, station)
+    # started while its link connects, the wizard waits for that vehicle: no step is current yet
+    page.wait_for_function("last !== null")
+    assert page.evaluate("""(() => { renderSteps({...last.wizard, state: 'running', step: 'x', waiting_for: 'udpin:x'});
+      const n = document.querySelectorAll('#steps li.current').length; renderSteps(last.wizard); return n; })()""") == 0
     press(page, "#start")
     fv = FakeVehicle(msgs, port, speed=SPEED)
     fv.hold_before = sent_after(msgs, t_still + 0.5)   # held still over the drop, until the banner says it resumes

@@ -83,7 +83,7 @@ function renderSteps(w) {
   const target = w.turn_target_deg - w.settings.turn_tolerance_deg;
   document.querySelectorAll("#steps li").forEach((li) => {
     const step = li.dataset.step, i = ORDER.indexOf(step);
-    li.className = w.state === "idle" ? "" : (i < cur ? "done" : (i === cur ? (w.paused ? "current paused" : "current") : ""));
+    li.className = w.state === "idle" || w.waiting_for ? "" : (i < cur ? "done" : (i === cur ? (w.paused ? "current paused" : "current") : ""));
     const bar = li.querySelector(".bar"), deg = li.querySelector(".deg");
     if (!bar) return;
     let frac, text;
