@@ -184,15 +184,15 @@ class Scene:
             # after its first camera report; a window resized): a drag alone keeps the user's view
             framing = (self.activity, round(aspect, 2))
             done = self._framed.get(cid)
-            if done is not None and done[0] == framing and not self._pose_lost(cam, *done[1:]):
+            same = done is not None and done[0] == framing
+            if same and not self._pose_lost(cam, *done[1:]):
                 continue
             box = CAL_BOX if self.activity == "calibration" else FLIGHT_BOX
             pos, look = camera_for_box(*box, ELEVATION_DEG[self.activity], fov, aspect)
             cam.up_direction = (0.0, 0.0, 1.0)
             cam.position = tuple(pos)
             cam.look_at = tuple(look)
-            first_s = done[3] if done is not None and done[0] == framing else time.monotonic()
-            self._framed[cid] = (framing, pos, look, first_s)
+            self._framed[cid] = (framing, pos, look, done[3] if same else time.monotonic())
 
     @staticmethod
     def _pose_lost(cam, pos: np.ndarray, look: np.ndarray, sent_s: float) -> bool:
