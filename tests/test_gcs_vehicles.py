@@ -148,6 +148,14 @@ def same_tail(a: list, b: list, slack: int = 20) -> bool:
     return abs(len(a) - len(b)) <= slack and a[-n:] == b[-n:]
 
 
+def tail_difference(a: list, b: list) -> str:
+    """Where two sample lists, aligned at their ends, first differ (for a failing ``same_tail``)."""
+    n = min(len(a), len(b))
+    ta, tb = a[-n:], b[-n:]
+    i = next((k for k in range(n) if ta[k] != tb[k]), n)
+    return f"lengths {len(a)} and {len(b)}; first difference {n - i} from the end: {ta[i:i + 3]} vs {tb[i:i + 3]}"
+
+
 def headings(rows: np.ndarray, n: int) -> np.ndarray:
     return rows[-n:, COL["heading_deg"]]
 
@@ -172,7 +180,8 @@ def alarms_in_the_step(out: dict) -> list[dict]:
 
 
 def assert_same_outputs(mixed: dict, alone: dict) -> None:
-    assert same_tail(sensor_values(mixed["samples"]), sensor_values(alone["samples"]))   # all, only the vehicle's
+    got, want = sensor_values(mixed["samples"]), sensor_values(alone["samples"])
+    assert same_tail(got, want), tail_difference(got, want)     # all, only the vehicle's
     # the same IMU sample starts the step's alarm, within 0.2 s of data (100 Hz) of arrival-time
     # jitter. Only the first: whether a long alarm ends and starts again inside the step turns on
     # GPS arrival times, which jitter by milliseconds on a loaded machine (CI: the second alarm of
