@@ -197,6 +197,25 @@ def test_a_calibration_started_while_a_link_connects_waits_for_its_vehicle(hub, 
     assert hub.snapshot()["wizard"]["state"] == "idle"
 
 
+def test_a_calibration_waiting_for_a_link_that_is_replaced_is_cancelled(hub, folder):
+    """Start pressed while link A connects, then the operator connects B instead: A is given up,
+    so the wizard no longer says it waits for A (it did until B's vehicle was heard, or forever);
+    B's vehicle, when it comes, starts clean.  Connecting A again keeps the wait."""
+    _replay(hub, folder / "dance.tlog", speed=4.0)
+    a, b = f"udpin:127.0.0.1:{free_udp_port()}", free_udp_port()
+    hub.connect(a)
+    hub.wizard_start("guided")
+    hub.connect(a)                                      # the same link again: still meant for it
+    assert hub.snapshot()["wizard"]["waiting_for"] == a
+    hub.connect(f"udpin:127.0.0.1:{b}")
+    snap = hub.snapshot()
+    assert (snap["wizard"]["state"], snap["wizard"]["waiting_for"]) == ("idle", None)
+    assert any(f"waiting for the vehicle on {a} is cancelled" in e["text"] for e in snap["events"])
+    with FakeVehicle(simulate("mission-clean", 0, duration_s=4.0).messages, b, speed=2.0):
+        assert wait_for(lambda: hub.snapshot()["source"]["kind"] == "live", timeout=10)
+    assert hub.snapshot()["wizard"]["state"] == "idle"
+
+
 def test_downloads_of_a_ulog_replay(hub, folder):
     """A .ulg replay: the session log is the original file; the .tlog route says why it has none."""
     src = REAL_ULOG_PIECE

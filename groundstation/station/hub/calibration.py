@@ -200,7 +200,9 @@ class CalibrationControl:
 
     def link_cancelled(self) -> None:
         """The connecting link was given up: a calibration waiting for its vehicle is reset."""
-        if self.wizard.waiting_for is not None:
+        url = self.wizard.waiting_for
+        if url is not None:
+            self._hub.event(f"the calibration waiting for the vehicle on {url} is cancelled: that link was given up")
             self.reset()
 
     def new_source(self) -> None:

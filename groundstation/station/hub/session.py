@@ -63,7 +63,6 @@ class Session(SessionViews):
         self.log_calibration: dict | None = None
         self._log_mission: list | None = None
         self._review_generation = 0
-        self._wizard_for_link = None         # the connecting link a calibration was started for
 
     # ------------------------------------------------------------------ listeners / events
     def add_listener(self, fn: Callable[[], None]) -> None:
@@ -245,6 +244,8 @@ class Session(SessionViews):
         with self._lock:
             running = self.sources.kind != "none"
             if running:
+                if self.wizard.waiting_for not in (None, url):      # its link is given up for this one
+                    self.calibration.link_cancelled()
                 self.sources.arm_pending(url, link, recording)
                 self.event(f"connecting to {url}: {self.sources.name} goes on until the first packet arrives")
                 self.changed()
@@ -256,7 +257,7 @@ class Session(SessionViews):
         with self._lock:
             # a calibration started while this link was connecting is meant for its vehicle; a
             # result not yet on a vehicle stays for the new link (reconnect, then write it)
-            meant, mode = self._wizard_for_link is link and self.wizard.state == "running", self.wizard.mode
+            meant, mode = self.wizard.waiting_for == url and self.wizard.state == "running", self.wizard.mode
             self._new_source(None, None, {}, None, keep_wizard=self.calibration.unwritten_result())
             self.sources.start_live(url, link, recording)
             self.event(f"listening on {url}" + (", recording from the first packet" if recording else ""))
@@ -312,7 +313,6 @@ class Session(SessionViews):
             self.calibration.new_source()
         elif self.calibration.unwritten_result():
             self.event("the calibration result is kept for this link: accept writes it to the vehicle")
-        self._wizard_for_link = None
         self.log_calibration = None
         self.in_use.new_source()
         self._log_mission = mission
@@ -433,7 +433,7 @@ class Session(SessionViews):
     # ------------------------------------------------------------------ calibration (hub/calibration.py)
     def wizard_start(self, mode: str = "guided") -> None:
         with self._lock:
-            url, self._wizard_for_link = self.sources.connecting()
+            url = self.sources.connecting()
             running = self.wizard.state == "running"
             self.calibration.start(mode, connecting=url)
             r = self.sources.replay

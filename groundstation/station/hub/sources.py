@@ -397,11 +397,11 @@ class SourceControl:
                 self._feed.switch_to_live(url, link, recording, got)
                 return
 
-    def connecting(self) -> tuple:
-        """(url, link) of the link being connected or switched to, whose vehicle a calibration
-        started now is meant for; (None, None): the current source's.  Read under the hub lock."""
+    def connecting(self) -> str | None:
+        """The url of the link being connected or switched to, whose vehicle a calibration started
+        now is meant for; None: the current source's.  Read under the hub lock."""
         pending = self.pending
-        return pending[:2] if pending is not None else (self.switching or (None, None))
+        return pending[0] if pending is not None else (self.switching[0] if self.switching else None)
 
 
 def _poll(link, feed: Feed, stop: threading.Event) -> list[Sample]:
