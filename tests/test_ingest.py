@@ -114,7 +114,8 @@ def test_imu_time_usec_is_on_the_boot_clock_with_the_attitude_of_its_loop(tmp_pa
             if kind == "RAW_IMU":
                 imu = m.MAVLink_raw_imu_message(usec, 0, 0, -1000, 0, 0, 0, 200, 50, -400, 0, 0)
             else:
-                imu = m.MAVLink_highres_imu_message(usec, 0, 0, -9.8, 0, 0, 0, 0.2, 0.05, -0.4, 1013, 0, 0, 25, 0x1FF, 0)
+                imu = m.MAVLink_highres_imu_message(usec, 0, 0, -9.8, 0, 0, 0, 0.2, 0.05, -0.4, 1013, 0, 0, 25,
+                                                    0x1FF, 0)
             w.write_message(m.MAVLink_attitude_message(boot_ms, 0.1, -0.05, 0.01 * k, 0, 0, 0), arrival)
             w.write_message(imu, arrival + 0.001)
             delay_s.append(late)

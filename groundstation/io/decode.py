@@ -78,6 +78,8 @@ def boot_ms_of_usec(time_usec):
     ``BOOT_USEC_MAX``: UNIX epoch).  Scalar or array; the one rule of both MAVLink readers."""
     u = np.asarray(time_usec, dtype=np.float64)
     return np.where((u > 0) & (u < BOOT_USEC_MAX), u / 1000.0, np.nan)
+
+
 # HIGHRES_IMU xmag..zmag: gauss says the MAVLink XML; ArduPilot (4.7, GCS_Common.cpp
 # send_highres_imu) sends get_field() * 1000, i.e. mG x 1000.  The magnitudes differ 10^6-fold.
 HIGHRES_MAG_UNITS = (("gauss (the MAVLink definition)", MG_PER_GAUSS),

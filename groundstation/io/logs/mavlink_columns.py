@@ -224,10 +224,10 @@ class _ColumnDecoder:
     def _usec_times(self, msg_id: int, times: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Rows of RAW_IMU or HIGHRES_IMU and their times: the boot clock's, arrival where
         time_usec is not a boot time."""
-        rows, late = self.usec_rows[msg_id], self.on_arrival[msg_id]
+        rows, arrival = self.usec_rows[msg_id], self.on_arrival[msg_id]
         t = np.empty(len(rows))
-        t[~late] = times[msg_id]
-        t[late] = self.rec.arrival[rows[late]]
+        t[~arrival] = times[msg_id]
+        t[arrival] = self.rec.arrival[rows[arrival]]
         return rows, t
 
     def _place_before(self, r: int) -> tuple[float, float, float] | None:
