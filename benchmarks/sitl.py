@@ -579,24 +579,16 @@ def analyse_flight_logs(res: dict) -> None:
         res[f"{kind}_inputs"] = flight_inputs(log, diagnose=bool(summary.get("alarms")))
     if res.get("tlog") is not None:
         res["tlog_late"] = raw_imu_late_s(res["tlog"])
-        if res.get("tlog_combined"):         # the diagnosis: the same .tlog with RAW_IMU on the boot clock
-            with raw_imu_on_boot_clock():
-                log = read_log(res["tlog"])
-            summary, _ = analyze_log(log)
-            boot = boot_offset_s(res["tlog"], log)
-            res["tlog_combined_boot_clock"] = [(round(boot + a["start_s"], 1), None if a.get("end_s") is None else
-                                                round(boot + a["end_s"], 1), a.get("explanation_text") or "")
-                                               for a in summary.get("alarms", []) if a["kind"] == "combined"]
-
 
 
 def raw_imu_late_s(tlog: Path) -> dict:
     """How late the session .tlog's RAW_IMU arrived against the vehicle's clock: per packet its
     arrival minus its time_usec (ArduPilot's boot clock), less the smallest such value up to then
-    (the reader's boot-clock anchor, groundstation.io.decode._BootClock).  The reader times RAW_IMU
-    (our AHRS, the compass) on arrival and ATTITUDE (the autopilot's tilt) on that boot clock, so
-    this is how far apart the two stand in the .tlog: it grows for good when the SITL falls behind
-    the wall clock (a loaded machine).  {median, p95, max} [s]."""
+    (the reader's boot-clock anchor, groundstation.io.decode._BootClock).  The reader times RAW_IMU,
+    ATTITUDE and the other boot-clocked messages on that clock; SYS_STATUS (the current), VFR_HUD
+    and GPS_RAW_INT have no boot time and stay on arrival, so this is how far those stand from the
+    compass in the .tlog: it grows for good when the SITL falls behind the wall clock (a loaded
+    machine).  {median, p95, max} [s]."""
     from pymavlink import mavutil
 
     late = []
@@ -611,22 +603,6 @@ def raw_imu_late_s(tlog: Path) -> dict:
         return {}
     d = np.asarray(late) - np.minimum.accumulate(late)
     return {"median": float(np.median(d)), "p95": float(np.percentile(d, 95)), "max": float(d.max())}
-
-
-@contextlib.contextmanager
-def raw_imu_on_boot_clock():
-    """A diagnosis, not the station's reading: while open, the .tlog reader times RAW_IMU by its
-    time_usec on the boot clock of ATTITUDE and SCALED_IMUn (where time_usec < 1e14 us: ArduPilot's
-    micros64), as commit e9e9156 did before e88fe7f put it back on arrival (the reader's switch
-    ``_ColumnDecoder.raw_imu_on_boot_clock``); restored on exit."""
-    from groundstation.io.logs import mavlink_columns as mc
-
-    kept = mc._ColumnDecoder.raw_imu_on_boot_clock
-    try:
-        mc._ColumnDecoder.raw_imu_on_boot_clock = True
-        yield
-    finally:
-        mc._ColumnDecoder.raw_imu_on_boot_clock = kept
 
 
 def flight_inputs(log, diagnose: bool = True) -> dict:
@@ -932,14 +908,12 @@ def print_population(out: dict) -> None:
                      "kept" if r.get("armed") == "kept" else "yes" if r.get("armed") else "no",
                      comb("bin"), comb("tlog"), singles, learnt,
                      fmt((r.get("tlog_inputs") or {}).get("imu_hz"), 1),
-                     f"{fmt((r.get('tlog_late') or {}).get('median'))} / {fmt((r.get('tlog_late') or {}).get('max'))}",
-                     str(len(r["tlog_combined_boot_clock"])) if "tlog_combined_boot_clock" in r else "—"))
+                     f"{fmt((r.get('tlog_late') or {}).get('median'))} / {fmt((r.get('tlog_late') or {}).get('max'))}"))
     if rows:
         table("5p. population of clean flights (combined alarms: count; start-end s of the boot clock, explanation)",
               ("flight", "site lat, lon (inclination deg)", "route", "motor field mG/A (SIM_MAG_MOT -> left)",
                "GPS outage", "wind m/s", "armed", "combined .BIN", "combined .tlog", "single-test .BIN/.tlog",
-               "motor learnt mG/A .BIN / .tlog", ".tlog IMU Hz", ".tlog RAW_IMU late s median / max",
-               "combined .tlog, RAW_IMU on the boot clock (diagnosis)"), rows)
+               "motor learnt mG/A .BIN / .tlog", ".tlog IMU Hz", ".tlog RAW_IMU late s median / max"), rows)
 
 
 def _max_err(vals: list, truths: list) -> float | None:

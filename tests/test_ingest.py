@@ -2,6 +2,7 @@
 make_test_logs.py) and the real public logs in ../shared/data."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -90,6 +91,57 @@ def test_a_station_held_up_for_seconds_keeps_the_boot_clock_and_a_slow_clock_is_
     assert (np.diff(t_slow) >= 0).all()
     late_s = (t_slow[-1] - t_slow[0]) - 0.04 * 999                 # behind the station's clock at the end
     assert abs(late_s) < 2.0 + 5.0 * 2, late_s                   # re-anchored: not the 20 s of a fixed offset
+
+
+@pytest.mark.parametrize("kind", ["RAW_IMU", "HIGHRES_IMU"])
+def test_imu_time_usec_is_on_the_boot_clock_with_the_attitude_of_its_loop(tmp_path, kind):
+    """The vehicle sends ATTITUDE and RAW_IMU (or HIGHRES_IMU) of one loop with the same boot
+    time; the link delays both by a radio delay growing to 2 s and back (the real dronekit tlog's
+    343-357 s).  Both readers time the compass at its boot time, i.e. at its attitude's time; a
+    time_usec that is a UNIX time is no boot time and is timed on arrival, the delay off its
+    attitude."""
+    from groundstation.io.mavlink import TlogWriter
+
+    path = tmp_path / "late.tlog"
+    t0 = 1_780_000_000.0
+    delay_s = []
+    with TlogWriter(path) as w:
+        for k in range(500):                                    # 50 s at 10 Hz
+            boot_ms = 5000 + 100 * k
+            late = 2.0 * math.sin(math.pi * k / 499) ** 2        # 0 -> 2 s -> 0
+            arrival = t0 + 0.1 * k + 0.003 + late                # in order: the delay changes slowly
+            usec = boot_ms * 1000 if k < 400 else int((t0 + 0.1 * k) * 1e6)     # UNIX time from k = 400
+            if kind == "RAW_IMU":
+                imu = m.MAVLink_raw_imu_message(usec, 0, 0, -1000, 0, 0, 0, 200, 50, -400, 0, 0)
+            else:
+                imu = m.MAVLink_highres_imu_message(usec, 0, 0, -9.8, 0, 0, 0, 0.2, 0.05, -0.4, 1013, 0, 0, 25,
+                                                    0x1FF, 0)
+            w.write_message(m.MAVLink_attitude_message(boot_ms, 0.1, -0.05, 0.01 * k, 0, 0, 0), arrival)
+            w.write_message(imu, arrival + 0.001)
+            delay_s.append(late)
+    log = read_log(path)
+    per_packet = _decoded_per_packet(path)
+    for mag_t in (log.mag[:, 0], np.array([s.t_s for s in per_packet if isinstance(s, MagSample)])):
+        assert len(mag_t) == 500
+        on_boot, epoch = mag_t[:400], mag_t[400:]
+        assert on_boot == pytest.approx(log.attitude[:400, 0], abs=1e-9)              # its own loop's attitude
+        assert np.diff(on_boot) == pytest.approx(0.1, abs=2e-6)                       # no 2 s swing (1 us stamps)
+        late = np.asarray(delay_s[400:])
+        assert epoch - log.attitude[400:, 0] == pytest.approx(late + 0.001, abs=1e-5)  # on arrival
+    assert log.imu[:, 0] == pytest.approx(log.mag[:, 0], abs=1e-9)
+
+
+def _decoded_per_packet(path: Path) -> list:
+    from pymavlink import mavutil
+
+    dec, out = MavlinkDecoder(), []
+    conn = mavutil.mavlink_connection(str(path))
+    t0 = None
+    while (msg := conn.recv_match()) is not None:
+        t0 = msg._timestamp if t0 is None else t0
+        out += dec.decode(msg, msg._timestamp - t0)
+    conn.close()
+    return out
 
 
 def test_highres_imu_is_gauss_and_si():

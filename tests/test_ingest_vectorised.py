@@ -213,12 +213,14 @@ def _mixed_records(seed: int) -> list[tuple[float, bytes]]:
         v1, signed = bool(rng.random() < 0.3), bool(rng.random() < 0.2)
         opts = dict(v1=v1, signed=signed and not v1, trim=bool(rng.random() < 0.5), sysid=1 if rng.random() < 0.95 else 7)
         a = 0.01 * k
+        # RAW_IMU/HIGHRES_IMU time_usec: boot times, now and then a UNIX time or 0 (timed on arrival)
+        raw_us = boot * 1000 if k % 11 else int(unix * 1e6)
         msgs = [m.MAVLink_scaled_imu2_message(boot, 10, -5, -1000, 3, -2, 300, int(200 * math.cos(a)), 120, -400, 0),
-                m.MAVLink_raw_imu_message(boot * 1000, 11, -6, -990, 2, -1, 301, int(250 * math.sin(a)), 110, -390, 0, 0),
+                m.MAVLink_raw_imu_message(raw_us, 11, -6, -990, 2, -1, 301, int(250 * math.sin(a)), 110, -390, 0, 0),
                 m.MAVLink_attitude_message(boot, 0.01 * math.sin(a), -0.02, math.remainder(a, 2 * math.pi), 0, 0, 0.3),
                 m.MAVLink_attitude_quaternion_message(boot, math.cos(a / 2), 0.0, 0.0, math.sin(a / 2), 0, 0, 0,
                                                       [0.0] * 4),
-                m.MAVLink_highres_imu_message(boot * 1000, 0.1, 0.2, -9.8, 0.01, 0.02, 0.03,
+                m.MAVLink_highres_imu_message(boot * 1000 if k % 13 else 0, 0.1, 0.2, -9.8, 0.01, 0.02, 0.03,
                                               0.3 if k % 7 else float("nan"), -0.1, 0.4, 1013, 0, 10, 25,
                                               0x1FF if k % 3 else 0x3F, k % 2)]
         if k % 5 == 0:

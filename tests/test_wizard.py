@@ -216,6 +216,36 @@ def test_deviation_card_before_and_after(dance_three_mounted):
     assert card["max_before_deg"] > 10.0 and card["max_after_deg"] < 2.0
 
 
+def test_deviation_card_at_x4_read_in_bursts(dance_three_mounted):
+    """The fake vehicle at x4 (``compress_time``: every boot time / 4, RAW_IMU's time_usec too)
+    and a loaded station reading the link in bursts (gaps 0.1 s on average): on one boot clock
+    the card is the one of the calm x1 run.  With RAW_IMU's time_usec left at x1 the station's
+    one clock saw two, re-anchored at every ATTITUDE, and the wizard gave no card."""
+    hw = make_hardware(three_compasses((ROTATION_YAW_90, ROTATION_ROLL_180, 0)))
+    msgs = pack_stream(guided_dance_attitude(), hw)
+    raw = [m for _, m in msgs if m.get_type() == "RAW_IMU"][5]
+    assert compress_time(raw, 4.0).time_usec == raw.time_usec // 4
+    rng = np.random.default_rng(1)
+    w, dec = CalibrationWizard(), MavlinkDecoder()
+    w.start()
+    t0, read_at = msgs[0][0], 0.0
+    for unix, msg in msgs:
+        sent = (unix - t0) / 4.0
+        if sent > read_at:                              # the next burst read
+            read_at = sent + float(rng.exponential(0.1))
+        for s in dec.decode(compress_time(msg, 4.0), read_at):
+            w.on_sample(s)
+        if w.state == "running" and w.ready():
+            w.finish("ardupilot", PARAMS)
+        if w.state == "result":
+            break
+    calm = dance_three_mounted[0].deviation
+    assert w.deviation is not None
+    assert w.deviation["max_after_deg"] < 2.0
+    assert w.deviation["max_after_deg"] == pytest.approx(calm["max_after_deg"], abs=0.1)
+    assert w.deviation["max_before_deg"] == pytest.approx(calm["max_before_deg"], abs=0.5)
+
+
 # ------------------------------------------------------------------ coverage and next pose
 def test_next_pose_comes_from_what_is_missing():
     from estimators.calibration import coverage_cells

@@ -21,7 +21,7 @@ __all__ = ["MavlinkDecoder", "G_MPS2", "MG_PER_GAUSS", "MG_PER_UT", "MAV_CMD_NAV
            "PLAUSIBLE_FIELD_mG", "FieldUnit", "judge_field_unit", "field_plausible", "expected_field_mG",
            "HIGHRES_MAG_UNITS", "MG_UNIT", "rank_mag_source", "scaled_imu_to_si", "euler_from_quaternion",
            "normalised_quaternion", "gps_raw_int_to_si", "global_position_int_to_si", "vfr_hud_throttle",
-           "sys_status_current_A", "judge_first_field"]
+           "sys_status_current_A", "judge_first_field", "BOOT_USEC_MAX", "boot_ms_of_usec"]
 
 MG_PER_GAUSS = 1000.0
 MG_PER_UT = 10.0  # 1 uT = 10 mG
@@ -67,6 +67,19 @@ def source_name(instance: int) -> str:
 PLAUSIBLE_FIELD_mG = (150.0, 1000.0)
 PLAUSIBLE_WMM_RATIO = (0.5, 2.0)
 MG_UNIT = (("mG", 1.0),)
+# RAW_IMU's and HIGHRES_IMU's time_usec is "UNIX epoch or time since system boot" (MAVLink XML).
+# Below this it is the boot clock (ArduPilot: AP_HAL::micros64, the clock of every time_boot_ms;
+# PX4: hrt_absolute_time); above it, epoch microseconds (over 1.5e15), not a boot time.
+BOOT_USEC_MAX = 1e14              # 3.2 years of up-time
+
+
+def boot_ms_of_usec(time_usec):
+    """A time_usec as boot milliseconds (float), NaN where it is not a boot time (0, or at least
+    ``BOOT_USEC_MAX``: UNIX epoch).  Scalar or array; the one rule of both MAVLink readers."""
+    u = np.asarray(time_usec, dtype=np.float64)
+    return np.where((u > 0) & (u < BOOT_USEC_MAX), u / 1000.0, np.nan)
+
+
 # HIGHRES_IMU xmag..zmag: gauss says the MAVLink XML; ArduPilot (4.7, GCS_Common.cpp
 # send_highres_imu) sends get_field() * 1000, i.e. mG x 1000.  The magnitudes differ 10^6-fold.
 HIGHRES_MAG_UNITS = (("gauss (the MAVLink definition)", MG_PER_GAUSS),
@@ -300,8 +313,15 @@ class MavlinkDecoder:
         }
 
     def _t(self, msg, arrival_s: float) -> float:
+        """The message's time on the boot clock: its time_boot_ms, or (RAW_IMU, HIGHRES_IMU) its
+        time_usec where that is a boot time; on arrival where it has neither."""
         boot_ms = getattr(msg, "time_boot_ms", None)
-        return arrival_s if boot_ms is None else self.clock(boot_ms, arrival_s)
+        if boot_ms is None:
+            usec = getattr(msg, "time_usec", None)
+            boot_ms = None if usec is None else float(boot_ms_of_usec(usec))
+            if boot_ms is None or math.isnan(boot_ms):
+                return arrival_s
+        return self.clock(boot_ms, arrival_s)
 
     def decode(self, msg, arrival_s: float) -> list[Sample]:
         """Samples carried by one message; ``arrival_s`` is its time on the log's time base."""
@@ -334,7 +354,7 @@ class MavlinkDecoder:
 
     def _scaled_imu(self, instance: int) -> Callable:
         def decode(msg, arrival_s: float) -> list[Sample]:
-            t = arrival_s if msg.get_type() == "RAW_IMU" else self._t(msg, arrival_s)
+            t = self._t(msg, arrival_s)
             out: list[Sample] = []
             mag = (float(msg.xmag), float(msg.ymag), float(msg.zmag))
             if mag != (0.0, 0.0, 0.0):  # all-zero = no compass on this instance
@@ -345,7 +365,8 @@ class MavlinkDecoder:
             return out
         return decode
 
-    def _highres_imu(self, msg, t: float) -> list[Sample]:
+    def _highres_imu(self, msg, arrival_s: float) -> list[Sample]:
+        t = self._t(msg, arrival_s)
         updated = msg.fields_updated
         out: list[Sample] = []
         if updated & 0x1C0 or not updated:

@@ -4,9 +4,9 @@
 IMU sample of the primary instance; its inputs are built by the functions ``detection_inputs``
 uses (``groundstation.jobs.inputs``), its holds by ``Held`` (``hold_last`` on the latest value), so
 a log streamed sample by sample gives the rows and alarms ``analyze_flight`` gives it at once.
-A live stream is not in time order: ArduPilot stamps RAW_IMU and GPS_RAW_INT on arrival and
-ATTITUDE on the vehicle's boot clock, which runs up to seconds behind arrival on a radio link,
-so an attitude sample can arrive after IMU samples it precedes.  ``ReorderBuffer`` releases the
+A live stream is not in time order: the decoder times GPS_RAW_INT, SYS_STATUS and VFR_HUD on
+arrival and the IMU, compass and ATTITUDE on the vehicle's boot clock, which runs up to seconds
+behind arrival on a radio link, so a boot-timed sample can arrive after samples it precedes.  ``ReorderBuffer`` releases the
 samples in time order once the stream has moved past them by the lateness it has seen (zero on
 a clean link), which is the order a log reader sorts them into.
 ``GpsOutageWatch`` is the per-sample rule of ``groundstation.jobs.navigation.gps_outages``.

@@ -57,8 +57,8 @@ def tlog_messages() -> list[tuple[float, object]]:
         msgs.append((t, m.MAVLink_attitude_message(boot_ms, 0.1, -0.05, math.atan2(math.sin(yaw), math.cos(yaw)),
                                                   0.0, 0.0, 0.6283)))
         if k % 5 == 0:  # 10 Hz
-            msgs.append((t, m.MAVLink_highres_imu_message(
-                int(t * 1e6), 0, 0, -9.80665, 0, 0, 0.6283, mx / 1000, my / 1000, mz / 1000,
+            msgs.append((t, m.MAVLink_highres_imu_message(      # time_usec on the boot clock, as a vehicle's
+                boot_ms * 1000, 0, 0, -9.80665, 0, 0, 0.6283, mx / 1000, my / 1000, mz / 1000,
                 1013.0, 0, 0, 20.0, 0x1FF, 1)))
             msgs.append((t, m.MAVLink_gps_raw_int_message(
                 int(t * 1e6), 6, int(LAT * 1e7), int(LON * 1e7), int(ALT * 1000), 80, 120, 200, 0, 18)))

@@ -93,11 +93,6 @@ class _ColumnDecoder:
     record order).  Tables go to the builder as arrays, events (statuses, parameters, offsets) as
     samples in record order."""
 
-    #: RAW_IMU timed by its time_usec on the boot clock (where it is ArduPilot's micros64, < 1e14 us)
-    #: instead of on arrival, the station's reading (docs/known-limits.md): a diagnosis that
-    #: benchmarks/sitl.py switches on for one call, never the station's default
-    raw_imu_on_boot_clock = False
-
     def __init__(self, rec: _Records, builder: LogBuilder) -> None:
         self.rec, self.builder = rec, builder
         self.warnings: Counter = Counter()
@@ -134,7 +129,7 @@ class _ColumnDecoder:
         self._gps_raw()
         times = self._clock()
         self._scaled(times)
-        self._highres()
+        self._highres(times)
         self._attitude(times)
         self._global_position(times[_ID["GLOBAL_POSITION_INT"]])
         self._offsets()
@@ -190,7 +185,9 @@ class _ColumnDecoder:
         self.table("gps", rows[use], self.rec.arrival[rows[use]], lat, lon, alt, vn, ve, vd, g["fix_type"])
 
     def _clock(self) -> dict[int, np.ndarray]:
-        """Boot-clock times of every message that has them, in record order through one clock."""
+        """Boot-clock times of every message that has them, in record order through one clock
+        (RAW_IMU and HIGHRES_IMU where their time_usec is a boot time, ``dec.boot_ms_of_usec``;
+        ``self.on_arrival[id]`` marks their rows timed on arrival instead)."""
         parts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         for name in ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "ATTITUDE", "ATTITUDE_QUATERNION",
                      "GLOBAL_POSITION_INT"):
@@ -205,11 +202,13 @@ class _ColumnDecoder:
                 self.quat, rows, f = self.quat[valid], rows[valid], f[valid]
             parts[_ID[name]] = (rows, f["time_boot_ms"].astype(np.int64))
             del f                                       # decoded again where used: memory, not time
-        if self.raw_imu_on_boot_clock:
-            rows = self.accepted(_ID["RAW_IMU"])
-            us = self.rec.fields(_ID["RAW_IMU"], rows)["time_usec"].astype(float) if len(rows) else np.zeros(0)
-            self.raw_on = us < 1e14
-            parts[_ID["RAW_IMU"]] = (rows[self.raw_on], us[self.raw_on] / 1000.0)
+        self.usec_rows, self.on_arrival = {}, {}
+        for name in ("RAW_IMU", "HIGHRES_IMU"):
+            rows = self.accepted(_ID[name])
+            boot_ms = dec.boot_ms_of_usec(self.rec.fields(_ID[name], rows)["time_usec"] if len(rows) else np.zeros(0))
+            on_clock = np.isfinite(boot_ms)
+            self.usec_rows[_ID[name]], self.on_arrival[_ID[name]] = rows, ~on_clock
+            parts[_ID[name]] = (rows[on_clock], boot_ms[on_clock])
         rows = np.concatenate([p[0] for p in parts.values()])
         boot = np.concatenate([p[1] for p in parts.values()])
         order = np.argsort(rows, kind="stable")
@@ -221,6 +220,15 @@ class _ColumnDecoder:
             out[i] = t[k:k + len(r)]
             k += len(r)
         return out
+
+    def _usec_times(self, msg_id: int, times: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of RAW_IMU or HIGHRES_IMU and their times: the boot clock's, arrival where
+        time_usec is not a boot time."""
+        rows, arrival = self.usec_rows[msg_id], self.on_arrival[msg_id]
+        t = np.empty(len(rows))
+        t[~arrival] = times[msg_id]
+        t[arrival] = self.rec.arrival[rows[arrival]]
+        return rows, t
 
     def _place_before(self, r: int) -> tuple[float, float, float] | None:
         k = int(np.searchsorted(self.place_rows, r)) - 1
@@ -243,15 +251,10 @@ class _ColumnDecoder:
     def _scaled(self, times: dict[int, np.ndarray]) -> None:
         for msg_id, instance in _SCALED.items():
             if msg_id == _ID["RAW_IMU"]:
-                rows = self.accepted(msg_id)
-                f, t = self.rec.fields(msg_id, rows), self.rec.arrival[rows]
-                if self.raw_imu_on_boot_clock:
-                    t = t.astype(float)
-                    t[self.raw_on] = times[msg_id]
+                rows, t = self._usec_times(msg_id, times)
             else:
-                rows = self.parts[msg_id]
-                f = self.rec.fields(msg_id, rows)
-                t = times[msg_id]
+                rows, t = self.parts[msg_id], times[msg_id]
+            f = self.rec.fields(msg_id, rows)
             if not len(rows):
                 continue
             mag = np.column_stack([f["xmag"], f["ymag"], f["zmag"]])
@@ -265,12 +268,11 @@ class _ColumnDecoder:
             del f
             self.table("imu", rows, t, *gyro.T, *acc.T, instance)
 
-    def _highres(self) -> None:
-        rows = self.accepted(_ID["HIGHRES_IMU"])
+    def _highres(self, times: dict[int, np.ndarray]) -> None:
+        rows, t = self._usec_times(_ID["HIGHRES_IMU"], times)
         if not len(rows):
             return
         f = self.rec.fields(_ID["HIGHRES_IMU"], rows)
-        t = self.rec.arrival[rows]
         upd = f["fields_updated"]
         wanted = ((upd & 0x1C0) != 0) | (upd == 0)
         sent = np.column_stack([f["xmag"], f["ymag"], f["zmag"]]).astype(float)

@@ -98,7 +98,10 @@ class FlightState:
     def push(self, samples: list[Sample]) -> None:
         """Live samples (any order); those due go through the analyzer, a few at a time (at a
         high IMU rate one call per packet would cost more than the analysis itself)."""
-        self._due += self.reorder.push(samples)
+        # the primary IMU/compass is chosen in arrival order (the lowest instance heard): RAW_IMU
+        # and SCALED_IMU2 of one loop arrive in that order, but their boot times may lie either
+        # way round (ArduPilot's time_usec against a truncated time_boot_ms)
+        self._due += self.reorder.push([s for s in samples if self.analyzer.accepts(s)])
         self.flush_due()
 
     def flush_due(self) -> None:

@@ -83,7 +83,6 @@ class CalibrationWizard:
         self._last_t = 0.0
         self._last_imu_t = 0.0
         self._lost_at: float | None = None
-        self._pending: list[Sample] = []
         self._coverage_at = -math.inf
         self.latest_att = (math.nan, math.nan, math.nan)
         self.latest_mag: dict[int, deque] = {}     # the last few samples of each compass (still vehicle)
@@ -116,29 +115,7 @@ class CalibrationWizard:
             if isinstance(s, GpsSample):
                 self._on_gps(s)
             return
-        for x in self._retimed(s):
-            self._dispatch(x)
-
-    def _retimed(self, s: Sample) -> list[Sample]:
-        """RAW_IMU (instance 0) is timed by arrival, the other IMU messages and ATTITUDE by the
-        vehicle's boot clock; batches of a radio link make the two drift apart by tens of ms (at
-        replay speed-ups, hundreds), which the attitude of each field sample cannot afford.  A
-        RAW_IMU sample takes the boot time of the boot-timed sample that follows it in the stream
-        (the vehicle sends SCALED_IMU2/3 and ATTITUDE right after it)."""
-        pending = self._pending
-        if isinstance(s, (MagSample, ImuSample)) and s.instance == 0:
-            pending.append(s)
-            if len(pending) <= 8:
-                return []
-            out = pending.copy()          # no boot-timed messages in this stream: keep arrival times
-            pending.clear()
-            return out
-        if not pending or isinstance(s, GpsSample):
-            return [s]
-        out = [MagSample(s.t_s, p.mag_body_mG, 0) if isinstance(p, MagSample) else
-               ImuSample(s.t_s, p.gyro_rad_s, p.accel_mps2, 0) for p in pending]
-        pending.clear()
-        return out + [s]
+        self._dispatch(s)
 
     def _dispatch(self, s: Sample) -> None:
         self._last_t = max(self._last_t, s.t_s)
