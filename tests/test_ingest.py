@@ -94,12 +94,12 @@ def test_a_station_held_up_for_seconds_keeps_the_boot_clock_and_a_slow_clock_is_
 
 
 @pytest.mark.parametrize("kind", ["RAW_IMU", "HIGHRES_IMU"])
-def test_imu_time_usec_is_on_the_boot_clock_with_the_attitude_of_its_loop(tmp_path, kind):
-    """The vehicle sends ATTITUDE and RAW_IMU (or HIGHRES_IMU) of one loop with the same boot
-    time; the link delays both by a radio delay growing to 2 s and back (the real dronekit tlog's
-    343-357 s).  Both readers time the compass at its boot time, i.e. at its attitude's time; a
-    time_usec that is a UNIX time is no boot time and is timed on arrival, the delay off its
-    attitude."""
+def test_a_radio_delay_leaves_the_compass_and_current_with_the_attitude_of_their_loop(tmp_path, kind):
+    """The vehicle sends ATTITUDE, RAW_IMU (or HIGHRES_IMU) and SYS_STATUS of one loop; the link
+    delays them by a radio delay growing to 2 s and back (the real dronekit tlog's 343-357 s).
+    Both readers time the compass at its boot time, i.e. at its attitude's time.  A time_usec that
+    is a UNIX time is no boot time, nor has SYS_STATUS one: they are timed at their arrival less
+    the delay of the boot-timed message before them (ms after the attitude, not 2 s)."""
     from groundstation.io.mavlink import TlogWriter
 
     path = tmp_path / "late.tlog"
@@ -118,6 +118,8 @@ def test_imu_time_usec_is_on_the_boot_clock_with_the_attitude_of_its_loop(tmp_pa
                                                     0x1FF, 0)
             w.write_message(m.MAVLink_attitude_message(boot_ms, 0.1, -0.05, 0.01 * k, 0, 0, 0), arrival)
             w.write_message(imu, arrival + 0.001)
+            w.write_message(m.MAVLink_sys_status_message(0, 0, 0, 500, 12000, 100 * (k % 30), 80, 0, 0, 0, 0, 0, 0),
+                            arrival + 0.002)
             delay_s.append(late)
     log = read_log(path)
     per_packet = _decoded_per_packet(path)
@@ -126,9 +128,14 @@ def test_imu_time_usec_is_on_the_boot_clock_with_the_attitude_of_its_loop(tmp_pa
         on_boot, epoch = mag_t[:400], mag_t[400:]
         assert on_boot == pytest.approx(log.attitude[:400, 0], abs=1e-9)              # its own loop's attitude
         assert np.diff(on_boot) == pytest.approx(0.1, abs=2e-6)                       # no 2 s swing (1 us stamps)
-        late = np.asarray(delay_s[400:])
-        assert epoch - log.attitude[400:, 0] == pytest.approx(late + 0.001, abs=1e-5)  # on arrival
+        # no boot time: sent when it arrived less the delay the attitude before it had
+        assert epoch - log.attitude[400:, 0] == pytest.approx(0.001, abs=1e-5)
     assert log.imu[:, 0] == pytest.approx(log.mag[:, 0], abs=1e-9)
+    # the current (SYS_STATUS, no time of its own) likewise: with its loop's attitude, not 2 s late
+    for amps_t in (log.battery[:, 0], np.array([s.t_s for s in per_packet if isinstance(s, BatterySample)])):
+        assert len(amps_t) == 500 and max(delay_s) > 1.99
+        behind = np.where(np.arange(500) < 400, 0.001, 0.002)     # after the IMU's boot time, or the attitude's
+        assert amps_t - log.attitude[:, 0] == pytest.approx(behind, abs=1e-5)
 
 
 def _decoded_per_packet(path: Path) -> list:

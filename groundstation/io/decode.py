@@ -190,6 +190,7 @@ class _BootClock:
     REANCHOR_AFTER_S = 5.0
 
     def __init__(self) -> None:
+        self.lag_s = 0.0                 # the last message's delay beyond the least seen (arrival - t)
         self.offset_s: float | None = None
         self.last_boot_s = -math.inf
         self._late_since_boot_s: float | None = None
@@ -211,7 +212,9 @@ class _BootClock:
         else:
             self._late_since_boot_s, self._late_offset_s = None, math.inf
         self.last_boot_s = boot_s
-        return boot_s + self.offset_s
+        t = boot_s + self.offset_s
+        self.lag_s = arrival_s - t
+        return t
 
     def times(self, boot_ms: np.ndarray, arrival_s: np.ndarray) -> np.ndarray:
         """``self(boot_ms[k], arrival_s[k])`` for every k in order, as one array (the same state
@@ -258,6 +261,8 @@ class _BootClock:
                 window = 256
             else:
                 window = min(window * 2, 1 << 13)         # bounded temporaries
+        if len(out):
+            self.lag_s = float(arrival[-1] - out[-1])
         return out
 
     def _anchor(self, offset_s: float) -> None:
@@ -314,14 +319,20 @@ class MavlinkDecoder:
 
     def _t(self, msg, arrival_s: float) -> float:
         """The message's time on the boot clock: its time_boot_ms, or (RAW_IMU, HIGHRES_IMU) its
-        time_usec where that is a boot time; on arrival where it has neither."""
+        time_usec where that is a boot time; ``_sent`` where it has neither."""
         boot_ms = getattr(msg, "time_boot_ms", None)
         if boot_ms is None:
             usec = getattr(msg, "time_usec", None)
             boot_ms = None if usec is None else float(boot_ms_of_usec(usec))
             if boot_ms is None or math.isnan(boot_ms):
-                return arrival_s
+                return self._sent(arrival_s)
         return self.clock(boot_ms, arrival_s)
+
+    def _sent(self, arrival_s: float) -> float:
+        """When a message without a boot time (GPS_RAW_INT: GPS time; SYS_STATUS, VFR_HUD: none;
+        RAW_IMU with a UNIX time_usec) left the vehicle: its arrival less the link's delay on the last boot-timed message before
+        it (a radio backlog delays the current as much as the attitude sent beside it)."""
+        return arrival_s - self.clock.lag_s
 
     def decode(self, msg, arrival_s: float) -> list[Sample]:
         """Samples carried by one message; ``arrival_s`` is its time on the log's time base."""
@@ -412,8 +423,8 @@ class MavlinkDecoder:
             return []
         return [AttitudeSample(self._t(msg, arrival_s), *(float(a) for a in euler_from_quaternion(*q)))]
 
-    def _gps_raw_int(self, msg, t: float) -> list[Sample]:
-        self._last_gps_raw_t = t
+    def _gps_raw_int(self, msg, arrival_s: float) -> list[Sample]:
+        t = self._last_gps_raw_t = self._sent(arrival_s)
         self._last_fix_type = int(msg.fix_type)
         if msg.fix_type < 2 or (msg.lat == 0 and msg.lon == 0):
             return []
@@ -477,15 +488,15 @@ class MavlinkDecoder:
         """SENSOR_OFFSETS mag_ofs_*: compass 0's COMPASS_OFS in force (int16 mG)."""
         return [OffsetsSample(t, 0, (float(msg.mag_ofs_x), float(msg.mag_ofs_y), float(msg.mag_ofs_z)), 1.0)]
 
-    def _vfr_hud(self, msg, t: float) -> list[Sample]:
+    def _vfr_hud(self, msg, arrival_s: float) -> list[Sample]:
         """VFR_HUD throttle: percent of full throttle (ArduPilot: the motors' throttle output)."""
         thr, valid = vfr_hud_throttle(msg.throttle)
-        return [ThrottleSample(t, float(thr))] if valid else []
+        return [ThrottleSample(self._sent(arrival_s), float(thr))] if valid else []
 
-    def _sys_status(self, msg, t: float) -> list[Sample]:
+    def _sys_status(self, msg, arrival_s: float) -> list[Sample]:
         """current_battery is in cA (10 mA); -1 means the autopilot does not measure it."""
         amps, valid = sys_status_current_A(msg.current_battery)
-        return [BatterySample(t, float(amps))] if valid else []
+        return [BatterySample(self._sent(arrival_s), float(amps))] if valid else []
 
     def _system_time(self, msg, t: float) -> list[Sample]:
         if self.start_unix_s is None and msg.time_unix_usec > 1e15:

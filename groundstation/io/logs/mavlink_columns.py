@@ -126,8 +126,8 @@ class _ColumnDecoder:
         ok = np.flatnonzero(usec > 1e15)
         self.start_row = int(st[ok[0]]) if len(ok) else len(rec.start)
         self.start_unix = float(usec[ok[0]]) * 1e-6 - float(rec.arrival[st[ok[0]]]) if len(ok) else None
-        self._gps_raw()
         times = self._clock()
+        self._gps_raw()
         self._scaled(times)
         self._highres(times)
         self._attitude(times)
@@ -135,10 +135,10 @@ class _ColumnDecoder:
         self._offsets()
         vfr = self.accepted(_ID["VFR_HUD"])
         thr, valid = dec.vfr_hud_throttle(rec.fields(_ID["VFR_HUD"], vfr)["throttle"])
-        self.table("throttle", vfr[valid], rec.arrival[vfr[valid]], thr[valid])
+        self.table("throttle", vfr[valid], self._sent(vfr[valid]), thr[valid])
         sys = self.accepted(_ID["SYS_STATUS"])
         amps, valid = dec.sys_status_current_A(rec.fields(_ID["SYS_STATUS"], sys)["current_battery"])
-        self.table("battery", sys[valid], rec.arrival[sys[valid]], amps[valid])
+        self.table("battery", sys[valid], self._sent(sys[valid]), amps[valid])
         self._finish()
 
     def _heartbeats(self) -> None:
@@ -182,7 +182,8 @@ class _ColumnDecoder:
         g = f[use]
         lat, lon, alt, vn, ve, vd = dec.gps_raw_int_to_si(g["lat"], g["lon"], g["alt"], g["vel"], g["cog"])
         self.place_rows, self.place = rows[use], np.column_stack([lat, lon, alt]) if len(g) else np.empty((0, 3))
-        self.table("gps", rows[use], self.rec.arrival[rows[use]], lat, lon, alt, vn, ve, vd, g["fix_type"])
+        self.gps_t = self._sent(rows)
+        self.table("gps", rows[use], self.gps_t[use], lat, lon, alt, vn, ve, vd, g["fix_type"])
 
     def _clock(self) -> dict[int, np.ndarray]:
         """Boot-clock times of every message that has them, in record order through one clock
@@ -213,7 +214,10 @@ class _ColumnDecoder:
         boot = np.concatenate([p[1] for p in parts.values()])
         order = np.argsort(rows, kind="stable")
         t = np.empty(len(rows))
-        t[order] = dec._BootClock().times(boot[order], self.rec.arrival[rows[order]])
+        self.clock_rows = rows[order]
+        arrival = self.rec.arrival[self.clock_rows]
+        t[order] = dec._BootClock().times(boot[order], arrival)
+        self.clock_lag = arrival - t[order]                # MavlinkDecoder's clock.lag_s after each
         out, k = {}, 0
         self.parts = {i: p[0] for i, p in parts.items()}
         for i, (r, _) in parts.items():
@@ -221,13 +225,20 @@ class _ColumnDecoder:
             k += len(r)
         return out
 
+    def _sent(self, rows: np.ndarray) -> np.ndarray:
+        """``MavlinkDecoder._sent`` of each row: its arrival less the lag of the last boot-timed
+        row before it (none yet: 0)."""
+        k = np.searchsorted(self.clock_rows, rows) - 1
+        lag = np.where(k >= 0, self.clock_lag[np.maximum(k, 0)] if len(self.clock_rows) else 0.0, 0.0)
+        return self.rec.arrival[rows] - lag
+
     def _usec_times(self, msg_id: int, times: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Rows of RAW_IMU or HIGHRES_IMU and their times: the boot clock's, arrival where
+        """Rows of RAW_IMU or HIGHRES_IMU and their times: the boot clock's, ``_sent`` where
         time_usec is not a boot time."""
         rows, arrival = self.usec_rows[msg_id], self.on_arrival[msg_id]
         t = np.empty(len(rows))
         t[~arrival] = times[msg_id]
-        t[arrival] = self.rec.arrival[rows[arrival]]
+        t[arrival] = self._sent(rows[arrival])
         return rows, t
 
     def _place_before(self, r: int) -> tuple[float, float, float] | None:
@@ -312,7 +323,7 @@ class _ColumnDecoder:
         rows = self.parts[_ID["GLOBAL_POSITION_INT"]]
         f = self.rec.fields(_ID["GLOBAL_POSITION_INT"], rows)
         k = np.searchsorted(self.gps_rows, rows) - 1            # the last GPS_RAW_INT before each
-        last_t = np.where(k >= 0, self.rec.arrival[self.gps_rows[np.maximum(k, 0)]] if len(self.gps_rows) else 0.0,
+        last_t = np.where(k >= 0, self.gps_t[np.maximum(k, 0)] if len(self.gps_rows) else 0.0,
                           -math.inf)
         fix = np.where(k >= 0, self.gps_fix[np.maximum(k, 0)] if len(self.gps_rows) else 0, 3)
         use = ~(t - last_t < 3.0) & ~((f["lat"] == 0) & (f["lon"] == 0))
