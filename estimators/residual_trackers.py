@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -25,7 +26,7 @@ def _lagged(hist: deque, row: tuple, lag_s: float) -> tuple | None:
     return hist[0] if hist[0][0] <= t_s - lag_s else None
 
 
-def inv3(a) -> list:
+def inv3(a: Sequence[float]) -> list[float]:
     """Inverse of a 3 × 3 matrix (nine floats row by row) by its adjugate (cofactors / determinant),
     nine floats row by row: a small matrix many times per second, where a numpy call costs more
     than the arithmetic."""
@@ -37,7 +38,7 @@ def inv3(a) -> list:
             c2 / det, (a1 * a6 - a0 * a7) / det, (a0 * a4 - a1 * a3) / det]
 
 
-def quad_inv3(v, a) -> float:
+def quad_inv3(v: Sequence[float], a: Sequence[float]) -> float:
     """vᵀ A⁻¹ v for a 3-vector v and a 3 × 3 matrix A (nine floats row by row), as vᵀ adj(A) v / det A."""
     a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
     v0, v1, v2 = v
@@ -174,7 +175,7 @@ class FieldModelFilter:
                          + [1.0 if j == k else 0.0 for j in range(3)] + [xt if j == k else 0.0 for j in range(3)]
                          for k, r in enumerate(rows)])
 
-    def observe(self, c_bt, xt: float) -> tuple:
+    def observe(self, c_bt: Sequence[Sequence[float]], xt: float) -> tuple:
         """The measurement for c_bt = R(δ)Cᵀ (rows) and the signal x̃: (H θ, the predicted body
         field [mG]; H P Hᵀ, how uncertain that prediction is [mG², nine floats row by row]; P Hᵀ
         (11 × 3 array); x̃).  Pass it to ``update`` after ``forget`` has run (P as it is then)."""
