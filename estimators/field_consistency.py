@@ -67,7 +67,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.residual_trackers import FieldModelFilter, TiltTracker, inv3
+from estimators.residual_trackers import FieldModelFilter, TiltTracker, quad_inv3
 from estimators.rotations import dcm_body_to_ned_float
 
 __all__ = ["FieldConsistencySettings", "FieldConsistency", "FieldStep", "FieldConsistencyResult",
@@ -150,13 +150,29 @@ def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
+def _noise_cov(hph: list, lag_cov: list | None, sigma_mG: float) -> list:
+    """Σ = σ²/3 I + H P Hᵀ (+ the signal's lag term) [mG², nine floats row by row]."""
+    cov = [a + b for a, b in zip(hph, lag_cov)] if lag_cov is not None else list(hph)
+    v = sigma_mG * sigma_mG / 3.0
+    cov[0] += v
+    cov[4] += v
+    cov[8] += v
+    return cov
+
+
 class FieldConsistency:
     """Per-sample field-vector consistency test (see module docstring)."""
 
     def __init__(self, settings: FieldConsistencySettings | None = None,
                  earth_field_mG: tuple[float, float, float] | None = None) -> None:
-        self.s = settings or FieldConsistencySettings()
+        self.s = s = settings or FieldConsistencySettings()
         self.prior = tuple(float(v) for v in earth_field_mG) if earth_field_mG is not None else None
+        # the settings' angles in radians, once (every step compares with them)
+        self._turn_rad = math.radians(s.turn_deg)
+        self._tilt_turn_rad_s = (math.radians(s.tilt_min_turn_deg_s), math.radians(s.tilt_max_turn_deg_s))
+        self._model_max_turn_rad_s = math.radians(s.model_max_turn_deg_s)
+        self._hold_turn_rad_s = math.radians(s.first_turn_hold_deg_s)
+        self._reanchor_heading_rad = math.radians(s.reanchor_heading_deg)
         self._reset()
 
     def set_prior(self, earth_field_mG) -> None:
@@ -168,7 +184,9 @@ class FieldConsistency:
         self.model: FieldModelFilter | None = None   # made with the Earth field's first value
         self.tilt = TiltTracker(self.s.tilt_lag_s, self.s.tilt_memory_s, self.s.tilt_reg_mG2_s,
                                 math.radians(self.s.tilt_max_deg))
-        self._recent_x: deque = deque()              # (t, signal) over the last ``signal_lag_s``
+        self._recent_x: deque = deque()              # times of the signal's values over the last ``signal_lag_s``
+        self._recent_hi: deque = deque()             # (t, signal): the window's maximum first, then later
+        self._recent_lo: deque = deque()             # ... and its minimum (each value falls out when passed)
         self._att_since: float | None = None         # the attitude valid since then
         self.psi_learned: float | None = None      # heading at the end of learning
         self.turn_until: float | None = None        # the first turn is learned again until then
@@ -195,6 +213,8 @@ class FieldConsistency:
         self._turn_hold_until = -math.inf
         self.settle_until = settle_until
         self._recent_x.clear()
+        self._recent_hi.clear()
+        self._recent_lo.clear()
         self.tilt.clear_history()
         if getattr(self, "model", None) is not None:     # ψ_f starts again at the magnetic heading
             self.model.restart_heading(math.radians(self.s.model_heading_sd_deg))
@@ -234,13 +254,15 @@ class FieldConsistency:
         self._t = t
         if dt > s.max_gap_s:
             self._restart(t + s.settle_s)
-        mx, my, mz = (float(v) for v in mag_body_mG)
+        mx, my, mz = mag_body_mG
+        mx, my, mz = float(mx), float(my), float(mz)
         have_field = field_ok and math.isfinite(mx) and math.isfinite(my) and math.isfinite(mz)
         if attitude_ok and have_field:
             if self._att_since is None:
                 self._att_since = t
             dx = self._signal(float(motor_signal))
-            b, f = self.b, self.f
+            th = self.model.th if self.model is not None else (0.0,) * 11
+            b, f = th[5:8], th[8:11]
             m_earth = self._untilt((mx - b[0] - f[0] * dx, my - b[1] - f[1] * dx, mz - b[2] - f[2] * dx))
             self._track_heading(dt, roll_rad, pitch_rad, m_earth, gyro_rad_s)
         else:
@@ -334,7 +356,7 @@ class FieldConsistency:
         if self.psi_learned is None:
             self.psi_learned = self.psi
         if (self.turn_until is None and self.z < self.s.freeze_z
-                and abs(_wrap(self.psi - self.psi_learned)) > math.radians(self.s.turn_deg)):
+                and abs(_wrap(self.psi - self.psi_learned)) > self._turn_rad):
             self.turn_until = t + self.s.turn_learn_s
         return self.turn_until is not None and t < self.turn_until
 
@@ -345,7 +367,7 @@ class FieldConsistency:
         offset settling), and hand-held spins teach it the attitude's lag instead."""
         s = self.s
         return (allowed and self.learned_s >= s.tilt_learn_after_s
-                and math.radians(s.tilt_min_turn_deg_s) <= abs(self.yaw_rate_rad_s) <= math.radians(s.tilt_max_turn_deg_s))
+                and self._tilt_turn_rad_s[0] <= abs(self.yaw_rate_rad_s) <= self._tilt_turn_rad_s[1])
 
     def _clip_mG(self) -> float:
         """The tilt learns from changes clipped at ``model_clip_sigma`` σ (Huber)."""
@@ -356,15 +378,25 @@ class FieldConsistency:
         """Half the range of the motor signal over the last ``signal_lag_s`` [A or %]: how far the
         signal as received (lagging, held between 1-2 Hz samples) may be from the one the field
         follows now; f·that is part of the model's uncertainty."""
-        q = self._recent_x
-        if math.isfinite(x):
-            q.append((t, x))
-        while q and q[0][0] < t - self.s.signal_lag_s:
+        q, hi, lo = self._recent_x, self._recent_hi, self._recent_lo
+        if math.isfinite(x):        # the window's maximum and minimum as monotone queues (time order)
+            q.append(t)
+            while hi and hi[-1][1] <= x:
+                hi.pop()
+            hi.append((t, x))
+            while lo and lo[-1][1] >= x:
+                lo.pop()
+            lo.append((t, x))
+        t0 = t - self.s.signal_lag_s
+        while q and q[0] < t0:
             q.popleft()
+        while hi and hi[0][0] < t0:
+            hi.popleft()
+        while lo and lo[0][0] < t0:
+            lo.popleft()
         if len(q) < 2:
             return 0.0
-        xs = [v for _, v in q]
-        return 0.5 * (max(xs) - min(xs))
+        return 0.5 * (hi[0][1] - lo[0][1])
 
     def _test(self, t: float, dt: float, c: tuple, m: tuple, x: float) -> FieldStep:
         s = self.s
@@ -373,30 +405,34 @@ class FieldConsistency:
         model = self.model
         xt = self._dx = model.signal(float(x))
         spread = self._signal_spread(t, float(x))
-        h = model.theta[2:5]
-        p = [c[0] * h[0] + c[3] * h[1] + c[6] * h[2], c[1] * h[0] + c[4] * h[1] + c[7] * h[2],
-             c[2] * h[0] + c[5] * h[1] + c[8] * h[2]]
+        th = model.th
+        h0, h1, h2 = th[2], th[3], th[4]
+        c0, c1, c2, c3, c4, c5, c6, c7, c8 = c
+        p = [c0 * h0 + c3 * h1 + c6 * h2, c1 * h0 + c4 * h1 + c7 * h2, c2 * h0 + c5 * h1 + c8 * h2]
         tx, ty = self.tilt.tilt_rad
-        ct = [[c[0], c[3], c[6]], [c[1], c[4], c[7]], [c[2], c[5], c[8]]]             # Cᵀ
-        cbt = [[ct[0][j] + ty * ct[2][j] for j in range(3)],                        # R(δ)Cᵀ, R(δ) ≈ I + [δ×]
-               [ct[1][j] - tx * ct[2][j] for j in range(3)],
-               [ct[2][j] - ty * ct[0][j] + tx * ct[1][j] for j in range(3)]]
-        H = model.jacobian(cbt, xt)
-        pred = model.predict(H)
-        e = [m[k] - float(pred[k]) for k in range(3)]
-        fv = model.theta[8:11]
-        lag_cov = (spread * spread) * np.outer(fv, fv) if spread > 0.0 else None   # the signal's timing: f·(x_true − x_seen)
+        cbt = ((c0 + ty * c2, c3 + ty * c5, c6 + ty * c8),                 # R(δ)Cᵀ, R(δ) ≈ I + [δ×]
+               (c1 - tx * c2, c4 - tx * c5, c7 - tx * c8),
+               (c2 - ty * c0 + tx * c1, c5 - ty * c3 + tx * c4, c8 - ty * c6 + tx * c7))
+        f0, f1, f2 = th[8], th[9], th[10]
+        if spread > 0.0:                # the signal's timing: f·(x_true − x_seen), f fᵀ spread² [mG², row by row]
+            s2 = spread * spread
+            lag_cov = [s2 * (f0 * f0), s2 * (f0 * f1), s2 * (f0 * f2), s2 * (f1 * f0), s2 * (f1 * f1),
+                       s2 * (f1 * f2), s2 * (f2 * f0), s2 * (f2 * f1), s2 * (f2 * f2)]
+        else:
+            lag_cov = None
         turn = self._relearning_turn(t, learning) or t < self.relearn_until
         allowed = self._learning_allowed()
         sigma = self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG
         model.forget(dt, sigma, self.yaw_rate_rad_s)
-        PHt = model.P @ H.T
-        HPHt = H @ PHt                                  # the model's uncertainty on this step [mG²]
-        if (turn or allowed) and abs(self.yaw_rate_rad_s) <= math.radians(s.model_max_turn_deg_s):
-            model.update(H, m, dt, sigma, s.model_clip_sigma, lag_cov, PHt, HPHt)
+        obs = model.observe(cbt, xt)
+        pred, HPHt = obs[0], obs[1]                     # HPHt: the model's uncertainty on this step [mG²]
+        e = [m[0] - pred[0], m[1] - pred[1], m[2] - pred[2]]
+        if (turn or allowed) and abs(self.yaw_rate_rad_s) <= self._model_max_turn_rad_s:
+            model.update(obs, m, dt, sigma, s.model_clip_sigma, lag_cov)
             self.psi = _wrap(self.psi - model.take_heading())
-        b, f = model.theta[5:8], model.theta[8:11]
-        self.tilt.update(t, p, [m[k] - p[k] - b[k] - f[k] * xt for k in range(3)], dt,
+        th = model.th
+        self.tilt.update(t, p, [m[0] - p[0] - th[5] - th[8] * xt, m[1] - p[1] - th[6] - th[9] * xt,
+                                m[2] - p[2] - th[7] - th[10] * xt], dt,
                          self._tilt_learns(turn or allowed), self._clip_mG())
         a = 1.0 - math.exp(-dt / s.smooth_s) if self.r is not None else 1.0
         r = self.r = e if self.r is None else [self.r[k] + a * (e[k] - self.r[k]) for k in range(3)]
@@ -420,10 +456,7 @@ class FieldConsistency:
         sigma = self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG
         # q: r̄ against the noise and the model's own uncertainty, Σ = σ²/3 I + H P Hᵀ + lag term
         # (q = |r̄|/σ when the model is known exactly)
-        cov = HPHt + lag_cov if lag_cov is not None else HPHt.copy()
-        cov.flat[::4] += sigma * sigma / 3.0
-        rv = np.asarray(r, dtype=float)
-        q = self._q = math.sqrt(max(float(rv @ inv3(cov) @ rv) / 3.0, 0.0))
+        q = self._q = math.sqrt(max(quad_inv3(r, _noise_cov(HPHt, lag_cov, sigma)) / 3.0, 0.0))
         if turn and not learning and q >= s.unexplained_q:
             # a residual no turn explains: the relearning ends and the test judges it
             turn = False
@@ -433,7 +466,7 @@ class FieldConsistency:
             # heading difference alone does not alarm while the field-vector test cannot judge)
             self.S = self.z = 0.0
             z = 0.0 if (turn or learning) else float("nan")
-            return FieldStep(t, z, q, tuple(r), LEARNING if (learning or turn) else SETTLING, tuple(self.f))
+            return FieldStep(t, z, q, tuple(r), LEARNING if (learning or turn) else SETTLING, tuple(model.th[8:11]))
         q_other, eps = self._non_heading_q(c, r, sigma)
         first_turn = self._fast_turn(t, q, q_other, eps)
         if not first_turn:
@@ -442,17 +475,14 @@ class FieldConsistency:
         frozen = self.z >= s.freeze_z
         self._frozen_since = (self._frozen_since if self._frozen_since is not None else t) if frozen else None
         self._reanchor(t, q_other, frozen)
-        return FieldStep(t, self.z, q, tuple(r), ON, tuple(self.f))
+        return FieldStep(t, self.z, q, tuple(r), ON, tuple(model.th[8:11]))
 
-    def _noise_sample(self, r: list, size_mG: float, HPHt: np.ndarray, lag_cov: np.ndarray | None) -> float:
+    def _noise_sample(self, r: list, size_mG: float, HPHt: list, lag_cov: list | None) -> float:
         """The residual's square σ² follows [mG²]: |r̄|², less what the model's uncertainty
         explains, min(|r̄|², σ² · r̄ᵀ Σ⁻¹ r̄ / 3) with Σ = σ²/3 I + H P Hᵀ (+ the signal's lag term)
         and σ the current noise (so with P = 0 it is |r̄|², the mean square of before)."""
         sigma = self.noise_mG if math.isfinite(self.noise_mG) else self.s.noise_floor_mG
-        cov = HPHt + lag_cov if lag_cov is not None else HPHt.copy()
-        cov.flat[::4] += sigma * sigma / 3.0
-        rv = np.asarray(r, dtype=float)
-        return min(size_mG * size_mG, max(float(rv @ inv3(cov) @ rv) / 3.0, 0.0) * sigma * sigma)
+        return min(size_mG * size_mG, max(quad_inv3(r, _noise_cov(HPHt, lag_cov, sigma)) / 3.0, 0.0) * sigma * sigma)
 
     def _fast_turn(self, t: float, q: float, q_other: float, eps: float) -> bool:
         """True while the CUSUM holds for a fast turn (over ``first_turn_hold_deg_s``) and
@@ -463,7 +493,7 @@ class FieldConsistency:
         is a heading error ε alone (the rest under (κ + ``reanchor_margin``) σ, |ε| ≤
         ``reanchor_heading_deg``) is taken out of ψ_f."""
         s = self.s
-        if abs(self.yaw_rate_rad_s) > math.radians(s.first_turn_hold_deg_s):
+        if abs(self.yaw_rate_rad_s) > self._hold_turn_rad_s:
             self._turn_hold_until = t + s.post_turn_s
             return q < s.unexplained_q
         if t < self._turn_hold_until:
@@ -485,7 +515,7 @@ class FieldConsistency:
         if not hh > 0:
             return math.sqrt(rn[0] ** 2 + rn[1] ** 2 + rn[2] ** 2) / sigma, float("nan")
         along = (-h[1] * rn[0] + h[0] * rn[1]) / hh
-        if abs(along) > math.radians(self.s.reanchor_heading_deg) * hh:
+        if abs(along) > self._reanchor_heading_rad * hh:
             return math.inf, float("nan")
         return math.sqrt(max(rn[0] ** 2 + rn[1] ** 2 + rn[2] ** 2 - along * along, 0.0)) / sigma, along / hh
 

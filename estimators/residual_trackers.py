@@ -3,12 +3,13 @@ with its uncertainty, a Kalman filter over the Earth field, the body offset and 
 unit of the motor signal (``FieldModelFilter``, the one motor-field model; the offline fits are
 estimators.motor_field), and the magnetometer's tilt against the attitude's axes (``TiltTracker``,
 learned from the changes of the residual over a short lag, so that a body offset never teaches it
-anything).  Pure; numpy for the 11-state filter, plain floats for the tilt.
+anything).  Pure; numpy for the 11-state filter's covariance, plain floats for the rest.
 """
 from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -25,23 +26,27 @@ def _lagged(hist: deque, row: tuple, lag_s: float) -> tuple | None:
     return hist[0] if hist[0][0] <= t_s - lag_s else None
 
 
-def _huber(y: float, pred: float, clip: float) -> float:
-    """``y`` with its departure from ``pred`` clipped at ``clip`` (Huber)."""
-    return pred + min(max(y - pred, -clip), clip)
-
-
-_DIAG11 = np.diag_indices(11)
-
-
-def inv3(a: np.ndarray) -> np.ndarray:
-    """Inverse of a 3 × 3 matrix by its adjugate (cofactors / determinant): a small matrix, many
-    times per second, where np.linalg's call overhead dominates."""
-    (a0, a1, a2), (a3, a4, a5), (a6, a7, a8) = a.tolist()
+def inv3(a: Sequence[float]) -> list[float]:
+    """Inverse of a 3 × 3 matrix (nine floats row by row) by its adjugate (cofactors / determinant),
+    nine floats row by row: a small matrix many times per second, where a numpy call costs more
+    than the arithmetic."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
     c0, c1, c2 = a4 * a8 - a5 * a7, a5 * a6 - a3 * a8, a3 * a7 - a4 * a6
     det = a0 * c0 + a1 * c1 + a2 * c2
-    return np.array([[c0, a2 * a7 - a1 * a8, a1 * a5 - a2 * a4],
-                     [c1, a0 * a8 - a2 * a6, a2 * a3 - a0 * a5],
-                     [c2, a1 * a6 - a0 * a7, a0 * a4 - a1 * a3]]) / det
+    return [c0 / det, (a2 * a7 - a1 * a8) / det, (a1 * a5 - a2 * a4) / det,
+            c1 / det, (a0 * a8 - a2 * a6) / det, (a2 * a3 - a0 * a5) / det,
+            c2 / det, (a1 * a6 - a0 * a7) / det, (a0 * a4 - a1 * a3) / det]
+
+
+def quad_inv3(v: Sequence[float], a: Sequence[float]) -> float:
+    """vᵀ A⁻¹ v for a 3-vector v and a 3 × 3 matrix A (nine floats row by row), as vᵀ adj(A) v / det A."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
+    v0, v1, v2 = v
+    c0, c1, c2 = a4 * a8 - a5 * a7, a5 * a6 - a3 * a8, a3 * a7 - a4 * a6
+    det = a0 * c0 + a1 * c1 + a2 * c2
+    return ((v0 * c0 + v1 * (a2 * a7 - a1 * a8) + v2 * (a1 * a5 - a2 * a4)) * v0
+            + (v0 * c1 + v1 * (a0 * a8 - a2 * a6) + v2 * (a2 * a3 - a0 * a5)) * v1
+            + (v0 * c2 + v1 * (a1 * a6 - a0 * a7) + v2 * (a0 * a4 - a1 * a3)) * v2) / det
 
 
 SIGNAL_SCALE = 10.0     # a typical excursion of the motor signal [A or %]: sets f's random walk
@@ -71,16 +76,21 @@ class FieldModelFilter:
     What straight flight cannot separate (h against b on one heading, f against b while the
     signal is steady) keeps its prior variance, so the first turn or current change after it
     is learned at once and the test's σ includes the model's own uncertainty H P Hᵀ
-    (``predicted_cov``) instead of alarming on it.  Units: mG, A (or %), s.
+    (``observe``) instead of alarming on it.  Units: mG, A (or %), s.
+
+    Speed (issue 29: this runs at every IMU step of a log): θ is a list of plain floats and every
+    3-vector and 3 × 3 step is plain-float arithmetic; numpy does only the products with the 11 × 11
+    covariance P, through H's structure (Hᵀ kept as an 11 × 3 array whose constant rows are set once).
     """
 
     def __init__(self, h0_mG, h_sd_mG: float = 5.0, b_sd_mG: float = 50.0, f_sd: float = 3.0,
                  h_tau_s: float = 2000.0, b_tau_s: float = 20.0, f_tau_s: float = 300.0,
                  corr_s: float = 1.0, heading_sd_rad: float = 0.17, bias_sd_rad_s: float = 0.0087,
                  bias_walk_rad_s2: float = 1.0e-4, gyro_scale: float = 0.02) -> None:
-        self.theta = np.concatenate([[0.0, 0.0], np.asarray(h0_mG, dtype=float), np.zeros(6)])
+        self.th = [0.0, 0.0] + [float(v) for v in h0_mG] + [0.0] * 6      # θ, plain floats
         self.P = np.diag([heading_sd_rad ** 2, bias_sd_rad_s ** 2] + [h_sd_mG ** 2] * 3 + [b_sd_mG ** 2] * 3
                          + [f_sd ** 2] * 3)
+        self._diag = self.P.reshape(-1)[::12]          # a view of P's diagonal (P is changed in place)
         self.tau = np.array([h_tau_s] * 3 + [b_tau_s] * 3 + [f_tau_s] * 3)
         unit = np.array([1.0] * 6 + [1.0 / SIGNAL_SCALE ** 2] * 3)   # f's walk per SIGNAL_SCALE of signal
         self._walk = np.concatenate([[0.0, 0.0], unit / (self.tau * self.tau)])
@@ -89,38 +99,49 @@ class FieldModelFilter:
         self.x0: float | None = None
         self._last_xt = 0.0
         self.excitation = 0.0
+        self._Ht = np.zeros((11, 3))                   # Hᵀ: rows ε, β (0), h, b (I), f (x̃ I)
+        self._Ht[5:8] = np.eye(3)
+        self._Ht_flat = self._Ht.reshape(-1)           # its elements that change: row ε, rows h, f's diagonal
+        self._Ht_set = np.array([0, 1, 2, 6, 7, 8, 9, 10, 11, 12, 13, 14, 24, 28, 32])
+
+    @property
+    def theta(self) -> np.ndarray:
+        """θ as an array (a copy)."""
+        return np.array(self.th)
 
     @property
     def h(self) -> list:
-        return self.theta[2:5].tolist()
+        return self.th[2:5]
 
     @property
     def b(self) -> list:
-        return self.theta[5:8].tolist()
+        return self.th[5:8]
 
     @property
     def f(self) -> list:
-        return self.theta[8:11].tolist()
+        return self.th[8:11]
 
     @property
     def sd(self) -> list:
         """f's standard error per axis (√ of P's diagonal)."""
-        return np.sqrt(self.P.flat[96::12]).tolist()
+        return [math.sqrt(v) if v >= 0.0 else math.nan for v in self._diag[8:].tolist()]   # np.sqrt's NaN below 0
 
     def significant(self, k_sigma: float = 3.0) -> bool:
         """|f| ≥ k_sigma · |sd|: the motor field is known well enough to be removed."""
-        f2 = float(self.theta[8:11] @ self.theta[8:11])
-        return f2 > 0.0 and f2 >= k_sigma * k_sigma * float(np.sum(self.P.flat[96::12]))
+        f0, f1, f2 = self.th[8:11]
+        ff = f0 * f0 + f1 * f1 + f2 * f2
+        v0, v1, v2 = self._diag[8:].tolist()
+        return ff > 0.0 and ff >= k_sigma * k_sigma * (v0 + v1 + v2)
 
     @property
     def yaw_bias_rad_s(self) -> float:
         """β̂, the yaw-rate bias ψ_f takes out of the gyro."""
-        return float(self.theta[1])
+        return self.th[1]
 
     def take_heading(self) -> float:
         """ε, reset to 0 (the caller's ψ_f takes it: ψ_f ← ψ_f − ε)."""
-        eps = float(self.theta[0])
-        self.theta[0] = 0.0
+        eps = self.th[0]
+        self.th[0] = 0.0
         return eps
 
     def restart_heading(self, heading_sd_rad: float) -> None:
@@ -128,7 +149,7 @@ class FieldModelFilter:
         is new, unknown to ``heading_sd_rad`` and no longer tied to what was learnt with the old
         one, so ε is 0 with its prior variance and no covariance with h, b, f or β (otherwise the
         filter would take the new ψ_f's error as already known and split it wrongly into b)."""
-        self.theta[0] = 0.0
+        self.th[0] = 0.0
         self.P[0, :] = 0.0
         self.P[:, 0] = 0.0
         self.P[0, 0] = heading_sd_rad ** 2
@@ -145,62 +166,84 @@ class FieldModelFilter:
         self._last_xt = float(x) - self.x0
         return self._last_xt
 
-    def jacobian(self, c_bt: np.ndarray, xt: float) -> np.ndarray:
-        """H (3 × 11) for the body-from-navigation matrix c_bt = R(δ)Cᵀ and the signal x̃."""
-        hn, he = float(self.theta[2]), float(self.theta[3])
+    def jacobian(self, c_bt, xt: float) -> np.ndarray:
+        """H (3 × 11) for the body-from-navigation matrix c_bt = R(δ)Cᵀ and the signal x̃ (as an
+        array; ``observe`` uses its structure instead)."""
+        hn, he = self.th[2], self.th[3]
         rows = c_bt.tolist() if isinstance(c_bt, np.ndarray) else c_bt
         return np.array([[r[1] * hn - r[0] * he, 0.0, r[0], r[1], r[2]]            # R(δ)Cᵀ (−h_E, h_N, 0)
                          + [1.0 if j == k else 0.0 for j in range(3)] + [xt if j == k else 0.0 for j in range(3)]
                          for k, r in enumerate(rows)])
 
-    def predict(self, H: np.ndarray) -> np.ndarray:
-        """The predicted body field H θ [mG]."""
-        return H @ self.theta
-
-    def predicted_cov(self, H: np.ndarray) -> np.ndarray:
-        """H P Hᵀ [mG²]: how uncertain the model's prediction of this step is."""
-        return H @ self.P @ H.T
+    def observe(self, c_bt: Sequence[Sequence[float]], xt: float) -> tuple:
+        """The measurement for c_bt = R(δ)Cᵀ (rows) and the signal x̃: (H θ, the predicted body
+        field [mG]; H P Hᵀ, how uncertain that prediction is [mG², nine floats row by row]; P Hᵀ
+        (11 × 3 array); x̃).  Pass it to ``update`` after ``forget`` has run (P as it is then)."""
+        th = self.th
+        e0, hn, he, hd = th[0], th[2], th[3], th[4]
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = c_bt
+        a0, a1, a2 = r01 * hn - r00 * he, r11 * hn - r10 * he, r21 * hn - r20 * he
+        pred = [a0 * e0 + r00 * hn + r01 * he + r02 * hd + th[5] + xt * th[8],
+                a1 * e0 + r10 * hn + r11 * he + r12 * hd + th[6] + xt * th[9],
+                a2 * e0 + r20 * hn + r21 * he + r22 * hd + th[7] + xt * th[10]]
+        Ht = self._Ht
+        self._Ht_flat[self._Ht_set] = (a0, a1, a2, r00, r10, r20, r01, r11, r21, r02, r12, r22, xt, xt, xt)
+        PHt = self.P @ Ht
+        return pred, (Ht.T @ PHt).ravel().tolist(), PHt, xt
 
     def forget(self, dt_s: float, sigma_mG: float, yaw_rate_rad_s: float = 0.0) -> None:
         """The random walks over dt: P += diag(r_c / τ²) dt, r_c = σ² τ_c; the heading's error grows
         by what is left of the gyro's bias and by its scale error in turns."""
         P = self.P
-        P[0, :] += dt_s * P[1, :]                      # P ← F P Fᵀ, F = I + Δt e_ε e_βᵀ
-        P[:, 0] += dt_s * P[:, 1]
+        row = P[0]                                     # P ← F P Fᵀ, F = I + Δt e_ε e_βᵀ: row 0 += Δt row 1, ...
+        row += dt_s * P[1]
+        P[0, 0] += dt_s * row[1]                       # ... then column 0 += Δt column 1, which (P symmetric)
+        P[1:, 0] = row[1:]                             # is row 0 again below the diagonal
         q = self._walk * (sigma_mG * sigma_mG * self.corr_s * dt_s)
         q[0] = (self.gyro_scale * yaw_rate_rad_s) ** 2 * dt_s
         q[1] = self.bias_walk_rad_s2 ** 2 * dt_s
-        P.flat[::12] += q
+        self._diag += q
 
     def inflate(self, h_sd_mG: float, b_sd_mG: float) -> None:
         """Forget h and b to this much more variance (a disturbance has ended: learn them again)."""
-        self.P[_DIAG11] += np.array([0.0, 0.0] + [h_sd_mG ** 2] * 3 + [b_sd_mG ** 2] * 3 + [0.0] * 3)
+        self._diag += np.array([0.0, 0.0] + [h_sd_mG ** 2] * 3 + [b_sd_mG ** 2] * 3 + [0.0] * 3)
 
-    def update(self, H: np.ndarray, m_mG, dt_s: float, sigma_mG: float, clip: float,
-               extra_cov: np.ndarray | None = None, PHt: np.ndarray | None = None,
-               HPHt: np.ndarray | None = None) -> None:
-        """One Kalman measurement update with measurement noise R = (σ² τ_c / dt) I (+ extra_cov);
-        ``PHt`` = P Hᵀ and ``HPHt`` = H P Hᵀ if the caller has them."""
+    def update(self, H, m_mG, dt_s: float, sigma_mG: float, clip: float, extra_cov: list | None = None) -> None:
+        """One Kalman measurement update with measurement noise R = (σ² τ_c / dt) I (+ extra_cov, nine
+        floats row by row): ``H`` is ``observe``'s tuple (or H as an array, observed here)."""
         if dt_s <= 0.0:
             return
-        if PHt is None:
-            PHt = self.P @ H.T
-        if HPHt is None:
-            HPHt = H @ PHt
+        if isinstance(H, np.ndarray):
+            H = self.observe(H[:, 2:5].tolist(), float(H[0, 8]))
+        pred, hph, PHt, xt = H
         r = sigma_mG * sigma_mG
-        S = HPHt + extra_cov * (self.corr_s / dt_s) if extra_cov is not None else HPHt.copy()
-        S.flat[::4] += r * self.corr_s / dt_s
-        nu = np.asarray(m_mG, dtype=float) - H @ self.theta
-        C = HPHt.copy()
-        C.flat[::4] += r
-        d = math.sqrt(max(float(nu @ inv3(C) @ nu), 0.0))
+        rs = r * self.corr_s / dt_s
+        if extra_cov is not None:
+            k = self.corr_s / dt_s
+            S = [hph[i] + extra_cov[i] * k for i in range(9)]
+        else:
+            S = list(hph)
+        S[0] += rs
+        S[4] += rs
+        S[8] += rs
+        nu = [float(m_mG[0]) - pred[0], float(m_mG[1]) - pred[1], float(m_mG[2]) - pred[2]]
+        C = list(hph)
+        C[0] += r
+        C[4] += r
+        C[8] += r
+        d = math.sqrt(max(quad_inv3(nu, C), 0.0))
         if d > clip:                       # Huber: at most ``clip`` σ of innovation (model error included)
-            nu = nu * (clip / d)
-        K = PHt @ inv3(S)
-        self.theta += K @ nu
-        P = self.P - K @ PHt.T
-        self.P = 0.5 * (P + P.T)
-        xt = float(H[0, 8])
+            g = clip / d
+            nu = [nu[0] * g, nu[1] * g, nu[2] * g]
+        n0, n1, n2 = nu
+        s0, s1, s2, s3, s4, s5, s6, s7, s8 = inv3(S)
+        # [K | K ν] = P Hᵀ [S⁻¹ | S⁻¹ ν] in one product
+        G = PHt @ np.array(((s0, s1, s2, s0 * n0 + s1 * n1 + s2 * n2), (s3, s4, s5, s3 * n0 + s4 * n1 + s5 * n2),
+                            (s6, s7, s8, s6 * n0 + s7 * n1 + s8 * n2)))
+        self.th = [a + b for a, b in zip(self.th, G[:, 3].tolist())]
+        P = self.P - G[:, :3] @ PHt.T
+        np.add(P, P.T, out=self.P)
+        self.P *= 0.5
         self.excitation += xt * xt * dt_s
 
 
@@ -232,25 +275,35 @@ class TiltTracker:
 
     def update(self, t_s: float, p_mG, u_mG, dt_s: float, learn: bool, clip_mG: float) -> None:
         """One step: p = Cᵀh and u = m − p − b − f·Δx (no tilt term) [mG]; learns only when ``learn``."""
-        old = _lagged(self._hist, (t_s, float(p_mG[0]), float(p_mG[1]), float(p_mG[2]),
-                                   float(u_mG[0]), float(u_mG[1]), float(u_mG[2])), self.lag_s)
+        p0, p1, p2 = float(p_mG[0]), float(p_mG[1]), float(p_mG[2])
+        u0, u1, u2 = float(u_mG[0]), float(u_mG[1]), float(u_mG[2])
+        old = _lagged(self._hist, (t_s, p0, p1, p2, u0, u1, u2), self.lag_s)
         if not learn or old is None:
             return
-        dpx, dpy, dpz = (float(p_mG[k]) - old[k + 1] for k in range(3))
-        a_x = (0.0, -dpz, dpy)             # e_x × Δp: the residual change per radian of δ_x
-        a_y = (dpz, 0.0, -dpx)             # e_y × Δp
+        dpx, dpy, dpz = p0 - old[1], p1 - old[2], p2 - old[3]
+        # e_x × Δp = (0, −Δp_z, Δp_y) and e_y × Δp = (Δp_z, 0, −Δp_x): the residual's change per
+        # radian of δ_x and of δ_y (written out term by term, zeros included: the same arithmetic
+        # as the loop over the three axes it replaces)
+        ax1, ax2, ay0, ay2 = -dpz, dpy, dpz, -dpx
         tx, ty = self.tilt_rad
         w = math.exp(-dt_s / self.memory_s)
         s, r = self._s, self._r
-        s[0] = w * s[0] + dt_s * (a_x[1] * a_x[1] + a_x[2] * a_x[2])
-        s[1] = w * s[1] + dt_s * (a_x[2] * a_y[2])
-        s[2] = w * s[2] + dt_s * (a_y[0] * a_y[0] + a_y[2] * a_y[2])
+        s[0] = w * s[0] + dt_s * (ax1 * ax1 + ax2 * ax2)
+        s[1] = w * s[1] + dt_s * (ax2 * ay2)
+        s[2] = w * s[2] + dt_s * (ay0 * ay0 + ay2 * ay2)
         rx, ry = w * r[0], w * r[1]
-        for k in range(3):
-            pred = a_x[k] * tx + a_y[k] * ty
-            y = _huber(float(u_mG[k]) - old[k + 4], pred, clip_mG)
-            rx += dt_s * a_x[k] * y
-            ry += dt_s * a_y[k] * y
+        pred = 0.0 * tx + ay0 * ty
+        y = pred + min(max(u0 - old[4] - pred, -clip_mG), clip_mG)         # Huber-clipped around A δ
+        rx += dt_s * 0.0 * y
+        ry += dt_s * ay0 * y
+        pred = ax1 * tx + 0.0 * ty
+        y = pred + min(max(u1 - old[5] - pred, -clip_mG), clip_mG)
+        rx += dt_s * ax1 * y
+        ry += dt_s * 0.0 * y
+        pred = ax2 * tx + ay2 * ty
+        y = pred + min(max(u2 - old[6] - pred, -clip_mG), clip_mG)
+        rx += dt_s * ax2 * y
+        ry += dt_s * ay2 * y
         self._r = [rx, ry]
         sxx, sxy, syy = s[0] + self.reg, s[1], s[2] + self.reg
         det = sxx * syy - sxy * sxy

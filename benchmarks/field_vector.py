@@ -1,0 +1,96 @@
+"""CPU time of the field-vector test's per-step loop and of `review_log` per flight (issue 29).
+
+    .venv/bin/python benchmarks/field_vector.py                  # both parts
+    .venv/bin/python benchmarks/field_vector.py --part loop --repeats 3
+    .venv/bin/python benchmarks/field_vector.py --part review --fleet /tmp/fleet
+
+loop: four simulated missions (mission-bump and mission-motor, seeds 0 and 1, calibrated on board)
+are read and their detector inputs made once; then ``field_consistency`` alone runs on them,
+``--repeats`` times, and the least process CPU time is printed per IMU step.
+review: ``review_log`` on the first 8 flights of a 3 × 4 simulated fleet (seed 0), process CPU
+seconds and logs per CPU-second.  The machine is shared: CPU time, not wall time, is the figure;
+compare before and after in alternate runs.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+MISSIONS = (("mission-bump", 0), ("mission-bump", 1), ("mission-motor", 0), ("mission-motor", 1))
+
+
+def loop_inputs(tmp: Path) -> list[tuple[tuple, dict]]:
+    """The arguments analyze gives ``field_consistency`` on each mission."""
+    import groundstation.jobs.inputs as inputs
+    from groundstation.io.logs import read_log
+    from groundstation.sim.scenarios import simulate
+    calls: list[tuple[tuple, dict]] = []
+    real = inputs.field_consistency
+
+    def keep(*args, **kw):
+        calls.append((args, kw))
+        return real(*args, **kw)
+
+    inputs.field_consistency = keep
+    try:
+        for name, seed in MISSIONS:
+            log = read_log(simulate(name, seed, onboard_calibration=True).write(tmp / f"{name}-{seed}.tlog"))
+            inputs.detection_inputs(log)
+    finally:
+        inputs.field_consistency = real
+    return calls
+
+
+def time_loop(repeats: int) -> None:
+    from estimators.field_consistency import field_consistency
+    with tempfile.TemporaryDirectory() as tmp:
+        calls = loop_inputs(Path(tmp))
+    steps = sum(len(args[0]) for args, _ in calls)
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.process_time()
+        for args, kw in calls:
+            field_consistency(*args, **kw)
+        best = min(best, time.process_time() - t0)
+    print(f"field-vector loop: {steps} IMU steps, {best:.2f} CPU s (least of {repeats}), "
+          f"{1e6 * best / steps:.1f} us per step")
+
+
+def time_review(fleet: Path | None) -> None:
+    from groundstation.jobs.fleet import discover_logs
+    from groundstation.jobs.review_row import ReviewSettings, review_log
+    from groundstation.sim.fleet import FleetSettings, simulate_fleet
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = fleet or Path(tmp)
+        if not (folder / "fleet.truth.json").exists():
+            simulate_fleet(folder, FleetSettings(vehicles=3, flights=4, seed=0, drift_vehicles=1, payload_vehicles=1),
+                           workers=1)
+        logs = discover_logs([folder])[:8]
+        t0 = time.process_time()
+        for p in logs:
+            review_log(p, ReviewSettings())
+        cpu = time.process_time() - t0
+    print(f"review_log: {len(logs)} logs, {cpu:.2f} CPU s, {len(logs) / cpu:.2f} logs per CPU-s")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--part", choices=("loop", "review", "both"), default="both")
+    ap.add_argument("--repeats", type=int, default=3, help="runs of the loop; the least CPU time is printed")
+    ap.add_argument("--fleet", type=Path, help="keep (or reuse) the simulated fleet in this folder")
+    args = ap.parse_args(argv)
+    if args.part in ("loop", "both"):
+        time_loop(args.repeats)
+    if args.part in ("review", "both"):
+        time_review(args.fleet)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
