@@ -584,7 +584,7 @@ def analyse_flight_logs(res: dict) -> None:
 def raw_imu_late_s(tlog: Path) -> dict:
     """How late the session .tlog's RAW_IMU arrived against the vehicle's clock: per packet its
     arrival minus its time_usec (ArduPilot's boot clock), less the smallest such value up to then
-    (the reader's boot-clock anchor, groundstation.io.decode._BootClock).  The reader times RAW_IMU,
+    (the reader's boot-clock anchor, groundstation.io.boot_clock.BootClock).  The reader times RAW_IMU,
     ATTITUDE and the other boot-clocked messages on that clock; SYS_STATUS (the current), VFR_HUD
     and GPS_RAW_INT have no boot time and stay on arrival, so this is how far those stand from the
     compass in the .tlog: it grows for good when the SITL falls behind the wall clock (a loaded

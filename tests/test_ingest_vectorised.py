@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 
 from conftest import SHARED_DATA
-from groundstation.io.decode import MavlinkDecoder, _BootClock
+from groundstation.io.boot_clock import BootClock
+from groundstation.io.decode import MavlinkDecoder
 from groundstation.io.logs import read_log
 from groundstation.io.logs import tlog as tlog_module
 from groundstation.io.logs.builder import LogBuilder
@@ -290,7 +291,7 @@ def test_boot_clock_in_bulk_is_the_per_message_clock():
         arrival = boot * 1e-3 + 100 + np.cumsum(rng.normal(0, 0.01, n))
         for r in rng.integers(0, n, int(rng.integers(0, 5))):
             arrival[r:r + int(rng.integers(1, 800))] += rng.uniform(0, 6)  # late stretches
-        one, bulk = _BootClock(), _BootClock()
+        one, bulk = BootClock(), BootClock()
         expected = [one(int(b), float(a)) for b, a in zip(boot, arrival)]
         cut = int(rng.integers(0, n))
         got = np.concatenate([bulk.times(boot[:cut], arrival[:cut]), bulk.times(boot[cut:], arrival[cut:])])

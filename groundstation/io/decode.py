@@ -9,8 +9,7 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import Callable
 
-import numpy as np
-
+from .boot_clock import BootClock, boot_ms_of_usec
 from .mavlink_units import (G_MPS2, euler_from_quaternion, global_position_int_to_si, gps_raw_int_to_si,
                             normalised_quaternion, scaled_imu_to_si, sys_status_current_A, vfr_hud_throttle)
 from ..samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, MagCalSample, MagSample, MissionSample,
@@ -21,7 +20,7 @@ __all__ = ["MavlinkDecoder", "G_MPS2", "MG_PER_GAUSS", "MG_PER_UT", "MAV_CMD_NAV
            "PLAUSIBLE_FIELD_mG", "FieldUnit", "judge_field_unit", "field_plausible", "expected_field_mG",
            "HIGHRES_MAG_UNITS", "MG_UNIT", "rank_mag_source", "scaled_imu_to_si", "euler_from_quaternion",
            "normalised_quaternion", "gps_raw_int_to_si", "global_position_int_to_si", "vfr_hud_throttle",
-           "sys_status_current_A", "judge_first_field", "BOOT_USEC_MAX", "boot_ms_of_usec"]
+           "sys_status_current_A", "judge_first_field"]
 
 MG_PER_GAUSS = 1000.0
 MG_PER_UT = 10.0  # 1 uT = 10 mG
@@ -67,19 +66,6 @@ def source_name(instance: int) -> str:
 PLAUSIBLE_FIELD_mG = (150.0, 1000.0)
 PLAUSIBLE_WMM_RATIO = (0.5, 2.0)
 MG_UNIT = (("mG", 1.0),)
-# RAW_IMU's and HIGHRES_IMU's time_usec is "UNIX epoch or time since system boot" (MAVLink XML).
-# Below this it is the boot clock (ArduPilot: AP_HAL::micros64, the clock of every time_boot_ms;
-# PX4: hrt_absolute_time); above it, epoch microseconds (over 1.5e15), not a boot time.
-BOOT_USEC_MAX = 1e14              # 3.2 years of up-time
-
-
-def boot_ms_of_usec(time_usec):
-    """A time_usec as boot milliseconds (float), NaN where it is not a boot time (0, or at least
-    ``BOOT_USEC_MAX``: UNIX epoch).  Scalar or array; the one rule of both MAVLink readers."""
-    u = np.asarray(time_usec, dtype=np.float64)
-    return np.where((u > 0) & (u < BOOT_USEC_MAX), u / 1000.0, np.nan)
-
-
 # HIGHRES_IMU xmag..zmag: gauss says the MAVLink XML; ArduPilot (4.7, GCS_Common.cpp
 # send_highres_imu) sends get_field() * 1000, i.e. mG x 1000.  The magnitudes differ 10^6-fold.
 HIGHRES_MAG_UNITS = (("gauss (the MAVLink definition)", MG_PER_GAUSS),
@@ -173,103 +159,6 @@ def judge_first_field(instance: int, sent: tuple[float, float, float], units, t:
     return judge_field_unit(source_name(instance), m, units, expected)
 
 
-class _BootClock:
-    """Maps a message's time_boot_ms onto the log's time base.
-
-    Radio links deliver packets in bursts, so arrival times jitter by tens of ms; the
-    vehicle's boot clock does not.  t = boot_s + offset, where offset is the smallest
-    (arrival - boot) seen so far (a packet never arrives before it is sent).  A reboot (boot
-    time going back) re-anchors the offset at once; packets arriving more than
-    ``REANCHOR_LATE_S`` late re-anchor it only when they stay that late for ``REANCHOR_AFTER_S``
-    of boot time (a vehicle clock that runs slow, e.g. SITL below real time): a station held up
-    for a few seconds then reading the backlog in a burst must not move the times forward and
-    then back (the tests would restart as after a seek).
-    """
-
-    REANCHOR_LATE_S = 2.0
-    REANCHOR_AFTER_S = 5.0
-
-    def __init__(self) -> None:
-        self.lag_s = 0.0                 # the last message's delay beyond the least seen (arrival - t)
-        self.offset_s: float | None = None
-        self.last_boot_s = -math.inf
-        self._late_since_boot_s: float | None = None
-        self._late_offset_s = math.inf
-
-    def __call__(self, boot_ms: float, arrival_s: float) -> float:
-        boot_s = boot_ms * 1e-3
-        candidate = arrival_s - boot_s
-        if self.offset_s is None or boot_s < self.last_boot_s - 1.0:
-            self._anchor(candidate)
-        elif candidate < self.offset_s:
-            self.offset_s = candidate
-        if candidate - self.offset_s > self.REANCHOR_LATE_S:
-            if self._late_since_boot_s is None:
-                self._late_since_boot_s = boot_s
-            self._late_offset_s = min(self._late_offset_s, candidate)
-            if boot_s - self._late_since_boot_s >= self.REANCHOR_AFTER_S:
-                self._anchor(self._late_offset_s)
-        else:
-            self._late_since_boot_s, self._late_offset_s = None, math.inf
-        self.last_boot_s = boot_s
-        t = boot_s + self.offset_s
-        self.lag_s = arrival_s - t
-        return t
-
-    def times(self, boot_ms: np.ndarray, arrival_s: np.ndarray) -> np.ndarray:
-        """``self(boot_ms[k], arrival_s[k])`` for every k in order, as one array (the same state
-        afterwards).  Between events (a reboot, a late re-anchor) the offset is the running
-        minimum of arrival - boot (``np.minimum.accumulate``); each event is one call of the
-        per-message step, then the vectorised stretch goes on: linear in the messages."""
-        boot = np.asarray(boot_ms, dtype=float) * 1e-3
-        arrival = np.asarray(arrival_s, dtype=float)
-        cand = arrival - boot
-        out = np.empty(len(boot))
-        k, window = 0, 256
-        while k < len(boot):
-            if self.offset_s is None:
-                out[k] = self(float(boot_ms[k]), float(arrival[k]))
-                k += 1
-                continue
-            b, c = boot[k:k + window], cand[k:k + window]
-            prev_b = np.concatenate(([self.last_boot_s], b[:-1]))
-            reboot = b < prev_b - 1.0
-            off = np.minimum.accumulate(np.concatenate(([self.offset_s], c)))[1:]
-            late = c - off > self.REANCHOR_LATE_S
-            # the boot time each late stretch started at (carried in from before the window)
-            starts = late & ~np.concatenate(([self._late_since_boot_s is not None], late[:-1]))
-            run = np.cumsum(starts)
-            start_b = np.where(run > 0, b[np.flatnonzero(starts)][np.maximum(run - 1, 0)] if starts.any() else 0.0,
-                               self._late_since_boot_s if self._late_since_boot_s is not None else 0.0)
-            reanchor = late & (b - start_b >= self.REANCHOR_AFTER_S)
-            events = np.flatnonzero(reboot | reanchor)
-            e = int(events[0]) if len(events) else len(b)
-            if e:
-                out[k:k + e] = b[:e] + off[:e]
-                if late[e - 1]:
-                    in_run = (run[:e] == run[e - 1]) & late[:e]
-                    carried = self._late_offset_s if run[e - 1] == 0 else math.inf
-                    self._late_since_boot_s = float(start_b[e - 1])
-                    self._late_offset_s = min(carried, float(c[:e][in_run].min()))
-                else:
-                    self._late_since_boot_s, self._late_offset_s = None, math.inf
-                self.offset_s, self.last_boot_s = float(off[e - 1]), float(b[e - 1])
-            k += e
-            if e < len(b):          # the event: one per-message step
-                out[k] = self(float(boot_ms[k]), float(arrival[k]))
-                k += 1
-                window = 256
-            else:
-                window = min(window * 2, 1 << 13)         # bounded temporaries
-        if len(out):
-            self.lag_s = float(arrival[-1] - out[-1])
-        return out
-
-    def _anchor(self, offset_s: float) -> None:
-        self.offset_s = offset_s
-        self._late_since_boot_s, self._late_offset_s = None, math.inf
-
-
 class MavlinkDecoder:
     """Turns pymavlink message objects into samples, with units exactly as the MAVLink XML says.
 
@@ -283,7 +172,7 @@ class MavlinkDecoder:
     """
 
     def __init__(self, vehicle_sysid: int | None = None) -> None:
-        self.clock = _BootClock()
+        self.clock = BootClock()
         self.autopilot: str | None = None
         self.vehicle_sysid: int | None = vehicle_sysid
         self.start_unix_s: float | None = None

@@ -34,7 +34,7 @@ from typing import Iterable
 import numpy as np
 
 from estimators.geomag import decimal_year_from_unix, earth_field
-from groundstation.io.decode import boot_ms_of_usec
+from groundstation.io.boot_clock import boot_ms_of_usec
 from groundstation.io.mavlink import mavlink2, new_encoder
 from groundstation.sim.fake_autopilot import (OnboardCalibrator, corrected_field, default_params,
                                               fixed_yaw_params, rotated_raw)
@@ -377,7 +377,7 @@ _INT16 = {"xgyro", "ygyro", "zgyro", "vx", "vy", "vz"}
 
 def compress_time(msg, speed: float):
     """The same motion performed ``speed`` times faster: boot times / speed (time_boot_ms, and
-    time_usec where it is a boot time, ``decode.boot_ms_of_usec``), angular rates and velocities
+    time_usec where it is a boot time, ``boot_clock.boot_ms_of_usec``), angular rates and velocities
     x speed (a copy; the simulation's message is left alone).  Without this a sped-up stream
     would carry rates that do not match the time between packets, and RAW_IMU's boot clock
     would run ``speed`` times faster than ATTITUDE's on the one clock of the station's reader."""

@@ -12,6 +12,7 @@ from collections import Counter
 import numpy as np
 
 from .. import decode as dec
+from ..boot_clock import BootClock, boot_ms_of_usec
 from ..decode import MavlinkDecoder
 from ..mavlink import mavlink2
 from .builder import LogBuilder, column_table, in_record_order
@@ -187,7 +188,7 @@ class _ColumnDecoder:
 
     def _clock(self) -> dict[int, np.ndarray]:
         """Boot-clock times of every message that has them, in record order through one clock
-        (RAW_IMU and HIGHRES_IMU where their time_usec is a boot time, ``dec.boot_ms_of_usec``;
+        (RAW_IMU and HIGHRES_IMU where their time_usec is a boot time, ``boot_ms_of_usec``;
         ``self.on_arrival[id]`` marks their rows timed on arrival instead)."""
         parts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         for name in ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "ATTITUDE", "ATTITUDE_QUATERNION",
@@ -206,7 +207,7 @@ class _ColumnDecoder:
         self.usec_rows, self.on_arrival = {}, {}
         for name in ("RAW_IMU", "HIGHRES_IMU"):
             rows = self.accepted(_ID[name])
-            boot_ms = dec.boot_ms_of_usec(self.rec.fields(_ID[name], rows)["time_usec"] if len(rows) else np.zeros(0))
+            boot_ms = boot_ms_of_usec(self.rec.fields(_ID[name], rows)["time_usec"] if len(rows) else np.zeros(0))
             on_clock = np.isfinite(boot_ms)
             self.usec_rows[_ID[name]], self.on_arrival[_ID[name]] = rows, ~on_clock
             parts[_ID[name]] = (rows[on_clock], boot_ms[on_clock])
@@ -216,7 +217,7 @@ class _ColumnDecoder:
         t = np.empty(len(rows))
         self.clock_rows = rows[order]
         arrival = self.rec.arrival[self.clock_rows]
-        t[order] = dec._BootClock().times(boot[order], arrival)
+        t[order] = BootClock().times(boot[order], arrival)
         self.clock_lag = arrival - t[order]                # MavlinkDecoder's clock.lag_s after each
         out, k = {}, 0
         self.parts = {i: p[0] for i, p in parts.items()}

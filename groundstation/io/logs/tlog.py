@@ -347,7 +347,7 @@ def read_tlog(path: Path, progress: Callable[[float], None] | None) -> FlightLog
     (``mavlink_bulk.payload_dtype``, pymavlink's layout), converted by the functions the live
     decoder uses (``decode.scaled_imu_to_si`` ...) with its rules: the vehicle is the first
     autopilot heartbeat's system, times from time_boot_ms (and RAW_IMU/HIGHRES_IMU time_usec where it is a
-    boot time) through ``_BootClock.times``, each
+    boot time) through ``BootClock.times``, each
     magnetometer source's unit judged at its first sample.  Parameters, status text, missions
     and calibration events (``_PER_PACKET``, a few a second) go through pymavlink and
     ``MavlinkDecoder`` packet by packet.  The same FlightLog as decoding every packet with
