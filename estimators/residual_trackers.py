@@ -98,7 +98,6 @@ class FieldModelFilter:
         self.corr_s = corr_s
         self.x0: float | None = None
         self._last_xt = 0.0
-        self.excitation = 0.0
         self._Ht = np.zeros((11, 3))                   # Hᵀ: rows ε, β (0), h, b (I), f (x̃ I)
         self._Ht[5:8] = np.eye(3)
         self._Ht_flat = self._Ht.reshape(-1)           # its elements that change: row ε, rows h, f's diagonal
@@ -215,7 +214,7 @@ class FieldModelFilter:
             return
         if isinstance(H, np.ndarray):
             H = self.observe(H[:, 2:5].tolist(), float(H[0, 8]))
-        pred, hph, PHt, xt = H
+        pred, hph, PHt, _ = H
         r = sigma_mG * sigma_mG
         rs = r * self.corr_s / dt_s
         if extra_cov is not None:
@@ -244,7 +243,6 @@ class FieldModelFilter:
         P = self.P - G[:, :3] @ PHt.T
         np.add(P, P.T, out=self.P)
         self.P *= 0.5
-        self.excitation += xt * xt * dt_s
 
 
 class TiltTracker:
