@@ -215,10 +215,19 @@ class _ColumnDecoder:
         boot = np.concatenate([p[1] for p in parts.values()])
         order = np.argsort(rows, kind="stable")
         t = np.empty(len(rows))
-        self.clock_rows = rows[order]
-        arrival = self.rec.arrival[self.clock_rows]
-        t[order] = BootClock().times(boot[order], arrival)
-        self.clock_lag = arrival - t[order]                # MavlinkDecoder's clock.lag_s after each
+        on_clock_rows = rows[order]
+        lag = self.rec.arrival[on_clock_rows]
+        times_in_order = BootClock().times(boot[order], lag)
+        t[order] = times_in_order
+        lag -= times_in_order                               # MavlinkDecoder's clock.lag_s after each
+        del times_in_order, boot, order
+        # the rows without a boot time keep only the lag before each (the clock's rows are freed)
+        self.sent_rows = np.sort(np.concatenate(
+            [self.accepted(_ID[name]) for name in ("GPS_RAW_INT", "SYS_STATUS", "VFR_HUD")]
+            + [self.usec_rows[i][self.on_arrival[i]] for i in self.usec_rows]))
+        k = np.searchsorted(on_clock_rows, self.sent_rows) - 1
+        self.sent_lag = np.where(k >= 0, lag[np.maximum(k, 0)] if len(lag) else 0.0, 0.0)
+        del on_clock_rows, lag, k
         out, k = {}, 0
         self.parts = {i: p[0] for i, p in parts.items()}
         for i, (r, _) in parts.items():
@@ -229,9 +238,7 @@ class _ColumnDecoder:
     def _sent(self, rows: np.ndarray) -> np.ndarray:
         """``MavlinkDecoder._sent`` of each row: its arrival less the lag of the last boot-timed
         row before it (none yet: 0)."""
-        k = np.searchsorted(self.clock_rows, rows) - 1
-        lag = np.where(k >= 0, self.clock_lag[np.maximum(k, 0)] if len(self.clock_rows) else 0.0, 0.0)
-        return self.rec.arrival[rows] - lag
+        return self.rec.arrival[rows] - self.sent_lag[np.searchsorted(self.sent_rows, rows)]
 
     def _usec_times(self, msg_id: int, times: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Rows of RAW_IMU or HIGHRES_IMU and their times: the boot clock's, ``_sent`` where
