@@ -219,8 +219,9 @@ class MavlinkDecoder:
 
     def _sent(self, arrival_s: float) -> float:
         """When a message without a boot time (GPS_RAW_INT: GPS time; SYS_STATUS, VFR_HUD: none;
-        RAW_IMU with a UNIX time_usec) left the vehicle: its arrival less the link's delay on the last boot-timed message before
-        it (a radio backlog delays the current as much as the attitude sent beside it)."""
+        RAW_IMU with a UNIX time_usec) left the vehicle: its arrival less the link's delay on the
+        last boot-timed message before it (a radio backlog delays the current as much as the
+        attitude sent beside it)."""
         return arrival_s - self.clock.lag_s
 
     def decode(self, msg, arrival_s: float) -> list[Sample]:

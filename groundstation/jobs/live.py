@@ -4,11 +4,12 @@
 IMU sample of the primary instance; its inputs are built by the functions ``detection_inputs``
 uses (``groundstation.jobs.inputs``), its holds by ``Held`` (``hold_last`` on the latest value), so
 a log streamed sample by sample gives the rows and alarms ``analyze_flight`` gives it at once.
-A live stream is not in time order: the decoder times GPS_RAW_INT, SYS_STATUS and VFR_HUD on
-arrival and the IMU, compass and ATTITUDE on the vehicle's boot clock, which runs up to seconds
-behind arrival on a radio link, so a boot-timed sample can arrive after samples it precedes.  ``ReorderBuffer`` releases the
-samples in time order once the stream has moved past them by the lateness it has seen (zero on
-a clean link), which is the order a log reader sorts them into.
+A live stream is not in time order: the decoder times the IMU, compass and ATTITUDE on the
+vehicle's boot clock, which runs up to seconds behind arrival on a radio link, and GPS_RAW_INT,
+SYS_STATUS and VFR_HUD at arrival less the delay last measured on that clock, so a sample can
+arrive after samples it precedes (a burst after a gap).  ``ReorderBuffer`` releases the samples
+in time order once the stream has moved past them by the lateness it has seen (zero on a clean
+link), which is the order a log reader sorts them into.
 ``GpsOutageWatch`` is the per-sample rule of ``groundstation.jobs.navigation.gps_outages``.
 """
 from __future__ import annotations

@@ -189,7 +189,7 @@ class _ColumnDecoder:
     def _clock(self) -> dict[int, np.ndarray]:
         """Boot-clock times of every message that has them, in record order through one clock
         (RAW_IMU and HIGHRES_IMU where their time_usec is a boot time, ``boot_ms_of_usec``;
-        ``self.on_arrival[id]`` marks their rows timed on arrival instead)."""
+        ``self.no_boot_time[id]`` marks their rows timed by ``_sent`` instead)."""
         parts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         for name in ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "ATTITUDE", "ATTITUDE_QUATERNION",
                      "GLOBAL_POSITION_INT"):
@@ -204,12 +204,12 @@ class _ColumnDecoder:
                 self.quat, rows, f = self.quat[valid], rows[valid], f[valid]
             parts[_ID[name]] = (rows, f["time_boot_ms"].astype(np.int64))
             del f                                       # decoded again where used: memory, not time
-        self.usec_rows, self.on_arrival = {}, {}
+        self.usec_rows, self.no_boot_time = {}, {}
         for name in ("RAW_IMU", "HIGHRES_IMU"):
             rows = self.accepted(_ID[name])
             boot_ms = boot_ms_of_usec(self.rec.fields(_ID[name], rows)["time_usec"] if len(rows) else np.zeros(0))
             on_clock = np.isfinite(boot_ms)
-            self.usec_rows[_ID[name]], self.on_arrival[_ID[name]] = rows, ~on_clock
+            self.usec_rows[_ID[name]], self.no_boot_time[_ID[name]] = rows, ~on_clock
             parts[_ID[name]] = (rows[on_clock], boot_ms[on_clock])
         rows = np.concatenate([p[0] for p in parts.values()])
         boot = np.concatenate([p[1] for p in parts.values()])
@@ -224,7 +224,7 @@ class _ColumnDecoder:
         # the rows without a boot time keep only the lag before each (the clock's rows are freed)
         self.sent_rows = np.sort(np.concatenate(
             [self.accepted(_ID[name]) for name in ("GPS_RAW_INT", "SYS_STATUS", "VFR_HUD")]
-            + [self.usec_rows[i][self.on_arrival[i]] for i in self.usec_rows]))
+            + [self.usec_rows[i][self.no_boot_time[i]] for i in self.usec_rows]))
         k = np.searchsorted(on_clock_rows, self.sent_rows) - 1
         self.sent_lag = np.where(k >= 0, lag[np.maximum(k, 0)] if len(lag) else 0.0, 0.0)
         del on_clock_rows, lag, k
@@ -243,10 +243,10 @@ class _ColumnDecoder:
     def _usec_times(self, msg_id: int, times: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Rows of RAW_IMU or HIGHRES_IMU and their times: the boot clock's, ``_sent`` where
         time_usec is not a boot time."""
-        rows, arrival = self.usec_rows[msg_id], self.on_arrival[msg_id]
+        rows, no_boot_time = self.usec_rows[msg_id], self.no_boot_time[msg_id]
         t = np.empty(len(rows))
-        t[~arrival] = times[msg_id]
-        t[arrival] = self._sent(rows[arrival])
+        t[~no_boot_time] = times[msg_id]
+        t[no_boot_time] = self._sent(rows[no_boot_time])
         return rows, t
 
     def _place_before(self, r: int) -> tuple[float, float, float] | None:

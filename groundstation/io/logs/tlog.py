@@ -346,9 +346,9 @@ def read_tlog(path: Path, progress: Callable[[float], None] | None) -> FlightLog
     (``frame_records``), each message id's payloads one numpy structured array
     (``mavlink_bulk.payload_dtype``, pymavlink's layout), converted by the functions the live
     decoder uses (``decode.scaled_imu_to_si`` ...) with its rules: the vehicle is the first
-    autopilot heartbeat's system, times from time_boot_ms (and RAW_IMU/HIGHRES_IMU time_usec where it is a
-    boot time) through ``BootClock.times``, each
-    magnetometer source's unit judged at its first sample.  Parameters, status text, missions
+    autopilot heartbeat's system, times from time_boot_ms (and RAW_IMU/HIGHRES_IMU time_usec where
+    it is a boot time) through ``BootClock.times``, each magnetometer source's unit judged at its
+    first sample.  Parameters, status text, missions
     and calibration events (``_PER_PACKET``, a few a second) go through pymavlink and
     ``MavlinkDecoder`` packet by packet.  The same FlightLog as decoding every packet with
     ``MavlinkDecoder`` (tests/test_ingest_vectorised.py)."""

@@ -108,9 +108,9 @@ class SourceControl:
         self.rx_count = 0
         self.rx_last_unix: float | None = None
         self.pending: tuple | None = None  # (url, link, recording, stop event) armed while a source runs
-        # (url, link) of the armed link that heard its vehicle, from leaving ``pending`` until the
-        # hub has switched to it (under the hub lock): a Start pressed in between is meant for it too
-        self.switching: tuple | None = None
+        # the url of the armed link that heard its vehicle, from leaving ``pending`` until the hub
+        # has switched to it (under the hub lock): a Start pressed in between is meant for it too
+        self.switching: str | None = None
         self._finished_told = False
 
     @property
@@ -392,7 +392,7 @@ class SourceControl:
                 with self._lock:
                     if self.pending is None or self.pending[1] is not link:
                         return
-                    self.switching = (url, link)   # set before pending is cleared: no gap
+                    self.switching = url           # set before pending is cleared: no gap
                     self.pending = None
                 self._feed.switch_to_live(url, link, recording, got)
                 return
@@ -401,7 +401,7 @@ class SourceControl:
         """The url of the link being connected or switched to, whose vehicle a calibration started
         now is meant for; None: the current source's.  Read under the hub lock."""
         pending = self.pending
-        return pending[0] if pending is not None else (self.switching[0] if self.switching else None)
+        return pending[0] if pending is not None else self.switching
 
 
 def _poll(link, feed: Feed, stop: threading.Event) -> list[Sample]:
