@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/field_vector.py                  # both parts
     .venv/bin/python benchmarks/field_vector.py --part loop --repeats 3
     .venv/bin/python benchmarks/field_vector.py --part review --fleet /tmp/fleet
+    .venv/bin/python benchmarks/field_vector.py --missions 1 --repeats 1 --logs 1   # the smoke run
 
 loop: four simulated missions (mission-bump and mission-motor, seeds 0 and 1, calibrated on board)
 are read and their detector inputs made once; then ``field_consistency`` alone runs on them,
@@ -25,8 +26,8 @@ sys.path.insert(0, str(ROOT))
 MISSIONS = (("mission-bump", 0), ("mission-bump", 1), ("mission-motor", 0), ("mission-motor", 1))
 
 
-def loop_inputs(tmp: Path) -> list[tuple[tuple, dict]]:
-    """The arguments analyze gives ``field_consistency`` on each mission."""
+def loop_inputs(tmp: Path, missions: int) -> list[tuple[tuple, dict]]:
+    """The arguments analyze gives ``field_consistency`` on each of the first ``missions`` missions."""
     import groundstation.jobs.inputs as inputs
     from groundstation.io.logs import read_log
     from groundstation.sim.scenarios import simulate
@@ -39,7 +40,7 @@ def loop_inputs(tmp: Path) -> list[tuple[tuple, dict]]:
 
     inputs.field_consistency = keep
     try:
-        for name, seed in MISSIONS:
+        for name, seed in MISSIONS[:missions]:
             log = read_log(simulate(name, seed, onboard_calibration=True).write(tmp / f"{name}-{seed}.tlog"))
             inputs.detection_inputs(log)
     finally:
@@ -47,10 +48,10 @@ def loop_inputs(tmp: Path) -> list[tuple[tuple, dict]]:
     return calls
 
 
-def time_loop(repeats: int) -> None:
+def time_loop(repeats: int, missions: int) -> None:
     from estimators.field_consistency import field_consistency
     with tempfile.TemporaryDirectory() as tmp:
-        calls = loop_inputs(Path(tmp))
+        calls = loop_inputs(Path(tmp), missions)
     steps = sum(len(args[0]) for args, _ in calls)
     best = float("inf")
     for _ in range(repeats):
@@ -62,16 +63,17 @@ def time_loop(repeats: int) -> None:
           f"{1e6 * best / steps:.1f} us per step")
 
 
-def time_review(fleet: Path | None) -> None:
+def time_review(fleet: Path | None, n_logs: int) -> None:
     from groundstation.jobs.fleet import discover_logs
     from groundstation.jobs.review_row import ReviewSettings, review_log
     from groundstation.sim.fleet import FleetSettings, simulate_fleet
     with tempfile.TemporaryDirectory() as tmp:
         folder = fleet or Path(tmp)
         if not (folder / "fleet.truth.json").exists():
-            simulate_fleet(folder, FleetSettings(vehicles=3, flights=4, seed=0, drift_vehicles=1, payload_vehicles=1),
-                           workers=1)
-        logs = discover_logs([folder])[:8]
+            flights = max(2, -(-n_logs // 2))  # the first logs listed are the first two vehicles'
+            simulate_fleet(folder, FleetSettings(vehicles=3, flights=flights, seed=0, drift_vehicles=1,
+                                                 payload_vehicles=1), workers=1)
+        logs = discover_logs([folder])[:n_logs]
         t0 = time.process_time()
         for p in logs:
             review_log(p, ReviewSettings())
@@ -83,12 +85,17 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--part", choices=("loop", "review", "both"), default="both")
     ap.add_argument("--repeats", type=int, default=3, help="runs of the loop; the least CPU time is printed")
+    ap.add_argument("--missions", type=int, default=len(MISSIONS), choices=range(1, len(MISSIONS) + 1),
+                    help="the loop on the first N missions")
+    ap.add_argument("--logs", type=int, default=8, help="review the first N flights of the fleet")
     ap.add_argument("--fleet", type=Path, help="keep (or reuse) the simulated fleet in this folder")
     args = ap.parse_args(argv)
+    if args.logs < 1:
+        ap.error("--logs must be at least 1")
     if args.part in ("loop", "both"):
-        time_loop(args.repeats)
+        time_loop(args.repeats, args.missions)
     if args.part in ("review", "both"):
-        time_review(args.fleet)
+        time_review(args.fleet, args.logs)
     return 0
 
 

@@ -148,3 +148,15 @@ def test_memory_benchmark_small_log():
     for name in ("magstation info", "magstation analyze"):
         assert re.match(r"time (met|MISSED) memory (met|MISSED)", rows[name].group(8)), out
     assert re.search(r"^\| imports only \(no log\) \| [\d.]+ \| \| \d+ \|", out, re.M), out
+
+
+def test_field_vector_benchmark_smoke():
+    """benchmarks/field_vector.py on one mission and one fleet flight: the loop ran over the
+    mission's IMU steps and review_log reviewed the flight, both timed in CPU seconds."""
+    out = _run("benchmarks/field_vector.py", "--missions", "1", "--repeats", "1", "--logs", "1")
+    loop = re.search(r"^field-vector loop: (\d+) IMU steps, ([\d.]+) CPU s \(least of 1\), ([\d.]+) us per step$",
+                     out, re.M)
+    assert loop, out
+    assert int(loop.group(1)) > 1000 and float(loop.group(3)) > 0, out
+    review = re.search(r"^review_log: 1 logs, ([\d.]+) CPU s, ([\d.]+) logs per CPU-s$", out, re.M)
+    assert review and float(review.group(1)) > 0, out
