@@ -60,14 +60,16 @@ def _cost(r, w, p_act, p0_act, lam, sigma) -> np.ndarray:
 
 def _steps(J: np.ndarray, r: np.ndarray, w: np.ndarray, sigma: np.ndarray, d_act: np.ndarray,
            lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Gauss–Newton steps (G,k) from (JᵀWJ/σ² + Λ) δ = −(JᵀWr/σ² + Λ(p − p₀)); ok (G,) False where
-    the normal matrix is singular (``solve`` stops there)."""
+    """Gauss–Newton steps (G,k) from (JᵀWJ/σ² + Λ) δ = −(JᵀWr/σ² + Λ(p − p₀)), J (G,k,3,N) scaled by
+    √w in place (one array of its size: the memory peak); ok (G,) False where the normal matrix is
+    singular (``solve`` stops there)."""
     G, k = J.shape[:2]
+    sw = np.tile(np.sqrt(w), (1, 3))[:, None, :]
     Jf = J.reshape(G, k, -1)
-    Jw = Jf * np.tile(w, (1, 3))[:, None, :]
+    Jf *= sw
     s2 = (sigma ** 2)[:, None]
-    Hm = Jw @ Jf.transpose(0, 2, 1) / s2[:, :, None] + np.diag(lam)
-    g = (Jw @ r.reshape(G, -1, 1))[:, :, 0] / s2 + lam * d_act
+    Hm = Jf @ Jf.transpose(0, 2, 1) / s2[:, :, None] + np.diag(lam)
+    g = (Jf @ (r.reshape(G, 1, -1) * sw).transpose(0, 2, 1))[:, :, 0] / s2 + lam * d_act
     ok = np.ones(G, bool)
     try:
         return -np.linalg.solve(Hm, g[:, :, None])[:, :, 0], ok
@@ -103,11 +105,10 @@ def solve_groups(rows: FieldRows, p_init: np.ndarray, p0: np.ndarray, opts: Solv
     P = np.array(np.broadcast_to(np.asarray(p_init, float), (G, 12)))
     if rows.u0_mG.ndim == 2 and np.all(P == P[:1]):      # one start, shared rows: one evaluation
         r1, t1 = model_terms(P[:1], rows, opts.model)
-        r = np.repeat(r1, G, axis=0)
-        J = np.repeat(model_jacobian(rows, t1, cols), G, axis=0)
+        r, terms = np.repeat(r1, G, axis=0), [None if t is None else np.repeat(t, G, axis=0) for t in t1]
     else:
         r, terms = model_terms(P, rows, opts.model)
-        J = model_jacobian(rows, terms, cols)
+        terms = list(terms)                              # (A, g, q) per problem: its Jacobian's terms
     prior_w = np.ones(N) if weight is None else np.asarray(weight, float)
     w, inl, sigma = _weights(r, keep, opts.huber_k, opts.outlier_sigma)
     w = w * prior_w * keep
@@ -119,7 +120,9 @@ def solve_groups(rows: FieldRows, p_init: np.ndarray, p0: np.ndarray, opts: Solv
             break
         iterations[idx] = it
         at = _at(idx, G)
-        step, solvable = _steps(J[at], r[at], w[at], sigma[at], P[at][:, act] - p0[act], lam)
+        J = model_jacobian(rows.take(at), [None if t is None else t[at] for t in terms], cols)
+        step, solvable = _steps(J, r[at], w[at], sigma[at], P[at][:, act] - p0[act], lam)
+        del J
         running[idx[~solvable]] = False
         idx, step = idx[solvable], step[solvable]
         at = _at(idx, G)
@@ -129,7 +132,7 @@ def solve_groups(rows: FieldRows, p_init: np.ndarray, p0: np.ndarray, opts: Solv
             g = _at(idx[pend], G)
             trial = P[g].copy()
             trial[:, act] += step[pend]
-            r_t, terms = model_terms(trial, rows.take(g), opts.model)
+            r_t, terms_t = model_terms(trial, rows.take(g), opts.model)
             fine = np.all(np.isfinite(r_t) | ~keep[g][:, None, :], axis=(1, 2))
             ok = fine & (_cost(np.where(fine[:, None, None], r_t, 0.0), w[g], trial[:, act], p0[act], lam,
                                sigma[g]) <= cost0[pend] * (1 + 1e-12))
@@ -139,13 +142,14 @@ def solve_groups(rows: FieldRows, p_init: np.ndarray, p0: np.ndarray, opts: Solv
                 small = np.max(np.abs(step[pend[ok]]), axis=1) < 1e-4
                 converged[acc[small]] = True
                 running[acc[small]] = False
-                # the Jacobian and weights at the new point, for the problems that iterate again
+                # the Jacobian's terms and the weights at the new point, for the problems that iterate again
                 more = ~small & (it < opts.max_iter)
                 if more.any():
                     a = _at(acc[more], G)
                     sel = np.flatnonzero(ok)[more]
-                    terms_a = terms if len(sel) == len(r_t) else tuple(None if t is None else t[sel] for t in terms)
-                    J[a] = model_jacobian(rows.take(a), terms_a, cols)
+                    for t, t_new in zip(terms, terms_t):
+                        if t is not None:
+                            t[a] = t_new[sel]
                     w_a, inl[a], sigma[a] = _weights(r[a], inl[a] & keep[a], opts.huber_k, opts.outlier_sigma)
                     w[a] = w_a * prior_w * keep[a]
             pend = pend[~ok]
