@@ -12,7 +12,8 @@ not keep has weight 0 and is left out of its median.  Only the parameters are re
 jackknife and the field-model term use); ``solve`` stays the one-problem solver with the
 covariance, and the reference this is tested against (tests/test_field_model_groups.py: the same
 parameters as ``solve`` on each problem's rows, within rounding: the sums over rows add in
-another order).  Units: mG, rad.  Pure numpy.
+another order; so where ``solve``'s own test of a step, cost ≤ cost₀(1 + 1e-12), sits within
+rounding of its threshold the two may take different branches).  Units: mG, rad.  Pure numpy.
 """
 from __future__ import annotations
 
@@ -42,7 +43,8 @@ def _masked_median(s: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.where(n > 0, (lo + hi) / 2.0, 0.0)
 
 
-def _weights(r: np.ndarray, mask: np.ndarray, huber_k: float, outlier_sigma: float):
+def _weights(r: np.ndarray, mask: np.ndarray, huber_k: float,
+             outlier_sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``field_model._weights`` per problem: r (G,3,N), mask (G,N) the rows of each median."""
     s = np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2 + r[:, 2] ** 2) / np.sqrt(2.0)
     sigma = np.maximum(_masked_median(s, mask) / 0.9, 1e-9)
@@ -52,7 +54,8 @@ def _weights(r: np.ndarray, mask: np.ndarray, huber_k: float, outlier_sigma: flo
     return w * inl, inl, sigma
 
 
-def _cost(r, w, p_act, p0_act, lam, sigma) -> np.ndarray:
+def _cost(r: np.ndarray, w: np.ndarray, p_act: np.ndarray, p0_act: np.ndarray, lam: np.ndarray,
+          sigma: np.ndarray) -> np.ndarray:
     """``field_model._cost`` per problem -> (G,)."""
     return (np.sum(w[:, None, :] * r * r, axis=(1, 2)) / sigma ** 2
             + np.sum(lam * (p_act - p0_act) ** 2, axis=1))
