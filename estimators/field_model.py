@@ -27,11 +27,16 @@ Solver: Gauss–Newton on Σ wᵢ|rᵢ|²/σ² + (p − p₀)ᵀΛ(p − p₀) w
 terms), Huber IRLS weights on the per-sample residual (scale from the MAD) and hard rejection beyond
 ``outlier_sigma``; step halving when the cost rises.  Covariance σ²(JᵀWJ + σ²Λ)⁻¹ inflated by
 τ, the residual's integrated autocorrelation time (``autocorrelation_time``: attitude errors are
-slow, so the samples are not independent).  Units: mG, rad.  Pure numpy.
+slow, so the samples are not independent).
+
+The residual is written for G parameter rows at once (``model_terms``, ``model_jacobian``, arrays
+(G, 3, N)) on the per-row terms that do not depend on the parameters (``FieldRows``, computed once
+per FieldData): ``solve`` uses it with G = 1, estimators.field_model_groups solves many related
+problems in lockstep with it (issue 29).  Units: mG, rad.  Pure numpy.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -39,7 +44,8 @@ import numpy as np
 from estimators.rotations import dcm_body_to_ned
 
 __all__ = ["PARAM_NAMES", "FieldData", "SolverOptions", "Solution", "matrix_from_params", "corrected_field",
-           "residuals", "solve", "nominal_params", "distortion_from_params"]
+           "residuals", "solve", "nominal_params", "distortion_from_params", "FieldRows", "field_rows", "stack_rows",
+           "distortion_stack", "model_terms", "model_jacobian"]
 
 PARAM_NAMES = ("b_x", "b_y", "b_z", "a_x", "a_y", "a_z", "a_xy", "a_xz", "a_yz", "f_x", "f_y", "f_z")
 _OFFDIAG = ((0, 1), (0, 2), (1, 2))
@@ -79,8 +85,23 @@ class FieldData:
                 out.__dict__[name] = self.__dict__[name][keep]
         return out
 
+    def with_field(self, field_ned_mG: np.ndarray) -> "FieldData":
+        """The same samples under another reference field; the tilt already computed is kept."""
+        out = replace(self, field_ned_mG=field_ned_mG)
+        if "_tilt" in self.__dict__:
+            out.__dict__["_tilt"] = self.__dict__["_tilt"]
+        return out
+
     def expected_body_mG(self) -> np.ndarray:
         return self._expected_body
+
+    def rows(self) -> "FieldRows":
+        """The residual's parameter-free terms per row (``FieldRows``), computed once."""
+        return self._rows
+
+    @cached_property
+    def _rows(self) -> "FieldRows":
+        return field_rows(self)
 
     @cached_property
     def _expected_body(self) -> np.ndarray:
@@ -148,35 +169,144 @@ def corrected_field(p: np.ndarray, data: FieldData) -> np.ndarray:
     return (data.mag_raw_mG - p[:3]) @ matrix_from_params(p).T - data.motor_signal[:, None] * p[9:12]
 
 
-def _nuisance_heading(p: np.ndarray, data: FieldData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-sample heading ψ* minimising |r(ψ)| (variable projection), the body field h(ψ*) and the
-    unit vector q = ∂r/∂ψ / |∂r/∂ψ| (the direction ψ* absorbs).
+@dataclass(frozen=True)
+class FieldRows:
+    """The residual's parameter-free terms per row, component-major (3, N) so that the solver's sums
+    over the three components are adds of rows; a leading group axis (G, 3, N) stacks problems on
+    the same samples under different reference fields (``stack_rows``).
 
-    With T = Ry(θ)Rx(φ) and α = ψ − declination, h(ψ) = Tᵀ[H_h cos α, −H_h sin α, H_d], so
-    r(α) = z − u cos α − v sin α with z = m − b − A f x − A Tᵀ[0, 0, H_d], u = A Tᵀe_x H_h,
-    v = −A Tᵀe_y H_h.  Start: α = atan2(z·v, z·u) (exact for orthogonal A), then three Newton steps."""
-    H = data.field_rows()                                    # (N,3): one field, or the WMM along the flight
-    hh, decl = np.hypot(H[:, 0], H[:, 1]), np.arctan2(H[:, 1], H[:, 0])
-    A = distortion_from_params(p)
-    AT = np.einsum("ij,nkj->nik", A, data.tilt())            # A Tᵀ  (N,3,3)
-    z = data.mag_raw_mG - p[:3] - data.motor_signal[:, None] * (A @ p[9:12]) - AT[:, :, 2] * H[:, 2:3]
-    u, v = AT[:, :, 0] * hh[:, None], -AT[:, :, 1] * hh[:, None]
-    a = np.arctan2(np.sum(z * v, 1), np.sum(z * u, 1))
+    With T = Ry(θ)Rx(φ) and α = ψ − declination the yaw-free body field is
+    h(α) = Tᵀ[H_h cos α, −H_h sin α, H_d] = cos α·u₀ + sin α·v₀ + d₀,  u₀ = H_h Tᵀe_x,
+    v₀ = −H_h Tᵀe_y, d₀ = H_d Tᵀe_z: A and b enter only through A u₀, A v₀, A d₀."""
+    mag_mG: np.ndarray          # (3,N) m
+    motor: np.ndarray           # (N,) x
+    body_mG: np.ndarray         # (3,N) h = C(φ, θ, ψ)ᵀ H with the attitude's yaw ("vector")
+    u0_mG: np.ndarray           # (3,N) H_h Tᵀe_x
+    v0_mG: np.ndarray           # (3,N) −H_h Tᵀe_y
+    d0_mG: np.ndarray           # (3,N) H_d Tᵀe_z
+
+    def take(self, groups: np.ndarray) -> "FieldRows":
+        """The rows of the problems ``groups`` (all of them when the rows are shared)."""
+        return self if self.u0_mG.ndim == 2 else FieldRows(*(a[groups] for a in (
+            self.mag_mG, self.motor, self.body_mG, self.u0_mG, self.v0_mG, self.d0_mG)))
+
+
+def field_rows(data: FieldData) -> FieldRows:
+    """``FieldRows`` of ``data`` (computed once per FieldData: ``FieldData.rows``)."""
+    H = data.field_rows()
+    T = data.tilt()
+    hh = np.hypot(H[:, 0], H[:, 1])
+    return FieldRows(np.ascontiguousarray(data.mag_raw_mG.T), np.asarray(data.motor_signal, float),
+                     np.ascontiguousarray(data.expected_body_mG().T), (T[:, 0, :] * hh[:, None]).T.copy(),
+                     (T[:, 1, :] * -hh[:, None]).T.copy(), (T[:, 2, :] * H[:, 2:3]).T.copy())
+
+
+def stack_rows(datas: list[FieldData]) -> FieldRows:
+    """The ``FieldRows`` of several FieldData of the same rows, stacked on a leading group axis."""
+    rows = [d.rows() for d in datas]
+    return FieldRows(*(np.stack([getattr(r, k) for r in rows]) for k in
+                       ("mag_mG", "motor", "body_mG", "u0_mG", "v0_mG", "d0_mG")))
+
+
+def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Σ_c a[:, c] b[:, c] over the component axis of (G, 3, N) arrays -> (G, N)."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+def distortion_stack(P: np.ndarray) -> np.ndarray:
+    """A (G,3,3), symmetric, of each parameter row of P (G,12)."""
+    A = np.zeros((len(P), 3, 3))
+    for j in range(3):
+        A[:, j, j] = P[:, 3 + j]
+    for k, (i, j) in enumerate(_OFFDIAG):
+        A[:, i, j] = A[:, j, i] = P[:, 6 + k]
+    return A
+
+
+def _cos_sin(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(cos d, sin d); for |d| ≤ 0.1 (the Newton steps of ``_nuisance_cos_sin``) by their Taylor
+    series to d⁸ and d⁹ (the terms left out are below 3e-17), else by np.cos/np.sin: the
+    polynomials are a few times cheaper than numpy's cosine and sine of doubles."""
+    if not np.max(np.abs(d), initial=0.0) <= 0.1:
+        return np.cos(d), np.sin(d)
+    d2 = d * d
+    c = 1.0 + d2 * (-1 / 2 + d2 * (1 / 24 + d2 * (-1 / 720 + d2 * (1 / 40320))))
+    s = d * (1.0 + d2 * (-1 / 6 + d2 * (1 / 120 + d2 * (-1 / 5040 + d2 * (1 / 362880)))))
+    return c, s
+
+
+def _nuisance_cos_sin(zu, zv, uu, vv, uv) -> tuple[np.ndarray, np.ndarray]:
+    """(cos α, sin α) per row, α minimising |e(α)|², e = z − u cos α − v sin α (variable projection),
+    from the five dot products of z, u = A u₀ and v = A v₀.  Start α = atan2(z·v, z·u) (exact for
+    orthogonal A), then three Newton steps δ on ½ d|e|²/dα = e·d, d = u sin α − v cos α, each applied
+    as a rotation of (cos α, sin α) by δ.  With c = cos α, s = sin α, c₂ = c² − s², s₂ = 2cs,
+    D = u·u − v·v:  e·d = s z·u − c z·v − ½ s₂ D + c₂ u·v  and its derivative
+    d·d + e·(u c + v s) = c z·u + s z·v − c₂ D − 2 s₂ u·v."""
+    rho = np.sqrt(zu * zu + zv * zv)
+    none = rho == 0.0                                       # atan2(0, 0) = 0
+    rho = np.where(none, 1.0, rho)
+    c, s = np.where(none, 1.0, zu / rho), zv / rho
+    D = uu - vv
     for _ in range(3):
-        c, s = np.cos(a)[:, None], np.sin(a)[:, None]
-        uc, vs = u * c, v * s
-        e = z - uc - vs
-        d1 = u * s - v * c
-        g = np.sum(e * d1, 1)
-        hess = np.sum(d1 * d1, 1) + np.sum(e * (uc + vs), 1)
+        c2, s2 = c * c - s * s, 2.0 * c * s
+        g = s * zu - c * zv - 0.5 * s2 * D + c2 * uv
+        hess = c * zu + s * zv - c2 * D - 2.0 * s2 * uv
         ok = hess > 1e-9
-        a = a - np.where(ok, g / np.where(ok, hess, 1.0), 0.0)
-    c, s = np.cos(a), np.sin(a)
-    lv = np.column_stack([hh * c, -hh * s, H[:, 2]])
-    h = np.einsum("nji,nj->ni", data.tilt(), lv)
-    d1 = u * s[:, None] - v * c[:, None]
-    q = d1 / np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), 1e-12)
-    return a + decl, h, q
+        cd, sd = _cos_sin(-np.where(ok, g / np.where(ok, hess, 1.0), 0.0))
+        c, s = c * cd - s * sd, s * cd + c * sd
+    return c, s
+
+
+def model_terms(P: np.ndarray, rows: FieldRows, model: str):
+    """Residuals r = m − A(h + f·x) − b (G,3,N) of the parameter rows P (G,12) and the terms their
+    Jacobian is built from (``model_jacobian``).  yaw_free: h = h(α*) with α* per row and problem
+    (``_nuisance_cos_sin``); then r = z − u cos α* − v sin α*, z = m − b − A f x − A d₀, and
+    q = ∂r/∂α / |∂r/∂α| is the direction α* absorbs."""
+    A = distortion_stack(P)
+    x = rows.motor[..., None, :]
+    f = P[:, 9:12, None]
+    if model == "vector":
+        g = rows.body_mG + f * x
+        return rows.mag_mG - A @ g - P[:, :3, None], (A, g, None)
+    u, v = A @ rows.u0_mG, A @ rows.v0_mG
+    z = rows.mag_mG - P[:, :3, None] - (A @ f) * x - A @ rows.d0_mG
+    c, s = _nuisance_cos_sin(_dot3(z, u), _dot3(z, v), _dot3(u, u), _dot3(v, v), _dot3(u, v))
+    c, s = c[:, None, :], s[:, None, :]
+    r = z - u * c - v * s
+    d1 = u * s - v * c
+    q = d1 / np.maximum(np.sqrt(_dot3(d1, d1)), 1e-12)[:, None, :]
+    g = rows.u0_mG * c + rows.v0_mG * s + rows.d0_mG + f * x
+    return r, (A, g, q)
+
+
+def model_jacobian(rows: FieldRows, terms, columns=None) -> np.ndarray:
+    """∂r/∂p (G, k, 3, N) over the parameter ``columns`` (all 12 when None) from ``model_terms``'
+    terms: −e_j for b_j, −g_j e_j for A_jj, −(g_j e_i + g_i e_j) for A_ij, −x A e_j for f_j, with
+    g = h + f x.  yaw_free: each column j projected off q (Kaufman's variable-projection form),
+    j − q (q·j), q·j written out per kind of column."""
+    A, g, q = terms
+    cols = range(12) if columns is None else columns
+    x = rows.motor[..., None, :]
+    J = np.zeros((g.shape[0], len(cols), 3, g.shape[2]))
+    Atq = None if q is None or not any(c >= 9 for c in cols) else A.transpose(0, 2, 1) @ q     # Aᵀq
+    for k, c in enumerate(cols):
+        col = J[:, k]
+        if c < 3:                       # b
+            col[:, c] = -1.0
+            qj = None if q is None else -q[:, c]
+        elif c < 6:                     # diag(A)
+            col[:, c - 3] = -g[:, c - 3]
+            qj = None if q is None else -(q[:, c - 3] * g[:, c - 3])
+        elif c < 9:                     # A's off-diagonal pair (i, j)
+            i, j = _OFFDIAG[c - 6]
+            col[:, i], col[:, j] = -g[:, j], -g[:, i]
+            qj = None if q is None else -(q[:, i] * g[:, j] + q[:, j] * g[:, i])
+        else:                           # f
+            col[...] = -A[:, :, c - 9, None] * x
+            qj = None if q is None else -(Atq[:, c - 9] * x[..., 0, :])
+        if q is not None:
+            col -= q * qj[:, None, :]
+    return J
 
 
 def residuals(p: np.ndarray, data: FieldData, model: str, with_jacobian: bool = False):
@@ -187,36 +317,15 @@ def residuals(p: np.ndarray, data: FieldData, model: str, with_jacobian: bool = 
 
 
 def _residuals_terms(p: np.ndarray, data: FieldData, model: str):
-    """(r, terms): the residual and what its Jacobian is built from (``_jacobian``), so a solver that
-    accepts a trial point does not solve for ψ* there again."""
-    q = None
-    if model == "vector":
-        h = data.expected_body_mG()
-    else:
-        _, h, q = _nuisance_heading(p, data)
-    A = distortion_from_params(p)
-    x = data.motor_signal
-    g = h + x[:, None] * p[9:12]
-    r = data.mag_raw_mG - g @ A.T - p[:3]
-    return r, (A, g, q)
+    """(r (N,3), terms): the residual and what its Jacobian is built from (``_jacobian``), so a
+    solver that accepts a trial point does not solve for ψ* there again."""
+    r, terms = model_terms(np.asarray(p, float)[None, :], data.rows(), model)
+    return r[0].T, terms
 
 
 def _jacobian(p: np.ndarray, data: FieldData, terms) -> np.ndarray:
     """∂r/∂p (N,3,12) from ``_residuals_terms``' terms at p."""
-    A, g, q = terms
-    x = data.motor_signal
-    n = len(g)
-    J = np.zeros((n, 3, 12))
-    J[:, :, 0:3] = -np.eye(3)
-    for j in range(3):
-        J[:, j, 3 + j] = -g[:, j]
-    for k, (i, j) in enumerate(_OFFDIAG):
-        J[:, i, 6 + k] = -g[:, j]
-        J[:, j, 6 + k] = -g[:, i]
-    J[:, :, 9:12] = -x[:, None, None] * A[None, :, :]
-    if q is not None:
-        J = J - q[:, :, None] * np.einsum("nr,nrp->np", q, J)[:, None, :]
-    return J
+    return model_jacobian(data.rows(), terms)[0].transpose(2, 1, 0)
 
 
 def _weights(r: np.ndarray, mask: np.ndarray, huber_k: float, outlier_sigma: float) -> tuple[np.ndarray, np.ndarray, float]:

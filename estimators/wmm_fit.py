@@ -48,7 +48,8 @@ import numpy as np
 
 from estimators.geomag import WMM_ERROR_NED_mG
 from estimators.field_model import (PARAM_NAMES, FieldData, Solution, SolverOptions, corrected_field,
-                                    matrix_from_params, nominal_params, residuals, solve)
+                                    matrix_from_params, nominal_params, residuals, solve, stack_rows)
+from estimators.field_model_groups import solve_groups
 from estimators.rotations import dcm_body_to_ned, wrap_angle_rad
 
 __all__ = ["WmmFitSettings", "WmmFit", "fit_wmm", "heldout_residual_mG", "course_check", "straight_and_fast", "compass_heading_rad", "sphere_cell_index", "sphere_cell_weights", "heading_imbalance",
@@ -346,18 +347,14 @@ def _with_field_model(cov: np.ndarray, data: FieldData, sol: Solution, active: n
     if not np.any(sd > 0) or not np.all(np.isfinite(cov)):
         return cov
     H = np.asarray(data.field_ned_mG, float)
-    opts = replace(_options(model, active, s), max_iter=8)
-    base = solve(data, sol.params, p0, opts).params
+    comps = np.flatnonzero(sd > 0)
+    shifted = [data.with_field(H + sd[j] * np.eye(3)[j]) for j in comps]
+    # the solution with the field as given and with each component shifted, solved in lockstep
+    P = solve_groups(stack_rows([data] + shifted), sol.params, p0, replace(_options(model, active, s), max_iter=8),
+                     weight=data.weight).params
     S = np.zeros((12, 3))
-    for j in np.flatnonzero(sd > 0):
-        shifted = FieldData(data.mag_raw_mG, data.roll_rad, data.pitch_rad, data.yaw_rad, data.motor_signal,
-                            H + sd[j] * np.eye(3)[j], data.weight)
-        S[:, j] = solve(shifted, sol.params, p0, opts).params - base
+    S[:, comps] = (P[1:] - P[0]).T
     return cov + S @ S.T
-
-
-def _subset(data: FieldData, keep: np.ndarray) -> FieldData:
-    return data.subset(keep)
 
 
 def _with_jackknife(cov: np.ndarray, data: FieldData, sol: Solution, active: np.ndarray, p0: np.ndarray,
@@ -366,7 +363,9 @@ def _with_jackknife(cov: np.ndarray, data: FieldData, sol: Solution, active: np.
     variance, the larger of two: delete one of K contiguous time blocks, and delete one heading sector
     (of 12) flown (v = (k−1)/k Σ (p₋ₖ − p̄)², k groups), correlations kept.  The jackknife sees what
     the linearised covariance does not: slow attitude errors (time blocks) and the trade between the
-    offsets and the soft-iron terms when few headings carry the fit (sectors) (Efron & Stein 1981)."""
+    offsets and the soft-iron terms when few headings carry the fit (sectors) (Efron & Stein 1981).
+    The refits of one kind are solved in lockstep (estimators.field_model_groups.solve_groups: each
+    the solve of its own rows, tested equal to it)."""
     K = int(s.jackknife_blocks)
     n = len(data.roll_rad)
     if K < 3 or n < K * 10 or not np.all(np.isfinite(cov)):
@@ -377,8 +376,9 @@ def _with_jackknife(cov: np.ndarray, data: FieldData, sol: Solution, active: np.
         groups = [g for g in np.unique(block) if (block == g).sum() >= max(10, n // 50)]
         if len(groups) < 3:
             continue
-        P = np.asarray([solve(_subset(data, block != g), sol.params, p0,
-                              replace(_options(model, active, s), max_iter=8)).params for g in groups])
+        keep = np.asarray([block != g for g in groups])          # each refit without one group, in lockstep
+        P = solve_groups(data.rows(), sol.params, p0, replace(_options(model, active, s), max_iter=8), keep,
+                         data.weight).params
         k = len(groups)
         var = np.maximum(var, (k - 1) / k * np.sum((P - P.mean(axis=0)) ** 2, axis=0))
     sd_a = np.sqrt(np.clip(np.diag(cov), 0, None))
