@@ -153,10 +153,15 @@ def test_memory_benchmark_small_log():
 def test_field_vector_benchmark_smoke():
     """benchmarks/field_vector.py on one mission and one fleet flight: the loop ran over the
     mission's IMU steps and review_log reviewed the flight, both timed in CPU seconds."""
-    out = _run("benchmarks/field_vector.py", "--missions", "1", "--repeats", "1", "--logs", "1")
+    out = _run("benchmarks/field_vector.py", "--missions", "1", "--repeats", "1", "--logs", "1", "--parts")
     loop = re.search(r"^field-vector loop: (\d+) IMU steps, ([\d.]+) CPU s \(least of 1\), ([\d.]+) us per step$",
                      out, re.M)
     assert loop, out
     assert int(loop.group(1)) > 1000 and float(loop.group(3)) > 0, out
     review = re.search(r"^review_log: 1 logs, ([\d.]+) CPU s, ([\d.]+) logs per CPU-s$", out, re.M)
     assert review and float(review.group(1)) > 0, out
+    parts = dict((label.strip(), float(s)) for label, s in re.findall(r"^  (.+?)\s+([\d.]+) CPU s\s+\d+ %$", out, re.M))
+    # the fit and the field-vector test both ran inside the review, the jackknife inside the fit
+    assert set(parts) >= {"fit_wmm (all)", "jackknife", "field_consistency (field-vector test)"}, out
+    assert 0 < parts["jackknife"] <= parts["fit_wmm (all)"] <= float(review.group(1)), out
+    assert 0 < parts["field_consistency (field-vector test)"] <= float(review.group(1)), out
