@@ -232,7 +232,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     values, label = in_force_params(args)
     log = with_params(load_log(args.file), values, label)
     with progress_bar("analyzing"):
-        report, columns = analyze_log(log, calibration=calibration, mission=mission)
+        report, columns = analyze_log(log, calibration=calibration, mission=mission, columns=bool(args.csv))
     print(printable(format_report(report), lines=True))
     if args.json:
         _write_json(args.json, _file_name(report))

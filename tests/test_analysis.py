@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import json
 
 import numpy as np
 import pytest
@@ -76,9 +77,18 @@ def test_fast_ramp_detected_within_target(tmp, cal):
     assert 0.0 <= report["first_alarm_s"] - onset <= 4.0
 
 
+def _same_report_without_columns(log, cal, report: dict) -> None:
+    """analyze_log without the per-step columns (the fleet review, analyze without --csv) gives
+    the same report: nothing in it comes from the finished log's attitude."""
+    alone, columns = analyze_log(log, cal, columns=False)
+    assert columns == {}
+    assert json.dumps(alone, sort_keys=True, default=str) == json.dumps(report, sort_keys=True, default=str)
+
+
 def test_clean_flight_no_combined_alarm(tmp, cal):
     sim = simulate("mission-clean", SEED, duration_s=200.0)
-    report, cols = analyze_log(read_log(sim.write(tmp / "clean.tlog")), cal)
+    log = read_log(sim.write(tmp / "clean.tlog"))
+    report, cols = analyze_log(log, cal)
     assert report["interference_detected"] is False and report["first_alarm_s"] is None
     assert not [a for a in report["alarms"] if a["kind"] == "combined"]
     assert report["max_cross_track_m"] < 1.0
@@ -99,6 +109,7 @@ def test_clean_flight_no_combined_alarm(tmp, cal):
     assert np.median(np.abs(mag_only[ok])) > 4.0          # the detector's heading keeps the field as measured
     fwd = np.nanmedian(cols["v_forward_mps"][(cols["t_s"] > 40) & (cols["t_s"] < 80)])
     assert fwd == pytest.approx(6.0, abs=0.5)
+    _same_report_without_columns(log, cal, report)       # the motor field removed
 
 
 def test_non_rtk_never_raises_path_alarms(tmp, cal):
@@ -232,7 +243,8 @@ def test_gps_outage_is_bridged_by_the_ins_gps_filter(tmp, cal, slow_report):
     vehicle turns back along the line.  The seed-003 filter holds its heading next to the
     autopilot's (magnetometer-based) heading through the outage."""
     sim = simulate("gps-outage", SEED)
-    report, cols = analyze_log(read_log(sim.write(tmp / "outage.tlog")), cal)
+    log = read_log(sim.write(tmp / "outage.tlog"))
+    report, cols = analyze_log(log, cal)
     nav = report["navigation"]
     assert nav["ins_gps"].startswith("on")
     [outage] = nav["gps_outages"]
@@ -268,6 +280,7 @@ def test_gps_outage_is_bridged_by_the_ins_gps_filter(tmp, cal, slow_report):
         rows = list(csv.DictReader(f))
     assert {r["ins_mode"] for r in rows} >= {"", "gps", "field_feedback"}
     assert {r["acc_rejected"] for r in rows} <= {"0", "1"}
+    _same_report_without_columns(log, cal, report)       # the INS/GPS filter's outage in the report
 
 
 def test_gps_outages_need_the_imu_to_keep_streaming():

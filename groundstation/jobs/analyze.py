@@ -30,7 +30,7 @@ from groundstation.jobs.flight_plot import vector_test_status
 from groundstation.jobs.calibrate.frame import for_log, relative_to
 from groundstation.jobs.calibration_check import calibration_arrays
 from groundstation.jobs.inputs import detection_inputs, heading_deg, primary_field, rounded
-from groundstation.jobs.motor_heading import best_heading_chain
+from groundstation.jobs.motor_heading import best_heading_chain, motor_correction
 from groundstation.jobs.navigation import ins_runs
 from groundstation.jobs.record import COL, AlarmTracker, record_rows
 from groundstation.samples import FlightLog
@@ -125,33 +125,44 @@ def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: lis
 
 
 def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list | None = None,
-                settings: DetectionSettings | None = None) -> tuple[dict, dict[str, np.ndarray]]:
-    """Heading chain + interference detection on a whole log; see module docstring."""
+                settings: DetectionSettings | None = None, columns: bool = True) -> tuple[dict, dict[str, np.ndarray]]:
+    """Heading chain + interference detection on a whole log; see module docstring.  ``columns``
+    False: the report alone (the same), no per-step columns ({}), and the finished log's attitude
+    that only they need (the offline smoother) not made (the fleet review, analyze without --csv)."""
     settings = settings or DetectionSettings()
     fa = analyze_flight(log, calibration, mission, settings)
     combined_alarms = fa.combined_alarms()
     fa.rows = np.empty((0, fa.rows.shape[1]))    # the flight record is the station's; its alarms taken, its memory goes
     x, det = fa.x, fa.det
-    t, d, ef, pos, chain, valid, g = (x[k] for k in ("t", "d", "ef", "pos", "chain", "valid", "g"))
-    d_gps, legs, rtk, path_test, cal = (x[k] for k in ("d_gps", "legs", "rtk", "path_test", "cal"))
-    strength = x["strength"]
-    gps = x["gps_held"]
-    hdg = lambda a: np.where(valid, heading_deg(a), np.nan)  # noqa: E731
+    t, d, ef, chain, valid = (x[k] for k in ("t", "d", "ef", "chain", "valid"))
     declination = ef.declination_deg if ef else 0.0
     nav, runs = ins_runs(log, x["mag_cal"], declination, x["imu_rate_hz"], settings)
+    if not columns:
+        _, motor = motor_correction(log, x)
+        return _report(log, fa, calibration, nav, motor, combined_alarms), {}
     best, best_chain, motor = finished_log_attitude(log, fa, runs)
+    gps = x["gps_held"]
     v_fwd, v_lat = split_velocity(gps[:, 5], gps[:, 6], np.radians(best["heading_true_deg"]))
-    columns = {
+    table = {
         "t_s": t,
         "roll_deg": best["roll_deg"], "pitch_deg": best["pitch_deg"],
-        "yaw_deg": best["yaw_deg"], "mag_heading_deg": hdg(chain.mag_heading_rad),
+        "yaw_deg": best["yaw_deg"], "mag_heading_deg": np.where(valid, heading_deg(chain.mag_heading_rad), np.nan),
         "heading_true_deg": best["heading_true_deg"],
         "v_forward_mps": v_fwd, "v_lateral_mps": v_lat,
         "cross_track_m": d, "alarm": det.combined.astype(int),
         **bias_and_rejection(best_chain, valid), "ins_mode": best["ins_mode"],
         "attitude_source": best["attitude_source"],
     }
+    return _report(log, fa, calibration, nav, motor, combined_alarms), table
 
+
+def _report(log: FlightLog, fa: FlightAnalysis, calibration: dict | None, nav: dict, motor: dict,
+            combined_alarms: list[dict]) -> dict:
+    """analyze_log's report (see module docstring) of the analysed flight ``fa``."""
+    x, det, settings = fa.x, fa.det, fa.settings
+    t, d, ef, pos = (x[k] for k in ("t", "d", "ef", "pos"))
+    d_gps, legs, rtk, path_test, cal = (x[k] for k in ("d_gps", "legs", "rtk", "path_test", "cal"))
+    strength = x["strength"]
     alarms = alarm_list(t, det, d, settings) + combined_alarms
     alarms.sort(key=lambda a: (a["start_s"], a["kind"]))
     combined = [a for a in alarms if a["kind"] == "combined"]
@@ -199,7 +210,7 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
                                  "inclination_floor_deg": settings.inclination_floor_deg},
         },
     }
-    return report, columns
+    return report
 
 
 ALARM_UNITS = {"heading_difference": "deg", "path_deviation": "m",

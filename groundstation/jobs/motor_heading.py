@@ -24,7 +24,7 @@ from estimators.heading import HeadingChainResult, run_heading_chain
 from groundstation.jobs.inputs import MOTOR_TIMEOUT_S, hold_last, rounded
 from groundstation.samples import FlightLog
 
-__all__ = ["attitude_chain", "best_heading_chain", "motor_field_steps", "MOTOR_SIGNIFICANT_SIGMA"]
+__all__ = ["attitude_chain", "best_heading_chain", "motor_correction", "motor_field_steps", "MOTOR_SIGNIFICANT_SIGMA"]
 
 MOTOR_SIGNIFICANT_SIGMA = 3.0      # f is removed once |f| is this many standard errors
 
@@ -58,31 +58,23 @@ def attitude_chain(log: FlightLog, field: np.ndarray, declination_deg: float,
     return run(imu, field, declination_deg)
 
 
-def best_heading_chain(log: FlightLog, x: dict, shown: HeadingChainResult,
-                       offline: bool = False) -> tuple[HeadingChainResult, dict]:
-    """(the default AHRS on the field with the significant motor-current field removed, else
-    ``shown``, the default AHRS on the field as measured; report["motor_field"]).  ``x``:
-    detection_inputs of the log (its mag_cal, field-vector test and WMM).  ``offline``: the offline
-    smoother instead of the causal AHRS (a finished log's best estimate)."""
-    ef = x["ef"]
-    decl = ef.declination_deg if ef else 0.0
+def motor_correction(log: FlightLog, x: dict) -> tuple[np.ndarray | None, dict]:
+    """(the field (M, 4) with the significant motor-current field removed, None where none is
+    removed; report["motor_field"]).  ``x``: detection_inputs of the log (its mag_cal, field-vector
+    test and WMM)."""
     battery = np.asarray(log.battery, dtype=float).reshape(-1, 2)
     mag_cal = x["mag_cal"]
-
-    def as_measured() -> HeadingChainResult:      # the smoother only where it is the answer
-        return attitude_chain(log, mag_cal, decl, True) if offline else shown
-
     if x["policy"].correction == "none" or not len(mag_cal):
-        return as_measured(), _report("no_motor_signal", "no field", False)
+        return None, _report("no_motor_signal", "no field", False)
     if x.get("motor_signal") != "current_A" or not len(battery):
-        return as_measured(), _report("no_motor_signal", "no battery current that varies in the log", False)
+        return None, _report("no_motor_signal", "no battery current that varies in the log", False)
     t = np.asarray(x["t"], dtype=float)
     f, sd, sig = motor_field_steps(x)
     if not len(t) or not sig.any():
         last = (f[-1], sd[-1]) if len(f) else (np.full(3, np.nan), np.full(3, np.inf))
-        return as_measured(), _report("not_significant", f"motor field {np.round(last[0], 2).tolist()} mG/A not "
-                              f"significant (sd {np.round(last[1], 2).tolist()}; the field-vector test learns it from "
-                              "the current's changes at IMU rates >= 10 Hz)", False, *last)
+        return None, _report("not_significant", f"motor field {np.round(last[0], 2).tolist()} mG/A not "
+                             f"significant (sd {np.round(last[1], 2).tolist()}; the field-vector test learns it from "
+                             "the current's changes at IMU rates >= 10 Hz)", False, *last)
     current = hold_last(battery[:, 0], battery[:, 1], mag_cal[:, 0], MOTOR_TIMEOUT_S)
     f_mag = hold_last(t, np.where(sig[:, None], f, 0.0), mag_cal[:, 0], np.inf)
     use = np.isfinite(current) & np.all(np.isfinite(f_mag), axis=1)
@@ -93,5 +85,18 @@ def best_heading_chain(log: FlightLog, x: dict, shown: HeadingChainResult,
     msg = (f"motor field {np.round(f[k], 2).tolist()} mG/A (sd {np.round(sd[k], 2).tolist()}), "
            f"{np.linalg.norm(f[k]) * i_max:.0f} mG at {i_max:.1f} A; significant from "
            f"{t[np.flatnonzero(sig)[0]]:.1f} s, removed from {int(use.sum())} field samples")
-    return (attitude_chain(log, field, decl, offline),
-            _report("ok" if sig[-1] else "not_significant", msg, True, f[k], sd[k], int(use.sum())))
+    return field, _report("ok" if sig[-1] else "not_significant", msg, True, f[k], sd[k], int(use.sum()))
+
+
+def best_heading_chain(log: FlightLog, x: dict, shown: HeadingChainResult,
+                       offline: bool = False) -> tuple[HeadingChainResult, dict]:
+    """(the default AHRS on the field with the significant motor-current field removed
+    (``motor_correction``), else ``shown``, the default AHRS on the field as measured;
+    report["motor_field"]).  ``offline``: the offline smoother instead of the causal AHRS (a
+    finished log's best estimate), on the field as measured too."""
+    ef = x["ef"]
+    decl = ef.declination_deg if ef else 0.0
+    field, report = motor_correction(log, x)
+    if field is None:               # the smoother only where it is the answer
+        return (attitude_chain(log, x["mag_cal"], decl, True) if offline else shown), report
+    return attitude_chain(log, field, decl, offline), report

@@ -179,7 +179,7 @@ def _log_rows(log: FlightLog, path: Path, row: dict, settings: ReviewSettings) -
     results = {cf.compass: _calibrate(log, cf, ctx, settings) for cf in fields}    # once per compass
     calibration, row["calibration_used"] = review_calibration(log, row["identity"], settings,
                                                               results.get(log.primary_compass))
-    report, _ = analyze_log(log, calibration=calibration)
+    report, _ = analyze_log(log, calibration=calibration, columns=False)    # the report alone
     if calibration is None:
         row["calibration_used"] += f" ({report.get('calibration_in_use')})"
     row.update(alarm_fields(report))
