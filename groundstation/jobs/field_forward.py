@@ -11,6 +11,12 @@ turning at ω makes that a residual of |ω × m| · age: at 30°/s of roll or pi
 117 s, a 30° roll: the field-vector score 0.88 on the .BIN, whose MAG records are stamped at the
 reading, 1.60 on the .tlog, where each reading arrives ~10 ms after it and is re-sent; turned to
 the step, 0.00 and 0.54).
+
+The autopilot's tilt is brought to the step too, by our AHRS's change since its sample
+(``groundstation.jobs.tilt.brought_forward``).  Two ways for one idea, because the spans differ:
+a compass reading is at most FIELD_FORWARD_S old, over which the step's gyro is the rate, while
+ATTITUDE is held up to 0.5 s (2 Hz streams), over which the rate changes and only the attitude's
+history (carried in ``StepState``) gives the change.
 """
 from __future__ import annotations
 
