@@ -35,6 +35,7 @@ from estimators.rotations import wrap_angle_rad
 from groundstation.io.params import ardupilot_never_calibrated, unapply_onboard_calibration
 from groundstation.jobs.calibration_check import calibration_arrays
 from groundstation.jobs.compass_raw import compass_field
+from groundstation.jobs.field_forward import field_at_steps, reading_times
 from groundstation.jobs.tilt import TILT_AGREE_DEG, TILT_GAP_S, TILT_JUMP_DEG, brought_forward, checked_tilt
 from groundstation.samples import CompassTable, FlightLog, finite_or_none
 
@@ -431,13 +432,17 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
     gps = gps_rows(g, legs, settings)
     gps_held = hold_last(g[:, 0], gps, t, GPS_TIMEOUT_S)
     rate = imu_rate_hz(t)
-    x = step_inputs(t, chain, hold_last(mag_cal[:, 0], mag_cal[:, 1:4], t, GPS_TIMEOUT_S), att_held[:, :2],
+    # the compass at each step: the held reading turned by the gyro since it was read (field_forward)
+    read_t = hold_last(mag[:, 0], reading_times(mag[:, 0], mag[:, 1:4]), t, GPS_TIMEOUT_S)
+    mag_step = field_at_steps(hold_last(mag_cal[:, 0], mag_cal[:, 1:4], t, GPS_TIMEOUT_S), t - read_t,
+                              imu[:, 1:4] - np.asarray(chain.gyro_bias_rad_s, dtype=float))
+    x = step_inputs(t, chain, mag_step, att_held[:, :2],
                     gps_held, rate, imu[:, 1:4], policy, settings, StepState(),
                     att_t=hold_last(att[:, 0], att[:, 0], t, ATTITUDE_TIMEOUT_S))
     motor, motor_name = motor_signal_table(log)
     motor_held = hold_last(motor[:, 0], motor[:, 1], t, MOTOR_TIMEOUT_S)
     roll_v, pitch_v, ok_v, gyro_v = vector_test_inputs(chain, x, imu[:, 1:4], x["steep"])
-    vector = field_consistency(t, hold_last(mag_cal[:, 0], mag_cal[:, 1:4], t, GPS_TIMEOUT_S), roll_v, pitch_v,
+    vector = field_consistency(t, mag_step, roll_v, pitch_v,
                                ok_v, gyro_v, motor_held, rate, policy.field_on, settings.vector,
                                *first_fix_prior(log))
     med_dt = float(np.median(np.diff(t))) if n > 10 else 0.0

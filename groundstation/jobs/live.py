@@ -30,6 +30,7 @@ from estimators.heading import HeadingChain
 
 from groundstation.io.decode import preferred_source
 from groundstation.jobs.alarm_explain import SCORE_NAMES, ExplainHistory
+from groundstation.jobs.field_forward import HeldReading, field_at_steps
 from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, GPS_COLUMNS, GPS_TIMEOUT_S, MOTOR_TIMEOUT_S,
                                        RATE_WINDOW, FieldPolicy, Held, StepState, earth_prior_mG, field_policy,
                                        gps_rows, imu_rate_hz, mission_legs, step_inputs, vector_test_inputs)
@@ -69,7 +70,7 @@ class LiveAnalyzer:
         self._applied = mag_calibration_applied
         self._policy: FieldPolicy | None = None
         self._primary: dict[str, int] = {}
-        self._mag = Held(3, GPS_TIMEOUT_S)
+        self._mag = HeldReading(GPS_TIMEOUT_S)
         self._att = Held(3, ATTITUDE_TIMEOUT_S)
         self._gps = Held(len(GPS_COLUMNS), GPS_TIMEOUT_S)
         self._current = Held(1, MOTOR_TIMEOUT_S)
@@ -161,7 +162,7 @@ class LiveAnalyzer:
         if isinstance(s, MagSample):
             m = self.policy.apply(np.asarray(s.mag_body_mG, dtype=float))[0]
             if np.all(np.isfinite(m)):
-                self._mag.update(s.t_s, m)
+                self._mag.update(s.t_s, m, s.mag_body_mG)
                 self.chain.update_mag(s.t_s, m)
         elif isinstance(s, GpsSample):
             if self.earth_field is None:
@@ -193,7 +194,8 @@ class LiveAnalyzer:
         return (t, st.roll_rad, st.pitch_rad, st.yaw_rad, st.mag_heading_rad, st.heading_true_rad, bool(st.valid),
                 gyro, self._mag.at(t)[0], self._att.at(t)[0], self._gps.at(t)[0], self.chain.declination_deg,
                 np.asarray(st.gyro_bias_rad_s, dtype=float), self._motor_at(t),
-                sh.roll_rad, sh.pitch_rad, sh.heading_true_rad, bool(sh.valid), self._att.time_at(t))
+                sh.roll_rad, sh.pitch_rad, sh.heading_true_rad, bool(sh.valid), self._att.time_at(t),
+                self._mag.reading_time_at(t))
 
     def _motor_at(self, t: float) -> float:
         """The motor signal (``motor_signal_table``'s rule on what has arrived: a current that
@@ -209,6 +211,7 @@ class LiveAnalyzer:
                                 yaw_rad=np.asarray(cols[3]), mag_heading_rad=np.asarray(cols[4]),
                                 heading_true_rad=np.asarray(cols[5]), valid=np.asarray(cols[6], dtype=bool))
         gyro, mag, att, gps = (np.vstack(cols[k]) for k in (7, 8, 9, 10))
+        mag = field_at_steps(mag, t - np.asarray(cols[19], dtype=float), gyro - np.vstack(cols[12]))
         history = np.asarray(self._imu_t, dtype=float)
         rate = imu_rate_hz(np.concatenate([history, t]), start=len(history))
         self._imu_t.extend(t.tolist())

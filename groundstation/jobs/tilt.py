@@ -29,7 +29,10 @@ TILT_HISTORY_S = 2.0         # ... kept from call to call this long (> ATTITUDE_
 def brought_forward(t_s, chain, att_rp: np.ndarray, att_t_s, state: "StepState") -> np.ndarray:
     """(n, 2) the autopilot's roll and pitch brought forward from their sample time t_k to each
     step t by our AHRS's change over that interval: a + (ours(t) − ours(t_k)), ours(t_k) our
-    attitude at the last step at or before t_k (within TILT_REF_S; else no change).
+    attitude at t_k, interpolated between the last step at or before t_k (within TILT_REF_S; else
+    no change) and the step after it (at or before t).  Taken at the step before t_k, the change
+    over the up to one step between them was counted twice: 0.2-0.6° in the SITL's 30° rolls
+    (.BIN: 10 Hz ATT between 25 Hz IMU steps; population flight pop0_1, 2026-12-06).
 
     A 2 Hz ATTITUDE stream is held up to 0.5 s: in a manoeuvre at 30°/s of roll or pitch the held
     value was 7-8° stale (population clean flights 5 and 189, seed 0: 50-60 mG of field-vector
@@ -50,11 +53,18 @@ def brought_forward(t_s, chain, att_rp: np.ndarray, att_t_s, state: "StepState")
         return att
     j = np.searchsorted(tt, np.nan_to_num(tk, nan=-np.inf), side="right") - 1
     jj = np.maximum(j, 0)
-    with np.errstate(invalid="ignore"):
+    i = len(ht) + np.arange(len(t))
+    # ours at t_k itself: between the step at or before it and the next one (at or before t, so
+    # live has it too); from the step before alone, the change over [t_j, t_k] was counted twice
+    j1 = np.minimum(jj + 1, i)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        span = tt[j1] - tt[jj]
+        w = np.where(span > 0, np.clip((tk - tt[jj]) / np.where(span > 0, span, 1.0), 0.0, 1.0), 0.0)
         ok = np.isfinite(tk) & (j >= 0) & (tk - tt[jj] <= TILT_REF_S)
-        i = len(ht) + np.arange(len(t))
-        dr = wrap_angle_rad(rr[i] - rr[jj])
-        dp = pp[i] - pp[jj]
+        r_k = rr[jj] + w * wrap_angle_rad(rr[j1] - rr[jj])
+        p_k = pp[jj] + w * (pp[j1] - pp[jj])
+        dr = wrap_angle_rad(rr[i] - r_k)
+        dp = pp[i] - p_k
         ok &= np.isfinite(dr) & np.isfinite(dp)
     return np.c_[np.where(ok, wrap_angle_rad(att[:, 0] + np.where(ok, dr, 0.0)), att[:, 0]),
                  np.where(ok, att[:, 1] + np.where(ok, dp, 0.0), att[:, 1])]

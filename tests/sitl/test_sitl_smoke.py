@@ -170,6 +170,28 @@ def test_session_tlog_calibrates_every_compass_to_the_truth(rig_run):
 
 
 @pytest.mark.serial     # 5 s to resume, 0.5 s between the clocks of a 1x SITL
+def test_the_compass_is_read_at_10_hz_and_raw_imu_resends_each_reading(rig_run):
+    """ArduCopter reads its compass at 10 Hz and RAW_IMU re-sends the last reading at the stream's
+    rate, which is why the field tests turn the held reading to each step from the time it was read
+    (groundstation/jobs/field_forward.py).  The .BIN's MAG records (one per reading, on the boot
+    clock) are 0.1 s apart; in the session .tlog the primary compass has more than twice as many
+    rows as readings (``reading_times``; at 8x the .tlog's times are squeezed to the wall clock, so
+    rates are not compared there), and each reading is one of the .BIN's (to RAW_IMU's whole mG)."""
+    from groundstation.io.logs import read_log
+    from groundstation.jobs.field_forward import reading_times
+    log, bin_log = read_log(rig_run["tlog"]), rig_run["bin"]
+    mag = np.asarray(log.mag, dtype=float)
+    t = mag[:, 0]
+    first = np.unique(reading_times(t, mag[:, 1:4]))
+    assert len(mag) > 2.0 * len(first) > 200, (len(mag), len(first))     # re-sent readings
+    assert bin_log is not None and len(bin_log.mag) > 10
+    assert np.median(np.diff(bin_log.mag[:, 0])) == pytest.approx(0.1, abs=0.005)    # read at 10 Hz
+    b = np.asarray(bin_log.mag, dtype=float)[:, 1:4]
+    readings = mag[np.searchsorted(t, first), 1:4]
+    near = np.array([np.abs(b - r).max(axis=1).min() for r in readings[::10]])
+    assert np.mean(near <= 1.0) > 0.9, np.percentile(near, [50, 90])
+
+
 def test_reboot_live_data_resumes_within_5_s_and_no_frozen_attitude(start_sitl, tmp_path):
     """After the station's reboot command the stock vehicle streams nothing again: the station
     says "no attitude data" meanwhile, asks again, and the data is back within 5 s.  Before it, an
