@@ -46,8 +46,9 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   back to the noise apart from a heading error of ψ_f (``_reanchor``) the disturbance has ended:
   the model learns again for ``relearn_s`` and the score restarts from 0.  A relearning (the
   first big turn's, or the one after an alarm) ends at once when the residual reaches
-  ``unexplained_q`` σ: a model error left by a turn is a few σ, a disturbance starting in it is
-  tens (population fast ramps 40 and 49); σ does not follow such a residual either (it did while
+  ``unexplained_q`` σ (``fast_turn_q`` σ while the nose turns over ``first_turn_hold_deg_s``): a
+  model error left by a turn is a few σ, a disturbance starting in it is tens (population fast
+  ramps 40 and 49); σ does not follow such a residual either (it did while
   the CUSUM is held in a fast turn, and a step that spins a compass-following vehicle raised σ
   from 4 to 125 mG, population step 43).
 
@@ -119,6 +120,11 @@ class FieldConsistencySettings:
                                         # (the first turn's or after an alarm), is not held in a fast turn and
                                         # σ does not follow it (clean population flights: ≤ 4.5σ in a
                                         # relearning, ≤ 5.4σ in a held turn; a 250 mG ramp: 40σ)
+    fast_turn_q: float = 5.0            # in a fast turn (over ``first_turn_hold_deg_s``; held: and ``post_turn_s``
+                                        # after it) a residual this many σ is no turn's model error either: the
+                                        # CUSUM is not held and a relearning ends (clean population flights, seed 0,
+                                        # the tilt brought forward from agreement: ≤ 3.76σ in a held turn, ≤ 3.25σ
+                                        # in a relearning in a fast turn; with the tilt of before, 6σ)
     smooth_s: float = 0.5               # low-pass of the residual vector
     noise_floor_mG: float = 4.0         # σ is at least this
     noise_track_s: float = 60.0         # σ² follows the residual's mean square this slowly after learning
@@ -457,7 +463,8 @@ class FieldConsistency:
         # q: r̄ against the noise and the model's own uncertainty, Σ = σ²/3 I + H P Hᵀ + lag term
         # (q = |r̄|/σ when the model is known exactly)
         q = self._q = math.sqrt(max(quad_inv3(r, _noise_cov(HPHt, lag_cov, sigma)) / 3.0, 0.0))
-        if turn and not learning and q >= s.unexplained_q:
+        fast = abs(self.yaw_rate_rad_s) > self._hold_turn_rad_s
+        if turn and not learning and q >= (s.fast_turn_q if fast else s.unexplained_q):
             # a residual no turn explains: the relearning ends and the test judges it
             turn = False
             self.turn_until = self.relearn_until = t
@@ -486,18 +493,20 @@ class FieldConsistency:
 
     def _fast_turn(self, t: float, q: float, q_other: float, eps: float) -> bool:
         """True while the CUSUM holds for a fast turn (over ``first_turn_hold_deg_s``) and
-        ``post_turn_s`` after it, unless the residual is ``unexplained_q`` σ or more (clean
-        population turns leave at most 5.4σ; a step that spins a compass-following vehicle at
-        40°/s for its whole 13 s leaves 10-13σ, population step 8).  A fast turn leaves ψ_f a few
+        ``post_turn_s`` after it, unless the residual is ``fast_turn_q`` σ or more (clean
+        population turns leave at most 3.76σ since the autopilot's tilt is brought forward, 6σ
+        before; a step that spins a compass-following vehicle at 40°/s for its whole 13 s leaves
+        10-13σ, population step 8; a slow ramp starting 1.5 s before a turn 4.4-5.4σ, population
+        slow 37).  A fast turn leaves ψ_f a few
         degrees off (the gyro's scale and timing over 100°+): when the hold ends, a residual that
         is a heading error ε alone (the rest under (κ + ``reanchor_margin``) σ, |ε| ≤
         ``reanchor_heading_deg``) is taken out of ψ_f."""
         s = self.s
         if abs(self.yaw_rate_rad_s) > self._hold_turn_rad_s:
             self._turn_hold_until = t + s.post_turn_s
-            return q < s.unexplained_q
+            return q < s.fast_turn_q
         if t < self._turn_hold_until:
-            return q < s.unexplained_q
+            return q < s.fast_turn_q
         if self._turn_hold_until > -math.inf:
             self._turn_hold_until = -math.inf
             if q_other < s.cusum_drift + s.reanchor_margin and math.isfinite(eps):
