@@ -48,7 +48,9 @@ Model (body FRD, mG), for each IMU step with a calibrated field m:
   first big turn's, or the one after an alarm) ends at once when the residual reaches
   ``unexplained_q`` σ (``fast_turn_q`` σ while the nose turns over ``first_turn_hold_deg_s``): a
   model error left by a turn is a few σ, a disturbance starting in it is tens (population fast
-  ramps 40 and 49); σ does not follow such a residual either (it did while
+  ramps 40 and 49), and then the CUSUM summed apart over the fast turn counts (``turn_evidence``:
+  a ramp starting in a turn has been over κ for a second before it reaches ``fast_turn_q``,
+  population fast 32); σ does not follow such a residual either (it did while
   the CUSUM is held in a fast turn, and a step that spins a compass-following vehicle raised σ
   from 4 to 125 mG, population step 43).
 
@@ -125,6 +127,7 @@ class FieldConsistencySettings:
                                         # CUSUM is not held and a relearning ends (clean population flights, seed 0,
                                         # the tilt brought forward from agreement: ≤ 3.76σ in a held turn, ≤ 3.25σ
                                         # in a relearning in a fast turn; with the tilt of before, 6σ)
+    turn_evidence: bool = True          # ... and then the CUSUM summed over that turn counts (held apart before)
     smooth_s: float = 0.5               # low-pass of the residual vector
     noise_floor_mG: float = 4.0         # σ is at least this
     noise_track_s: float = 60.0         # σ² follows the residual's mean square this slowly after learning
@@ -215,6 +218,7 @@ class FieldConsistency:
         self._frozen_since = None
         self._peak_q, self._low_since = 0.0, None
         self._q = 0.0                                # the last step's q
+        self._S_turn = 0.0                           # the CUSUM over the current fast turn, held apart
         self.relearn_until = -math.inf
         self._turn_hold_until = -math.inf
         self.settle_until = settle_until
@@ -464,6 +468,16 @@ class FieldConsistency:
         # (q = |r̄|/σ when the model is known exactly)
         q = self._q = math.sqrt(max(quad_inv3(r, _noise_cov(HPHt, lag_cov, sigma)) / 3.0, 0.0))
         fast = abs(self.yaw_rate_rad_s) > self._hold_turn_rad_s
+        q_other, eps = self._non_heading_q(c, r, sigma)
+        if fast and not learning and t >= self.settle_until:
+            # a fast turn's evidence is summed apart (held, or relearning), less what a heading error
+            # of ψ_f explains: it counts once the residual shows in the turn that it is no turn's
+            # error (q ≥ ``fast_turn_q``), else it is dropped.  Not in the second after the turn:
+            # there a gyro reading 4 % high leaves 5.0σ after 180° (tests/test_field_consistency.py)
+            qt = min(q, q_other)
+            self._S_turn = min(max(0.0, self._S_turn + dt * (qt - s.cusum_drift)), s.cusum_cap * s.cusum_threshold_s)
+        else:
+            self._S_turn = 0.0
         if turn and not learning and q >= (s.fast_turn_q if fast else s.unexplained_q):
             # a residual no turn explains: the relearning ends and the test judges it
             turn = False
@@ -474,10 +488,11 @@ class FieldConsistency:
             self.S = self.z = 0.0
             z = 0.0 if (turn or learning) else float("nan")
             return FieldStep(t, z, q, tuple(r), LEARNING if (learning or turn) else SETTLING, tuple(model.th[8:11]))
-        q_other, eps = self._non_heading_q(c, r, sigma)
         first_turn = self._fast_turn(t, q, q_other, eps)
         if not first_turn:
             self.S = min(max(0.0, self.S + dt * (q - s.cusum_drift)), s.cusum_cap * s.cusum_threshold_s)
+            if s.turn_evidence and fast and q >= s.fast_turn_q:   # released by the residual in the turn
+                self.S = max(self.S, self._S_turn)
         self.z = self.S / s.cusum_threshold_s
         frozen = self.z >= s.freeze_z
         self._frozen_since = (self._frozen_since if self._frozen_since is not None else t) if frozen else None
