@@ -126,7 +126,9 @@ class FieldConsistencySettings:
                                         # after it) a residual this many σ is no turn's model error either: the
                                         # CUSUM is not held and a relearning ends (clean population flights, seed 0,
                                         # the tilt brought forward from agreement: ≤ 3.76σ in a held turn, ≤ 3.25σ
-                                        # in a relearning in a fast turn; with the tilt of before, 6σ)
+                                        # in a relearning in a fast turn; with the tilt of before, 6σ). ArduPilot
+                                        # SITL's turns left over 5σ (2 of 15 clean flights alarmed) until the
+                                        # 10 Hz compass reading was turned to each step (jobs/field_forward.py)
     turn_evidence: bool = True          # ... and then the CUSUM summed over that turn counts (held apart before)
     smooth_s: float = 0.5               # low-pass of the residual vector
     noise_floor_mG: float = 4.0         # σ is at least this
