@@ -354,17 +354,22 @@ def test_a_telemetry_gap_keeps_what_was_learnt_without_a_false_alarm(tmp_path):
     assert alarm_intervals(t, det.combined) == []
 
 
-def _population_latency_s(kind: str, index: int, tmp_path, unexplained_q: float) -> tuple[float | None, dict]:
+def _population_latency_s(kind: str, index: int, tmp_path, unexplained_q: float,
+                          fast_turn_q: float | None = None, **over) -> tuple[float | None, dict]:
     """First combined alarm after a population flight's (seed 0) onset, by the truth, starting
     before its end + 5 s (benchmarks/detection.py's rule), with the field-vector test's
-    ``unexplained_q`` set (inf: the code before it)."""
+    ``unexplained_q`` set (inf: the code before it, fast_turn_q inf too), ``fast_turn_q``
+    (None: its default) and any other field-vector setting in ``over``."""
     from dataclasses import replace
     from estimators.field_consistency import FieldConsistencySettings
     from groundstation.io.logs import read_log
     from groundstation.jobs.inputs import detection_inputs
     from groundstation.sim.population import draw_flight, write_flight
     path, truth = write_flight(draw_flight(index, 0, kind), tmp_path / f"{kind}{index}.tlog")
-    settings = replace(DetectionSettings(), vector=replace(FieldConsistencySettings(), unexplained_q=unexplained_q))
+    if fast_turn_q is None:
+        fast_turn_q = float("inf") if unexplained_q == float("inf") else FieldConsistencySettings().fast_turn_q
+    settings = replace(DetectionSettings(), vector=replace(FieldConsistencySettings(), unexplained_q=unexplained_q,
+                                                           fast_turn_q=fast_turn_q, **over))
     x = detection_inputs(read_log(path), settings=settings)
     ef = x["ef"]
     det = detect(x["t"], x["e"], x["d"], x["trusted"], x["strength"], x["incl"], x["heading"], x["yaw_rate"],
@@ -434,3 +439,39 @@ def test_a_slow_ramp_after_a_take_off_our_ahrs_had_not_converged_on(tmp_path):
     assert truth["max_heading_turn_deg"] >= 5.0
     assert [a for a in alarms if a[0] < onset - 0.5] == []
     assert alarms and 0.0 <= alarms[0][0] - onset <= 4.0
+
+
+def test_a_ramp_in_a_fast_turn_is_not_held_once_it_is_5_sigma(tmp_path):
+    """Population slow ramp 37 (seed 0: 20 mG/s from 55.1 s, a 40°/s turn from 56.6 s, then the
+    first turn's relearning) and fast ramp 32 (46 mG/s from 81.5 s, 1.1 s into the first 40°/s
+    turn, in its relearning).  The field-vector CUSUM held in turns over 20°/s while q < 8 (q was
+    4.4-5.4 in slow 37's turn): slow 37 after 5.9 s, fast 32 after 2.8 s.  With the autopilot's
+    tilt brought forward, clean population turns leave at most 3.76σ (3.25σ in a relearning in a
+    fast turn), so a turn no longer holds a residual of ``fast_turn_q`` = 5σ: slow 37 within
+    3 s (2.05 s measured), fast 32 within 2.5 s (2.34 s measured)."""
+    from estimators.field_consistency import FieldConsistencySettings
+    eight = FieldConsistencySettings().unexplained_q
+    old, truth = _population_latency_s("slow", 37, tmp_path, eight, fast_turn_q=eight, turn_evidence=False)
+    assert truth["max_heading_turn_deg"] >= 5.0 and old is not None and old > 5.0
+    new, _ = _population_latency_s("slow", 37, tmp_path, eight, turn_evidence=False)
+    assert new is not None and new <= 3.0
+    old, _ = _population_latency_s("fast", 32, tmp_path, eight, fast_turn_q=eight, turn_evidence=False)
+    assert old is not None and old > 2.6
+    new, _ = _population_latency_s("fast", 32, tmp_path, eight, turn_evidence=False)
+    assert new is not None and new <= 2.5
+
+
+def test_a_fast_turns_evidence_counts_once_the_residual_is_no_turns(tmp_path):
+    """Population fast ramp 32 (seed 0): the ramp starts 1.1 s into the first 40°/s turn, q passes
+    κ = 3 at about 1.3 s and ``fast_turn_q`` = 5 at about 2.1 s.  The CUSUM held apart over the
+    turn (the relearning's and the hold's, less what a heading error of ψ_f explains) now counts
+    from there instead of starting at 0: within 2.2 s of the onset (2.16 s measured; 2.34 s
+    without).  A clean turn never reaches 5σ (≤ 3.76σ on the clean population), so what it sums
+    is dropped.  Only while the nose turns over 20°/s: a gyro reading 4 % high leaves 5.0σ in the
+    second after a 180° turn
+    (tests/test_field_consistency.py::test_a_heading_error_left_by_a_fast_turn_is_dropped_not_alarmed)."""
+    eight = 8.0
+    old, truth = _population_latency_s("fast", 32, tmp_path, eight, turn_evidence=False)
+    assert truth["max_heading_turn_deg"] >= 5.0 and old is not None and old > 2.25
+    new, _ = _population_latency_s("fast", 32, tmp_path, eight)
+    assert new is not None and new <= 2.2

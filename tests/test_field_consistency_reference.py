@@ -4,7 +4,9 @@ code of 2026-12-05 (before the plain-float rewrite) computed on the two flights 
 and alarm decision, and every 25th step's numbers.  The rewrite changes the order of some sums
 (numpy's BLAS against plain floats), so the floats agree to 1e-9 relative, not bit for bit; the
 decisions are identical.  Regenerate only for an intended change of the test's behaviour:
-``python tests/test_field_consistency_reference.py`` (writes the file with the code at hand)."""
+``python tests/test_field_consistency_reference.py`` (writes the file with the code at hand).
+Regenerated 2026-12-06 for one: a fast turn's residual of ``fast_turn_q`` σ ends its hold, and the
+turn's CUSUM counts then (``turn_evidence``)."""
 from __future__ import annotations
 
 import math
