@@ -141,17 +141,25 @@ def sensor_values(samples: list[tuple]) -> list[tuple]:
     return [_nan_equal(v) for v in samples if v[0] != "ParamSample"]
 
 
-def same_tail(a: list, b: list, slack: int = 20) -> bool:
-    """Equal but for the first few samples (a preset --sysid decodes from the first packet, an
-    automatic choice from the first heartbeat on)."""
-    n = min(len(a), len(b))
-    return abs(len(a) - len(b)) <= slack and a[-n:] == b[-n:]
+TAIL_SLACK = 20     # samples at the start that may differ
 
 
-def tail_difference(a: list, b: list) -> str:
+def same_tail(a: list, b: list, slack: int = TAIL_SLACK) -> bool:
+    """Equal but for the first few samples: a preset --sysid decodes from the first packet, an
+    automatic choice from the first heartbeat on, and until the vehicle's first GPS_RAW_INT a new
+    decoder takes the autopilot's position (GLOBAL_POSITION_INT).  Both lists are compared over
+    their last (shorter length − ``slack``) samples.  Aligned at the shorter one's very first sample
+    they failed once (fresh clone, 2026-12-06: lengths 13603 and 13599; that first sample, a
+    position from GLOBAL_POSITION_INT with fix 3, faced the other's from GPS_RAW_INT, the compass
+    and IMU samples after it equal)."""
+    n = min(len(a), len(b)) - slack
+    return abs(len(a) - len(b)) <= slack and n > 0 and a[-n:] == b[-n:]
+
+
+def tail_difference(a: list, b: list, slack: int = TAIL_SLACK) -> str:
     """Where two sample lists, aligned at their ends, first differ (for a failing ``same_tail``)."""
-    n = min(len(a), len(b))
-    ta, tb = a[-n:], b[-n:]
+    n = max(min(len(a), len(b)) - slack, 0)
+    ta, tb = a[-n:] if n else [], b[-n:] if n else []
     i = next((k for k in range(n) if ta[k] != tb[k]), n)
     return f"lengths {len(a)} and {len(b)}; first difference {n - i} from the end: {ta[i:i + 3]} vs {tb[i:i + 3]}"
 
