@@ -29,7 +29,8 @@ def test_a_resent_reading_keeps_the_time_it_was_read_live_as_in_batch():
     """reading_times: rows re-sending the very same field keep the first row's time; a new
     field (any axis) is a new reading, even one equal to a reading before the last.
     HeldReading, fed row by row, gives the same times at each step (live == batch)."""
-    from groundstation.jobs.field_forward import HeldReading, reading_times
+    from groundstation.jobs.field_forward import reading_times
+    from groundstation.jobs.live import HeldReading
     from groundstation.jobs.inputs import hold_last
     t = np.arange(10) * 0.02
     m = np.array([[1, 2, 3]] * 3 + [[1, 2, 4]] * 2 + [[1, 2, 3]] * 4 + [[5, 5, 5]], dtype=float)

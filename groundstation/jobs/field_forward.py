@@ -1,6 +1,6 @@
 """The compass at each IMU step: the reading held there, turned by the body's rotation since it
 was read (``field_at_steps``), from the time the reading first arrived (``reading_times``; live:
-``HeldReading``).  ``step_inputs`` and the field-vector test take it (``detection_inputs``, and
+``groundstation.jobs.live.HeldReading``).  ``step_inputs`` and the field-vector test take it (``detection_inputs``, and
 ``groundstation.jobs.live`` per sample).  Units: mG, rad/s, s.
 
 Why: ArduCopter reads its compass at 10 Hz (its 10 Hz battery-and-compass task) and RAW_IMU
@@ -20,11 +20,9 @@ history (carried in ``StepState``) gives the change.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-__all__ = ["FIELD_FORWARD_S", "reading_times", "field_at_steps", "HeldReading"]
+__all__ = ["FIELD_FORWARD_S", "reading_times", "field_at_steps"]
 
 FIELD_FORWARD_S = 0.25   # a reading up to this old is turned by the step's gyro (a 4 Hz compass);
                          # an older one is used as held (the rate over that long is not the step's)
@@ -61,36 +59,3 @@ def field_at_steps(mag_mG, age_s, gyro_rad_s) -> np.ndarray:
     k = phi / np.where(th > 0.0, th, 1.0)[:, None]
     c, s = np.cos(th)[:, None], np.sin(th)[:, None]
     return m * c + np.cross(k, m) * s + k * np.sum(k * m, axis=1, keepdims=True) * (1.0 - c)
-
-
-class HeldReading:
-    """The live form of ``hold_last`` for the compass with ``reading_times``' rule: the latest
-    field (``groundstation.jobs.inputs.Held``'s rule) and the time of its reading, which a
-    re-sent reading (the same field as sent, ``raw``) does not move."""
-
-    def __init__(self, timeout_s: float) -> None:
-        self.timeout_s = timeout_s
-        self._t: float | None = None
-        self._read_t = math.nan
-        self._raw: tuple | None = None
-        self._v = self._nan = np.full((1, 3), np.nan)
-
-    def update(self, t_s: float, value, raw) -> None:
-        if self._t is not None and float(t_s) < self._t:
-            return
-        raw = tuple(float(v) for v in np.asarray(raw, dtype=float).reshape(3))
-        if raw != self._raw:
-            self._read_t = float(t_s)
-        self._t, self._raw = float(t_s), raw
-        self._v = np.asarray(value, dtype=float).reshape(1, 3)
-
-    def _fresh(self, t_s: float) -> bool:
-        return self._t is not None and self._t <= t_s and t_s - self._t <= self.timeout_s
-
-    def at(self, t_s: float) -> np.ndarray:
-        """(1, 3): the field if received at or before t_s within the timeout, else NaN."""
-        return self._v if self._fresh(t_s) else self._nan
-
-    def reading_time_at(self, t_s: float) -> float:
-        """The held field's reading time under ``at``'s rule (NaN when ``at`` gives NaN)."""
-        return self._read_t if self._fresh(t_s) else math.nan

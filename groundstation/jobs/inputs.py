@@ -234,18 +234,17 @@ class Held:
         self._t = float(t_s)
         self._v = np.asarray(value, dtype=float).reshape(1, -1)
 
+    def fresh(self, t_s: float) -> bool:
+        """A value was received at or before t_s within the timeout (``hold_last``'s rule)."""
+        return self._t is not None and self._t <= t_s and t_s - self._t <= self.timeout_s
+
     def at(self, t_s: float) -> np.ndarray:
-        """(1, width): the value if received at or before t_s within the timeout, else NaN
-        (``hold_last``'s rule on one value)."""
-        if self._t is not None and self._t <= t_s and t_s - self._t <= self.timeout_s:
-            return self._v
-        return self._nan
+        """(1, width): the value if ``fresh`` at t_s, else NaN (``hold_last``'s rule on one value)."""
+        return self._v if self.fresh(t_s) else self._nan
 
     def time_at(self, t_s: float) -> float:
         """The held value's sample time under ``at``'s rule (NaN when ``at`` gives NaN)."""
-        if self._t is not None and self._t <= t_s and t_s - self._t <= self.timeout_s:
-            return self._t
-        return float("nan")
+        return self._t if self.fresh(t_s) else float("nan")
 
 
 def imu_rate_hz(t_s: np.ndarray, start: int = 0) -> np.ndarray:
@@ -433,9 +432,8 @@ def detection_inputs(log: FlightLog, calibration: dict | None = None, mission: l
     gps_held = hold_last(g[:, 0], gps, t, GPS_TIMEOUT_S)
     rate = imu_rate_hz(t)
     # the compass at each step: the held reading turned by the gyro since it was read (field_forward)
-    read_t = hold_last(mag[:, 0], reading_times(mag[:, 0], mag[:, 1:4]), t, GPS_TIMEOUT_S)
-    mag_step = field_at_steps(hold_last(mag_cal[:, 0], mag_cal[:, 1:4], t, GPS_TIMEOUT_S), t - read_t,
-                              imu[:, 1:4] - np.asarray(chain.gyro_bias_rad_s, dtype=float))
+    held = hold_last(mag[:, 0], np.c_[mag_cal[:, 1:4], reading_times(mag[:, 0], mag[:, 1:4])], t, GPS_TIMEOUT_S)
+    mag_step = field_at_steps(held[:, :3], t - held[:, 3], imu[:, 1:4] - np.asarray(chain.gyro_bias_rad_s, dtype=float))
     x = step_inputs(t, chain, mag_step, att_held[:, :2],
                     gps_held, rate, imu[:, 1:4], policy, settings, StepState(),
                     att_t=hold_last(att[:, 0], att[:, 0], t, ATTITUDE_TIMEOUT_S))

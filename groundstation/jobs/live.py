@@ -30,7 +30,7 @@ from estimators.heading import HeadingChain
 
 from groundstation.io.decode import preferred_source
 from groundstation.jobs.alarm_explain import SCORE_NAMES, ExplainHistory
-from groundstation.jobs.field_forward import HeldReading, field_at_steps
+from groundstation.jobs.field_forward import field_at_steps
 from groundstation.jobs.inputs import (ATTITUDE_TIMEOUT_S, GPS_COLUMNS, GPS_TIMEOUT_S, MOTOR_TIMEOUT_S,
                                        RATE_WINDOW, FieldPolicy, Held, StepState, earth_prior_mG, field_policy,
                                        gps_rows, imu_rate_hz, mission_legs, step_inputs, vector_test_inputs)
@@ -39,11 +39,35 @@ from groundstation.jobs.record import EVIDENCE, RECORD_COLUMNS, record_rows
 from groundstation.samples import (AttitudeSample, BatterySample, GpsSample, ImuSample, MagSample, ParamSample,
                                    Sample, StatusSample, ThrottleSample)
 
-__all__ = ["LiveAnalyzer", "GpsOutageWatch", "ReorderBuffer", "MAX_REORDER_S"]
+__all__ = ["LiveAnalyzer", "GpsOutageWatch", "ReorderBuffer", "HeldReading", "MAX_REORDER_S"]
 
 MAX_REORDER_S = 3.0         # samples later than this are processed out of order
 STALL_WAIT_S = 0.1          # with no newer sample, one waits at least this long (wall time) for it
 REORDER_MEMORY_S = 60.0     # the reorder delay forgets a lateness over this long (wall time)
+
+
+class HeldReading(Held):
+    """The compass held live (``Held``) with the time of its reading under
+    ``field_forward.reading_times``' rule: a re-sent reading (the same field as sent, ``raw``)
+    does not move it."""
+
+    def __init__(self, timeout_s: float) -> None:
+        super().__init__(3, timeout_s)
+        self._read_t = math.nan
+        self._raw: tuple | None = None
+
+    def update(self, t_s: float, value, raw) -> None:
+        if self._t is not None and float(t_s) < self._t:
+            return
+        raw = tuple(float(v) for v in np.asarray(raw, dtype=float).reshape(3))
+        if raw != self._raw:
+            self._read_t = float(t_s)
+        self._raw = raw
+        super().update(t_s, value)
+
+    def reading_time_at(self, t_s: float) -> float:
+        """The held field's reading time under ``at``'s rule (NaN when ``at`` gives NaN)."""
+        return self._read_t if self.fresh(t_s) else math.nan
 
 
 class LiveAnalyzer:
