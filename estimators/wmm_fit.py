@@ -30,7 +30,9 @@ field is predicted, so offsets are observable from ordinary flight (the idea of 
 
 An answer with its quality (issue 28): the offsets' covariance is marginal over the terms held at
 nominal by this fit's choice, each variance raised to its jackknife variance (time blocks, heading
-sectors), plus the reference field's own uncertainty carried through the fit (``field_model_sd_mG``); a flight dominated by one line flown both ways (``heading_imbalance`` > 0.9) holds soft
+sectors), plus the reference field's own uncertainty carried through the fit (``field_model_sd_mG``, the WMM's
+error model, or ``field_cov_ned_mG2``, the covariance of the field refined from the flight by
+estimators.field_refine from the profiles ``field_direction_nll`` gives); a flight dominated by one line flown both ways (``heading_imbalance`` > 0.9) holds soft
 iron at nominal with its prior in the 1σ.  ``recommended`` when the worst 1σ ≤ ``max_offset_sd_mG``;
 else status "weak" (offsets, 1σ, the reason and the flight that would pin them down); refused only
 when unobservable (< ``min_heading_coverage`` of the headings, 1σ > ``max_answer_sd_mG``).
@@ -48,11 +50,11 @@ import numpy as np
 
 from estimators.geomag import WMM_ERROR_NED_mG
 from estimators.field_model import (PARAM_NAMES, FieldData, Solution, SolverOptions, corrected_field,
-                                    matrix_from_params, nominal_params, residuals, solve, stack_rows)
+                                    matrix_from_params, model_terms, nominal_params, residuals, solve, stack_rows)
 from estimators.field_model_groups import solve_groups
 from estimators.rotations import dcm_body_to_ned, wrap_angle_rad
 
-__all__ = ["WmmFitSettings", "WmmFit", "fit_wmm", "heldout_residual_mG", "course_check", "straight_and_fast", "compass_heading_rad", "sphere_cell_index", "sphere_cell_weights", "heading_imbalance",
+__all__ = ["WmmFitSettings", "WmmFit", "fit_wmm", "heldout_residual_mG", "field_direction_nll", "course_check", "straight_and_fast", "compass_heading_rad", "sphere_cell_index", "sphere_cell_weights", "heading_imbalance",
            "FLY_FOR_HEADINGS"]
 
 
@@ -98,6 +100,9 @@ class WmmFitSettings:
     # error model as wmm-calculator ships it (``geomag.WMM_ERROR_NED_mG``: 1.37, 0.89, 1.41 mG);
     # (0, 0, 0): the reference taken as exact
     field_model_sd_mG: tuple[float, float, float] = WMM_ERROR_NED_mG
+    # shifts of the reference field along its inclination for the profile of estimators.field_refine [mG]
+    field_profile_shifts_mG: tuple[float, ...] = (-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0)
+    field_refine_tilt_sd_deg: float = 0.10        # the attitude's common tilt error (estimators.field_refine)
     sphere_bands: int = 8                         # equal-area cells: bands of equal Δz × sectors per band
     sphere_sectors: int = 10
 
@@ -129,6 +134,7 @@ class WmmFit:
     heading_change_deg: tuple[float, float] = (float("nan"), float("nan"))   # (RMS, max |Δψ|) new vs in force
     sphere_coverage: float = 0.0              # fraction of the sphere cells holding a used field direction
     course: dict | None = None                # course_check of the heading change (None: no GPS velocity or in-force field)
+    field_profile_nll: np.ndarray | None = None   # −2 log L over settings.field_profile_shifts_mG along the direction asked
     settings: WmmFitSettings = field(default_factory=WmmFitSettings)
 
 
@@ -298,7 +304,8 @@ def _initial_offsets(data: FieldData, M: np.ndarray) -> np.ndarray:
 
 
 def _fit_terms(data: FieldData, model: str, p0: np.ndarray, auto: np.ndarray, forced: np.ndarray,
-               s: WmmFitSettings, held: np.ndarray | None = None) -> tuple[Solution, np.ndarray]:
+               s: WmmFitSettings, held: np.ndarray | None = None, field_cov_ned_mG2: np.ndarray | None = None
+               ) -> tuple[Solution, np.ndarray]:
     """Fit with forced + auto terms; drop auto elements whose posterior sd is not well below the
     prior sd; clamp to bounds.  Returns the final solution and the active mask."""
     prior = _options(model, forced | auto, s).prior_sd
@@ -329,32 +336,69 @@ def _fit_terms(data: FieldData, model: str, p0: np.ndarray, auto: np.ndarray, fo
     every = forced | auto | (np.zeros(12, bool) if held is None else held)   # + terms the fit chose to hold
     marginal = solve(data, sol.params, p0, replace(_options(model, every, s), max_iter=0))
     cov = _with_jackknife(marginal.covariance, data, sol, active, p0, model, s)
-    return replace(sol, covariance=_with_field_model(cov, data, sol, active, p0, model, s)), active
+    return replace(sol, covariance=_with_field_model(cov, data, sol, active, p0, model, s, field_cov_ned_mG2)), active
+
+
+def _field_shifts(s: WmmFitSettings, field_cov_ned_mG2: np.ndarray | None) -> list[np.ndarray]:
+    """1σ shifts of the reference field (NED, mG) spanning its uncertainty: along N, E, D by
+    ``field_model_sd_mG`` when no covariance is given (or it is diagonal), else along the covariance's
+    principal axes by the square roots of their variances."""
+    if field_cov_ned_mG2 is None:
+        C = np.diag(np.square(np.asarray(s.field_model_sd_mG, float)))
+    else:
+        C = np.asarray(field_cov_ned_mG2, float)
+    if not np.all(np.isfinite(C)):
+        return []
+    if not np.any(C - np.diag(np.diag(C))):
+        sd = np.sqrt(np.clip(np.diag(C), 0, None))
+        return [sd[j] * np.eye(3)[j] for j in range(3) if sd[j] > 0]
+    lam, V = np.linalg.eigh((C + C.T) / 2)
+    return [np.sqrt(v) * V[:, j] for j, v in enumerate(lam) if v > 1e-12]
 
 
 def _with_field_model(cov: np.ndarray, data: FieldData, sol: Solution, active: np.ndarray, p0: np.ndarray,
-                      model: str, s: WmmFitSettings) -> np.ndarray:
-    """The covariance plus the reference field's: cov + S Σ_H Sᵀ, S the change of the solution per 1σ
-    of each NED component of the reference field (``field_model_sd_mG``, re-solved with the field
-    shifted; a model error is one bias over the whole flight, so no resampling of the samples sees
-    it).  In level flight the body z axis sees the vertical field D at one level: b_z = mean m_z −
-    a_z·D, and a_z is measured through the horizontal field H tilting into z, so it scales with the
-    model's H.  Measured on the ArduPilot SITL route flight at Canberra (seed 15, D ≈ −530 mG,
-    H ≈ 235 mG, compass 1): the reference's N +3 mG moves every diagonal term −1.2 % and b_z −8.2 mG;
-    D +3 / −3 mG moves b_z −4.4 / +7.9 mG.  The three compasses' z offsets were all −8.7 mG off
-    against our WMM and −3 to −4 mG against SITL's own field table, with a stated 1σ of 3 mG."""
-    sd = np.asarray(s.field_model_sd_mG, float)
-    if not np.any(sd > 0) or not np.all(np.isfinite(cov)):
+                      model: str, s: WmmFitSettings, field_cov_ned_mG2: np.ndarray | None = None) -> np.ndarray:
+    """The covariance plus the reference field's: cov + S Sᵀ, S the change of the solution per 1σ
+    shift of the reference field (``_field_shifts``: the WMM's error model, ``field_model_sd_mG``, or
+    the covariance of the field refined from the flight, estimators.field_refine; re-solved with the
+    field shifted; a model error is one bias over the whole flight, so no resampling of the samples
+    sees it).  In level flight the body z axis sees the vertical field D at one
+    level: b_z = mean m_z − a_z·D, and a_z is measured through the horizontal field H tilting into z,
+    so it scales with the model's H.  Measured on the ArduPilot SITL route flight at Canberra (seed 15,
+    D ≈ −530 mG, H ≈ 235 mG, compass 1): the reference's N +3 mG moves every diagonal term −1.2 % and
+    b_z −8.2 mG; D +3 / −3 mG moves b_z −4.4 / +7.9 mG.  The three compasses' z offsets were all
+    −8.7 mG off against our WMM and −3 to −4 mG against SITL's own field table, with a stated 1σ of 3 mG."""
+    shifts = _field_shifts(s, field_cov_ned_mG2)
+    if not shifts or not np.all(np.isfinite(cov)):
         return cov
     H = np.asarray(data.field_ned_mG, float)
-    comps = np.flatnonzero(sd > 0)
-    shifted = [data.with_field(H + sd[j] * np.eye(3)[j]) for j in comps]
-    # the solution with the field as given and with each component shifted, solved in lockstep
+    shifted = [data.with_field(H + d) for d in shifts]
+    # the solution with the field as given and with each shift, solved in lockstep
     P = solve_groups(stack_rows([data] + shifted), sol.params, p0, replace(_options(model, active, s), max_iter=8),
                      weight=data.weight).params
-    S = np.zeros((12, 3))
-    S[:, comps] = (P[1:] - P[0]).T
+    S = (P[1:] - P[0]).T
     return cov + S @ S.T
+
+
+def field_direction_nll(data: FieldData, sol: Solution, active: np.ndarray, p0: np.ndarray, model: str,
+                        s: WmmFitSettings, direction_ned: np.ndarray, shifts_mG) -> np.ndarray:
+    """−2 log L of the fit over shifts of the reference field along ``direction_ned`` (the profile of
+    estimators.field_refine): each shift re-solved with the terms of ``sol`` (in lockstep), its
+    residual scored at ``sol``'s scale σ on ``sol``'s inliers, Σ ρ(|r|/σ) with ρ(u) = u² (Huber's
+    linear tail beyond the solver's threshold), divided by the residual's autocorrelation time τ
+    (slow attitude errors: the samples are not independent).  Minimum 0.  (G,) over the shifts."""
+    H = np.asarray(data.field_ned_mG, float)
+    e = np.asarray(direction_ned, float)
+    rows = stack_rows([data.with_field(H + d * e) for d in shifts_mG])
+    P = solve_groups(rows, sol.params, p0, replace(_options(model, active, s), max_iter=8), weight=data.weight).params
+    r, _ = model_terms(P, rows, model)
+    u = np.sqrt(np.sum(r * r, axis=1)) / max(sol.sigma_mG, 1e-9)
+    c = s.huber_k * np.sqrt(2.0)         # the solver's threshold, |r|/√2 ≤ k·σ
+    loss = np.where(u <= c, u * u, 2 * c * u - c * c)
+    if data.weight is not None:
+        loss = loss * data.weight
+    nll = np.sum(loss[:, sol.inliers], axis=1) / max(sol.autocorr, 1.0)
+    return nll - nll.min()
 
 
 def _with_jackknife(cov: np.ndarray, data: FieldData, sol: Solution, active: np.ndarray, p0: np.ndarray,
@@ -510,7 +554,7 @@ def _result(sol: Solution, active: np.ndarray, model: str, yaw: tuple[float, flo
 
 def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, attitude_rate_deg_s=None,
             motor_signal=None, gps_vel_ne_mps=None, corrected_in_force_mG=None, nominal_matrix=None,
-            settings: WmmFitSettings = WmmFitSettings()) -> WmmFit:
+            field_cov_ned_mG2=None, profile_direction_ned=None, settings: WmmFitSettings = WmmFitSettings()) -> WmmFit:
     """Fit offsets (and supported diagonal / motor terms) of one compass against the WMM.
 
     Args (N samples on the field's time base; use estimators.log_alignment to get there):
@@ -520,7 +564,11 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
         (estimators.geomag.field_along_path); attitude_rate_deg_s (N,) from ``attitude_at`` (rate gate);
         motor_signal (N,) current A or throttle 0..1; gps_vel_ne_mps (N,2) GPS velocity (course gate);
         corrected_in_force_mG (N,3) the logged corrected field (yaw-dependence test);
-        nominal_matrix (3,3) M held where not fitted (e.g. the DIA/ODI in force).
+        nominal_matrix (3,3) M held where not fitted (e.g. the DIA/ODI in force);
+        field_cov_ned_mG2 (3,3) the reference field's covariance in the stated 1σ (None: the WMM's
+        error model, ``field_model_sd_mG``; estimators.field_refine gives the refined field's);
+        profile_direction_ned (3,): also return the fit's −2 log L over shifts of the reference along
+        it (``field_profile_nll``, for estimators.field_refine), when the fit answers.
     Returns a ``WmmFit``; never raises on bad input (status and message say what was wrong).
     """
     s = settings
@@ -573,7 +621,7 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
 
     model = "vector" if s.yaw_source == "independent" else "yaw_free"
     data = data_for(ok)
-    sol, active = _fit_terms(data, model, p0, auto, forced, s, held)
+    sol, active = _fit_terms(data, model, p0, auto, forced, s, held, field_cov_ned_mG2)
     cin = None if corrected_in_force_mG is None else np.asarray(corrected_in_force_mG, float).reshape(-1, 3)[ok]
     slope, disagree = _yaw_checks(data, sol.params, cin, s)
     notes.append(f"attitude yaw vs fitted heading: {disagree:.1f} deg RMS"
@@ -586,7 +634,7 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
             return _failed("insufficient_data", f"{int(ok.sum())} samples left after the course check", n, rej, s)
         data = data_for(ok)
     if model == "vector" and gps_vel_ne_mps is not None:
-        sol, active = _fit_terms(data, model, p0, auto, forced, s, held)     # refit without the gated samples
+        sol, active = _fit_terms(data, model, p0, auto, forced, s, held, field_cov_ned_mG2)   # refit without the gated samples
     cin_used = None if corrected_in_force_mG is None else np.asarray(corrected_in_force_mG, float).reshape(-1, 3)[ok]
     fit = _result(sol, active, model, (slope, disagree), data, n, rej, notes, s,
                   _heading_change(data, sol.params, cin_used), cover[0])
@@ -596,6 +644,9 @@ def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, atti
         old = compass_heading_rad(cin_used, data.roll_rad, data.pitch_rad, Hs)
         fit = replace(fit, course=course_check(t[ok], new, old, np.asarray(gps_vel_ne_mps, float).reshape(-1, 2)[ok],
                                                data.roll_rad, s))
+    if profile_direction_ned is not None and fit.status in ("ok", "weak"):
+        fit = replace(fit, field_profile_nll=field_direction_nll(data, sol, active, p0, model, s, profile_direction_ned,
+                                                                 s.field_profile_shifts_mG))
     return fit
 
 

@@ -66,10 +66,12 @@ def test_review_row_recovers_offset_change_and_motor_field(flights):
 
 
 def test_review_row_is_the_calibrate_jobs_fit(one_flight):
-    """One way to fit: the row's offsets and motor field are jobs.calibrate's for that compass."""
+    """One way to fit: the row's offsets and motor field are jobs.calibrate's for that compass, against the
+    same reference field (the WMM with its inclination refined from the flight)."""
     from groundstation.io.logs import read_log
     from groundstation.jobs.calibrate.compass import calibrate_compass
     from groundstation.jobs.calibrate.context import log_context
+    from groundstation.jobs.calibrate.reference import refine_reference
     from groundstation.jobs.compass_raw import compass_fields
     from groundstation.jobs.review_row import REVIEW_CALIBRATE
 
@@ -77,7 +79,14 @@ def test_review_row_is_the_calibrate_jobs_fit(one_flight):
     (r,) = review_log(path)
     log = read_log(path)
     (cf,) = compass_fields(log)
-    result, _ = calibrate_compass(log, cf, log_context(log), REVIEW_CALIBRATE)
+    ctx = refine_reference(log, [cf], log_context(log), REVIEW_CALIBRATE)
+    result, _ = calibrate_compass(log, cf, ctx, REVIEW_CALIBRATE)
+    refined = ctx.field_refinement
+    if refined["flight_estimate_mG"] is not None:
+        assert r["field_inclination_deg"] == refined["inclination_deg"]
+        assert r["field_inclination_sd_deg"] == refined["inclination_sd_deg"] < 0.3
+    else:
+        assert r["field_inclination_deg"] is None
     assert [r[f"fit_ofs_{a}_mG"] for a in "xyz"] == pytest.approx(result["inflight"]["offsets_mG"], abs=0.01)
     assert [r[f"motor_{a}_mG_per_A"] for a in "xyz"] == pytest.approx(result["motor"]["motor_mG_per_unit"], abs=0.001)
     assert r["interference_pct"] == result["motor"]["interference_pct"] and r["motor_status"] == "ok"

@@ -58,6 +58,7 @@ ROW_COLUMNS: tuple[tuple[str, str], ...] = tuple([
     *_vec("ofs_change", "mG"), ("ofs_change_mG", "REAL"), ("fit_residual_rms_mG", "REAL"),
     *_vec("motor", "mG_per_A"), ("motor_sd_mG_per_A", "REAL"), ("current_max_A", "REAL"), ("interference_pct", "REAL"),
     ("wmm_strength_mG", "REAL"), ("wmm_inclination_deg", "REAL"), ("wmm_declination_deg", "REAL"),
+    ("field_inclination_deg", "REAL"), ("field_inclination_sd_deg", "REAL"),
     ("strength_resid_mG", "REAL"), ("inclination_resid_deg", "REAL"),
     ("alarm_count", "INTEGER"), ("alarm_kinds", "TEXT"), ("first_alarm_s", "REAL"), ("alarm_evidence", "TEXT"),
     ("alarm_intervals_s", "TEXT"), ("calibration_used", "TEXT"), ("attitude_source", "TEXT"),

@@ -40,6 +40,7 @@ from groundstation.jobs.analyze import analyze_log
 from groundstation.jobs.calibrate import CalibrateSettings
 from groundstation.jobs.calibrate.compass import calibrate_compass
 from groundstation.jobs.calibrate.context import attitude_for, log_context
+from groundstation.jobs.calibrate.reference import refine_reference
 from groundstation.jobs.compass_raw import CompassField, compass_fields, motor_signals
 from groundstation.jobs.inputs import field_reference, rounded
 from groundstation.samples import FlightLog
@@ -175,7 +176,10 @@ def _log_rows(log: FlightLog, path: Path, row: dict, settings: ReviewSettings) -
     if not fields:
         row.update(status="no_mag", compasses=0, error="the log has no magnetometer samples")
         return [row]
-    ctx = log_context(log)
+    ctx = refine_reference(log, fields, log_context(log), settings.calibrate)   # the reference field, as calibrate
+    refined = ctx.field_refinement or {}
+    if refined.get("flight_estimate_mG") is not None:       # the inclination the flight measured (with the WMM's)
+        row.update(field_inclination_deg=refined["inclination_deg"], field_inclination_sd_deg=refined["inclination_sd_deg"])
     results = {cf.compass: _calibrate(log, cf, ctx, settings) for cf in fields}    # once per compass
     calibration, row["calibration_used"] = review_calibration(log, row["identity"], settings,
                                                               results.get(log.primary_compass))

@@ -7,7 +7,8 @@ calibration wizard uses it), by default without the motor fit and the orientatio
 (``QUICK_SETTINGS``; pass DEFAULT_SETTINGS for everything).  ``calibrate_path(path, settings) -> list[dict]``: read and calibrate, a pure
 function of path and settings (an unreadable file gives ``[error_result]``).
 
-Pipeline per compass (compass.py): raw field with the corrections in force at each sample
+Per log: the attitude source (inflight.choose_attitude), then the reference field, the WMM with its
+inclination refined from the flight (reference.refine_reference).  Pipeline per compass (compass.py): raw field with the corrections in force at each sample
 un-applied (jobs.compass_raw) -> calibration windows (markers or rotation segmentation) -> else
 the in-flight fit against the WMM -> motor field -> orientation check -> ArduPilot / PX4
 parameters named after the instance.  Bad data never raise: they give a status and a message
@@ -28,6 +29,7 @@ from .checks import consistency_table
 from .compass import calibrate_compass
 from .inflight import choose_attitude
 from .context import expected_field, log_context
+from .reference import refine_reference
 from .result import empty_result, error_result, format_consistency, format_summary, write_param_file
 from .settings import DEFAULT_SETTINGS, QUICK_SETTINGS, CalibrateSettings
 
@@ -45,6 +47,7 @@ def _guarded(log: FlightLog, settings: CalibrateSettings, only: int | None = Non
         r.update(status="no_data", message="log has no magnetometer samples", autopilot=log.autopilot)
         return [r]
     ctx = choose_attitude(log, fields, log_context(log), settings)   # the attitude of the in-flight fits, per log
+    ctx = refine_reference(log, fields, ctx, settings)              # their reference field, per log
     results, calibrations = [], {}
     for cf in fields:
         try:

@@ -60,7 +60,8 @@ def _start(log: FlightLog, cf: CompassField, ctx: LogContext, settings: Calibrat
              onboard_report=onboard_report(log.mag_cal, cf.compass), settings=settings_record(settings))
     if ctx.field is not None:
         r["expected_field_mG"] = finite_or_none(ctx.field.field_strength_mG)
-    r.update(attitude_source=ctx.attitude_source or None, attitude_choice=ctx.attitude_choice)
+    r.update(attitude_source=ctx.attitude_source or None, attitude_choice=ctx.attitude_choice,
+             reference_field=ctx.field_refinement)
     return r
 
 

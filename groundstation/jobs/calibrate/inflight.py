@@ -188,11 +188,15 @@ def choose_attitude(log: FlightLog, fields: list[CompassField], ctx: LogContext,
                    attitude_choice={"chosen": chosen, "forced": False, "scores": scores, "samples": counts, "note": note})
 
 
-def inflight_step(cf: CompassField, x: FlightInputs, ctx: LogContext, settings: CalibrateSettings) -> WmmFit:
+def inflight_step(cf: CompassField, x: FlightInputs, ctx: LogContext, settings: CalibrateSettings,
+                  profile_direction_ned: np.ndarray | None = None) -> WmmFit:
+    """The in-flight fit of one compass against ctx's reference field (with its covariance)."""
     i = x.idx
     return fit_wmm(cf.t_s[i], cf.raw_mG[i], x.roll, x.pitch, x.yaw, _field(x, ctx),
                    attitude_rate_deg_s=x.rate_deg_s, motor_signal=x.signal, gps_vel_ne_mps=x.vel_ne_mps,
-                   corrected_in_force_mG=cf.in_force_mG[i], nominal_matrix=cf.nominal_matrix, settings=settings.wmm)
+                   corrected_in_force_mG=cf.in_force_mG[i], nominal_matrix=cf.nominal_matrix,
+                   field_cov_ned_mG2=ctx.field_cov_ned_mG2, profile_direction_ned=profile_direction_ned,
+                   settings=settings.wmm)
 
 
 def motor_step(cf: CompassField, x: FlightInputs, ctx: LogContext) -> MotorFieldFit:

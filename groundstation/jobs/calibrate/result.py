@@ -12,7 +12,8 @@ fit), heading_change_deg ({rms, max}: how far the new calibration turns the head
 corrections in force), coverage (of the chosen window's
 direction cells, or the heading coverage of an in-flight fit), misalignment_deg, condition_number, attitude_source (the attitude the in-flight fit used: ATT,
 AHR2, XKF1, NKF1, ATTITUDE, vehicle_attitude or ahrs, ours from the IMU) and attitude_choice (every
-source's held-out residual and why this one), course_check (the heading against the GPS course
+source's held-out residual and why this one), reference_field (the WMM's inclination and the one
+refined from the flight with its 1σ, the shift added to the WMM, the compasses that measured it; reference.py), course_check (the heading against the GPS course
 in straight fast flight, with the corrections in force and with the new calibration),
 ardupilot_params / px4_params (names follow the instance: COMPASS_OFS2_X, CAL_MAG1_XOFF, motor
 COMPASS_MOT*, orientation COMPASS_ORIENT* when found), corrections (what the autopilot had in
@@ -44,7 +45,7 @@ def empty_result(source: str, compass: int = 0) -> dict:
             "windows": [], "onboard_report": None, "inflight": None, "motor": None, "orientation": None,
             "consistency": None, "relative_to": None, "corrections_in_force": None, "recommended": None,
             "recommendation": None, "offsets_covariance_mG2": None, "heading_change_deg": None,
-            "attitude_source": None, "attitude_choice": None, "course_check": None,
+            "attitude_source": None, "attitude_choice": None, "course_check": None, "reference_field": None,
             "settings": settings_record(DEFAULT_SETTINGS)}
 
 

@@ -29,6 +29,8 @@ class CalibrateSettings:
     ``window_max_motor_field_mG``: a calibration window whose mean motor field (the in-flight fit's
     motor term × the window's mean current or throttle) exceeds this is fitted again on its samples
     whose motor field is below it, and not used when those are not sufficient.
+    ``refine_field``: the in-flight fits' reference field is the WMM with its inclination refined
+    from the flight's banked turns (jobs/calibrate/reference.py, estimators.field_refine).
     ``inflight_max_samples``: the in-flight and motor fits take every k-th sample beyond this many
     (attitude errors are slow, so a 50 Hz log holds little more than its 2 Hz subset; the fit's
     covariance already allows for correlated residuals).
@@ -48,6 +50,7 @@ class CalibrateSettings:
     inflight_max_samples: int = 1500
     window_max_motor_field_mG: float = 5.0   # a window flown with more motor field than this is fitted on its low-current samples (compass.motor_free_window)
     attitude_source: str = "auto"       # "auto": chosen per log by the held-out residual; or a name (ATT, XKF1, ahrs …)
+    refine_field: bool = True           # the WMM's inclination refined from the flight (reference.refine_reference)
 
 
 DEFAULT_SETTINGS = CalibrateSettings()
