@@ -43,6 +43,7 @@ class FieldRefinement:
     measured_sd_mG: float
     prior_sd_mG: float                # the WMM's 1σ along e_I
     profiles: int                     # profiles used
+    reason: str = ""                  # why the prior was kept (empty when refined)
 
     @property
     def refined(self) -> bool:
@@ -94,9 +95,18 @@ def refine_field(field_ned_mG: np.ndarray, prior_sd_ned_mG, shifts_mG: np.ndarra
     P0 = np.diag(np.square(np.asarray(prior_sd_ned_mG, float)))
     prior_sd = float(np.sqrt(e @ P0 @ e))
     good = [np.asarray(p, float) for p in profiles if p is not None and np.all(np.isfinite(p))]
-    y, sd = profile_minimum(shifts_mG, np.mean(good, axis=0)) if good else (float("nan"), float("nan"))
+    mean = np.mean(good, axis=0) if good else None
+    y, sd = profile_minimum(shifts_mG, mean) if good else (float("nan"), float("nan"))
     if not (np.isfinite(y) and np.isfinite(sd) and sd > 0):
-        return FieldRefinement(np.zeros(3), P0, e, float("nan"), float("nan"), prior_sd, len(good))
+        c2 = np.polyfit(np.asarray(shifts_mG, float), mean, 2)[0] if good and np.all(np.isfinite(mean)) else 0.0
+        if not good:
+            why = "no compass fit gave a profile"
+        elif int(np.argmin(mean)) in (0, len(mean) - 1) and c2 > 0 and 1.0 / np.sqrt(c2) < max(np.abs(shifts_mG)):
+            why = (f"the flight's best field lies beyond ±{max(np.abs(shifts_mG)):.0f} mG of the WMM across it "
+                   "(a local anomaly or an attitude error), not used")
+        else:
+            why = "the flight does not pin the inclination down"
+        return FieldRefinement(np.zeros(3), P0, e, float("nan"), float("nan"), prior_sd, len(good), why)
     B = np.atleast_2d(np.asarray(field_ned_mG, float)).mean(axis=0)
     sd = float(np.hypot(sd, np.linalg.norm(B) * np.radians(attitude_tilt_sd_deg)))
     gain = P0 @ e / (prior_sd ** 2 + sd ** 2)

@@ -101,7 +101,7 @@ class WmmFitSettings:
     # (0, 0, 0): the reference taken as exact
     field_model_sd_mG: tuple[float, float, float] = WMM_ERROR_NED_mG
     # shifts of the reference field along its inclination for the profile of estimators.field_refine [mG]
-    field_profile_shifts_mG: tuple[float, ...] = (-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0)
+    field_profile_shifts_mG: tuple[float, ...] = (-6.0, -3.0, 0.0, 3.0, 6.0)   # (9 points at 2 mG: within 0.15 mG)
     field_refine_tilt_sd_deg: float = 0.10        # the attitude's common tilt error (estimators.field_refine)
     sphere_bands: int = 8                         # equal-area cells: bands of equal Δz × sectors per band
     sphere_sectors: int = 10

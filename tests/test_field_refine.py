@@ -46,7 +46,11 @@ def test_refine_field_is_the_kalman_update_along_the_inclination():
     # nothing usable: the prior stands
     none = refine_field(H_WMM, prior, SHIFTS, [np.full(len(SHIFTS), np.nan)], 0.1)
     assert not none.refined and not np.any(none.shift_ned_mG) and np.allclose(none.covariance_ned_mG2, P0)
-    assert none.profiles == 0
+    assert none.profiles == 0 and none.reason == "no compass fit gave a profile"
+    beyond = refine_field(H_WMM, prior, SHIFTS, [(SHIFTS - 12.0) ** 2], 0.1)      # the best field past the shifts
+    assert not beyond.refined and "beyond" in beyond.reason and not np.any(beyond.shift_ned_mG)
+    flat = refine_field(H_WMM, prior, SHIFTS, [(SHIFTS - 12.0) ** 2 / 400.0], 0.1)  # ±20 mG at 1σ: no information
+    assert not flat.refined and flat.reason == "the flight does not pin the inclination down"
 
 
 def _turning_flight(true_field, seed=0, n=1500, noise_mG=1.5):

@@ -59,8 +59,7 @@ def refine_reference(log: FlightLog, fields: list[CompassField], ctx: LogContext
                 f"flight (compass{'es' if len(used) > 1 else ''} {', '.join(map(str, used))}: "
                 f"{ref.measured_mg_text()})")
     else:
-        note = ("reference field: the WMM's (" + ("no compass fit gave a profile" if not used else
-                "the flight does not pin its inclination down") + ")")
+        note = f"reference field: the WMM's ({ref.reason})"
     record = {"wmm_inclination_deg": round(inc0, 3), "inclination_deg": round(inc, 3),
               "inclination_sd_deg": round(sd_deg, 3), "shift_ned_mG": [round(float(v), 2) for v in ref.shift_ned_mG],
               "flight_estimate_mG": None if not ref.refined else round(ref.measured_mG, 2),
