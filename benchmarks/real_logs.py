@@ -141,7 +141,8 @@ def inflight_fits(log: FlightLog, k: int):
     cf = [f for f in compass_fields(log) if f.compass == k][0]
     ctx = log_context(log)
     x = flight_inputs(log, cf, DEFAULT_SETTINGS.inflight_max_samples)
-    return inflight_step(cf, x, ctx, DEFAULT_SETTINGS), motor_step(cf, x, ctx)
+    wmm = inflight_step(cf, x, ctx, DEFAULT_SETTINGS)
+    return wmm, motor_step(cf, x, ctx, wmm)
 
 
 # ------------------------------------------------------------------------------------ peers

@@ -34,7 +34,7 @@ import numpy as np
 from estimators.field_model import FieldData, corrected_field, nominal_params
 from estimators.wmm_fit import WmmFit, WmmFitSettings, fit_wmm
 
-__all__ = ["MotorFieldFit", "fit_motor_field", "motor_compensation_params"]
+__all__ = ["MotorFieldFit", "fit_motor_field", "motor_settings", "motor_compensation_params"]
 
 
 @dataclass(frozen=True)
@@ -75,28 +75,42 @@ def _norm_bins(x: np.ndarray, c_with: np.ndarray, c_without: np.ndarray, n_bins:
     return out
 
 
+def motor_settings(settings: WmmFitSettings | None, signal: str) -> WmmFitSettings:
+    """The in-flight fit's settings for a motor signal: per ampere as given (default ``WmmFitSettings()``);
+    per full throttle the field is ~100× the per-ampere one, so the motor prior, limit and the signal's
+    least variation are ArduPilot's per-throttle ones (COMPASS_MOT ±1000)."""
+    s = WmmFitSettings() if settings is None else settings
+    if signal == "current_A":
+        return s
+    return replace(s, min_motor_signal_std=0.05, motor_prior_sd_mG_per_unit=300.0, motor_limit_mG_per_unit=1000.0)
+
+
 def fit_motor_field(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, motor_signal, *,
                     signal: str = "current_A", attitude_rate_deg_s=None, gps_vel_ne_mps=None,
-                    corrected_in_force_mG=None, nominal_matrix=None,
-                    settings: WmmFitSettings | None = None) -> MotorFieldFit:
+                    corrected_in_force_mG=None, nominal_matrix=None, field_cov_ned_mG2=None,
+                    settings: WmmFitSettings | None = None, inflight: WmmFit | None = None) -> MotorFieldFit:
     """Field per ampere (signal "current_A") or per full throttle ("throttle", 0..1) of one compass.
 
     Inputs as ``estimators.wmm_fit.fit_wmm`` (raw body field with the corrections in force
-    un-applied, including any COMPASS_MOT compensation).  The motor term is always fitted; it is
-    reported ``insufficient_signal_variation`` when its sd is not below supported_ratio × prior sd.
+    un-applied, including any COMPASS_MOT compensation); ``settings`` the in-flight fit's (default
+    ``WmmFitSettings()``; per full throttle its motor prior and limits are ArduPilot's ±1000).  The
+    fit is the in-flight fit with the motor term forced; it is reported
+    ``insufficient_signal_variation`` when its sd is not below supported_ratio × prior sd.
+    ``inflight``: the in-flight fit of the same inputs; when it kept the motor term under the same
+    settings it is that fit (a forced term the data support takes the same path as a chosen one:
+    the terms dropped, the clamps and the covariance are the same), so it is not solved again.
     """
-    if settings is None:
-        # per full throttle the field is ~100× the per-ampere one: ArduPilot allows ±1000 for COMPASS_MOT
-        settings = WmmFitSettings() if signal == "current_A" else WmmFitSettings(
-            min_motor_signal_std=0.05, motor_prior_sd_mG_per_unit=300.0, motor_limit_mG_per_unit=1000.0)
-    s = settings
-    s = replace(s, fit_motor=True)
+    s = replace(motor_settings(settings, signal), fit_motor=True)
     if motor_signal is None or not np.any(np.isfinite(np.asarray(motor_signal, float))):
         return _nan_result("no_motor_signal", f"no {signal} in the log", signal, None)
     x_all = np.asarray(motor_signal, float).ravel()
-    fit = fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, attitude_rate_deg_s=attitude_rate_deg_s,
-                  motor_signal=x_all, gps_vel_ne_mps=gps_vel_ne_mps, corrected_in_force_mG=corrected_in_force_mG,
-                  nominal_matrix=nominal_matrix, settings=s)
+    if inflight is not None and "f_x" in inflight.fitted and replace(inflight.settings, fit_motor=True) == s:
+        fit = inflight
+    else:
+        fit = fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG,
+                      attitude_rate_deg_s=attitude_rate_deg_s, motor_signal=x_all, gps_vel_ne_mps=gps_vel_ne_mps,
+                      corrected_in_force_mG=corrected_in_force_mG, nominal_matrix=nominal_matrix,
+                      field_cov_ned_mG2=field_cov_ned_mG2, settings=s)
     if not np.all(np.isfinite(fit.motor_mG_per_unit)):
         return _nan_result(fit.status, fit.message, signal, fit)
     f = fit.motor_mG_per_unit

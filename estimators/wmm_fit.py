@@ -549,7 +549,7 @@ def _result(sol: Solution, active: np.ndarray, model: str, yaw: tuple[float, flo
     fitted = tuple(n for n, a in zip(PARAM_NAMES, active) if a)
     return WmmFit(status, "; ".join([head] + notes), model, model == "vector", p[:3].copy(), matrix_from_params(p),
                   p[9:12].copy(), cov, sd[:3], sd[9:12], fitted, sol.residual_rms_mG, int(sol.inliers.sum()), n_in,
-                  rej, coverage, slope, disagree, recommended, reason, heading_change, sphere_coverage, s)
+                  rej, coverage, slope, disagree, recommended, reason, heading_change, sphere_coverage, settings=s)
 
 
 def fit_wmm(t_s, mag_raw_mG, roll_rad, pitch_rad, yaw_rad, field_ned_mG, *, attitude_rate_deg_s=None,

@@ -108,3 +108,24 @@ def test_the_one_motor_field_model_0_to_10_mG_per_A_with_lag_and_slow_current():
     assert sig1 and np.linalg.norm(est1 - f) < 0.30 * 10.0, est1
     fresh = FieldModelFilter((200.0, 0.0, 400.0), f_sd=3.0)
     assert not fresh.significant() and np.allclose(fresh.sd, 3.0)          # nothing learned: the prior
+
+
+def test_an_in_flight_fit_that_kept_the_motor_term_is_the_motor_fit():
+    """The motor fit is the in-flight fit with the motor term forced: when the in-flight fit (same
+    settings) kept the term, the forced fit takes the same path, so that fit is reused, not solved again;
+    under other settings it is solved."""
+    from dataclasses import replace
+
+    from estimators.wmm_fit import WmmFitSettings, fit_wmm
+    d = level_flight(noise_mG=2.0)
+    args = (d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED)
+    w = fit_wmm(*args, motor_signal=d["current"])
+    assert "f_x" in w.fitted
+    fresh = fit_motor_field(*args, d["current"])
+    reused = fit_motor_field(*args, d["current"], inflight=w)
+    assert reused.wmm is w and fresh.wmm is not w
+    np.testing.assert_array_equal(fresh.motor_mG_per_unit, reused.motor_mG_per_unit)
+    np.testing.assert_array_equal(fresh.wmm.offsets_mG, reused.wmm.offsets_mG)
+    np.testing.assert_array_equal(fresh.wmm.covariance, reused.wmm.covariance)
+    other = fit_wmm(*args, motor_signal=d["current"], settings=replace(WmmFitSettings(), fit_offdiagonal=False))
+    assert fit_motor_field(*args, d["current"], inflight=other).wmm is not other

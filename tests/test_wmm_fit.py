@@ -232,3 +232,12 @@ def test_the_reference_field_error_is_the_wmm_packages_own():
     expected = [uncertainty.err_model[k] / 100.0 for k in ("X", "Y", "Z")]
     assert WmmFitSettings().field_model_sd_mG == pytest.approx(expected)
     assert expected == pytest.approx([1.37, 0.89, 1.41])                  # WMM2025 (WMM2020 was 1.31, 0.94, 1.57)
+
+
+def test_the_result_records_its_settings_and_no_course_check_without_gps():
+    """WmmFit.settings are the settings the fit ran with (the motor fit reuses an in-flight fit only
+    under the same settings); without a GPS velocity there is no course check (it was the settings)."""
+    d = level_flight(seed=3)
+    s = WmmFitSettings(fit_offdiagonal=False, max_offset_sd_mG=15.0)
+    r = fit_wmm(d["t"], d["raw"], d["roll"], d["pitch"], d["yaw"], H_NED, motor_signal=d["current"], settings=s)
+    assert r.status in ("ok", "weak") and r.settings == s and r.course is None

@@ -162,10 +162,10 @@ def _failure_status(step, wmm, notes: list[str]) -> str:
     return "insufficient_coverage"
 
 
-def _motor(r: dict, log: FlightLog, cf: CompassField, x, ctx: LogContext, settings: CalibrateSettings):
+def _motor(r: dict, log: FlightLog, cf: CompassField, x, ctx: LogContext, settings: CalibrateSettings, wmm):
     if x is None or x.signal is None or not settings.motor_fit:
         return None
-    fit = motor_step(cf, x, ctx)
+    fit = motor_step(cf, x, ctx, wmm)
     R = None
     if cf.px4_slot is not None:
         try:
@@ -259,7 +259,7 @@ def calibrate_compass(log: FlightLog, cf: CompassField, ctx: LogContext, setting
         if window is not None:
             r["windows"].append(window_dict(window, True, cf.t_s))
     cal = _from_window(r, window, mask, cf) if window is not None else None
-    motor = _motor(r, log, cf, x, ctx, settings)
+    motor = _motor(r, log, cf, x, ctx, settings, wmm)
     used = None
     if cal is not None:
         r.update(recommended=True, recommendation=f"recommended: fitted on a calibration window "
