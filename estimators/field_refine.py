@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FieldRefinement", "inclination_direction", "profile_minimum", "refine_field"]
+__all__ = ["FieldRefinement", "inclination_rad", "inclination_direction", "profile_minimum", "refine_field"]
 
 
 @dataclass(frozen=True)
@@ -55,12 +55,18 @@ class FieldRefinement:
                 f"the WMM's 1σ {self.prior_sd_mG:.1f} mG")
 
 
+def inclination_rad(field_ned_mG: np.ndarray) -> float:
+    """The inclination atan2(D, |N, E|) of the mean of the fields given ((3,) or (N,3)) [rad]."""
+    H = np.atleast_2d(np.asarray(field_ned_mG, float)).mean(axis=0)
+    return float(np.arctan2(H[2], np.hypot(H[0], H[1])))
+
+
 def inclination_direction(field_ned_mG: np.ndarray) -> np.ndarray:
     """e_I (3,): the unit NED vector in which a field turns when its inclination grows, ∂B̂/∂I, for
     the mean of the fields given ((3,) or (N,3))."""
     H = np.atleast_2d(np.asarray(field_ned_mG, float)).mean(axis=0)
     h = float(np.hypot(H[0], H[1]))
-    inc = float(np.arctan2(H[2], h))
+    inc = inclination_rad(H)
     north, east = (H[0] / h, H[1] / h) if h > 0 else (1.0, 0.0)
     return np.array([-np.sin(inc) * north, -np.sin(inc) * east, np.cos(inc)])
 

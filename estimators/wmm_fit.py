@@ -371,13 +371,20 @@ def _with_field_model(cov: np.ndarray, data: FieldData, sol: Solution, active: n
     shifts = _field_shifts(s, field_cov_ned_mG2)
     if not shifts or not np.all(np.isfinite(cov)):
         return cov
-    H = np.asarray(data.field_ned_mG, float)
-    shifted = [data.with_field(H + d) for d in shifts]
     # the solution with the field as given and with each shift, solved in lockstep
-    P = solve_groups(stack_rows([data] + shifted), sol.params, p0, replace(_options(model, active, s), max_iter=8),
-                     weight=data.weight).params
+    P, _ = _solved_with_field_shifts(data, [np.zeros(3)] + shifts, sol, active, p0, model, s)
     S = (P[1:] - P[0]).T
     return cov + S @ S.T
+
+
+def _solved_with_field_shifts(data: FieldData, shifts: list, sol: Solution, active: np.ndarray, p0: np.ndarray,
+                              model: str, s: WmmFitSettings):
+    """(P (G,12), rows): the fit of ``sol``'s terms re-solved from ``sol`` with the reference field
+    shifted by each of ``shifts`` (NED mG), in lockstep (estimators.field_model_groups), and the rows."""
+    H = np.asarray(data.field_ned_mG, float)
+    rows = stack_rows([data.with_field(H + d) for d in shifts])
+    P = solve_groups(rows, sol.params, p0, replace(_options(model, active, s), max_iter=8), weight=data.weight).params
+    return P, rows
 
 
 def field_direction_nll(data: FieldData, sol: Solution, active: np.ndarray, p0: np.ndarray, model: str,
@@ -387,10 +394,8 @@ def field_direction_nll(data: FieldData, sol: Solution, active: np.ndarray, p0: 
     residual scored at ``sol``'s scale σ on ``sol``'s inliers, Σ ρ(|r|/σ) with ρ(u) = u² (Huber's
     linear tail beyond the solver's threshold), divided by the residual's autocorrelation time τ
     (slow attitude errors: the samples are not independent).  Minimum 0.  (G,) over the shifts."""
-    H = np.asarray(data.field_ned_mG, float)
     e = np.asarray(direction_ned, float)
-    rows = stack_rows([data.with_field(H + d * e) for d in shifts_mG])
-    P = solve_groups(rows, sol.params, p0, replace(_options(model, active, s), max_iter=8), weight=data.weight).params
+    P, rows = _solved_with_field_shifts(data, [d * e for d in shifts_mG], sol, active, p0, model, s)
     r, _ = model_terms(P, rows, model)
     u = np.sqrt(np.sum(r * r, axis=1)) / max(sol.sigma_mG, 1e-9)
     c = s.huber_k * np.sqrt(2.0)         # the solver's threshold, |r|/√2 ≤ k·σ

@@ -12,7 +12,7 @@ from estimators.geomag import EarthField, decimal_year_from_unix, earth_field, f
 from estimators.log_alignment import AttitudeAt, attitude_at, interp_series
 from groundstation.samples import MAG_CAL_SUCCESS, FlightLog, MagCalSample
 
-__all__ = ["LogContext", "log_context", "expected_field", "field_for", "wmm_along", "attitude_for", "marker_spans", "onboard_report", "WMM_VALID_YEARS"]
+__all__ = ["LogContext", "log_context", "expected_field", "field_for", "attitude_for", "marker_spans", "onboard_report", "WMM_VALID_YEARS"]
 
 WMM_VALID_YEARS = (2025.0, 2030.0)      # estimators.geomag clamps dates to the WMM2025 span
 
@@ -70,14 +70,14 @@ def attitude_for(log: FlightLog, t_s: np.ndarray, table: np.ndarray | None = Non
 
 
 def field_for(log: FlightLog, ctx: LogContext, t_s: np.ndarray) -> np.ndarray | None:
-    """The reference field (N,3) NED mG at each sample: the WMM along the flight (``wmm_along``) plus
+    """The reference field (N,3) NED mG at each sample: the WMM along the flight (``_wmm_along``) plus
     ``ctx.field_shift_ned_mG``, its inclination refined from the flight (reference.refine_reference).
     None without ctx.field."""
-    H = wmm_along(log, ctx, t_s)
+    H = _wmm_along(log, ctx, t_s)
     return H if H is None or ctx.field_shift_ned_mG is None else H + ctx.field_shift_ned_mG
 
 
-def wmm_along(log: FlightLog, ctx: LogContext, t_s: np.ndarray) -> np.ndarray | None:
+def _wmm_along(log: FlightLog, ctx: LogContext, t_s: np.ndarray) -> np.ndarray | None:
     """The WMM field (N,3) NED mG at each sample's position, altitude and date (estimators.geomag.
     field_along_path: GPS interpolated to t_s, good fixes only); samples without a position within
     10 s of a fix take the field of the first fix (ctx.field).  None without ctx.field."""

@@ -13,7 +13,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from estimators.field_refine import inclination_direction, refine_field
+from estimators.field_refine import inclination_direction, inclination_rad, refine_field
 from groundstation.jobs.compass_raw import CompassField
 from groundstation.samples import FlightLog
 
@@ -22,11 +22,6 @@ from .inflight import flight_inputs, inflight_step
 from .settings import CalibrateSettings
 
 __all__ = ["refine_reference"]
-
-
-def _inclination_deg(field_ned_mG: np.ndarray) -> float:
-    H = np.atleast_2d(np.asarray(field_ned_mG, float)).mean(axis=0)
-    return float(np.degrees(np.arctan2(H[2], np.hypot(H[0], H[1]))))
 
 
 def refine_reference(log: FlightLog, fields: list[CompassField], ctx: LogContext, settings: CalibrateSettings
@@ -49,8 +44,8 @@ def refine_reference(log: FlightLog, fields: list[CompassField], ctx: LogContext
             used.append(cf.compass)
     ref = refine_field(wmm, settings.wmm.field_model_sd_mG, np.asarray(settings.wmm.field_profile_shifts_mG), profiles,
                        settings.wmm.field_refine_tilt_sd_deg)
-    inc0 = _inclination_deg(wmm)
-    inc = _inclination_deg(wmm + ref.shift_ned_mG)
+    inc0 = float(np.degrees(inclination_rad(wmm)))
+    inc = float(np.degrees(inclination_rad(wmm + ref.shift_ned_mG)))
     # 1σ of the inclination: the field's 1σ across it (along e_I) over its magnitude
     sd_deg = float(np.degrees(np.sqrt(ref.direction_ned @ ref.covariance_ned_mG2 @ ref.direction_ned)
                               / np.linalg.norm(wmm)))
