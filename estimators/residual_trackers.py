@@ -3,7 +3,8 @@ with its uncertainty, a Kalman filter over the Earth field, the body offset and 
 unit of the motor signal (``FieldModelFilter``, the one motor-field model; the offline fits are
 estimators.motor_field), and the magnetometer's tilt against the attitude's axes (``TiltTracker``,
 learned from the changes of the residual over a short lag, so that a body offset never teaches it
-anything).  Pure; numpy for the 11-state filter's covariance, plain floats for the rest.
+anything).  Pure; the 11-state filter's covariance steps compiled by numba
+(estimators.field_model_kernels), plain floats for the rest.
 """
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ from collections import deque
 from collections.abc import Sequence
 
 import numpy as np
+
+from estimators.field_model_kernels import forget_covariance, kalman_update, observe_covariance
 
 __all__ = ["FieldModelFilter", "TiltTracker", "MOTOR_TIMEOUT_S"]
 
@@ -26,18 +29,6 @@ def _lagged(hist: deque, row: tuple, lag_s: float) -> tuple | None:
     return hist[0] if hist[0][0] <= t_s - lag_s else None
 
 
-def inv3(a: Sequence[float]) -> list[float]:
-    """Inverse of a 3 × 3 matrix (nine floats row by row) by its adjugate (cofactors / determinant),
-    nine floats row by row: a small matrix many times per second, where a numpy call costs more
-    than the arithmetic."""
-    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
-    c0, c1, c2 = a4 * a8 - a5 * a7, a5 * a6 - a3 * a8, a3 * a7 - a4 * a6
-    det = a0 * c0 + a1 * c1 + a2 * c2
-    return [c0 / det, (a2 * a7 - a1 * a8) / det, (a1 * a5 - a2 * a4) / det,
-            c1 / det, (a0 * a8 - a2 * a6) / det, (a2 * a3 - a0 * a5) / det,
-            c2 / det, (a1 * a6 - a0 * a7) / det, (a0 * a4 - a1 * a3) / det]
-
-
 def quad_inv3(v: Sequence[float], a: Sequence[float]) -> float:
     """vᵀ A⁻¹ v for a 3-vector v and a 3 × 3 matrix A (nine floats row by row), as vᵀ adj(A) v / det A."""
     a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
@@ -49,6 +40,7 @@ def quad_inv3(v: Sequence[float], a: Sequence[float]) -> float:
             + (v0 * c2 + v1 * (a1 * a6 - a0 * a7) + v2 * (a0 * a4 - a1 * a3)) * v2) / det
 
 
+_ZERO9 = (0.0,) * 9
 SIGNAL_SCALE = 10.0     # a typical excursion of the motor signal [A or %]: sets f's random walk
 MOTOR_TIMEOUT_S = 2.5   # the one motor-signal timeout [s]: an older current (or throttle) sample is not
                         # used; 1-2 Hz battery telemetry stays held between its samples
@@ -79,8 +71,8 @@ class FieldModelFilter:
     (``observe``) instead of alarming on it.  Units: mG, A (or %), s.
 
     Speed (issue 29: this runs at every IMU step of a log): θ is a list of plain floats and every
-    3-vector and 3 × 3 step is plain-float arithmetic; numpy does only the products with the 11 × 11
-    covariance P, through H's structure (Hᵀ kept as an 11 × 3 array whose constant rows are set once).
+    3-vector and 3 × 3 step is plain-float arithmetic; the steps on the 11 × 11 covariance P are
+    compiled loops through H's structure (estimators.field_model_kernels).
     """
 
     def __init__(self, h0_mG, h_sd_mG: float = 5.0, b_sd_mG: float = 50.0, f_sd: float = 3.0,
@@ -98,10 +90,6 @@ class FieldModelFilter:
         self.corr_s = corr_s
         self.x0: float | None = None
         self._last_xt = 0.0
-        self._Ht = np.zeros((11, 3))                   # Hᵀ: rows ε, β (0), h, b (I), f (x̃ I)
-        self._Ht[5:8] = np.eye(3)
-        self._Ht_flat = self._Ht.reshape(-1)           # its elements that change: row ε, rows h, f's diagonal
-        self._Ht_set = np.array([0, 1, 2, 6, 7, 8, 9, 10, 11, 12, 13, 14, 24, 28, 32])
 
     @property
     def theta(self) -> np.ndarray:
@@ -180,28 +168,20 @@ class FieldModelFilter:
         (11 × 3 array); x̃).  Pass it to ``update`` after ``forget`` has run (P as it is then)."""
         th = self.th
         e0, hn, he, hd = th[0], th[2], th[3], th[4]
-        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = c_bt
-        a0, a1, a2 = r01 * hn - r00 * he, r11 * hn - r10 * he, r21 * hn - r20 * he
+        rows = c_bt if type(c_bt) is tuple else tuple(tuple(float(v) for v in r) for r in c_bt)
+        PHt, hph, (a0, a1, a2) = observe_covariance(self.P, rows, hn, he, float(xt))
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
         pred = [a0 * e0 + r00 * hn + r01 * he + r02 * hd + th[5] + xt * th[8],
                 a1 * e0 + r10 * hn + r11 * he + r12 * hd + th[6] + xt * th[9],
                 a2 * e0 + r20 * hn + r21 * he + r22 * hd + th[7] + xt * th[10]]
-        Ht = self._Ht
-        self._Ht_flat[self._Ht_set] = (a0, a1, a2, r00, r10, r20, r01, r11, r21, r02, r12, r22, xt, xt, xt)
-        PHt = self.P @ Ht
-        return pred, (Ht.T @ PHt).ravel().tolist(), PHt, xt
+        return pred, hph, PHt, xt
 
     def forget(self, dt_s: float, sigma_mG: float, yaw_rate_rad_s: float = 0.0) -> None:
         """The random walks over dt: P += diag(r_c / τ²) dt, r_c = σ² τ_c; the heading's error grows
         by what is left of the gyro's bias and by its scale error in turns."""
-        P = self.P
-        row = P[0]                                     # P ← F P Fᵀ, F = I + Δt e_ε e_βᵀ: row 0 += Δt row 1, ...
-        row += dt_s * P[1]
-        P[0, 0] += dt_s * row[1]                       # ... then column 0 += Δt column 1, which (P symmetric)
-        P[1:, 0] = row[1:]                             # is row 0 again below the diagonal
-        q = self._walk * (sigma_mG * sigma_mG * self.corr_s * dt_s)
-        q[0] = (self.gyro_scale * yaw_rate_rad_s) ** 2 * dt_s
-        q[1] = self.bias_walk_rad_s2 ** 2 * dt_s
-        self._diag += q
+        forget_covariance(self.P, self._walk, float(dt_s), float(sigma_mG * sigma_mG * self.corr_s * dt_s),
+                          float((self.gyro_scale * yaw_rate_rad_s) ** 2 * dt_s),
+                          float(self.bias_walk_rad_s2 ** 2 * dt_s))
 
     def inflate(self, h_sd_mG: float, b_sd_mG: float) -> None:
         """Forget h and b to this much more variance (a disturbance has ended: learn them again)."""
@@ -215,34 +195,12 @@ class FieldModelFilter:
         if isinstance(H, np.ndarray):
             H = self.observe(H[:, 2:5].tolist(), float(H[0, 8]))
         pred, hph, PHt, _ = H
+        nu = (float(m_mG[0]) - pred[0], float(m_mG[1]) - pred[1], float(m_mG[2]) - pred[2])
         r = sigma_mG * sigma_mG
-        rs = r * self.corr_s / dt_s
-        if extra_cov is not None:
-            k = self.corr_s / dt_s
-            S = [hph[i] + extra_cov[i] * k for i in range(9)]
-        else:
-            S = list(hph)
-        S[0] += rs
-        S[4] += rs
-        S[8] += rs
-        nu = [float(m_mG[0]) - pred[0], float(m_mG[1]) - pred[1], float(m_mG[2]) - pred[2]]
-        C = list(hph)
-        C[0] += r
-        C[4] += r
-        C[8] += r
-        d = math.sqrt(max(quad_inv3(nu, C), 0.0))
-        if d > clip:                       # Huber: at most ``clip`` σ of innovation (model error included)
-            g = clip / d
-            nu = [nu[0] * g, nu[1] * g, nu[2] * g]
-        n0, n1, n2 = nu
-        s0, s1, s2, s3, s4, s5, s6, s7, s8 = inv3(S)
-        # [K | K ν] = P Hᵀ [S⁻¹ | S⁻¹ ν] in one product
-        G = PHt @ np.array(((s0, s1, s2, s0 * n0 + s1 * n1 + s2 * n2), (s3, s4, s5, s3 * n0 + s4 * n1 + s5 * n2),
-                            (s6, s7, s8, s6 * n0 + s7 * n1 + s8 * n2)))
-        self.th = [a + b for a, b in zip(self.th, G[:, 3].tolist())]
-        P = self.P - G[:, :3] @ PHt.T
-        np.add(P, P.T, out=self.P)
-        self.P *= 0.5
+        k = self.corr_s / dt_s
+        step = kalman_update(self.P, PHt, hph, tuple(extra_cov) if extra_cov is not None else _ZERO9,
+                             k, nu, r, r * k, clip)
+        self.th = [a + b for a, b in zip(self.th, step)]
 
 
 class TiltTracker:
