@@ -435,12 +435,12 @@ class FieldConsistency:
         turn = self._relearning_turn(t, learning) or t < self.relearn_until
         allowed = self._learning_allowed()
         sigma = self.noise_mG if math.isfinite(self.noise_mG) else s.noise_floor_mG
-        model.forget(dt, sigma, self.yaw_rate_rad_s)
-        obs = model.observe(cbt, xt)
-        pred, HPHt = obs[0], obs[1]                     # HPHt: the model's uncertainty on this step [mG²]
+        learn = (turn or allowed) and abs(self.yaw_rate_rad_s) <= self._model_max_turn_rad_s
+        # the model's random walks, its prediction and (learning) its update; HPHt: the model's
+        # uncertainty on this step [mG²]
+        pred, HPHt = model.step(dt, sigma, self.yaw_rate_rad_s, cbt, xt, m, learn, s.model_clip_sigma, lag_cov)
         e = [m[0] - pred[0], m[1] - pred[1], m[2] - pred[2]]
-        if (turn or allowed) and abs(self.yaw_rate_rad_s) <= self._model_max_turn_rad_s:
-            model.update(obs, m, dt, sigma, s.model_clip_sigma, lag_cov)
+        if learn:
             self.psi = _wrap(self.psi - model.take_heading())
         th = model.th
         self.tilt.update(t, p, [m[0] - p[0] - th[5] - th[8] * xt, m[1] - p[1] - th[6] - th[9] * xt,

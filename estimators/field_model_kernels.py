@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["forget_covariance", "observe_covariance", "update_covariance", "kalman_update"]
+__all__ = ["forget_covariance", "observe_covariance", "update_covariance", "kalman_update", "filter_step"]
 
 
 @njit(cache=True)
@@ -120,3 +120,24 @@ def update_covariance(P: np.ndarray, pht: np.ndarray, s_inv: tuple, nu: tuple) -
             P[i, j] = v
             P[j, i] = v
     return (d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7], d[8], d[9], d[10])
+
+
+@njit(cache=True)
+def filter_step(P: np.ndarray, walk: np.ndarray, th: tuple, c_bt: tuple, xt: float, m_mG: tuple,
+                dt_s: float, walk_scale: float, q_heading: float, q_bias: float, learn: bool,
+                extra: tuple, extra_scale: float, r_mG2: float, rs_mG2: float, clip: float) -> tuple:
+    """The field-vector test's step in one call: ``forget_covariance``, ``observe_covariance`` and,
+    when ``learn`` (and Δt > 0), ``kalman_update`` with ν = m − H θ.  Returns (H θ, the predicted
+    body field [mG]; H P Hᵀ before the update [mG², nine floats]; K ν, zeros when not learning)."""
+    forget_covariance(P, walk, dt_s, walk_scale, q_heading, q_bias)
+    e0, hn, he, hd = th[0], th[2], th[3], th[4]
+    pht, hph, a = observe_covariance(P, c_bt, hn, he, xt)
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = c_bt
+    pred = (a[0] * e0 + r00 * hn + r01 * he + r02 * hd + th[5] + xt * th[8],
+            a[1] * e0 + r10 * hn + r11 * he + r12 * hd + th[6] + xt * th[9],
+            a[2] * e0 + r20 * hn + r21 * he + r22 * hd + th[7] + xt * th[10])
+    step = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    if learn and dt_s > 0.0:
+        nu = (m_mG[0] - pred[0], m_mG[1] - pred[1], m_mG[2] - pred[2])
+        step = kalman_update(P, pht, hph, extra, extra_scale, nu, r_mG2, rs_mG2, clip)
+    return pred, hph, step

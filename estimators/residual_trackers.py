@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from estimators.field_model_kernels import forget_covariance, kalman_update, observe_covariance
+from estimators.field_model_kernels import filter_step, forget_covariance, kalman_update, observe_covariance
 
 __all__ = ["FieldModelFilter", "TiltTracker", "MOTOR_TIMEOUT_S"]
 
@@ -182,6 +182,21 @@ class FieldModelFilter:
         forget_covariance(self.P, self._walk, float(dt_s), float(sigma_mG * sigma_mG * self.corr_s * dt_s),
                           float((self.gyro_scale * yaw_rate_rad_s) ** 2 * dt_s),
                           float(self.bias_walk_rad_s2 ** 2 * dt_s))
+
+    def step(self, dt_s: float, sigma_mG: float, yaw_rate_rad_s: float, c_bt: tuple, xt: float, m_mG: tuple,
+             learn: bool, clip: float, extra_cov: list | None = None) -> tuple:
+        """``forget``, ``observe`` and, when ``learn``, ``update`` in one compiled call (the field-vector
+        test's step; the same numbers): (H θ, the predicted body field [mG]; H P Hᵀ before the
+        update [mG², nine floats]).  c_bt: R(δ)Cᵀ as three tuples of floats; m_mG a tuple."""
+        r = sigma_mG * sigma_mG
+        k = self.corr_s / dt_s if dt_s > 0.0 else 0.0
+        pred, hph, step = filter_step(self.P, self._walk, tuple(self.th), c_bt, float(xt), m_mG, float(dt_s),
+                                      r * self.corr_s * dt_s, (self.gyro_scale * yaw_rate_rad_s) ** 2 * dt_s,
+                                      self.bias_walk_rad_s2 ** 2 * dt_s, learn,
+                                      tuple(extra_cov) if extra_cov is not None else _ZERO9, k, r, r * k, clip)
+        if learn and dt_s > 0.0:
+            self.th = [a + b for a, b in zip(self.th, step)]
+        return pred, hph
 
     def inflate(self, h_sd_mG: float, b_sd_mG: float) -> None:
         """Forget h and b to this much more variance (a disturbance has ended: learn them again)."""

@@ -71,3 +71,27 @@ def test_observe_and_update_are_the_kalman_equations(seed):
         scale = np.outer(SD, SD)              # each element against its prior's σᵢσⱼ
         assert np.max(np.abs(Pk - want_p) / scale) < 1e-10
         assert np.array_equal(Pk, Pk.T)
+
+
+def test_the_fused_step_is_forget_observe_update():
+    """``FieldModelFilter.step`` (one compiled call) against ``forget``, ``observe`` and ``update``
+    in turn: the same predictions, uncertainties, states and covariances over 300 steps, learning
+    and not, with and without the signal's lag term."""
+    from estimators.residual_trackers import FieldModelFilter
+    rng = np.random.default_rng(7)
+    fused, parts = FieldModelFilter([220.0, 10.0, 380.0]), FieldModelFilter([220.0, 10.0, 380.0])
+    for i in range(300):
+        c = tuple(tuple(r) for r in _rotation(rng).T)
+        xt, dt, sigma, rate = rng.uniform(0, 20), rng.choice([0.0, 0.02, 0.1]), rng.uniform(4, 9), rng.normal(0, 0.3)
+        m = tuple(float(v) for v in np.asarray(c) @ [220.0, 10.0, 380.0] + rng.normal(0, 8, 3))
+        learn, lag = bool(i % 4), (list(rng.uniform(0, 5, 9)) if i % 3 == 0 else None)
+        pred, hph = fused.step(dt, sigma, rate, c, xt, m, learn, 3.0, lag)
+        parts.forget(dt, sigma, rate)
+        obs = parts.observe(c, xt)
+        if learn:
+            parts.update(obs, m, dt, sigma, 3.0, lag)
+        np.testing.assert_allclose(pred, obs[0], rtol=1e-13)
+        np.testing.assert_allclose(hph, obs[1], rtol=1e-13)
+        np.testing.assert_allclose(fused.th, parts.th, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(fused.P, parts.P, rtol=1e-12, atol=1e-15)
+    assert np.max(np.abs(np.array(fused.th[5:8]))) > 1.0          # it learned an offset on the way
