@@ -15,7 +15,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["forget_covariance", "observe_covariance", "update_covariance", "kalman_update", "filter_step"]
+__all__ = ["forget_covariance", "observe_covariance", "predicted_field", "update_covariance", "kalman_update",
+           "filter_step"]
 
 
 @njit(cache=True)
@@ -56,6 +57,16 @@ def observe_covariance(P: np.ndarray, c_bt: tuple, h_n_mG: float, h_e_mG: float,
         h[3 + k] = a1 * pht[0, k] + r10 * pht[2, k] + r11 * pht[3, k] + r12 * pht[4, k] + pht[6, k] + xt * pht[9, k]
         h[6 + k] = a2 * pht[0, k] + r20 * pht[2, k] + r21 * pht[3, k] + r22 * pht[4, k] + pht[7, k] + xt * pht[10, k]
     return pht, (h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8]), (a0, a1, a2)
+
+
+@njit(cache=True)
+def predicted_field(th: tuple, c_bt: tuple, a: tuple, xt: float) -> tuple:
+    """H θ, the body field the model predicts [mG]: a ε + R(δ)Cᵀ h + b + x̃ f (a: H's ε column)."""
+    e0, hn, he, hd = th[0], th[2], th[3], th[4]
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = c_bt
+    return (a[0] * e0 + r00 * hn + r01 * he + r02 * hd + th[5] + xt * th[8],
+            a[1] * e0 + r10 * hn + r11 * he + r12 * hd + th[6] + xt * th[9],
+            a[2] * e0 + r20 * hn + r21 * he + r22 * hd + th[7] + xt * th[10])
 
 
 @njit(cache=True)
@@ -130,12 +141,8 @@ def filter_step(P: np.ndarray, walk: np.ndarray, th: tuple, c_bt: tuple, xt: flo
     when ``learn`` (and Δt > 0), ``kalman_update`` with ν = m − H θ.  Returns (H θ, the predicted
     body field [mG]; H P Hᵀ before the update [mG², nine floats]; K ν, zeros when not learning)."""
     forget_covariance(P, walk, dt_s, walk_scale, q_heading, q_bias)
-    e0, hn, he, hd = th[0], th[2], th[3], th[4]
-    pht, hph, a = observe_covariance(P, c_bt, hn, he, xt)
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = c_bt
-    pred = (a[0] * e0 + r00 * hn + r01 * he + r02 * hd + th[5] + xt * th[8],
-            a[1] * e0 + r10 * hn + r11 * he + r12 * hd + th[6] + xt * th[9],
-            a[2] * e0 + r20 * hn + r21 * he + r22 * hd + th[7] + xt * th[10])
+    pht, hph, a = observe_covariance(P, c_bt, th[2], th[3], xt)
+    pred = predicted_field(th, c_bt, a, xt)
     step = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     if learn and dt_s > 0.0:
         nu = (m_mG[0] - pred[0], m_mG[1] - pred[1], m_mG[2] - pred[2])

@@ -14,7 +14,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from estimators.field_model_kernels import filter_step, forget_covariance, kalman_update, observe_covariance
+from estimators.field_model_kernels import (filter_step, forget_covariance, kalman_update, observe_covariance,
+                                           predicted_field)
 
 __all__ = ["FieldModelFilter", "TiltTracker", "MOTOR_TIMEOUT_S"]
 
@@ -166,34 +167,37 @@ class FieldModelFilter:
         """The measurement for c_bt = R(δ)Cᵀ (rows) and the signal x̃: (H θ, the predicted body
         field [mG]; H P Hᵀ, how uncertain that prediction is [mG², nine floats row by row]; P Hᵀ
         (11 × 3 array); x̃).  Pass it to ``update`` after ``forget`` has run (P as it is then)."""
-        th = self.th
-        e0, hn, he, hd = th[0], th[2], th[3], th[4]
-        rows = c_bt if type(c_bt) is tuple else tuple(tuple(float(v) for v in r) for r in c_bt)
-        PHt, hph, (a0, a1, a2) = observe_covariance(self.P, rows, hn, he, float(xt))
-        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
-        pred = [a0 * e0 + r00 * hn + r01 * he + r02 * hd + th[5] + xt * th[8],
-                a1 * e0 + r10 * hn + r11 * he + r12 * hd + th[6] + xt * th[9],
-                a2 * e0 + r20 * hn + r21 * he + r22 * hd + th[7] + xt * th[10]]
-        return pred, hph, PHt, xt
+        rows = tuple(tuple(float(v) for v in r) for r in c_bt)       # (not the test's hot path: ``step`` is)
+        xt = float(xt)
+        PHt, hph, a = observe_covariance(self.P, rows, self.th[2], self.th[3], xt)
+        return predicted_field(tuple(self.th), rows, a, xt), hph, PHt, xt
+
+    def _walks(self, dt_s: float, sigma_mG: float, yaw_rate_rad_s: float) -> tuple:
+        """(σ² τ_c Δt, the heading's and the yaw-rate bias's variance growth over Δt): the random
+        walks' arguments of ``forget_covariance``."""
+        return (float(sigma_mG * sigma_mG * self.corr_s * dt_s), float((self.gyro_scale * yaw_rate_rad_s) ** 2 * dt_s),
+                float(self.bias_walk_rad_s2 ** 2 * dt_s))
+
+    def _noise(self, dt_s: float, sigma_mG: float, extra_cov: list | None) -> tuple:
+        """The measurement noise arguments of ``kalman_update``: (extra_cov, τ_c / Δt (0 when Δt ≤ 0),
+        r = σ², r τ_c / Δt)."""
+        r = sigma_mG * sigma_mG
+        k = self.corr_s / dt_s if dt_s > 0.0 else 0.0
+        return tuple(extra_cov) if extra_cov is not None else _ZERO9, k, r, r * k
 
     def forget(self, dt_s: float, sigma_mG: float, yaw_rate_rad_s: float = 0.0) -> None:
         """The random walks over dt: P += diag(r_c / τ²) dt, r_c = σ² τ_c; the heading's error grows
         by what is left of the gyro's bias and by its scale error in turns."""
-        forget_covariance(self.P, self._walk, float(dt_s), float(sigma_mG * sigma_mG * self.corr_s * dt_s),
-                          float((self.gyro_scale * yaw_rate_rad_s) ** 2 * dt_s),
-                          float(self.bias_walk_rad_s2 ** 2 * dt_s))
+        forget_covariance(self.P, self._walk, float(dt_s), *self._walks(dt_s, sigma_mG, yaw_rate_rad_s))
 
     def step(self, dt_s: float, sigma_mG: float, yaw_rate_rad_s: float, c_bt: tuple, xt: float, m_mG: tuple,
              learn: bool, clip: float, extra_cov: list | None = None) -> tuple:
         """``forget``, ``observe`` and, when ``learn``, ``update`` in one compiled call (the field-vector
         test's step; the same numbers): (H θ, the predicted body field [mG]; H P Hᵀ before the
         update [mG², nine floats]).  c_bt: R(δ)Cᵀ as three tuples of floats; m_mG a tuple."""
-        r = sigma_mG * sigma_mG
-        k = self.corr_s / dt_s if dt_s > 0.0 else 0.0
         pred, hph, step = filter_step(self.P, self._walk, tuple(self.th), c_bt, float(xt), m_mG, float(dt_s),
-                                      r * self.corr_s * dt_s, (self.gyro_scale * yaw_rate_rad_s) ** 2 * dt_s,
-                                      self.bias_walk_rad_s2 ** 2 * dt_s, learn,
-                                      tuple(extra_cov) if extra_cov is not None else _ZERO9, k, r, r * k, clip)
+                                      *self._walks(dt_s, sigma_mG, yaw_rate_rad_s), learn,
+                                      *self._noise(dt_s, sigma_mG, extra_cov), clip)
         if learn and dt_s > 0.0:
             self.th = [a + b for a, b in zip(self.th, step)]
         return pred, hph
@@ -211,10 +215,8 @@ class FieldModelFilter:
             H = self.observe(H[:, 2:5].tolist(), float(H[0, 8]))
         pred, hph, PHt, _ = H
         nu = (float(m_mG[0]) - pred[0], float(m_mG[1]) - pred[1], float(m_mG[2]) - pred[2])
-        r = sigma_mG * sigma_mG
-        k = self.corr_s / dt_s
-        step = kalman_update(self.P, PHt, hph, tuple(extra_cov) if extra_cov is not None else _ZERO9,
-                             k, nu, r, r * k, clip)
+        extra, k, r, rs = self._noise(dt_s, sigma_mG, extra_cov)
+        step = kalman_update(self.P, PHt, hph, extra, k, nu, r, rs, clip)
         self.th = [a + b for a, b in zip(self.th, step)]
 
 
