@@ -3,6 +3,7 @@ no sample of the other enters the estimates, and its outputs equal those of the 
 from __future__ import annotations
 
 import math
+import multiprocessing
 
 import time
 from collections import Counter
@@ -23,9 +24,11 @@ from groundstation.sim.scenarios import simulate
 from groundstation.station.app import create_app
 from groundstation.station.hub.session import Session
 
-SPEED = 2.0        # faster streams compress the flight's time and the step no longer raises an alarm
+SPEED = 1.5        # x real time (faster compresses the flight's time past the step's alarm; at 2, the
+                   # four stations of one test on a loaded 2-core machine fell behind real time)
 SIM_S = 80.0
 STEP_ON_S, STEP_LONG_S = 50.0, 25.0     # vehicle 1's step, flight time
+IMU_HZ = 50.0                           # the simulation's IMU rows per second of flight
 
 
 def wait_for(cond, timeout=30.0) -> bool:
@@ -62,25 +65,69 @@ def values(samples) -> list[tuple]:
 @pytest.fixture(scope="module")
 def sims():
     """Two vehicles calibrated on board (an uncalibrated compass is no evidence: its tests are off).
-    The step starts at 50 s of flight, 25 s of the station's time at SPEED 2: after the field-vector
+    The step starts at 50 s of flight, 33 s of the station's time at SPEED 1.5: after the field-vector
     test's 20 s of learning, or the step would be learned as part of the Earth field."""
     return {1: simulate("mission-step", 1, duration_s=SIM_S, onboard_calibration=True,
                         interference=dict(onset_s=STEP_ON_S, duration_s=STEP_LONG_S, amplitude_mG=250.0)),
             2: simulate("mission-clean", 2, duration_s=SIM_S, onboard_calibration=True)}
 
 
+class VehicleProcess:
+    """A FakeVehicle streaming from a child process of its own, as a real vehicle does: in the
+    test's process, six senders share the interpreter lock with four busy stations, fall behind
+    real time on a loaded 2-core machine, and the stations' boot clocks re-anchor (times jump by
+    2 s; CI 2026-12-06: a step's alarm missed).  Forked before the stations start, so the child
+    holds no station thread or lock."""
+
+    def __init__(self, messages: list, port: int, system_id: int) -> None:
+        context = multiprocessing.get_context("fork")
+        self._go, self._stop = context.Event(), context.Event()
+        self._results, child_end = context.Pipe(duplex=False)
+        self._process = context.Process(target=_stream_vehicle, daemon=True,
+                                        args=(messages, port, system_id, self._go, self._stop, child_end))
+        self._process.start()
+        child_end.close()
+
+    def start(self) -> None:
+        self._go.set()
+
+    def finish(self, timeout_s: float) -> tuple[dict, list[bytes]]:
+        """(packets put on the wire per message type, every packet) once the stream has ended."""
+        assert self._results.poll(timeout_s), "the vehicle's stream did not end in time"
+        return self._results.recv()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._process.join(5.0)
+        if self._process.is_alive():
+            self._process.kill()
+
+
+def _stream_vehicle(messages, port, system_id, go, stop, results) -> None:
+    vehicle = FakeVehicle(messages, port, speed=SPEED, system_id=system_id)
+    vehicle.delivered_packets = []
+    go.wait()
+    vehicle.start()
+    while not vehicle.finished.wait(0.1) and not stop.is_set():
+        pass
+    results.send((dict(vehicle.delivered), vehicle.delivered_packets))
+    vehicle.stop()
+
+
 class LiveRun:
-    """One hub on its own udpin port with the vehicles ``sysids`` streaming to it at once."""
+    """One hub on its own udpin port with the vehicles ``sysids`` streaming to it at once (made in
+    two parts: every run's vehicles first, ``connect`` the hubs after)."""
 
     def __init__(self, folder, sims, sysids, follow: int | None = None, select: int | None = None) -> None:
-        port = free_udp_port()
-        self.select = select
+        self.port = free_udp_port()
+        self.folder, self.follow, self.select = folder, follow, select
         self.sysids = list(sysids)
-        self.hub = CapturingSession(folder, link_options=LinkOptions(sysid=follow))
-        self.hub.connect(f"udpin:127.0.0.1:{port}")
-        self.vehicles = [FakeVehicle(sims[k].messages, port, speed=SPEED, system_id=k) for k in sysids]
-        for v in self.vehicles:
-            v.delivered_packets = []
+        self.vehicles = [VehicleProcess(sims[k].messages, self.port, k) for k in sysids]
+        self.hub: CapturingSession | None = None
+
+    def connect(self) -> None:
+        self.hub = CapturingSession(self.folder, link_options=LinkOptions(sysid=self.follow))
+        self.hub.connect(f"udpin:127.0.0.1:{self.port}")
 
     def start(self) -> None:
         for v in self.vehicles:
@@ -97,8 +144,8 @@ class LiveRun:
     def finish(self) -> dict:
         hub = self.hub
         try:
-            assert all(v.finished.wait(SIM_S / SPEED + 60) for v in self.vehicles)
-            delivered = sum(sum(v.delivered.values()) for v in self.vehicles)
+            ends = [v.finish(SIM_S / SPEED + 60) for v in self.vehicles]
+            delivered = sum(sum(counts.values()) for counts, _ in ends)
             assert wait_for(lambda: hub.snapshot()["rx_count"] >= delivered, 15)
             time.sleep(0.3)
             with hub._lock:
@@ -106,7 +153,7 @@ class LiveRun:
                 return {"samples": values(hub.captured), "alarms": hub.alarm_list(),
                         "rows": hub.flight.rows().copy(), "vehicles": hub.vehicles(), "snapshot": hub.snapshot(),
                         "recording": hub.sources.recording_path,
-                        "sent": {k: v.delivered_packets for k, v in zip(self.sysids, self.vehicles)}}
+                        "sent": {k: packets for k, (_, packets) in zip(self.sysids, ends)}}
         finally:
             for v in self.vehicles:
                 v.stop()
@@ -179,12 +226,11 @@ def alarm_rows_before_end(out: dict) -> list[int]:
 
 
 def alarms_in_the_step(out: dict) -> list[dict]:
-    """The alarms that start while vehicle 1's step is on (from 1 s before it), placed from the
-    end of the record (the streams end together; live times count from each hub's connection)."""
-    end_s = out["rows"][-1, COL["t_s"]]
-    on_before_end_s = (SIM_S - STEP_ON_S) / SPEED + 1.0
-    off_before_end_s = (SIM_S - STEP_ON_S - STEP_LONG_S) / SPEED
-    return [a for a in out["alarms"] if off_before_end_s <= end_s - a["start_s"] <= on_before_end_s]
+    """The alarms that start while vehicle 1's step is on (from 2 s of flight before it), placed
+    by IMU rows from the end of the record (the streams end together; live times count from each
+    hub's connection and stretch where a hub falls behind)."""
+    on_rows, off_rows = (SIM_S - STEP_ON_S + 2.0) * IMU_HZ, (SIM_S - STEP_ON_S - STEP_LONG_S) * IMU_HZ
+    return [a for a, rows in zip(out["alarms"], alarm_rows_before_end(out)) if off_rows <= rows <= on_rows]
 
 
 def assert_same_outputs(mixed: dict, alone: dict) -> None:
@@ -202,8 +248,13 @@ def assert_same_outputs(mixed: dict, alone: dict) -> None:
     # the same samples at (almost) the same times: GPS times are arrival times, which jitter by
     # milliseconds on a loaded machine, so the headings agree closely, not bit for bit (medians
     # 0.01-0.7 deg measured with four stations on 2 cores; the sample check above is the proof
-    # that nothing of the other vehicle gets in)
-    h1, h2 = headings(mixed["rows"], n)[n // 5:], headings(alone["rows"], n)[n // 5:]
+    # that nothing of the other vehicle gets in).  Compared up to vehicle 1's step: inside it the
+    # heading follows the alarm (held on the gyros while it is on), and where a long alarm ends
+    # and starts again turns on that jitter (2026-12-07: one hub's heading 32 deg off the other's
+    # over the step's last seconds, its alarm released there, the other's not)
+    before_step = n - int((SIM_S - STEP_ON_S) * IMU_HZ)
+    h1 = headings(mixed["rows"], n)[n // 5:before_step]
+    h2 = headings(alone["rows"], n)[n // 5:before_step]
     ok = np.isfinite(h1) & np.isfinite(h2)
     diff = np.abs((h1[ok] - h2[ok] + 180.0) % 360.0 - 180.0)
     assert ok.mean() > 0.9 and np.median(diff) < 1.0 and np.percentile(diff, 99) < 5.0, \
@@ -217,9 +268,12 @@ def test_two_vehicles_each_followed_in_turn_equals_each_alone(tmp_path, sims):
             "mixed1": LiveRun(tmp_path / "m1", sims, [1, 2], follow=1),
             "mixed2": LiveRun(tmp_path / "m2", sims, [1, 2], follow=1, select=2)}
     for run in runs.values():
+        run.connect()
+    for run in runs.values():
         run.start()
     runs["mixed2"].choose()
     out = {name: run.finish() for name, run in runs.items()}
+    assert abs(len(out["alone1"]["rows"]) - SIM_S * IMU_HZ) <= 5
     # the step alarms vehicle 1 only (vehicle 2's clean flight sped up twice ended in a marginal
     # alarm in its last second in 2 of 16 vehicle-2 hubs; analyze of that recording too: score 1.27)
     assert len(alarms_in_the_step(out["alone1"])) >= 1 and not alarms_in_the_step(out["alone2"])

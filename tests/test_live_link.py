@@ -4,12 +4,14 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from collections import Counter
 
 import pytest
 
 import groundstation  # noqa: F401
 from groundstation.io.link import LinkOptions, LiveLink
 from groundstation.io.logs import read_log
+from groundstation.io.logs.tlog import tlog_records
 from groundstation.io.mavlink import TlogWriter, mavlink2 as m
 from groundstation.samples import MagSample, StatusSample
 
@@ -145,3 +147,45 @@ def test_tcp_link_and_loss_is_reported():
         stop.set()
         link.close()
         server.close()
+
+
+def test_udp_packets_read_late_keep_their_kernel_arrival_times(tmp_path):
+    """A reader held up (here 0.6 s, as by busy estimation threads on a loaded station) reads a
+    backlog: each packet keeps the time the kernel received it, not the time it was read, in the
+    recording and on the samples (a late stamp looks like link delay and moves the boot clock)."""
+    port = free_port()
+    recorder = TlogWriter(tmp_path / "session.tlog")
+    link = LiveLink(f"udpin:127.0.0.1:{port}", recorder=recorder, options=LinkOptions(passive=True))
+    hold = threading.Event()
+    select = link.mav.select
+
+    def held_select(timeout):
+        hold.wait(5.0)                      # the reader waits here while the packets arrive
+        return select(timeout)
+
+    link.mav.select = held_select
+    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    enc = m.MAVLink(None, srcSystem=1, srcComponent=1)
+    sent_unix: list[float] = []
+    try:
+        time.sleep(0.2)                     # the reader is now waiting in held_select
+        for k in range(3):
+            for pkt in vehicle_packets(enc, k):
+                vehicle.sendto(pkt, ("127.0.0.1", port))
+            sent_unix.append(time.time())
+            time.sleep(0.3)
+        read_from = time.time()
+        hold.set()
+        got = poll_until(link, lambda g: sum(isinstance(s, MagSample) for s in g) >= 3)
+    finally:
+        vehicle.close()
+        link.close()
+        recorder.close()
+    assert sum(isinstance(s, MagSample) for s in got) == 3
+    with open(tmp_path / "session.tlog", "rb") as f:
+        everything = list(tlog_records(f, Counter()))
+    stamps = [t for t, msg in everything if msg.get_type() == "SCALED_IMU"]
+    assert len(stamps) == 3
+    assert read_from - sent_unix[-1] >= 0.25
+    for stamp, sent in zip(stamps, sent_unix):
+        assert abs(stamp - sent) < 0.05, (stamps, sent_unix)

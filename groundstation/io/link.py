@@ -179,7 +179,8 @@ class LiveLink:
             if msg.get_type() == "BAD_DATA":
                 self.bad_packets += 1
                 continue
-            got.append((msg, bytes(msg.get_msgbuf()), time.time()))
+            arrival = getattr(msg, "_arrival_unix", None)      # the kernel's stamp (UDP), else now
+            got.append((msg, bytes(msg.get_msgbuf()), time.time() if arrival is None else arrival))
         return got
 
     def wait(self, timeout_s: float) -> None:
