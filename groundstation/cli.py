@@ -275,7 +275,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
                                passive=args.passive, forward=tuple(args.forward), signing_key=_signing_key(args),
                                connection_limits=ConnectionLimits(header_timeout_s=args.header_timeout,
                                                                   max_per_client=args.max_connections_per_client),
-                               **_serve_params(args))
+                               **_serve_params(args), **_serve_recordings(args))
     from groundstation.station.app import StationStartError, serve
 
     try:
@@ -283,6 +283,18 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except StationStartError as err:
         raise CliError(str(err)) from err
     return 0
+
+
+def _serve_recordings(args: argparse.Namespace) -> dict:
+    """serve --recordings DIR as a StationSettings field (the folder made if missing)."""
+    if args.recordings is None:
+        return {}
+    folder = Path(args.recordings)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise CliError(f"--recordings {folder}: cannot use it as a folder ({e.strerror or e})") from None
+    return {"recordings_dir": folder}
 
 
 def _serve_params(args: argparse.Namespace) -> dict:
@@ -335,6 +347,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "(default: replay the demo)")
     source.add_argument("--replay", metavar="FILE", help="replay a log (.tlog .bin .ulg .csv)")
     p.add_argument("--speed", type=float, default=1.0, help="replay speed, times real time (default 1)")
+    p.add_argument("--recordings", metavar="DIR",
+                   help=f"folder of the live recordings, the uploads and the logs the page offers to replay "
+                        f"(made if missing; default {RECORDINGS_DIR})")
     p.add_argument("--host", default="127.0.0.1",
                    help="address the web page listens on (default 127.0.0.1; others need --allow-remote)")
     p.add_argument("--port", type=int, default=8000, help="TCP port of the web page and API (default 8000)")

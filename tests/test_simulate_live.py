@@ -67,14 +67,25 @@ def test_live_errors_are_one_line():
         assert r.returncode == 1 and words in r.stderr and r.stderr.count("\n") == 1, (args, r.stderr)
 
 
+def test_serve_recordings_must_be_a_folder(tmp_path):
+    not_a_folder = tmp_path / "a-file"
+    not_a_folder.write_text("x")
+    r = subprocess.run(CLI + ["serve", "--recordings", str(not_a_folder), "--port", str(free_tcp_port())],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and "--recordings" in r.stderr and "cannot use it as a folder" in r.stderr, r.stderr
+    assert r.stderr.count("\n") == 1, r.stderr
+
+
 def test_simulate_live_drives_the_station_and_the_wizard(tmp_path, playwright_instance, artifacts):
     """The README's tour in chromium: the station page of `magstation serve` shows the simulated
     vehicle; on the calibration page Start, the dance streamed by `simulate --live` fills the
     steps, the result card shows 'ok', Accept writes the parameters and the vehicle confirms them."""
     udp, port, viser_port = free_udp_port(), free_tcp_port(), free_tcp_port()
     url = f"http://127.0.0.1:{port}"
+    recordings = tmp_path / "recordings"          # made by serve; the checkout's recordings/ stays as it was
     station = _start(["serve", "--connect", f"udpin:127.0.0.1:{udp}", "--port", str(port),
-                      "--viser-port", str(viser_port)], fleet_db=tmp_path / "fleet.sqlite")
+                      "--viser-port", str(viser_port), "--recordings", str(recordings)],
+                     fleet_db=tmp_path / "fleet.sqlite")
     vehicle = None
     browser = playwright_instance.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
     try:
@@ -117,3 +128,4 @@ def test_simulate_live_drives_the_station_and_the_wizard(tmp_path, playwright_in
         out_v = _stop(vehicle) if vehicle is not None else ""
         out_s = _stop(station)
     assert "Traceback" not in out_v + out_s, out_v + out_s
+    assert len(list(recordings.glob("session-*.tlog"))) == 1      # the live link recorded where it was told
