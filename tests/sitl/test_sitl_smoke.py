@@ -148,9 +148,16 @@ def test_session_tlog_has_both_directions_one_report_each_and_the_right_magnetom
         for unix, msg in tlog_records(f, Counter()):
             for s in dec.decode(msg, unix):
                 if isinstance(s, MagSample) and s.instance in mags:
-                    mags[s.instance].append(np.linalg.norm(s.mag_body_mG))
-    raw, highres = np.median(mags[0]), np.median(mags[20])
-    assert abs(highres / raw - 1) < 0.02, (raw, highres)
+                    mags[s.instance].append((s.t_s, np.linalg.norm(s.mag_body_mG)))
+    # each HIGHRES_IMU field against the RAW_IMU one read nearest in time (both on the boot clock):
+    # medians over each message's whole stream compared the corrections before and after the accept
+    # in different shares (CI 2026-12-07: 451 vs 461 mG); a unit error would be x10 or x1000
+    raw, highres = (np.array(mags[k]) for k in (0, 20))
+    at = np.clip(np.searchsorted(raw[:, 0], highres[:, 0]), 1, len(raw) - 1)
+    nearest = np.where(np.abs(raw[at, 0] - highres[:, 0]) < np.abs(raw[at - 1, 0] - highres[:, 0]), at, at - 1)
+    close = np.abs(raw[nearest, 0] - highres[:, 0]) < 0.05
+    ratio = np.median(highres[close, 1] / raw[nearest[close], 1])
+    assert close.sum() > 100 and abs(ratio - 1) < 0.02, (close.sum(), ratio)
     assert len(log.battery) > 10 and np.isfinite(log.battery[:, 1]).all()
 
 
