@@ -332,11 +332,8 @@ def _add_link_options(p: argparse.ArgumentParser) -> None:
                    help="MAVLink 2 signing with the passphrase in environment variable VAR (default: no signing)")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _add_serve_parser(sub) -> None:
     from groundstation.station.settings import ConnectionLimits   # light: settings only
-
-    parser = argparse.ArgumentParser(prog="magstation", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("serve", help="run the ground station (web page + 3-D view)",
                        description="Run the ground station: the web page, the 3-D view and the API (/docs). "
@@ -372,6 +369,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_link_options(p)
     add_params_options(p)
     p.set_defaults(func=cmd_serve)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="magstation", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    _add_serve_parser(sub)
 
     p = sub.add_parser("calibrate", help="magnetometer calibration from one or more logs",
                        description="Fit every compass of each log (hard and soft iron, mG) and check them "
