@@ -134,6 +134,7 @@ def test_session_tlog_has_both_directions_one_report_each_and_the_right_magnetom
     from groundstation.io.logs import read_log, tlog_records
     from groundstation.jobs.log_summary import compass_lines
     from groundstation.samples import MagSample
+    from estimators.log_alignment import nearest_series
 
     path = rig_run["tlog"]
     log = read_log(path)
@@ -153,10 +154,8 @@ def test_session_tlog_has_both_directions_one_report_each_and_the_right_magnetom
     # medians over each message's whole stream compared the corrections before and after the accept
     # in different shares (CI 2026-12-07: 451 vs 461 mG); a unit error would be x10 or x1000
     raw, highres = (np.array(mags[k]) for k in (0, 20))
-    at = np.clip(np.searchsorted(raw[:, 0], highres[:, 0]), 1, len(raw) - 1)
-    nearest = np.where(np.abs(raw[at, 0] - highres[:, 0]) < np.abs(raw[at - 1, 0] - highres[:, 0]), at, at - 1)
-    close = np.abs(raw[nearest, 0] - highres[:, 0]) < 0.05
-    ratio = np.median(highres[close, 1] / raw[nearest[close], 1])
+    raw_at_highres, close = nearest_series(highres[:, 0], raw[:, 0], raw[:, 1], 0.05)
+    ratio = np.median(highres[close, 1] / raw_at_highres[close, 0])
     assert close.sum() > 100 and abs(ratio - 1) < 0.02, (close.sum(), ratio)
     assert len(log.battery) > 10 and np.isfinite(log.battery[:, 1]).all()
 
