@@ -15,8 +15,9 @@ Station load per row:
   hog     as replay, plus a thread holding the interpreter lock in ~40 ms C calls (what a long
           numpy/json call does): the worst case for anything forwarded inside the station process.
 
-Same-run reference, "station's copy": when the station's link reader got each packet (its
-recording's time stamps, 1 us) minus the direct copy's arrival: the latency an in-process
+Same-run reference, "station's copy": when the station's link reader got each packet (stamped
+by this benchmark as the reader returns it; the link's own samples and recording carry the
+kernel's arrival stamp, which a busy station does not delay) minus the direct copy's arrival: the latency an in-process
 forwarder (MagStation before the forwarding process; it sent from that reader thread) would have
 added, plus one loopback hop.  The direct copy leaves the vehicle just after the station's (two
 sendto calls), so figures near zero can come out slightly negative.
@@ -66,6 +67,17 @@ fw = Forwarder([f"udpout:127.0.0.1:{gcs_port}"]).start()
 hub = Session(tempfile.mkdtemp(), record_live=True, forwarder=fw)
 hub.connect(f"udpin:127.0.0.1:{port}")
 stop = threading.Event()
+read_at = {}                       # packet -> when the station's link reader got it (the link
+read = hub.sources.link._read_available   # itself keeps the kernel's arrival stamp)
+
+def reading(max_messages=1000):
+    got = read(max_messages)
+    now = time.time()
+    for _, packet, _ in got:
+        read_at.setdefault(packet.hex(), now)
+    return got
+
+hub.sources.link._read_available = reading
 
 def replaying():
     other = Session(tempfile.mkdtemp(), record_live=False)
@@ -96,11 +108,12 @@ cpu1, relay1, wall1 = cpu_s(os.getpid()), cpu_s(fw.pid), time.monotonic()
 stop.set()
 fw.refresh()
 snap = hub.snapshot()
-tlog = hub.sources.recording_path
 hub.close()
-print(json.dumps({"rx": snap["rx_count"], "to_vehicle": snap["vehicles"]["forwarding"]["to_vehicle"],
-                  "cpu_pct": 100 * (cpu1 - cpu0) / (wall1 - wall0), "relay_cpu_pct": 100 * (relay1 - relay0) / (wall1 - wall0),
-                  "tlog": str(tlog) if tlog else None}), flush=True)
+read_path = os.path.join(tempfile.mkdtemp(), "read_at.json")
+with open(read_path, "w") as f:
+    json.dump(dict(read_at), f)
+print(json.dumps({"read_at": read_path, "rx": snap["rx_count"], "to_vehicle": snap["vehicles"]["forwarding"]["to_vehicle"],
+                  "cpu_pct": 100 * (cpu1 - cpu0) / (wall1 - wall0), "relay_cpu_pct": 100 * (relay1 - relay0) / (wall1 - wall0)}), flush=True)
 """
 
 
@@ -173,17 +186,9 @@ class GroundStation:
         self.ref.close()
 
 
-def tlog_times(path: Path) -> dict[bytes, float]:
-    """Each packet of a .tlog (8-byte big-endian us time stamp + packet) -> its time stamp (s)."""
-    data, out, i = path.read_bytes(), {}, 0
-    while i + 11 <= len(data):
-        t_us = struct.unpack(">Q", data[i:i + 8])[0]
-        packets = MavlinkFramer().feed(data[i + 8:i + 8 + 280])
-        if not packets:
-            break
-        out.setdefault(packets[0], t_us * 1e-6)
-        i += 8 + len(packets[0])
-    return out
+def read_times(path: Path) -> dict[bytes, float]:
+    """The station's read times (packet hex -> unix s), written by its process at the end."""
+    return {bytes.fromhex(k): v for k, v in json.loads(path.read_text()).items()}
 
 
 def proc_cpu_s(pid: int) -> float:
@@ -230,7 +235,7 @@ class MavproxyUnderTest:
         cpu = 100 * (proc_cpu_s(self.proc.pid) - self.cpu0) / (time.monotonic() - self.wall0)
         self.proc.terminate()
         self.proc.wait(10)
-        return {"cpu_pct": cpu, "relay_cpu_pct": float("nan"), "rx": "-", "to_vehicle": None, "tlog": None}
+        return {"cpu_pct": cpu, "relay_cpu_pct": float("nan"), "rx": "-", "to_vehicle": None, "read_at": None}
 
 
 def run(seconds: float, mode: str, mavproxy: Path | None = None) -> dict:
@@ -257,8 +262,8 @@ def run(seconds: float, mode: str, mavproxy: Path | None = None) -> dict:
     n = min(len(fwd), len(ref))
     in_order = [p for p, _ in fwd[:n]] == [p for p, _ in ref[:n]]
     added_ms = np.array([(f[1] - r[1]) * 1e3 for f, r in zip(fwd[:n], ref[:n])])
-    # no recording yet: the station was too busy to open it within the run (its copy is shown "-")
-    station_seen = tlog_times(Path(stats["tlog"])) if stats["tlog"] and Path(stats["tlog"]).exists() else {}
+    # MAVProxy (no station reader) has no copy: shown "-"
+    station_seen = read_times(Path(stats["read_at"])) if stats.get("read_at") else {}
     station_ms = np.array([(station_seen[p] - t) * 1e3 for p, t in ref if p in station_seen])
     commands = sum(1 for cmd, _ in fv.commands if cmd == GCS_COMMAND)
     return {"mode": mode, "sent": sum(fv.delivered.values()), "arrived": len(fwd), "direct": len(ref),
