@@ -10,9 +10,9 @@ product.  So:
   2. pass 1, vectorised over blocks and looping over the position (≤ ``block_max_samples``): the
      raw-gyro rotation product P, M and c with the measurements used (a held stage is P alone) and
      the rotated field sum; the rest statistics are block sums (np.add.reduceat);
-  3. a loop over blocks in plain floats: the block's end vectors for the variants chosen at the
-     previous block end, then ``Supervisor.close`` (the code the per-sample form runs) decides bias,
-     gating and the next start vectors;
+  3. a compiled loop over blocks (``ahrs_supervisor.supervise_blocks``): the block's end vectors
+     for the variants chosen at the previous block end, then ``close_block`` (the code the
+     per-sample form runs) decides bias, gating and the next start vectors;
   4. pass 2, vectorised over blocks again: every step from its block's true start vectors with the
      chosen variants, then the bias rotation (first order, as the per-sample outputs) and the angles.
 Round-off: sums taken in a different order (the block maps, reduceat) differ from the per-sample
@@ -29,7 +29,8 @@ import numpy as np
 
 from estimators.ahrs import AhrsSettings, ExpectedField
 from estimators.ahrs_math import ACCEPT, REJECT, SERIES_MAX_RAD
-from estimators.ahrs_supervisor import BlockSums, Supervisor
+from estimators.ahrs_supervisor import (D_AT_REST, D_BIAS, D_DISTURBED, D_VAR_G, D_VAR_M, T_DURATION, Supervisor,
+                                       supervise_blocks)
 from estimators.rotations import wrap_heading_rad
 
 __all__ = ["AhrsResult", "run_ahrs", "angles_from_vectors"]
@@ -268,43 +269,24 @@ def _pass1(X: np.ndarray) -> dict:
     return dict(P=x[:, :3].transpose(2, 0, 1), c=x[:, 3:6].transpose(2, 0, 1), sums=x[:, 6].T, prod=prod.T)
 
 
-def _block_loop(p1: dict, counts: dict, sup: Supervisor, x_start: tuple) -> tuple[list, list, tuple]:
-    """Sequential block-end logic in plain floats (module docstring, step 3).  Returns per block
-    the start vectors [x1, x2, x_m] (9 floats) and (gravity variant, field variant, at rest, bias,
-    field disturbed) in effect during it, and the start vectors of the block after the last."""
+def _block_loop(p1: dict, counts: dict, sup: Supervisor, x_start: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sequential block-end logic (module docstring, step 3), compiled
+    (``ahrs_supervisor.supervise_blocks``, the per-sample form's ``close_block`` for each block).
+    Returns per block the start vectors [x1, x2, x_m] (B, 9) and the decisions in force during it
+    (B, ahrs_supervisor.DECISIONS: gravity variant, field variant, at rest, bias, field disturbed),
+    and the start vectors of the block after the last (9,)."""
     B = len(p1["prod"])
     table = np.concatenate([p1["P"].reshape(B, 9), p1["c"].reshape(B, 9), p1["sums"], p1["prod"], p1["stats"],
                             np.c_[counts["mag_n"], counts["g_init"], counts["m_init"], counts["reinit_g"],
-                                  counts["reinit_m"]]], axis=1).tolist()
-    x1, x2, xm = x_start
-    starts, decisions = [], []
-    for (p00, p01, p02, p10, p11, p12, p20, p21, p22, c10, c20, cm0, c11, c21, cm1, c12, c22, cm2, s0, s1, s2,
-         al1, m21, m22, alm, w0, w1, w2, wsq, wn, f0, f1, f2, fsq, fn, dur, mag_n, g_init, m_init, re_g, re_m) in table:
-        vg = ACCEPT if re_g else sup.var_g
-        vm = ACCEPT if re_m else sup.var_m
-        starts.append(x1 + x2 + xm)
-        # pass 2 holds the steps before a (re)initialisation with the supervisor's variant, as the
-        # per-sample form does; the block end is the same either way (the reinit overwrites)
-        decisions.append((sup.var_g, sup.var_m, sup.at_rest, sup.bias, sup.field_disturbed))
-        u0, u1, u2 = x1
-        q0, q1, q2 = p00 * u0 + p01 * u1 + p02 * u2, p10 * u0 + p11 * u1 + p12 * u2, p20 * u0 + p21 * u1 + p22 * u2
-        e1 = [al1 * q0 + c10, al1 * q1 + c11, al1 * q2 + c12]
-        u0, u1, u2 = x2
-        r0, r1, r2 = p00 * u0 + p01 * u1 + p02 * u2, p10 * u0 + p11 * u1 + p12 * u2, p20 * u0 + p21 * u1 + p22 * u2
-        e2 = ([m21 * q0 + m22 * r0 + c20, m21 * q1 + m22 * r1 + c21, m21 * q2 + m22 * r2 + c22]
-              if vg == ACCEPT else [r0, r1, r2])
-        u0, u1, u2 = xm
-        r0, r1, r2 = p00 * u0 + p01 * u1 + p02 * u2, p10 * u0 + p11 * u1 + p12 * u2, p20 * u0 + p21 * u1 + p22 * u2
-        em = [alm * r0 + cm0, alm * r1 + cm1, alm * r2 + cm2] if vm == ACCEPT else [r0, r1, r2]
-        x1, x2, xm = sup.close(BlockSums(dur, e1, e2, em, [s0, s1, s2], int(mag_n), (w0, w1, w2), wsq, int(wn),
-                                         (f0, f1, f2), fsq, int(fn), g_init > 0, m_init > 0, re_g > 0, re_m > 0))
-    return starts, decisions, (x1, x2, xm)
+                                  counts["reinit_m"]]], axis=1).astype(np.float64)
+    gain_T = np.array([round(d, 9) for d in table[:, T_DURATION].tolist()])   # as BlockSums.row
+    return supervise_blocks(sup.state, sup.cfg, np.ascontiguousarray(table), gain_T, x_start)
 
 
-def _pass2(X: np.ndarray, lay: _Layout, fl: dict, starts: list, decisions: list, n: int):
+def _pass2(X: np.ndarray, lay: _Layout, fl: dict, starts: np.ndarray, decisions: np.ndarray, n: int):
     """Every step from its block's start vectors with the chosen variants (module docstring,
     step 4).  Returns the raw vectors (N, 3, 3: x1, x2, x_m), τ (N,) and the variants (N, 2)."""
-    var_b = np.array([d[:2] for d in decisions], dtype=int)                # (B, 2)
+    var_b = decisions[:, D_VAR_G:D_VAR_M + 1].astype(int)                   # (B, 2)
     after = [np.logical_or.accumulate(lay.take(_pad(fl[k], False)), axis=0) for k in ("reinit_g", "reinit_m")]
     hold_g = (var_b[:, 0] == REJECT)[None, :] & ~after[0]                   # (L, B)
     hold_m = (var_b[:, 1] == REJECT)[None, :] & ~after[1]
@@ -312,7 +294,7 @@ def _pass2(X: np.ndarray, lay: _Layout, fl: dict, starts: list, decisions: list,
     g2 = np.where(hold_g, 0.0, X[:, G2])
     am = np.where(hold_m, 1.0, X[:, AM])
     incm = np.where(hold_m[:, None], 0.0, X[:, INCM])                       # (L, 3, B)
-    x = np.array(starts).reshape(-1, 3, 3).transpose(2, 1, 0)               # (3, 3 vectors, B)
+    x = starts.reshape(-1, 3, 3).transpose(2, 1, 0)                         # (3, 3 vectors, B)
     out = np.empty((lay.L, 3, 3, lay.B))
     for p, Xp in enumerate(X):
         x = _rotate(x, Xp[TH], Xp[CO], Xp[SI], Xp[VE])
@@ -348,7 +330,7 @@ def run_ahrs(imu: np.ndarray, mag: np.ndarray, settings: AhrsSettings | None = N
     ms = _measurements(imu, mag, s)
     _, starts, lengths = _blocks(ms["t"], s)
     sup = Supervisor(s, expected_field, gyro_bias_rad_s)
-    x_start = ([0.0] * 3, [0.0] * 3, [0.0] * 3)
+    x_start = np.zeros(9)
     parts = []
     for j0 in range(0, len(starts), CHUNK_BLOCKS):
         j1 = min(len(starts), j0 + CHUNK_BLOCKS)
@@ -367,8 +349,8 @@ def run_ahrs(imu: np.ndarray, mag: np.ndarray, settings: AhrsSettings | None = N
                       reinit_m=np.add.reduceat(fl["reinit_m"].astype(int), st) > 0)
         starts_x, decisions, x_start = _block_loop(p1, counts, sup, x_start)
         raw, tau, var = _pass2(X, lay, fl, starts_x, decisions, k1 - k0)
-        bias = np.array([d[3] for d in decisions])[bid]
-        flags = np.array([(d[2], d[4]) for d in decisions], dtype=bool)[bid]
+        bias = decisions[bid, D_BIAS:D_BIAS + 3]
+        flags = decisions[bid][:, [D_AT_REST, D_DISTURBED]] != 0.0
         parts.append(list(_outputs(fl, raw, tau, var, bias, flags)))
     return AhrsResult(*(_joined(parts, j) for j in range(len(parts[0]))))
 
