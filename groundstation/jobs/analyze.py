@@ -32,7 +32,7 @@ from groundstation.jobs.calibration_check import calibration_arrays
 from groundstation.jobs.inputs import detection_inputs, heading_deg, primary_field, rounded
 from groundstation.jobs.motor_heading import best_heading_chain, motor_correction
 from groundstation.jobs.navigation import ins_runs
-from groundstation.jobs.record import COL, AlarmTracker, record_rows
+from groundstation.jobs.record import AlarmTracker, record_rows
 from groundstation.samples import FlightLog
 
 __all__ = ["analyze_log", "analyze_flight", "FlightAnalysis", "detector_score", "explanation_text",
@@ -48,18 +48,21 @@ def detector_score(z_heading, z_path, z_field, z_vector=np.nan) -> np.ndarray:
 @dataclass
 class FlightAnalysis:
     """The detection part of analyze on a whole log: inputs (``detection_inputs``), the
-    detector's result and the flight record rows (``groundstation.jobs.record``)."""
+    detector's result and the flight record rows (``groundstation.jobs.record``; None when not
+    asked for: the report alone needs none)."""
     x: dict
     det: DetectionResult
-    rows: np.ndarray
+    rows: np.ndarray | None
     settings: DetectionSettings
     attitude: HeadingChainResult | None = None     # the default AHRS on the field as measured: shown
 
     def combined_alarms(self) -> list[dict]:
+        """The alarms of the combined decision, as the flight record's rows give them (its t_s,
+        alarm, evidence and score columns are these arrays)."""
         tracker = AlarmTracker()
-        r = self.rows
-        tracker.update(r[:, COL["t_s"]], r[:, COL["alarm"]] > 0.5,
-                       r[:, [COL["ev_heading"], COL["ev_path"], COL["ev_field"]]] > 0.5, r[:, COL["score"]])
+        det = self.det
+        tracker.update(self.x["t"], np.asarray(det.combined, bool), np.asarray(det.trigger, bool),
+                       detector_score(det.z_heading, det.z_path, det.z_field, det.z_vector))
         for alarm in tracker.alarms:
             alarm["explanation"] = self.explain(alarm["start_s"], alarm["end_s"])
             alarm["explanation_text"] = explanation_text(alarm["explanation"], self.x.get("motor_signal", "none"))
@@ -107,9 +110,11 @@ def calibration_for_log(log: FlightLog, calibration: dict | None) -> tuple[dict 
 
 
 def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: list | None = None,
-                   settings: DetectionSettings | None = None) -> FlightAnalysis:
+                   settings: DetectionSettings | None = None, record: bool = True) -> FlightAnalysis:
     """Detector inputs, detection and the flight record of a whole log (see module docstring); a
-    relative calibration is applied on top of the log's corrections in force (``calibration_for_log``)."""
+    relative calibration is applied on top of the log's corrections in force (``calibration_for_log``).
+    ``record`` False: no flight record rows (RECORD_COLUMNS per IMU step: 80 MB for a 2-hour
+    50 Hz log), for the report alone."""
     settings = settings or DetectionSettings()
     calibration, note = calibration_for_log(log, calibration)
     x = detection_inputs(log, calibration, mission, settings)
@@ -120,7 +125,8 @@ def analyze_flight(log: FlightLog, calibration: dict | None = None, mission: lis
                  z_vector=x["z_vector"])
     shown = x["chain"]          # one attitude (issue 30): the detector's reference is the AHRS shown
     rows = record_rows(x["t"], x["chain"], x, ef.declination_deg if ef else 0.0, det.combined, det.trigger,
-                       detector_score(det.z_heading, det.z_path, det.z_field, det.z_vector), attitude=shown)
+                       detector_score(det.z_heading, det.z_path, det.z_field, det.z_vector),
+                       attitude=shown) if record else None
     return FlightAnalysis(x, det, rows, settings, shown)
 
 
@@ -130,9 +136,8 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
     False: the report alone (the same), no per-step columns ({}), and the finished log's attitude
     that only they need (the offline smoother) not made (the fleet review, analyze without --csv)."""
     settings = settings or DetectionSettings()
-    fa = analyze_flight(log, calibration, mission, settings)
+    fa = analyze_flight(log, calibration, mission, settings, record=False)    # the flight record is the station's
     combined_alarms = fa.combined_alarms()
-    fa.rows = np.empty((0, fa.rows.shape[1]))    # the flight record is the station's; its alarms taken, its memory goes
     x, det = fa.x, fa.det
     t, d, ef, chain, valid = (x[k] for k in ("t", "d", "ef", "chain", "valid"))
     declination = ef.declination_deg if ef else 0.0
