@@ -9,14 +9,28 @@ P Hᵀ and H P Hᵀ are written out through that structure.  Kalman steps as in 
 Estimation (2006), ch. 5: P ← F P Fᵀ + Q with F = I + Δt e_ε e_βᵀ; K = P Hᵀ S⁻¹, θ ← θ + K ν,
 P ← (I − K H) P, symmetrised.  Units: those of the filter (rad, rad/s, mG, mG per unit signal).
 The caller's arrays are float64, C-ordered; P is changed in place.
+
+The filter's whole step is here too (``model_*``: θ, P, the random walks and the scalars ``mv``
+as arrays, changed in place), so that the field-vector test's compiled step
+(estimators.field_consistency_kernel) and ``FieldModelFilter``'s methods run the same code.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
 
 __all__ = ["forget_covariance", "observe_covariance", "predicted_field", "update_covariance", "kalman_update",
-           "filter_step"]
+           "filter_step", "quad_inv3", "MODEL_SCALARS", "X0", "LAST_XT", "CORR_S", "GYRO_SCALE", "BIAS_WALK",
+           "SIGNAL_SCALE", "model_init", "model_signal", "model_forget", "model_step", "model_update",
+           "take_heading", "restart_heading", "inflate"]
+
+# mv, the filter's scalars beside θ and P: x₀ (the first signal value, NaN before it), the last x̃,
+# the residual's correlation time τ_c [s], the gyro's scale error, the yaw-rate bias's walk [rad/s²]
+X0, LAST_XT, CORR_S, GYRO_SCALE, BIAS_WALK = range(5)
+MODEL_SCALARS = 5
+SIGNAL_SCALE = 10.0     # a typical excursion of the motor signal [A or %]: sets f's random walk
 
 
 @njit(cache=True)
@@ -148,3 +162,129 @@ def filter_step(P: np.ndarray, walk: np.ndarray, th: tuple, c_bt: tuple, xt: flo
         nu = (m_mG[0] - pred[0], m_mG[1] - pred[1], m_mG[2] - pred[2])
         step = kalman_update(P, pht, hph, extra, extra_scale, nu, r_mG2, rs_mG2, clip)
     return pred, hph, step
+
+
+@njit(cache=True)
+def quad_inv3(v, a) -> float:
+    """vᵀ A⁻¹ v for a 3-vector v and a 3 × 3 matrix A (nine floats row by row), as vᵀ adj(A) v / det A."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8]
+    v0, v1, v2 = v[0], v[1], v[2]
+    c0, c1, c2 = a4 * a8 - a5 * a7, a5 * a6 - a3 * a8, a3 * a7 - a4 * a6
+    det = a0 * c0 + a1 * c1 + a2 * c2
+    return ((v0 * c0 + v1 * (a2 * a7 - a1 * a8) + v2 * (a1 * a5 - a2 * a4)) * v0
+            + (v0 * c1 + v1 * (a0 * a8 - a2 * a6) + v2 * (a2 * a3 - a0 * a5)) * v1
+            + (v0 * c2 + v1 * (a1 * a6 - a0 * a7) + v2 * (a0 * a4 - a1 * a3)) * v2) / det
+
+
+@njit(cache=True)
+def model_init(th: np.ndarray, P: np.ndarray, walk: np.ndarray, mv: np.ndarray, h0_mG: tuple, h_sd_mG: float,
+               b_sd_mG: float, f_sd: float, h_tau_s: float, b_tau_s: float, f_tau_s: float, corr_s: float,
+               heading_sd_rad: float, bias_sd_rad_s: float, bias_walk_rad_s2: float, gyro_scale: float) -> None:
+    """The filter's start: θ = (0, 0, h₀, 0, 0), P = diag(prior variances), the random walks
+    q = r_c / τ² per unit of r_c (f's per SIGNAL_SCALE of signal), no signal seen yet."""
+    th[:] = 0.0
+    th[2], th[3], th[4] = h0_mG[0], h0_mG[1], h0_mG[2]
+    P[:, :] = 0.0
+    P[0, 0] = heading_sd_rad ** 2
+    P[1, 1] = bias_sd_rad_s ** 2
+    walk[0] = walk[1] = 0.0
+    for i in range(3):
+        P[2 + i, 2 + i] = h_sd_mG ** 2
+        P[5 + i, 5 + i] = b_sd_mG ** 2
+        P[8 + i, 8 + i] = f_sd ** 2
+        walk[2 + i] = 1.0 / (h_tau_s * h_tau_s)
+        walk[5 + i] = 1.0 / (b_tau_s * b_tau_s)
+        walk[8 + i] = (1.0 / SIGNAL_SCALE ** 2) / (f_tau_s * f_tau_s)
+    mv[X0] = math.nan
+    mv[LAST_XT] = 0.0
+    mv[CORR_S] = corr_s
+    mv[GYRO_SCALE] = gyro_scale
+    mv[BIAS_WALK] = bias_walk_rad_s2
+
+
+@njit(cache=True, inline="always")
+def model_signal(mv: np.ndarray, x: float) -> float:
+    """x̃ = x − x₀ (x₀ the first finite x); for a NaN x the last x̃ (0 before the first)."""
+    if not math.isfinite(x):
+        return mv[LAST_XT]
+    if math.isnan(mv[X0]):
+        mv[X0] = x
+    mv[LAST_XT] = x - mv[X0]
+    return mv[LAST_XT]
+
+
+@njit(cache=True, inline="always")
+def _walks(mv: np.ndarray, dt_s: float, sigma_mG: float, yaw_rate_rad_s: float) -> tuple:
+    """(σ² τ_c Δt, the heading's and the yaw-rate bias's variance growth over Δt)."""
+    return (sigma_mG * sigma_mG * mv[CORR_S] * dt_s, (mv[GYRO_SCALE] * yaw_rate_rad_s) ** 2 * dt_s,
+            mv[BIAS_WALK] ** 2 * dt_s)
+
+
+@njit(cache=True, inline="always")
+def _noise(mv: np.ndarray, dt_s: float, sigma_mG: float) -> tuple:
+    """(τ_c / Δt (0 when Δt ≤ 0), r = σ², r τ_c / Δt): the measurement noise of ``kalman_update``."""
+    r = sigma_mG * sigma_mG
+    k = mv[CORR_S] / dt_s if dt_s > 0.0 else 0.0
+    return k, r, r * k
+
+
+@njit(cache=True)
+def model_forget(P: np.ndarray, walk: np.ndarray, mv: np.ndarray, dt_s: float, sigma_mG: float,
+                 yaw_rate_rad_s: float) -> None:
+    """The random walks over Δt (``forget_covariance`` with r_c = σ² τ_c)."""
+    w, q_heading, q_bias = _walks(mv, dt_s, sigma_mG, yaw_rate_rad_s)
+    forget_covariance(P, walk, dt_s, w, q_heading, q_bias)
+
+
+@njit(cache=True)
+def model_step(th: np.ndarray, P: np.ndarray, walk: np.ndarray, mv: np.ndarray, dt_s: float, sigma_mG: float,
+               yaw_rate_rad_s: float, c_bt: tuple, xt: float, m_mG: tuple, learn: bool, clip: float,
+               extra: tuple) -> tuple:
+    """``filter_step`` with the filter's own walks and noise; θ += K ν when learning (Δt > 0).
+    Returns (H θ [mG], H P Hᵀ before the update [mG², nine floats])."""
+    w, q_heading, q_bias = _walks(mv, dt_s, sigma_mG, yaw_rate_rad_s)
+    k, r, rs = _noise(mv, dt_s, sigma_mG)
+    pred, hph, step = filter_step(P, walk, th, c_bt, xt, m_mG, dt_s, w, q_heading, q_bias, learn, extra, k, r, rs,
+                                  clip)
+    if learn and dt_s > 0.0:
+        for i in range(11):
+            th[i] = th[i] + step[i]
+    return pred, hph
+
+
+@njit(cache=True)
+def model_update(th: np.ndarray, P: np.ndarray, mv: np.ndarray, pht: np.ndarray, hph: tuple, pred: tuple,
+                 m_mG: tuple, dt_s: float, sigma_mG: float, clip: float, extra: tuple) -> None:
+    """One measurement update (``kalman_update`` with ν = m − H θ, the filter's noise), none when Δt ≤ 0."""
+    if dt_s <= 0.0:
+        return
+    nu = (m_mG[0] - pred[0], m_mG[1] - pred[1], m_mG[2] - pred[2])
+    k, r, rs = _noise(mv, dt_s, sigma_mG)
+    step = kalman_update(P, pht, hph, extra, k, nu, r, rs, clip)
+    for i in range(11):
+        th[i] = th[i] + step[i]
+
+
+@njit(cache=True, inline="always")
+def take_heading(th: np.ndarray) -> float:
+    """ε, reset to 0 (ψ_f takes it)."""
+    eps = th[0]
+    th[0] = 0.0
+    return eps
+
+
+@njit(cache=True)
+def restart_heading(th: np.ndarray, P: np.ndarray, heading_sd_rad: float) -> None:
+    """ε = 0 with its prior variance and no covariance with the rest (ψ_f started again)."""
+    th[0] = 0.0
+    P[0, :] = 0.0
+    P[:, 0] = 0.0
+    P[0, 0] = heading_sd_rad ** 2
+
+
+@njit(cache=True)
+def inflate(P: np.ndarray, h_sd_mG: float, b_sd_mG: float) -> None:
+    """h's and b's variances grown by h_sd² and b_sd² (learn them again)."""
+    for i in range(3):
+        P[2 + i, 2 + i] += h_sd_mG ** 2
+        P[5 + i, 5 + i] += b_sd_mG ** 2

@@ -13,4 +13,7 @@ bootstrap_venv() {
     .venv/bin/python -m pip install -q -e ".${extras:+[$extras]}"
     touch "$stamp"
   fi
+  # numba kernels compiled once (the first time, ~20 s) or loaded from their cache (~1 s), so the
+  # first replay does not stall on them and test workers do not compile them side by side
+  .venv/bin/python -m estimators.kernel_warmup
 }

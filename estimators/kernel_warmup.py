@@ -1,0 +1,65 @@
+"""Compile (or load from numba's cache) every numba kernel of the estimators before they are
+needed: ``python -m estimators.kernel_warmup``, run by ./run and ./test after the environment is
+set up.  A kernel's first call compiles it (tens of seconds in all on a 2-core machine) and
+writes the cache beside its module; without this the first replay of a fresh clone would stall
+the station that long, and each test process would compile the same kernels at once.  With the
+cache in place this takes about a second (loading).
+
+The kernels are reached through the estimators' public forms, on a few seconds of a level,
+turning body, with the argument types those forms pass in use, so every specialisation the
+station and the jobs use is compiled here.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import numpy as np
+
+__all__ = ["warm_up"]
+
+
+def _level_turn(n: int = 400, rate_hz: float = 50.0) -> dict[str, np.ndarray]:
+    """n IMU steps of a level body turning at 10°/s in a 500 mG field inclined 60° (FRD, SI, mG)."""
+    t = np.arange(n) / rate_hz
+    yaw = np.radians(10.0) * t
+    h, z = 250.0, 433.0
+    mag = np.c_[h * np.cos(yaw), -h * np.sin(yaw), np.full(n, z)]
+    gyro = np.c_[np.zeros(n), np.zeros(n), np.full(n, np.radians(10.0))]
+    acc = np.c_[np.zeros(n), np.zeros(n), np.full(n, -9.80665)]
+    return {"t": t, "mag": mag, "gyro": gyro, "acc": acc}
+
+
+def warm_up() -> float:
+    """Run every compiled kernel once; returns the seconds it took."""
+    from estimators.ahrs import Ahrs
+    from estimators.ahrs_batch import run_ahrs
+    from estimators.field_consistency import FieldConsistency, field_consistency
+    from estimators.residual_trackers import FieldModelFilter
+
+    t0 = time.perf_counter()
+    d = _level_turn()
+    n = len(d["t"])
+    run_ahrs(np.c_[d["t"], d["gyro"], d["acc"]], np.c_[d["t"], d["mag"]])
+    ahrs = Ahrs()
+    for k in range(n):
+        ahrs.update_mag(float(d["t"][k]), d["mag"][k].tolist())
+        ahrs.update_imu(float(d["t"][k]), d["gyro"][k].tolist(), d["acc"][k].tolist())
+    zeros = np.zeros(n)
+    field_consistency(d["t"], d["mag"], zeros, zeros, np.ones(n, bool), d["gyro"], np.full(n, 5.0),
+                      np.full(n, 50.0), np.ones(n, bool), earth_field_mG=(250.0, 0.0, 433.0))
+    live = FieldConsistency(earth_field_mG=(250.0, 0.0, 433.0))
+    for k in range(n):
+        live.update(float(d["t"][k]), d["mag"][k].tolist(), 0.0, 0.0, True, d["gyro"][k].tolist(), 5.0, 50.0, True)
+    live.update(float(n), (math.nan,) * 3, 0.0, 0.0, False, (0.0, 0.0, 0.0), math.nan, 50.0, False)
+    model = FieldModelFilter((250.0, 0.0, 433.0))       # its steps one by one (the motor-field fits)
+    model.forget(0.02, 4.0)
+    model.update(model.jacobian(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), model.signal(5.0)),
+                 (250.0, 0.0, 433.0), 0.02, 4.0, 3.0)
+    return time.perf_counter() - t0
+
+
+if __name__ == "__main__":
+    print(f"estimator kernels ready ({warm_up():.1f} s; compiled once, then loaded from numba's cache)",
+          file=sys.stderr)
