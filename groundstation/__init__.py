@@ -12,7 +12,7 @@
 Import directions (tests/test_architecture.py): ``io`` imports no other wing; ``jobs`` and ``sim``
 use ``io``; ``station`` uses ``io`` and ``jobs`` (never ``jobs.fleet``); nothing but the CLI,
 tests and benchmarks imports ``station``.  ``estimators`` (pure numpy; numba compiles the
-field-vector test's covariance steps) imports none of them.
+sequential loops: the field-vector test's step, the AHRS's block logic) imports none of them.
 """
 import os
 
