@@ -69,7 +69,6 @@ OUT_SIZE = 12
 _dcm = njit(cache=True, inline="always")(dcm_body_to_ned_float)     # the one C_b^n of estimators.rotations
 
 
-
 def settings_array(s) -> np.ndarray:
     """cfg for a FieldConsistencySettings: SETTINGS' values, then RADIANS' in radians."""
     return np.array([float(getattr(s, name)) for name in SETTINGS]
