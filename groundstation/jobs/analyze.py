@@ -144,7 +144,9 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
     nav, runs = ins_runs(log, x["mag_cal"], declination, x["imu_rate_hz"], settings)
     if not columns:
         _, motor = motor_correction(log, x)
-        return _report(log, fa, calibration, nav, motor, combined_alarms), {}
+        report, cal = _report(log, fa, calibration, nav, motor, combined_alarms), x["cal"]
+        del fa, x, det, t, d, chain, valid, runs      # the per-step arrays go before the compasses' are made
+        return _with_compasses(report, log, cal, calibration, ef, settings), {}
     best, best_chain, motor = finished_log_attitude(log, fa, runs)
     gps = x["gps_held"]
     v_fwd, v_lat = split_velocity(gps[:, 5], gps[:, 6], np.radians(best["heading_true_deg"]))
@@ -158,12 +160,23 @@ def analyze_log(log: FlightLog, calibration: dict | None = None, mission: list |
         **bias_and_rejection(best_chain, valid), "ins_mode": best["ins_mode"],
         "attitude_source": best["attitude_source"],
     }
-    return _report(log, fa, calibration, nav, motor, combined_alarms), table
+    report = _report(log, fa, calibration, nav, motor, combined_alarms)
+    return _with_compasses(report, log, x["cal"], calibration, ef, settings), table
+
+
+def _with_compasses(report: dict, log: FlightLog, cal, calibration: dict | None, ef, settings: DetectionSettings) -> dict:
+    """The report's "compasses" and "compass_consistency" (``compass_summaries``: every compass
+    over the whole log), made after the rest so that the caller can let the flight's per-step
+    arrays go first (a 2-hour log's are over 200 MB)."""
+    report["compasses"], report["compass_consistency"] = compass_summaries(
+        log, cal, (calibration or {}).get("compass"), ef, settings)
+    return report
 
 
 def _report(log: FlightLog, fa: FlightAnalysis, calibration: dict | None, nav: dict, motor: dict,
             combined_alarms: list[dict]) -> dict:
-    """analyze_log's report (see module docstring) of the analysed flight ``fa``."""
+    """analyze_log's report (see module docstring) of the analysed flight ``fa``, but for its
+    compasses (``_with_compasses``)."""
     x, det, settings = fa.x, fa.det, fa.settings
     t, d, ef, pos = (x[k] for k in ("t", "d", "ef", "pos"))
     d_gps, legs, rtk, path_test, cal = (x[k] for k in ("d_gps", "legs", "rtk", "path_test", "cal"))
@@ -178,7 +191,6 @@ def _report(log: FlightLog, fa: FlightAnalysis, calibration: dict | None, nav: d
         if len(legs) > 1:
             legs_report["legs"] = len(legs)
     meas_strength = float(np.nanmedian(strength)) if np.isfinite(strength).any() else None
-    compasses, consistency = compass_summaries(log, cal, (calibration or {}).get("compass"), ef, settings)
     report = {
         "file": log.source,
         "duration_s": rounded(log.duration_s, 2),
@@ -200,8 +212,8 @@ def _report(log: FlightLog, fa: FlightAnalysis, calibration: dict | None, nav: d
         "motor_field_learned": motor_field_report(x),
         "imu_rate_hz": rounded(x["imu_rate_hz"], 1),
         "max_cross_track_m": rounded(np.nanmax(d_gps)) if len(d_gps) and np.isfinite(d_gps).any() else None,
-        "compasses": compasses,
-        "compass_consistency": consistency,
+        "compasses": None,                  # _with_compasses
+        "compass_consistency": None,
         "alarms": alarms,
         "first_alarm_s": combined[0]["start_s"] if combined else None,
         "interference_detected": bool(combined),
