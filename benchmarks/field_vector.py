@@ -115,7 +115,7 @@ def time_review(fleet: Path | None, n_logs: int, parts: bool = False) -> None:
         cpu = time.process_time() - t0
     print(f"review_log: {len(logs)} logs, {cpu:.2f} CPU s, {len(logs) / cpu:.2f} logs per CPU-s")
     for _, _, label in PARTS if parts else ():
-        print(f"  {label:40s} {spent[label]:6.2f} CPU s  {100 * spent[label] / cpu:3.0f} %")
+        print(f"  {label:40s} {spent[label]:7.3f} CPU s  {100 * spent[label] / cpu:3.0f} %")
 
 
 def main(argv: list[str] | None = None) -> int:
