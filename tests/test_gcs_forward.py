@@ -97,9 +97,13 @@ def test_a_forwarding_process_that_dies_is_reported_in_one_line():
     got: list = []
     try:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as vehicle:
-            vehicle.sendto(bytes(m.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3).pack(new_encoder(1, 1))),
-                           ("127.0.0.1", port))
-            assert wait_until(lambda: got.extend(link.poll()) or link.connected, 5.0, 0.02)
+            heartbeat = bytes(m.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3).pack(new_encoder(1, 1)))
+
+            def heard() -> bool:     # the vehicle beats until heard: the process drops what comes before "attach"
+                vehicle.sendto(heartbeat, ("127.0.0.1", port))
+                got.extend(link.poll())
+                return link.connected
+            assert wait_until(heard, 10.0, 0.05)
         os.kill(fw.pid, signal.SIGKILL)
         assert wait_until(lambda: got.extend(link.poll()) or not link.connected, 5.0, 0.02)
         lost = [s.text for s in got if isinstance(s, StatusSample) and s.kind == "link"][-1]
