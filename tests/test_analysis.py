@@ -162,6 +162,44 @@ def test_csv_columns(slow_report, tmp):
     assert len(cols["t_s"]) > 7
 
 
+def test_csv_text_is_csv_writers_cell_by_cell(tmp_path):
+    """write_csv formats whole rows at once; its bytes equal csv.writer's fed cell by cell (%.6g,
+    integers truncated, NaN/±inf and None empty, text quoted where it must be)."""
+    import io
+    import math
+
+    from groundstation.jobs.report import INTEGER_COLUMNS, TEXT_COLUMNS
+    rng = np.random.default_rng(7)
+    m = 3000
+    cols = {"t_s": rng.normal(size=m) * 10.0 ** rng.integers(-9, 12, m),
+            "roll_deg": rng.choice([np.nan, -np.inf, np.inf, -0.0, 0.0, 1e300, 5e-324, -1.5e-7, 123456789.0], m),
+            "alarm": rng.choice([0.0, 1.0, np.nan, np.inf, -2.7], m),
+            "ins_mode": np.array(rng.choice(["", "gps", "a,b", 'q"x', "nan", "inf", "line\nbreak"], m)),
+            "attitude_source": [None if k % 3 == 0 else "ours" for k in range(m)],
+            "extra_column": rng.normal(size=m)}
+    cols["roll_deg"][-1] = np.nan                                   # a row ending in an empty cell
+    ref = io.StringIO()
+    w = csv.writer(ref)
+    names = [c for c in CSV_COLUMNS if c in cols] + ["extra_column"]
+    w.writerow(names)
+    for k in range(m):
+        row = []
+        for c in names:
+            v = cols[c][k]
+            if c in TEXT_COLUMNS:
+                row.append("" if v is None else ('"' + v + '"' if v in ("nan", "inf") else str(v)))
+            elif not math.isfinite(v):
+                row.append("")
+            else:
+                row.append(str(int(v)) if c in INTEGER_COLUMNS else f"{v:.6g}")
+        w.writerow(row)
+    expected = ref.getvalue().replace('"""nan"""', '"nan"').replace('"""inf"""', '"inf"')
+    written = write_csv(tmp_path / "adversarial.csv", cols).read_bytes().decode()
+    assert written == expected
+    back = list(csv.reader(io.StringIO(written)))
+    assert [r[names.index("ins_mode")] for r in back[1:]] == [str(v) for v in cols["ins_mode"]]
+
+
 def test_without_calibration_and_bad_input(slow):
     log = copy.copy(slow[1])
     report, _ = analyze_log(log, None)

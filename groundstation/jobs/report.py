@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import csv
-import math
+import io
 from pathlib import Path
 
 import numpy as np
@@ -21,24 +21,66 @@ CSV_CHUNK_ROWS = 8192
 
 def write_csv(path: str | Path, columns: dict[str, np.ndarray]) -> Path:
     """Write the analyze CSV (header = CSV_COLUMNS present, then one row per IMU step; an empty
-    cell is NaN, or no INS/GPS in ``ins_mode``)."""
+    cell is NaN, or no INS/GPS in ``ins_mode``).
+
+    The text is ``csv.writer``'s (minimal quoting, ``\\r\\n`` rows; numbers ``%.6g``, integer
+    columns truncated like ``int``): one ``%`` format per row, NaN and ±inf cells emptied as text
+    afterwards, so no Python call is made per cell."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     names = [c for c in CSV_COLUMNS if c in columns] + [c for c in columns if c not in CSV_COLUMNS]
     n = min((len(columns[c]) for c in names), default=0)
+    numeric = [c for c in names if c not in TEXT_COLUMNS and c not in INTEGER_COLUMNS]
+    row_format = ",".join("%.6g" if c in numeric else "%s" for c in names) + "\r\n"
     with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(names)
+        csv.writer(f).writerow(names)
         for k in range(0, n, CSV_CHUNK_ROWS):      # the text of a chunk of rows at a time, not of the log
-            w.writerows(zip(*(_cells(c, columns[c][k:k + CSV_CHUNK_ROWS]) for c in names)))
+            cells = [_cells(c, columns[c][k:k + CSV_CHUNK_ROWS]) for c in names]
+            text = "".join(map(row_format.__mod__, zip(*cells)))
+            f.write(_empty_not_finite(text) if numeric else text)
     return path
 
 
-def _cells(name: str, values) -> list[str]:
+def _empty_not_finite(text: str) -> str:
+    """``text`` (whole CSV rows) with every cell that %.6g wrote for NaN or ±inf emptied (text and
+    integer cells never read so: ``_cells``).  Plain replaces of the cell with its delimiters, each
+    twice since neighbouring cells share a comma."""
+    text = "\n" + text
+    for word in ("nan", "inf", "-inf"):
+        for before, after in ((",", ","), (",", "\r"), ("\n", ",")):
+            cell = before + word + after
+            while cell in text:
+                text = text.replace(cell, before + after)
+    return text[1:]
+
+
+def _cells(name: str, values) -> list:
+    """One column's cells for ``write_csv``: floats for the numeric columns, text for the others
+    (quoted as ``csv.writer`` would; an empty text where the value is None, or NaN in an integer
+    column)."""
     if name in TEXT_COLUMNS:
-        return ["" if v is None else str(v) for v in values]
-    fmt = (lambda v: str(int(v))) if name in INTEGER_COLUMNS else (lambda v: f"{v:.6g}")  # noqa: E731
-    return ["" if not math.isfinite(v) else fmt(v) for v in np.asarray(values, dtype=float).tolist()]
+        texts = values if isinstance(values, np.ndarray) and values.dtype.kind == "U" else \
+            np.array(["" if v is None else str(v) for v in values], dtype=object)
+        words, index = np.unique(texts, return_inverse=True)
+        quoted = np.array([_csv_field(str(w)) for w in words], dtype=object)
+        return quoted[index].tolist() if len(words) else []
+    numbers = np.asarray(values, dtype=float)
+    if name in INTEGER_COLUMNS:
+        finite = np.isfinite(numbers)
+        return np.where(finite, np.where(finite, numbers, 0).astype(np.int64).astype(str), "").tolist()
+    return numbers.tolist()
+
+
+def _csv_field(text: str) -> str:
+    """``text`` as ``csv.writer`` writes one field (quoted when it holds a comma, quote or line
+    break); a bare ``nan``/``inf`` quoted, since ``write_csv`` empties those as numbers."""
+    if text == "":
+        return ""                        # (csv.writer quotes a row of one empty field, not a cell)
+    if text in ("nan", "inf", "-inf"):
+        return f'"{text}"'               # read back as the same text
+    out = io.StringIO()
+    csv.writer(out).writerow([text])          # (its line end decides the quoting of line breaks)
+    return out.getvalue()[:-2]
 
 
 def format_report(report: dict) -> str:
