@@ -48,9 +48,10 @@ def _warm_ahrs() -> None:
 
 
 def _warm_field_test() -> None:
-    """The field-vector test's step, batch and per sample, and its field model's steps one by one
-    (the motor-field fits use them)."""
+    """The field-vector test's step, batch and per sample, its field model's steps one by one
+    (the motor-field fits use them), and the low-pass of the tilt gap its tilt is chosen by."""
     from estimators.field_consistency import FieldConsistency, field_consistency
+    from estimators.low_pass import low_pass_from_rest, low_pass_state
     from estimators.residual_trackers import FieldModelFilter
 
     d = _level_turn()
@@ -62,6 +63,7 @@ def _warm_field_test() -> None:
     for k in range(n):
         live.update(float(d["t"][k]), d["mag"][k].tolist(), 0.0, 0.0, True, d["gyro"][k].tolist(), 5.0, 50.0, True)
     live.update(float(n), (math.nan,) * 3, 0.0, 0.0, False, (0.0, 0.0, 0.0), math.nan, 50.0, False)
+    low_pass_from_rest(d["t"], np.c_[d["mag"][:, :2]], 10.0, low_pass_state(2))      # the tilt gap's filter
     model = FieldModelFilter((250.0, 0.0, 433.0))
     model.forget(0.02, 4.0)
     model.update(model.jacobian(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), model.signal(5.0)),

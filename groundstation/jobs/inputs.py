@@ -29,6 +29,7 @@ from estimators.detection import DetectionSettings, cross_track_m, field_inclina
 from estimators.field_consistency import field_consistency
 from estimators.geomag import decimal_year_from_unix, earth_field
 from estimators.heading import run_heading_chain
+from estimators.low_pass import low_pass_state
 from estimators.residual_trackers import MOTOR_TIMEOUT_S   # the one motor-signal timeout
 from estimators.rotations import wrap_angle_rad
 
@@ -293,8 +294,8 @@ def rounded(x, nd=3):
 class StepState:
     """What the per-step gates carry from one call to the next (the live form calls per sample)."""
     last_steep_t: float = -np.inf
-    tilt_gap: tuple | None = None        # the autopilot-minus-ours tilt gap, low-passed (``checked_tilt``)
-    tilt_gap_t: float | None = None
+    tilt_gap: np.ndarray = field(default_factory=lambda: low_pass_state(2))   # the autopilot-minus-ours
+    # tilt gap, low-passed (``checked_tilt``): estimators.low_pass's state
     ours: tuple = (np.zeros(0), np.zeros(0), np.zeros(0))   # our (t, roll, pitch) over the last steps (``brought_forward``)
 
 

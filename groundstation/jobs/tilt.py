@@ -6,11 +6,11 @@ rad, s (degrees where named).
 """
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from estimators.low_pass import low_pass_from_rest
 from estimators.rotations import wrap_angle_rad
 
 if TYPE_CHECKING:
@@ -101,23 +101,11 @@ def checked_tilt(chain, att_rp: np.ndarray, t_s=None, state: "StepState | None" 
 
 
 def _lasting_gap(t: np.ndarray, gr: np.ndarray, gp: np.ndarray, state: "StepState") -> tuple[np.ndarray, np.ndarray]:
-    """The autopilot-minus-ours tilt gap low-passed with TILT_GAP_S (``checked_tilt``), per step."""
-    out_r, out_p = np.full(len(t), np.nan), np.full(len(t), np.nan)
-    tl, rl, pl = t.tolist(), gr.tolist(), gp.tolist()
-    for i in range(len(tl)):
-        r, p = rl[i], pl[i]
-        if math.isfinite(r) and math.isfinite(p):
-            if state.tilt_gap is None or state.tilt_gap_t is None or tl[i] < state.tilt_gap_t:
-                # the gap starts from agreement, not from its first value: at the start our AHRS may
-                # not have converged (10° of pitch in a climb, population slow 2), and a first gap
-                # held for TILT_GAP_S put our wrong tilt into the whole learning time; an autopilot
-                # drifting open-loop drifts away from agreement
-                state.tilt_gap = (0.0, 0.0)
-            else:
-                a = 1.0 - math.exp(-(tl[i] - state.tilt_gap_t) / TILT_GAP_S)
-                state.tilt_gap = (state.tilt_gap[0] + a * (r - state.tilt_gap[0]),
-                                  state.tilt_gap[1] + a * (p - state.tilt_gap[1]))
-            state.tilt_gap_t = tl[i]
-        if state.tilt_gap is not None:
-            out_r[i], out_p[i] = state.tilt_gap
-    return out_r, out_p
+    """The autopilot-minus-ours tilt gap low-passed with TILT_GAP_S (``checked_tilt``), per step.
+    The gap starts from agreement, not from its first value: at the start our AHRS may not have
+    converged (10° of pitch in a climb, population slow 2), and a first gap held for TILT_GAP_S
+    put our wrong tilt into the whole learning time; an autopilot drifting open-loop drifts away
+    from agreement."""
+    gap = low_pass_from_rest(np.ascontiguousarray(t, dtype=float), np.column_stack((gr, gp)), TILT_GAP_S,
+                             state.tilt_gap)
+    return gap[:, 0], gap[:, 1]
