@@ -7,8 +7,12 @@ import threading
 import time
 from types import SimpleNamespace
 
+import pytest
+
 from groundstation.samples import ParamSample
 from groundstation.station.hub.vehicle import VehicleLink
+
+pytestmark = pytest.mark.serial     # the stub vehicle's answers are paced by wall-clock sleeps
 
 
 class ListingVehicle:
