@@ -79,7 +79,7 @@ def test_a_field_direction_error_is_measured_from_banked_turns_and_removed_from_
     assert plain.status in ("ok", "weak") and plain.field_profile_nll is not None
     assert abs(plain.offsets_mG[2] - b[2]) > 2.5                           # the field's error, in b_z
     r = refine_field(H_WMM, WmmFitSettings().field_model_sd_mG, SHIFTS, [plain.field_profile_nll],
-                     WmmFitSettings().field_refine_tilt_sd_deg)
+                     WmmFitSettings().attitude_tilt_sd_deg)
     assert r.refined and abs(r.measured_mG - 3.0) < 2.0 * r.measured_sd_mG
     refined = fit_wmm(t, raw, roll, pitch, yaw, H_WMM + r.shift_ned_mG, field_cov_ned_mG2=r.covariance_ned_mG2)
     assert np.max(np.abs(refined.offsets_mG - b)) < 0.5 * abs(plain.offsets_mG[2] - b[2])
@@ -88,7 +88,7 @@ def test_a_field_direction_error_is_measured_from_banked_turns_and_removed_from_
     t, raw, roll, pitch, yaw, b = _turning_flight(H_WMM, seed)
     right = fit_wmm(t, raw, roll, pitch, yaw, H_WMM, profile_direction_ned=e, settings=s)
     r0 = refine_field(H_WMM, WmmFitSettings().field_model_sd_mG, SHIFTS, [right.field_profile_nll],
-                      WmmFitSettings().field_refine_tilt_sd_deg)
+                      WmmFitSettings().attitude_tilt_sd_deg)
     assert abs(r0.measured_mG) < 2.0 * r0.measured_sd_mG
 
 

@@ -225,6 +225,30 @@ def test_an_error_of_the_reference_field_is_in_the_stated_one_sigma():
     np.testing.assert_allclose(added, np.sum(moved ** 2, axis=0), rtol=0.25, atol=0.05)
 
 
+def test_the_attitudes_tilt_error_is_in_the_stated_one_sigma():
+    """A tilt error common to the whole flight (the autopilot's roll or pitch off by a tenth of a degree:
+    ArduCopter SITL's EKF3 against its simulator, +0.06…+0.09°) turns the expected field, and its mean
+    over the flight is an offset no residual shows.  The stated 1σ adds the fit's change per
+    ``attitude_tilt_sd_deg`` of roll and of pitch, measured here by fitting again with the attitude
+    tilted; and the flight flown with its attitude's pitch 0.1° off has its x error covered."""
+    d = level_flight(seed=2, noise_mG=1.0)
+    def fit(roll, pitch, tilt_deg):
+        return fit_wmm(d["t"], d["raw"], roll, pitch, d["yaw"], H_NED, motor_signal=d["current"],
+                       settings=WmmFitSettings(field_model_sd_mG=(0.0, 0.0, 0.0), attitude_tilt_sd_deg=tilt_deg))
+    exact, stated = fit(d["roll"], d["pitch"], 0.0), fit(d["roll"], d["pitch"], 0.1)
+    np.testing.assert_allclose(stated.offsets_mG, exact.offsets_mG, atol=1e-6)
+    tilt = np.radians(0.1)
+    moved = np.array([fit(d["roll"] + tilt, d["pitch"], 0.0).offsets_mG - exact.offsets_mG,
+                      fit(d["roll"], d["pitch"] + tilt, 0.0).offsets_mG - exact.offsets_mG])
+    added = stated.offsets_sd_mG ** 2 - exact.offsets_sd_mG ** 2
+    assert np.max(np.abs(moved[:, :2])) > 0.5                           # 0.1° is ~0.8 mG of x or y here
+    np.testing.assert_allclose(added, np.sum(moved ** 2, axis=0), rtol=0.25, atol=0.05)
+    # the attitude given 0.1° of pitch too much: b_x moves by ~D·0.1°, inside the stated 1σ only with the term
+    off = fit(d["roll"], d["pitch"] + tilt, 0.1)
+    err = off.offsets_mG - d["b"]
+    assert abs(err[0]) > exact.offsets_sd_mG[0] and abs(err[0]) <= off.offsets_sd_mG[0], (err, off.offsets_sd_mG)
+
+
 def test_the_reference_field_error_is_the_wmm_packages_own():
     """The default 1σ of the reference field is WMM2025's error model as NOAA's package ships it (nT → mG),
     read from the package, not typed in: X 137, Y 89, Z 141 nT in WMM2025's technical report."""

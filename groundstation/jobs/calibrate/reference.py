@@ -43,7 +43,7 @@ def refine_reference(log: FlightLog, fields: list[CompassField], ctx: LogContext
             profiles.append(fit.field_profile_nll)
             used.append(cf.compass)
     ref = refine_field(wmm, settings.wmm.field_model_sd_mG, np.asarray(settings.wmm.field_profile_shifts_mG), profiles,
-                       settings.wmm.field_refine_tilt_sd_deg)
+                       settings.wmm.attitude_tilt_sd_deg)
     inc0 = float(np.degrees(inclination_rad(wmm)))
     inc = float(np.degrees(inclination_rad(wmm + ref.shift_ned_mG)))
     # 1σ of the inclination: the field's 1σ across it (along e_I) over its magnitude
