@@ -104,7 +104,7 @@ class WmmFitSettings:
     # shifts of the reference field along its inclination for the profile of estimators.field_refine [mG]
     field_profile_shifts_mG: tuple[float, ...] = (-6.0, -3.0, 0.0, 3.0, 6.0)   # (9 points at 2 mG: within 0.15 mG)
     # the attitude's tilt error, common to the flight, that no residual shows [deg]: in the offsets' 1σ
-    # (``_with_attitude_tilt``) and the refined field's (estimators.field_refine).  Measured on ArduCopter
+    # (``_with_field_model``) and the refined field's (estimators.field_refine).  Measured on ArduCopter
     # SITL (EKF3's ATT against the simulator's SIM, seeds 13, 15, 16, 17, 20): +0.06…+0.08° roll and
     # +0.07…+0.09° pitch, mean over each flight
     attitude_tilt_sd_deg: float = 0.10
@@ -345,8 +345,7 @@ def _fit_terms(data: FieldData, model: str, p0: np.ndarray, auto: np.ndarray, fo
     every = forced | auto | (np.zeros(12, bool) if held is None else held)   # + terms the fit chose to hold
     marginal = solve(data, sol.params, p0, replace(_options(model, every, s), max_iter=0))
     cov = _with_jackknife(marginal.covariance, data, sol, active, p0, model, s)
-    cov = _with_field_model(cov, data, sol, active, p0, model, s, field_cov_ned_mG2)
-    return replace(sol, covariance=_with_attitude_tilt(cov, data, sol, active, p0, model, s)), active
+    return replace(sol, covariance=_with_field_model(cov, data, sol, active, p0, model, s, field_cov_ned_mG2)), active
 
 
 def _field_shifts(s: WmmFitSettings, field_cov_ned_mG2: np.ndarray | None) -> list[np.ndarray]:
@@ -368,37 +367,32 @@ def _field_shifts(s: WmmFitSettings, field_cov_ned_mG2: np.ndarray | None) -> li
 
 def _with_field_model(cov: np.ndarray, data: FieldData, sol: Solution, active: np.ndarray, p0: np.ndarray,
                       model: str, s: WmmFitSettings, field_cov_ned_mG2: np.ndarray | None = None) -> np.ndarray:
-    """The covariance plus the reference field's: cov + S Sᵀ, S the change of the solution per 1σ
-    shift of the reference field (``_field_shifts``: the WMM's error model, ``field_model_sd_mG``, or
-    the covariance of the field refined from the flight, estimators.field_refine; re-solved with the
-    field shifted; a model error is one bias over the whole flight, so no resampling of the samples
-    sees it).  In level flight the body z axis sees the vertical field D at one
-    level: b_z = mean m_z − a_z·D, and a_z is measured through the horizontal field H tilting into z,
-    so it scales with the model's H.  Measured on the ArduPilot SITL route flight at Canberra (seed 15,
-    D ≈ −530 mG, H ≈ 235 mG, compass 1): the reference's N +3 mG moves every diagonal term −1.2 % and
-    b_z −8.2 mG; D +3 / −3 mG moves b_z −4.4 / +7.9 mG.  The three compasses' z offsets were all
-    −8.7 mG off against our WMM and −3 to −4 mG against SITL's own field table, with a stated 1σ of 3 mG."""
-    shifts = _field_shifts(s, field_cov_ned_mG2)
-    if not shifts or not np.all(np.isfinite(cov)):
-        return cov
-    # the solution with the field as given and with each shift, solved in lockstep
-    P, _ = _solved_with_field_shifts(data, [np.zeros(3)] + shifts, sol, active, p0, model, s)
-    S = (P[1:] - P[0]).T
-    return cov + S @ S.T
+    """The covariance plus the errors common to the whole flight that no residual and no resampling of
+    the samples sees: cov + S Sᵀ, S the change of the solution per 1σ of each, re-solved from ``sol``
+    in lockstep (estimators.field_model_groups).
 
-
-def _with_attitude_tilt(cov: np.ndarray, data: FieldData, sol: Solution, active: np.ndarray, p0: np.ndarray,
-                        model: str, s: WmmFitSettings) -> np.ndarray:
-    """The covariance plus the attitude's common tilt error: cov + S Sᵀ, S the change of the solution
-    when roll, then pitch, is off by ``attitude_tilt_sd_deg`` over the whole flight (re-solved in
-    lockstep, as ``_with_field_model``).  A body tilt δ turns the expected field by δ × h, and its mean
-    over the flight, δ × (0, 0, D) in level flight, is an offset: 0.1° is 0.8 mG of x and y at D = 470 mG.
-    The yaw-free fit absorbs a yaw error; no residual shows a constant tilt."""
+    * The reference field's: each 1σ shift of ``_field_shifts`` (the WMM's error model,
+      ``field_model_sd_mG``, or the covariance of the field refined from the flight,
+      estimators.field_refine).  In level flight the body z axis sees the vertical field D at one
+      level: b_z = mean m_z − a_z·D, and a_z is measured through the horizontal field H tilting into z,
+      so it scales with the model's H.  Measured on the ArduPilot SITL route flight at Canberra (seed
+      15, D ≈ −530 mG, H ≈ 235 mG, compass 1): the reference's N +3 mG moves every diagonal term
+      −1.2 % and b_z −8.2 mG; D +3 / −3 mG moves b_z −4.4 / +7.9 mG.  The three compasses' z offsets
+      were all −8.7 mG off against our WMM and −3 to −4 mG against SITL's own field table, with a
+      stated 1σ of 3 mG.
+    * The attitude's tilt: roll, then pitch, off by ``attitude_tilt_sd_deg``.  A body tilt δ turns the
+      expected field by δ × h, and its mean over the flight, δ × (0, 0, D) in level flight, is an
+      offset (0.1° is 0.8 mG of x and y at D = 470 mG; re-solved, 0.8–1.9 mG on the SITL route
+      flights).  The yaw-free fit absorbs a yaw error."""
+    H = np.asarray(data.field_ned_mG, float)
+    variants = [data.with_field(H + d) for d in _field_shifts(s, field_cov_ned_mG2)]
     tilt = np.radians(s.attitude_tilt_sd_deg)
-    if not tilt > 0 or not np.all(np.isfinite(cov)):
+    if tilt > 0:
+        variants += [replace(data, roll_rad=data.roll_rad + tilt), replace(data, pitch_rad=data.pitch_rad + tilt)]
+    if not variants or not np.all(np.isfinite(cov)):
         return cov
-    tilted = [data, replace(data, roll_rad=data.roll_rad + tilt), replace(data, pitch_rad=data.pitch_rad + tilt)]
-    P = solve_groups(stack_rows(tilted), sol.params, p0, replace(_options(model, active, s), max_iter=8),
+    # the solution as given and under each error, solved in lockstep
+    P = solve_groups(stack_rows([data] + variants), sol.params, p0, replace(_options(model, active, s), max_iter=8),
                      weight=data.weight).params
     S = (P[1:] - P[0]).T
     return cov + S @ S.T

@@ -115,10 +115,13 @@ def test_the_jackknife_and_field_model_terms_equal_their_per_group_definitions()
     np.testing.assert_allclose(jk, sol.covariance * np.outer(scale, scale), rtol=RTOL, atol=0.0)
     assert np.any(scale > 1.0)                                            # the jackknife raised some
     base = fm.solve(data, sol.params, p0, opts).params
-    S = np.zeros((12, 3))
+    S = np.zeros((12, 5))                      # the field's three 1σ shifts, then roll and pitch tilted
     for j, sd_j in enumerate(s.field_model_sd_mG):
         shifted = replace(data, field_ned_mG=np.asarray(data.field_ned_mG) + sd_j * np.eye(3)[j])
         S[:, j] = fm.solve(shifted, sol.params, p0, opts).params - base
+    tilt = np.radians(s.attitude_tilt_sd_deg)
+    S[:, 3] = fm.solve(replace(data, roll_rad=data.roll_rad + tilt), sol.params, p0, opts).params - base
+    S[:, 4] = fm.solve(replace(data, pitch_rad=data.pitch_rad + tilt), sol.params, p0, opts).params - base
     got = _with_field_model(sol.covariance, data, sol, active, p0, "yaw_free", s)
     np.testing.assert_allclose(got - sol.covariance, S @ S.T, rtol=1e-6, atol=1e-9 * np.abs(S @ S.T).max())
 
