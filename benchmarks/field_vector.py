@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 
 PARTS = (("estimators.wmm_fit", "fit_wmm", "fit_wmm (all)"),
          ("estimators.wmm_fit", "_with_jackknife", "  jackknife"),
-         ("estimators.wmm_fit", "_with_field_model", "  reference-field term"),
+         ("estimators.wmm_fit", "_with_flight_wide_errors", "  reference-field and tilt terms"),
          ("estimators.wmm_fit", "solve", "  solve() called by wmm_fit"),
          ("groundstation.jobs.inputs", "field_consistency", "field_consistency (field-vector test)"))
 MISSIONS = (("mission-bump", 0), ("mission-bump", 1), ("mission-motor", 0), ("mission-motor", 1))

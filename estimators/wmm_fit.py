@@ -33,7 +33,7 @@ An answer with its quality (issue 28): the offsets' covariance is marginal over 
 nominal by this fit's choice, each variance raised to its jackknife variance (time blocks, heading
 sectors), plus the reference field's own uncertainty carried through the fit (``field_model_sd_mG``, the WMM's
 error model, or ``field_cov_ned_mG2``, the covariance of the field refined from the flight by
-estimators.field_refine from the profiles ``field_direction_nll`` gives); a flight dominated by one line flown both ways (``heading_imbalance`` > 0.9) holds soft
+estimators.field_refine from the profiles ``field_direction_nll`` gives) and the attitude's common tilt error (``attitude_tilt_sd_deg``); a flight dominated by one line flown both ways (``heading_imbalance`` > 0.9) holds soft
 iron at nominal with its prior in the 1σ.  ``recommended`` when the worst 1σ ≤ ``max_offset_sd_mG``;
 else status "weak" (offsets, 1σ, the reason and the flight that would pin them down); refused only
 when unobservable (< ``min_heading_coverage`` of the headings, 1σ > ``max_answer_sd_mG``).
@@ -97,14 +97,14 @@ class WmmFitSettings:
     cell_weighting: bool | None = False           # sphere cells, rare directions weighted up (None: when soft iron is
                                                   # held).  Off: measured to add bias here (docs/inflight-calibration.md)
     jackknife_blocks: int = 8                     # contiguous time blocks for the jackknife 1σ (0: none)
-    # the reference field's own 1σ per NED component [mG], in the stated 1σ (``_with_field_model``): WMM2025's
+    # the reference field's own 1σ per NED component [mG], in the stated 1σ (``_with_flight_wide_errors``): WMM2025's
     # error model as wmm-calculator ships it (``geomag.WMM_ERROR_NED_mG``: 1.37, 0.89, 1.41 mG);
     # (0, 0, 0): the reference taken as exact
     field_model_sd_mG: tuple[float, float, float] = WMM_ERROR_NED_mG
     # shifts of the reference field along its inclination for the profile of estimators.field_refine [mG]
     field_profile_shifts_mG: tuple[float, ...] = (-6.0, -3.0, 0.0, 3.0, 6.0)   # (9 points at 2 mG: within 0.15 mG)
     # the attitude's tilt error, common to the flight, that no residual shows [deg]: in the offsets' 1σ
-    # (``_with_field_model``) and the refined field's (estimators.field_refine).  Measured on ArduCopter
+    # (``_with_flight_wide_errors``) and the refined field's (estimators.field_refine).  Measured on ArduCopter
     # SITL (EKF3's ATT against the simulator's SIM, seeds 13, 15, 16, 17, 20): +0.06…+0.08° roll and
     # +0.07…+0.09° pitch, mean over each flight
     attitude_tilt_sd_deg: float = 0.10
@@ -345,7 +345,7 @@ def _fit_terms(data: FieldData, model: str, p0: np.ndarray, auto: np.ndarray, fo
     every = forced | auto | (np.zeros(12, bool) if held is None else held)   # + terms the fit chose to hold
     marginal = solve(data, sol.params, p0, replace(_options(model, every, s), max_iter=0))
     cov = _with_jackknife(marginal.covariance, data, sol, active, p0, model, s)
-    return replace(sol, covariance=_with_field_model(cov, data, sol, active, p0, model, s, field_cov_ned_mG2)), active
+    return replace(sol, covariance=_with_flight_wide_errors(cov, data, sol, active, p0, model, s, field_cov_ned_mG2)), active
 
 
 def _field_shifts(s: WmmFitSettings, field_cov_ned_mG2: np.ndarray | None) -> list[np.ndarray]:
@@ -365,7 +365,7 @@ def _field_shifts(s: WmmFitSettings, field_cov_ned_mG2: np.ndarray | None) -> li
     return [np.sqrt(v) * V[:, j] for j, v in enumerate(lam) if v > 1e-12]
 
 
-def _with_field_model(cov: np.ndarray, data: FieldData, sol: Solution, active: np.ndarray, p0: np.ndarray,
+def _with_flight_wide_errors(cov: np.ndarray, data: FieldData, sol: Solution, active: np.ndarray, p0: np.ndarray,
                       model: str, s: WmmFitSettings, field_cov_ned_mG2: np.ndarray | None = None) -> np.ndarray:
     """The covariance plus the errors common to the whole flight that no residual and no resampling of
     the samples sees: cov + S Sᵀ, S the change of the solution per 1σ of each, re-solved from ``sol``

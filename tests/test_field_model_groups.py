@@ -11,7 +11,7 @@ import pytest
 
 from estimators import field_model as fm
 from estimators.field_model_groups import solve_groups
-from estimators.wmm_fit import WmmFitSettings, _options, _with_field_model, _with_jackknife
+from estimators.wmm_fit import WmmFitSettings, _options, _with_flight_wide_errors, _with_jackknife
 
 pytestmark = pytest.mark.filterwarnings("error")
 
@@ -122,7 +122,7 @@ def test_the_jackknife_and_field_model_terms_equal_their_per_group_definitions()
     tilt = np.radians(s.attitude_tilt_sd_deg)
     S[:, 3] = fm.solve(replace(data, roll_rad=data.roll_rad + tilt), sol.params, p0, opts).params - base
     S[:, 4] = fm.solve(replace(data, pitch_rad=data.pitch_rad + tilt), sol.params, p0, opts).params - base
-    got = _with_field_model(sol.covariance, data, sol, active, p0, "yaw_free", s)
+    got = _with_flight_wide_errors(sol.covariance, data, sol, active, p0, "yaw_free", s)
     np.testing.assert_allclose(got - sol.covariance, S @ S.T, rtol=1e-6, atol=1e-9 * np.abs(S @ S.T).max())
 
 
