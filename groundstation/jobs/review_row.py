@@ -48,7 +48,8 @@ from groundstation.samples import FlightLog
 __all__ = ["ReviewSettings", "REVIEW_CALIBRATE", "review_log", "file_hash", "vehicle_identity", "compass_row",
            "alarm_fields", "ROW_VERSION", "ATTITUDE_ALARMS", "ATTITUDE_RESIDUALS"]
 
-ROW_VERSION = 4      # 4: weak in-flight fits (offsets with their 1σ) carry their offsets
+ROW_VERSION = 5      # 4: weak in-flight fits (offsets with their 1σ) carry their offsets; 5: the in-flight
+                     # fit independent of its start, the attitude's tilt in its 1σ (2026-12-07)
 ATTITUDE_ALARMS = "alarms: causal AHRS (the live detector's)"
 ATTITUDE_RESIDUALS = "residuals: autopilot ATTITUDE"
 _UID_TEXT = re.compile(r"^\S+\s+([0-9A-Fa-f]{8}\s+[0-9A-Fa-f]{8}\s+[0-9A-Fa-f]{8})\s*$")
