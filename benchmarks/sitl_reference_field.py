@@ -17,9 +17,12 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))   # this checkout's code, whatever the venv holds
 
 import groundstation.jobs.calibrate.inflight as inflight  # noqa: E402
 from groundstation.io.logs import read_log  # noqa: E402
