@@ -391,20 +391,19 @@ def _with_flight_wide_errors(cov: np.ndarray, data: FieldData, sol: Solution, ac
         variants += [replace(data, roll_rad=data.roll_rad + tilt), replace(data, pitch_rad=data.pitch_rad + tilt)]
     if not variants or not np.all(np.isfinite(cov)):
         return cov
-    # the solution as given and under each error, solved in lockstep
-    P = solve_groups(stack_rows([data] + variants), sol.params, p0, replace(_options(model, active, s), max_iter=8),
-                     weight=data.weight).params
+    P, _ = _solved_in_lockstep([data] + variants, sol, active, p0, model, s)   # as given, then under each error
     S = (P[1:] - P[0]).T
     return cov + S @ S.T
 
 
-def _solved_with_field_shifts(data: FieldData, shifts: list, sol: Solution, active: np.ndarray, p0: np.ndarray,
-                              model: str, s: WmmFitSettings):
-    """(P (G,12), rows): the fit of ``sol``'s terms re-solved from ``sol`` with the reference field
-    shifted by each of ``shifts`` (NED mG), in lockstep (estimators.field_model_groups), and the rows."""
-    H = np.asarray(data.field_ned_mG, float)
-    rows = stack_rows([data.with_field(H + d) for d in shifts])
-    P = solve_groups(rows, sol.params, p0, replace(_options(model, active, s), max_iter=8), weight=data.weight).params
+def _solved_in_lockstep(variants: list[FieldData], sol: Solution, active: np.ndarray, p0: np.ndarray,
+                        model: str, s: WmmFitSettings):
+    """(P (G,12), rows): the fit of ``sol``'s terms re-solved from ``sol`` on each of ``variants`` (the
+    same samples under a shifted reference field or a tilted attitude), in lockstep
+    (estimators.field_model_groups), and their stacked rows."""
+    rows = stack_rows(variants)
+    P = solve_groups(rows, sol.params, p0, replace(_options(model, active, s), max_iter=8),
+                     weight=variants[0].weight).params
     return P, rows
 
 
@@ -416,7 +415,8 @@ def field_direction_nll(data: FieldData, sol: Solution, active: np.ndarray, p0: 
     linear tail beyond the solver's threshold), divided by the residual's autocorrelation time τ
     (slow attitude errors: the samples are not independent).  Minimum 0.  (G,) over the shifts."""
     e = np.asarray(direction_ned, float)
-    P, rows = _solved_with_field_shifts(data, [d * e for d in shifts_mG], sol, active, p0, model, s)
+    H = np.asarray(data.field_ned_mG, float)
+    P, rows = _solved_in_lockstep([data.with_field(H + d * e) for d in shifts_mG], sol, active, p0, model, s)
     r, _ = model_terms(P, rows, model)
     u = np.sqrt(np.sum(r * r, axis=1)) / max(sol.sigma_mG, 1e-9)
     c = s.huber_k * np.sqrt(2.0)         # the solver's threshold, |r|/√2 ≤ k·σ
