@@ -44,6 +44,8 @@ def _station_process(recordings: Path, limits: str = "") -> tuple[subprocess.Pop
     line = proc.stdout.readline()
     if not line.strip().isdigit():
         proc.kill()
+        proc.wait(10)
+        proc.stdout.close()
         pytest.fail(f"the station did not start: {line!r}")
     return proc, f"http://127.0.0.1:{int(line)}"
 
@@ -100,6 +102,7 @@ def test_a_tokened_request_answers_while_250_slow_clients_hold_connections(recor
             s.close()
         proc.stdin.close()
         proc.wait(10)
+        proc.stdout.close()         # a pipe left to the garbage collector warns in a later test
 
 
 def test_headers_must_arrive_within_the_header_timeout(recordings_dir):
