@@ -1,9 +1,10 @@
-"""Smoke runs of the heading, AHRS, ingest, live and detection benchmarks (the full runs live in benchmarks/).
+"""Smoke runs of the heading, AHRS, ingest, live, detection and page-cost benchmarks (the full runs live in benchmarks/).
 
 Accuracy targets are asserted; speed and latency figures depend on machine load, so these tests
 only check that the benchmark ran and measured something sane.  (The calibration and detection
 benchmark has its smoke run in test_calibration.py.)
 """
+import json
 import re
 import subprocess
 import sys
@@ -165,3 +166,15 @@ def test_field_vector_benchmark_smoke():
     assert set(parts) >= {"fit_wmm (all)", "jackknife", "field_consistency (field-vector test)"}, out
     assert 0 < parts["jackknife"] <= parts["fit_wmm (all)"] <= float(review.group(1)), out
     assert 0 < parts["field_consistency (field-vector test)"] <= float(review.group(1)), out
+
+
+def test_page_cpu_benchmark_smoke():
+    """The page-cost benchmark opens the station page on a running replay and reads the browser's
+    CPU and the page's main-thread figures (the page renders states: layouts happen)."""
+    from conftest import CHROMIUM
+    if not Path(CHROMIUM).exists():
+        pytest.skip("Debian chromium not installed (/usr/bin/chromium)")
+    out = _run("benchmarks/page_cpu.py", "--seconds", "3", timeout=180)
+    r = json.loads(out.strip().splitlines()[-1])
+    assert r["renderer_cpu_s"] > 0 and r["page_LayoutCount"] > 3 and r["page_TaskDuration"] > 0, r
+    assert "3-D view off" in out, out

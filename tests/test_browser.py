@@ -64,6 +64,31 @@ def test_headings_shown_in_0_360(shared_station, new_page):
         assert values and all(0.0 <= v < 360.0 for v in values), (t, text)
 
 
+def test_a_state_that_changes_nothing_writes_nothing(shared_station, new_page):
+    """A state arrives up to 50 times a second and each render sets the whole page: text and
+    markup that did not change are not written again (rewriting them made the browser lay out and
+    paint the page for nothing: half a core with a replay running).  Paused, the station still
+    pushes states (at least 2 a second); the page's text does not change, so nothing is written."""
+    st = shared_station
+    page = new_page()
+    replay(st, "demo.tlog", seek=150.0)
+    open_page(page, st)
+    page.wait_for_selector("#replay-time:has-text('150.0 /')")
+    page.wait_for_timeout(1500)                     # the seek's own state and the plots settle
+    page.evaluate("""async () => {
+      await loadRecordings();       // once with the replayed recording selected, as the timers do
+      await refreshAlarms();
+      window.__written = [];
+      new MutationObserver((list) => { for (const m of list)
+        if (!m.target.closest || !m.target.closest('canvas')) window.__written.push((m.target.id || (m.target.parentElement && m.target.parentElement.id) || m.target.nodeName) + ':' + m.type); })
+        .observe(document.body, { childList: true, characterData: true, subtree: true });
+    }""")
+    assert api(st, "GET", "/api/state")["replay"]["paused"]
+    page.wait_for_timeout(5500)                     # 11 or more states pushed, every list reloaded
+    written = page.evaluate("window.__written")
+    assert written == [], sorted(set(written))[:20]
+
+
 def test_new_source_starts_clean(shared_station, new_page):
     """Defect 4: after the demo (line, alarm), the real log replays with no line and no alarm;
     a connect while it plays waits for its first packet; a new live link shows nothing old."""

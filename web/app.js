@@ -65,9 +65,9 @@ function renderLink(s) {
   $("link-panel").hidden = !live || !v;
   if (!live || !v) return;
   $("passive-note").hidden = !v.passive;
-  $("passive-note").textContent = v.passive ? "Listening only (" + (v.passive_reason || "passive mode") +
+  setText($("passive-note"), v.passive ? "Listening only (" + (v.passive_reason || "passive mode") +
     "): MagStation sends nothing to the vehicle. Calibration writes need the active mode, or export the " +
-    ".param file and load it with the other ground station." : "";
+    ".param file and load it with the other ground station." : "");
   const body = $("vehicles").tBodies[0];
   const rows = new Map([...body.rows].map((tr) => [tr.dataset.sysid, tr]));
   const heard = new Set(v.systems.map((x) => String(x.sysid)));
@@ -101,36 +101,36 @@ function renderLink(s) {
     .map((m) => m.name + " (" + m.why + ")").join(", ") : "all streams arriving" + (v.passive ? " (provided by the other station)" : ""));
   const changed = Object.keys(v.params_changed_elsewhere || {});
   if (changed.length) extra.push("changed by another ground station: " + changed.join(", "));
-  $("link-extra").textContent = extra.join(" · ");
+  setText($("link-extra"), extra.join(" · "));
 }
 
 function render(s) {
   last = s;
-  $("status").textContent = linkText(s) + (s.source.kind === "live" && s.reorder_delay_s >= 0.3 ?
-    " — analysis " + fmt(s.reorder_delay_s, 1) + " s behind (late packets put back in time order)" : "");
+  setText($("status"), linkText(s) + (s.source.kind === "live" && s.reorder_delay_s >= 0.3 ?
+    " — analysis " + fmt(s.reorder_delay_s, 1) + " s behind (late packets put back in time order)" : ""));
   const b = $("alarm-banner");
   if (s.alarm.active) {
     b.className = "banner alarm";
-    b.textContent = "MAGNETIC INTERFERENCE ALARM" + (s.alarm.evidence_text ? ": " + s.alarm.evidence_text : "") +
-      (s.alarm.since_s !== null ? " (since " + fmt(s.alarm.since_s, 1) + " s)" : "");
-  } else { b.className = "banner ok"; b.textContent = s.analysing ? "Analysing the log…" : "No interference alarm"; }
+    setText(b, "MAGNETIC INTERFERENCE ALARM" + (s.alarm.evidence_text ? ": " + s.alarm.evidence_text : "") +
+      (s.alarm.since_s !== null ? " (since " + fmt(s.alarm.since_s, 1) + " s)" : ""));
+  } else { b.className = "banner ok"; setText(b, s.analysing ? "Analysing the log…" : "No interference alarm"); }
   renderVehicle(s);
   renderTests(s.tests);
   renderReplay(s);
   $("pending").hidden = !s.source.pending;
-  $("pending").textContent = s.source.pending ? "connecting to " + s.source.pending + ": " + s.source.name +
-    " goes on until the first packet arrives (Stop cancels)" : "";
+  setText($("pending"), s.source.pending ? "connecting to " + s.source.pending + ": " + s.source.name +
+    " goes on until the first packet arrives (Stop cancels)" : "");
   renderLink(s);
   renderInUse(s);
-  $("line-text").textContent = s.line ? "A " + s.line.a.map((x) => x.toFixed(6)).join(", ") + " → B " +
-    s.line.b.map((x) => x.toFixed(6)).join(", ") + " (" + s.line.source + ")" : "none: no path-deviation test";
+  setText($("line-text"), s.line ? "A " + s.line.a.map((x) => x.toFixed(6)).join(", ") + " → B " +
+    s.line.b.map((x) => x.toFixed(6)).join(", ") + " (" + s.line.source + ")" : "none: no path-deviation test");
   $("line-clear").disabled = !s.line;
-  $("alarm-count").textContent = s.alarm_count;
+  setText($("alarm-count"), s.alarm_count);
   const d = s.downloads;
-  $("dl-log").textContent = d.log ? "session log (" + d.log + ")" : "session log (none yet)";
+  setText($("dl-log"), d.log ? "session log (" + d.log + ")" : "session log (none yet)");
   for (const id of ["dl-log", "dl-json", "dl-csv"]) $(id).classList.toggle("disabled", !d.log);
-  $("events").innerHTML = s.events.slice().reverse().map((e) =>
-    `<div class="${e.level}">${fmt(e.t_s, 1)} s  ${escapeHtml(e.text)}</div>`).join("");
+  setHtml($("events"), s.events.slice().reverse().map((e) =>
+    `<div class="${e.level}">${fmt(e.t_s, 1)} s  ${escapeHtml(e.text)}</div>`).join(""));
 }
 
 const ATTITUDE_SOURCE_TEXT = {
@@ -140,29 +140,29 @@ const ATTITUDE_SOURCE_TEXT = {
 
 function renderVehicle(s) {
   const v = s.vehicle, t = s.tests;
-  $("v-rp").textContent = fmt(v.roll_deg, 1, "°") + " / " + fmt(v.pitch_deg, 1, "°");
-  $("v-att-src").textContent = ATTITUDE_SOURCE_TEXT[v.attitude_source] || "—";
-  $("v-hdg").textContent = fmtHeading(v.heading_att_deg) + " / " + fmtHeading(v.heading_mag_deg);
-  $("v-aphdg").textContent = fmtHeading(v.ap_yaw_deg);
-  $("v-course").textContent = (v.course_deg === null ? "— (not moving)" : fmtHeading(v.course_deg)) + " / " + fmt(v.speed_mps, 1, " m/s");
-  $("v-vel").textContent = fmt(v.v_forward_mps, 2, " m/s") + " / " + fmt(v.v_lateral_mps, 2, " m/s");
-  $("v-xt").textContent = fmt(v.cross_track_m, 2, " m");
-  $("v-field").textContent = fmt(v.field_mG, 0, " mG") + " / " + fmt(v.inclination_deg, 1, "°");
-  $("v-cal").textContent = CORRECTION_TEXT[t.field_correction.kind] || t.field_correction.kind;
+  setText($("v-rp"), fmt(v.roll_deg, 1, "°") + " / " + fmt(v.pitch_deg, 1, "°"));
+  setText($("v-att-src"), ATTITUDE_SOURCE_TEXT[v.attitude_source] || "—");
+  setText($("v-hdg"), fmtHeading(v.heading_att_deg) + " / " + fmtHeading(v.heading_mag_deg));
+  setText($("v-aphdg"), fmtHeading(v.ap_yaw_deg));
+  setText($("v-course"), (v.course_deg === null ? "— (not moving)" : fmtHeading(v.course_deg)) + " / " + fmt(v.speed_mps, 1, " m/s"));
+  setText($("v-vel"), fmt(v.v_forward_mps, 2, " m/s") + " / " + fmt(v.v_lateral_mps, 2, " m/s"));
+  setText($("v-xt"), fmt(v.cross_track_m, 2, " m"));
+  setText($("v-field"), fmt(v.field_mG, 0, " mG") + " / " + fmt(v.inclination_deg, 1, "°"));
+  setText($("v-cal"), CORRECTION_TEXT[t.field_correction.kind] || t.field_correction.kind);
   $("v-cal").title = t.field_correction.note;
-  $("v-pos").textContent = v.lat_deg === null ? "—" : fmt(v.lat_deg, 6) + ", " + fmt(v.lon_deg, 6) + " / " + (v.fix_name || "fix " + v.fix_type);
+  setText($("v-pos"), v.lat_deg === null ? "—" : fmt(v.lat_deg, 6) + ", " + fmt(v.lon_deg, 6) + " / " + (v.fix_name || "fix " + v.fix_type));
   const untrusted = t.heading.state === "off" && t.field_correction.kind !== "none" && s.source.kind !== "none";
   $("heading-caveat").hidden = !untrusted;
-  $("heading-caveat").textContent = untrusted ? "⚠ Heading test off: " + t.heading.why + "." : "";
+  setText($("heading-caveat"), untrusted ? "⚠ Heading test off: " + t.heading.why + "." : "");
   document.querySelector("#vehicle tr.hdg").classList.toggle("untrusted", untrusted);
 }
 
 function renderTests(tests) {
   for (const row of document.querySelectorAll("#tests tr")) {
     const st = tests[row.dataset.test];
-    row.querySelector(".state").textContent = STATE_TEXT[st.state] || st.state;
+    setText(row.querySelector(".state"), STATE_TEXT[st.state] || st.state);
     row.querySelector(".state").className = "state " + st.state;
-    row.querySelector(".why").textContent = st.why;
+    setText(row.querySelector(".why"), st.why);
   }
 }
 
@@ -174,10 +174,10 @@ function renderReplay(s) {
     lastReplayed = selected = s.source.name;
     for (const row of $("recordings").querySelectorAll("tr[data-name]")) row.classList.toggle("selected", row.dataset.name === selected);
   }
-  $("pause").textContent = r.paused ? "Resume" : "Pause";
+  setText($("pause"), r.paused ? "Resume" : "Pause");
   $("seek").max = r.duration_s;
   if (!seeking) $("seek").value = r.t_s;
-  $("replay-time").textContent = fmt(r.t_s, 1) + " / " + fmt(r.duration_s, 1) + " s ×" + r.speed + (r.finished ? " (finished)" : "") + (r.reading ? " (reading the rest of the log…)" : "");
+  setText($("replay-time"), fmt(r.t_s, 1) + " / " + fmt(r.duration_s, 1) + " s ×" + r.speed + (r.finished ? " (finished)" : "") + (r.reading ? " (reading the rest of the log…)" : ""));
   const key = s.source.name + "|" + s.analysing + "|" + r.duration_s + "|" + s.alarm_count + "|" + (s.line ? s.line.a + s.line.b : "");
   if (key !== timelineKey && !s.analysing) { timelineKey = key; loadTimeline(); }
 }
@@ -204,9 +204,9 @@ $("timeline").onclick = guarded("source-error", async (ev) => {
 async function refreshAlarms() {
   try {
     const list = await api("GET", "/api/alarms");
-    $("alarms").innerHTML = "<tr><th>start</th><th>end</th><th>evidence</th></tr>" + list.map((a) =>
+    setHtml($("alarms"), "<tr><th>start</th><th>end</th><th>evidence</th></tr>" + list.map((a) =>
       `<tr data-t="${a.start_s}"><td>${fmt(a.start_s, 1)} s</td><td>${a.end_s === null ? "active" : fmt(a.end_s, 1) + " s"}</td>` +
-      `<td>${escapeHtml(a.evidence_text)}${a.explanation_text ? "<br><small>" + escapeHtml(a.explanation_text) + "</small>" : ""}</td></tr>`).join("");
+      `<td>${escapeHtml(a.evidence_text)}${a.explanation_text ? "<br><small>" + escapeHtml(a.explanation_text) + "</small>" : ""}</td></tr>`).join(""));
   } catch (e) { /* next time */ }
 }
 
@@ -249,7 +249,7 @@ async function loadRecordings() {
     <td>${r.recording ? "recording…" : (r.duration_s === null ? "—" : fmt(r.duration_s / 60, 1) + " min")}</td>
     <td>${fmtDate(r.start_unix_s)}</td><td>${fmtSize(r.size_bytes)}</td>
     <td>${escapeHtml(r.error ? "unreadable" : (r.vehicle || "—"))}</td><td>${r.compasses === null ? "—" : r.compasses}</td></tr>`).join("");
-  if (tb.innerHTML !== html) tb.innerHTML = html;      // unchanged: leave the rows (clicks, hover) alone
+  setHtml(tb, html);                 // unchanged: leave the rows (clicks, hover) alone
   $("replay").disabled = !selected;
 }
 
@@ -268,7 +268,7 @@ function guarded(errId, fn) {
 $("upload").onchange = guarded("source-error", async () => {
   const file = $("upload").files[0];
   if (!file) return;
-  $("upload-status").textContent = "uploading " + file.name + "…";
+  setText($("upload-status"), "uploading " + file.name + "…");
   try {
     const res = await fetch("/api/recordings/upload?filename=" + encodeURIComponent(file.name),
       { method: "POST", credentials: "same-origin", body: file,
@@ -276,7 +276,7 @@ $("upload").onchange = guarded("source-error", async () => {
     const data = await res.json().catch(() => ({}));
     if (!res.ok) throw new Error(data.detail || res.statusText);
     selected = data.name;
-    $("upload-status").textContent = "stored as " + data.name;
+    setText($("upload-status"), "stored as " + data.name);
     $("upload-status").title = data.name;
     await loadRecordings();
   } catch (e) { $("upload-status").textContent = ""; throw e; } finally { $("upload").value = ""; }
@@ -312,9 +312,9 @@ async function loadInUseOptions() {
 function renderInUse(s) {
   const c = s.calibration_choice;
   if (!c) return;
-  $("cal-in-use").textContent = c.source === "none" ? "none: the field as the autopilot sent it" +
+  setText($("cal-in-use"), c.source === "none" ? "none: the field as the autopilot sent it" +
     (c.airframe ? " (" + c.airframe + ")" : "") : c.label + " — " + c.frame + (c.note ? "; " + c.note : "") +
-    " [" + c.source + (c.airframe ? ", " + c.airframe : "") + "]" + (c.applied ? ". " + c.applied : "");
+    " [" + c.source + (c.airframe ? ", " + c.airframe : "") + "]" + (c.applied ? ". " + c.applied : ""));
   $("cal-in-use").dataset.source = c.source;
   const key = s.source.name + "|" + c.source + "|" + c.label + "|" + (s.wizard && s.wizard.state);
   if (key !== inUseKey) { inUseKey = key; loadInUseOptions().catch(() => { inUseKey = null; }); }
@@ -323,7 +323,7 @@ $("cal-use").onclick = guarded("cal-error", async () => {
   const v = $("cal-choice").value, i = v.indexOf(":");
   const body = i < 0 ? { source: v } : { source: v.slice(0, i), name: v.slice(i + 1) };
   choiceTouched = false;
-  $("cal-in-use").textContent = "fitting / applying…";
+  setText($("cal-in-use"), "fitting / applying…");
   await api("POST", "/api/calibration/in-use", body);
 });
 $("cal-upload").onchange = guarded("cal-error", async () => {

@@ -9,10 +9,6 @@ let discardAsked = null;       // "start" | "reset" | "redo" waiting for the ope
 
 function vec(v, d = 1) { return v ? "[" + v.map((x) => fmt(x, d)).join(", ") + "]" : "—"; }
 function show(id, on) { $(id).hidden = !on; }
-// Re-render only when the content changed: the page gets a state many times a second, and replacing
-// the table under the pointer would swallow clicks on its checkboxes.
-const lastHtml = {};
-function setHtml(id, html) { if (lastHtml[id] !== html) { lastHtml[id] = html; $(id).innerHTML = html; } }
 function pct(f) { return Math.floor(100 * (f || 0)) + " %"; }     // floored: never shows a target reached early
 function cap(s) { return s ? s[0].toUpperCase() + s.slice(1) : s; }
 
@@ -34,21 +30,21 @@ function renderControl(w) {
     if (w.state !== "idle" && !modeChosen) r.checked = r.value === w.mode;
   });
   const again = w.state !== "idle" && !running;
-  $("start").textContent = again ? "Start over" : "Start";
+  setText($("start"), again ? "Start over" : "Start");
   $("start").classList.toggle("primary", w.state === "idle");      // one primary action at a time
   const lose = discardAsked ? wouldLose(w) : null;
   if (discardAsked && !lose) discardAsked = null;
   show("discard-confirm", !!lose);
-  $("discard-text").textContent = lose ? lose + " " + ({ start: "Start over?", redo: "Redo?", reset: "Reset?" }[discardAsked]) : "";
-  $("instruction").textContent = w.instruction;
+  setText($("discard-text"), lose ? lose + " " + ({ start: "Start over?", redo: "Redo?", reset: "Reset?" }[discardAsked]) : "");
+  setText($("instruction"), w.instruction);
   const hc = w.heading_check && w.heading_check.result;
   $("instruction").classList.toggle("failed", !!hc && hc.verdict === "fail");
   const b = w.banner;
   show("banner", !!b);
   if (b) { $("banner").className = "cal-banner " + b.level; $("banner").textContent = b.text; }
   show("hint", !!w.hint);
-  $("hint").textContent = w.hint || "";
-  setHtml("warnings", w.warnings.map((t) => `<div>⚠ ${escapeHtml(t)}</div>`).join(""));
+  setText($("hint"), w.hint || "");
+  setHtml($("warnings"), w.warnings.map((t) => `<div>⚠ ${escapeHtml(t)}</div>`).join(""));
   $("start").disabled = w.state === "running";
   $("finish").disabled = w.state !== "running" || w.mode === "fixed_yaw";
   const primary = w.compasses.find((c) => c.index === 0);
@@ -56,13 +52,13 @@ function renderControl(w) {
   const fitted = w.result && w.result.status === "ok" && w.result.field_strength_mG;
   const fieldText = fitted ? " · fitted field " + fmt(w.result.field_strength_mG, 0) + " mG" :
     (w.live_field_mG ? (primary && primary.trusted ? " · live field " : " · preliminary field ") + fmt(w.live_field_mG, 0) + " mG" : "");
-  $("live-fit").textContent = w.state === "idle" || w.mode === "fixed_yaw" ? "" : w.samples + " samples" + fieldText +
-    (w.expected_field_mG ? " · WMM " + fmt(w.expected_field_mG, 0) + " mG" : "");
+  setText($("live-fit"), w.state === "idle" || w.mode === "fixed_yaw" ? "" : w.samples + " samples" + fieldText +
+    (w.expected_field_mG ? " · WMM " + fmt(w.expected_field_mG, 0) + " mG" : ""));
   renderWrite(w.param_write);
 }
 
 function renderWrite(pw) {
-  if (!pw) { setHtml("param-write", ""); return; }
+  if (!pw) { setHtml($("param-write"), ""); return; }
   const bad = pw.state === "failed" || pw.state === "refused";
   const cls = bad ? "error" : (pw.state === "written" ? "good" : "muted");
   let html = `<div class="write ${cls}">${pw.state === "written" ? "✔ " : (bad ? "✖ " : "")}${escapeHtml(pw.message)}` +
@@ -72,7 +68,7 @@ function renderWrite(pw) {
     html += "<ul class='failures'>" + fails.slice(0, 3).map((f) => `<li>${escapeHtml(f.text)}</li>`).join("") +
       (fails.length > 3 ? `<li>… and ${fails.length - 3} more</li>` : "") + "</ul>";
   }
-  setHtml("param-write", html);
+  setHtml($("param-write"), html);
 }
 
 function renderSteps(w) {
@@ -139,14 +135,14 @@ function renderCompasses(w) {
   const done = w.compasses.some((c) => c.result);
   const head = done ? "<tr><th>Use</th><th>#</th><th>Result</th><th>Fitness mG</th><th>Heading</th><th>Orientation</th><th>Field</th></tr>" :
     "<tr><th>Use</th><th>#</th><th>Samples</th><th title='directions of this compass&#39;s own corrected field (its live fit); the sphere counts the directions from the attitude'>Own coverage</th><th colspan='3'></th></tr>";
-  setHtml("compass-table", head + w.compasses.map((c) => compassRow(c, w)).join(""));
+  setHtml($("compass-table"), head + w.compasses.map((c) => compassRow(c, w)).join(""));
   $("fitness").value = w.fitness_level;
   const k = w.consistency;
   const limits = w.compasses.filter((c) => c.result && c.result.fitness_threshold_mG).map((c) => c.result.fitness_threshold_mG);
   const note = done && limits.length > 1 && Math.max(...limits) > Math.min(...limits) ?
     `<div class="muted">Fitness limits: compass 1 ≤ ${fmt(Math.min(...limits), 0)} mG (the level chosen), the others ≤ ` +
     `${fmt(Math.max(...limits), 0)} mG: ArduPilot doubles the limit for non-primary compasses.</div>` : "";
-  setHtml("consistency", note + (k ? `<div class="${k.status === "ok" ? "good" : "error"}">${escapeHtml(k.text)}</div>` : ""));
+  setHtml($("consistency"), note + (k ? `<div class="${k.status === "ok" ? "good" : "error"}">${escapeHtml(k.text)}</div>` : ""));
 }
 
 function renderCoverage(w) {
@@ -154,8 +150,8 @@ function renderCoverage(w) {
   const ob = w.onboard;
   let sections = null;
   if (ob && ob.compasses.length && sectionCentres) sections = ob.compasses[0].sections || [];
-  $("coverage-text").textContent = w.state === "idle" ? "" : pct(w.coverage) + " of the sphere, from the attitude" +
-    (sections ? " · vehicle's calibrator: " + sections.length + " of 80 sections (blue)" : "");
+  setText($("coverage-text"), w.state === "idle" ? "" : pct(w.coverage) + " of the sphere, from the attitude" +
+    (sections ? " · vehicle's calibrator: " + sections.length + " of 80 sections (blue)" : ""));
   drawSphere($("sphere"), w.coverage_cells, w.current_direction, sections, sectionCentres);
 }
 
@@ -171,7 +167,7 @@ function renderOnboard(w) {
     rows.push(`<tr><td>${c.index + 1}</td><td>${st}</td><td>${r ? vec(r.ofs_mG, 0) : "—"}${cmp ? "<br>" + vec(cmp.our_ofs_mG, 0) : ""}</td>` +
       `<td>${r ? fmt(r.fitness_mG, 1) : "—"} / ${cmp ? fmt(cmp.our_fitness_mG, 1) : "—"} mG</td></tr>`);
   });
-  setHtml("onboard-table", rows.join("") + `<tr><td colspan="4" class="muted small">${escapeHtml(ob.message)}</td></tr>`);
+  setHtml($("onboard-table"), rows.join("") + `<tr><td colspan="4" class="muted small">${escapeHtml(ob.message)}</td></tr>`);
   $("ob-accept").disabled = ob.state !== "reported";
   $("ob-cancel").disabled = !["starting", "running", "reported"].includes(ob.state);
 }
@@ -180,9 +176,9 @@ function renderResult(w, vehicleAutopilot) {
   const r = w.result;
   show("result-card", !!r);
   if (!r) return;
-  $("result-status").textContent = r.status;
+  setText($("result-status"), r.status);
   $("result-status").className = r.status === "ok" ? "good" : "error";
-  $("result-message").textContent = r.status === "ok" ? (r.consistency_warning || "") : (r.message || "");
+  setText($("result-message"), r.status === "ok" ? (r.consistency_warning || "") : (r.message || ""));
   const px4 = (vehicleAutopilot || w.result.autopilot || "ardupilot") === "px4";
   const rows = [`<tr><th>#</th><th>Offsets b (mG)</th><th>${px4 ? "CAL_MAGn_x/y/zOFF (G)" : "COMPASS_OFSn_X/Y/Z"}</th>` +
     `<th>${px4 ? "CAL_MAGn_ROT" : "ORIENTn"}</th><th>Own coverage</th></tr>`];
@@ -196,10 +192,10 @@ function renderResult(w, vehicleAutopilot) {
       `<td>${rot === undefined ? "unchanged" : fmt(rot, 0) + (o && o.detected_name ? " " + o.detected_name : "")}</td>` +
       `<td title="directions of this compass's own corrected field in the final fit (it needs 25 %); the sphere counts them from the attitude">${pct(res.coverage)}</td></tr>`);
   });
-  setHtml("result-table", rows.join(""));
+  setHtml($("result-table"), rows.join(""));
   const pw = w.param_write;
   $("accept").disabled = r.status !== "ok" || (pw && ["checking", "writing", "written"].includes(pw.state));
-  $("accept").textContent = pw && pw.state === "failed" ? "Retry the write" : "Accept and write";
+  setText($("accept"), pw && pw.state === "failed" ? "Retry the write" : "Accept and write");
   $("export").disabled = r.status !== "ok";
   const obAcceptable = w.onboard && w.onboard.state === "reported";     // one primary action at a time
   $("accept").classList.toggle("primary", !$("accept").disabled && !obAcceptable);
@@ -214,7 +210,7 @@ function renderAfter(w) {
   const waiting = rb && ["sent", "waiting"].includes(rb.state);
   $("reboot").disabled = waiting;
   show("reboot-confirm", rebootAsked && !waiting);
-  $("reboot-text").textContent = rb ? rb.message : "";
+  setText($("reboot-text"), rb ? rb.message : "");
   const measuring = hc && hc.state === "measuring";
   $("hc-measure").disabled = measuring || waiting;
   $("hc-walk").disabled = measuring || waiting;
@@ -226,7 +222,7 @@ function renderAfter(w) {
       (r.ok ? `<div class="muted small">compass ${fmt(r.heading_deg, 1)}° ± ${fmt(r.spread_deg, 1)}° over ${r.samples} samples` +
         (r.distance_m ? `, walk ${fmt(r.distance_m, 1)} m (max ${fmt(r.off_line_m, 1)} m off the line)` : "") + "</div>" : "");
   } else if (measuring) html = `<div class="muted">measuring… ${hc.samples} samples${hc.kind === "walk" ? ", " + fmt(hc.distance_m, 1) + " m" : ""}</div>`;
-  setHtml("hc-result", html);
+  setHtml($("hc-result"), html);
 }
 
 function renderFixed(w) {
@@ -236,10 +232,10 @@ function renderFixed(w) {
   const walking = hc && hc.state === "measuring";
   $("fy-walk").disabled = walking; $("fy-walk-stop").disabled = !walking;
   $("fy-gps").disabled = !(hc && hc.result && hc.result.reference_deg !== undefined);
-  $("fy-walk-text").textContent = hc ? (walking ? "walking… " + fmt(hc.distance_m, 1) + " m" :
+  setText($("fy-walk-text"), hc ? (walking ? "walking… " + fmt(hc.distance_m, 1) + " m" :
     (hc.result && hc.result.reference_deg !== undefined ? "GPS course " + fmt(hc.result.reference_deg, 1) + "° over " + fmt(hc.result.distance_m, 1) + " m" :
-      (hc.result ? hc.result.message : ""))) : "";
-  if (!fy) { setHtml("fy-table", ""); return; }
+      (hc.result ? hc.result.message : ""))) : "");
+  if (!fy) { setHtml($("fy-table"), ""); return; }
   const rows = ["<tr><th>Compass</th><th>Vehicle's new COMPASS_OFS</th><th>Ours (same formula)</th></tr>"];
   Object.keys(fy.ours_ofs_mG).forEach((k) => rows.push(`<tr><td>${+k + 1}</td><td>${vec(fy.vehicle_ofs_mG[k], 1)}</td><td>${vec(fy.ours_ofs_mG[k], 1)}</td></tr>`));
   const c = fy.check;
@@ -249,19 +245,19 @@ function renderFixed(w) {
       `${fmt(c.wmm_strength_mG, 0)} mG, inclination ${fmt(c.inclination_error_deg, 1)}° off</td></tr>`);
     (c.cautions || []).forEach((t) => rows.push(`<tr><td colspan="3" class="warn">${escapeHtml(t)}</td></tr>`));
   }
-  setHtml("fy-table", rows.join(""));
+  setHtml($("fy-table"), rows.join(""));
 }
 
 function render(s) {
   last = s;
   const w = s.wizard;
-  $("status").textContent = linkText(s) + (w.in_use ? " — calibration in use: " + inUseText(w) : "");
+  setText($("status"), linkText(s) + (w.in_use ? " — calibration in use: " + inUseText(w) : ""));
   renderControl(w); renderSteps(w); renderCompasses(w); renderCoverage(w); renderOnboard(w);
   renderResult(w, s.source.autopilot); renderAfter(w); renderFixed(w);
   show("deviation-card", !!w.deviation);
   if (w.deviation) {
-    $("deviation-text").textContent = "max ±" + fmt(w.deviation.max_before_deg, 1) + "° before, ±" + fmt(w.deviation.max_after_deg, 1) + "° after" +
-      (w.deviation.after_significant === false ? " (within the noise of the dance)" : "");
+    setText($("deviation-text"), "max ±" + fmt(w.deviation.max_before_deg, 1) + "° before, ±" + fmt(w.deviation.max_after_deg, 1) + "° after" +
+      (w.deviation.after_significant === false ? " (within the noise of the dance)" : ""));
     drawDeviation($("deviation"), w.deviation);
   }
 }

@@ -42,6 +42,17 @@ async function request(method, path, body) {
   return data;
 }
 
+// Write only what changed.  A state arrives up to 50 times a second and every render sets the
+// whole page; writing the same text or markup again still makes the browser rebuild, lay out and
+// paint it (a page with a replay running took half a core for that), and replacing a table under
+// the pointer would swallow clicks on it.
+const lastHtml = new WeakMap();
+function setText(el, value) {
+  const text = value === null || value === undefined ? "" : String(value);
+  if (el.textContent !== text) el.textContent = text;
+}
+function setHtml(el, html) { if (lastHtml.get(el) !== html) { lastHtml.set(el, html); el.innerHTML = html; } }
+
 function connectState(onState, onLink) {
   // Renders only the newest state: if the page falls behind (slow machine, hidden tab), queued
   // pushes are skipped instead of being drawn one by one, so the view never lags the station.
