@@ -48,6 +48,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.proc_cpu import cpu_seconds  # noqa: E402
 from groundstation.io.forward import MavlinkFramer  # noqa: E402
 from groundstation.io.mavlink import mavlink2 as m, new_encoder  # noqa: E402
 from groundstation.sim.fake_vehicle import FakeVehicle  # noqa: E402
@@ -60,6 +61,7 @@ MODES = ("live", "replay", "hog")
 
 STATION = r"""
 import json, os, sys, tempfile, threading, time
+from benchmarks.proc_cpu import cpu_seconds
 from groundstation.io.forward import Forwarder
 from groundstation.station.hub.session import Session
 port, gcs_port, mode, demo = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
@@ -93,18 +95,14 @@ def hogging():
     while not stop.is_set():
         sum(range(1_500_000))          # one C call: the interpreter lock is held ~40 ms
 
-def cpu_s(pid):
-    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
 if mode in ("replay", "hog"):
     threading.Thread(target=replaying, daemon=True).start()
 if mode == "hog":
     threading.Thread(target=hogging, daemon=True).start()
 print("ready", flush=True)
-cpu0, relay0, wall0 = cpu_s(os.getpid()), cpu_s(fw.pid), time.monotonic()
+cpu0, relay0, wall0 = cpu_seconds(os.getpid()), cpu_seconds(fw.pid), time.monotonic()
 sys.stdin.readline()
-cpu1, relay1, wall1 = cpu_s(os.getpid()), cpu_s(fw.pid), time.monotonic()
+cpu1, relay1, wall1 = cpu_seconds(os.getpid()), cpu_seconds(fw.pid), time.monotonic()
 stop.set()
 fw.refresh()
 snap = hub.snapshot()
@@ -191,11 +189,6 @@ def read_times(path: Path) -> dict[bytes, float]:
     return {bytes.fromhex(k): v for k, v in json.loads(path.read_text()).items()}
 
 
-def proc_cpu_s(pid: int) -> float:
-    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
 class StationUnderTest:
     """MagStation (Session + Forwarder) in its own process under one of MODES."""
 
@@ -229,10 +222,10 @@ class MavproxyUnderTest:
                                      env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                      stderr=subprocess.DEVNULL)
         time.sleep(3.0)                                    # its start-up prints nothing we could wait for
-        self.cpu0, self.wall0 = proc_cpu_s(self.proc.pid), time.monotonic()
+        self.cpu0, self.wall0 = cpu_seconds(self.proc.pid), time.monotonic()
 
     def finish(self) -> dict:
-        cpu = 100 * (proc_cpu_s(self.proc.pid) - self.cpu0) / (time.monotonic() - self.wall0)
+        cpu = 100 * (cpu_seconds(self.proc.pid) - self.cpu0) / (time.monotonic() - self.wall0)
         self.proc.terminate()
         self.proc.wait(10)
         return {"cpu_pct": cpu, "relay_cpu_pct": float("nan"), "rx": "-", "to_vehicle": None, "read_at": None}

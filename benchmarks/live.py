@@ -33,6 +33,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.proc_cpu import cpu_seconds  # noqa: E402
+
 TARGET_P99_MS = 50.0
 TARGET_CPU_50HZ = 50.0
 
@@ -57,11 +59,6 @@ def run_station(recordings: str, viser: bool) -> None:
             time.sleep(1)
     except KeyboardInterrupt:
         pass
-
-
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 # ------------------------------------------------------------------------------------ vehicle

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import sys
 import tempfile
@@ -24,22 +23,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
+from benchmarks.proc_cpu import cpu_seconds_of  # noqa: E402
+
 SETTLE_S = 8.0
-
-
-def _cpu_s(marker: str) -> float:
-    """CPU seconds (user + system) of the processes whose command line holds ``marker``."""
-    ticks = 0
-    for pid in filter(str.isdigit, os.listdir("/proc")):
-        try:
-            cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
-            stat = Path(f"/proc/{pid}/stat").read_text()
-        except OSError:
-            continue
-        if marker.encode() in cmd:
-            fields = stat[stat.rfind(")") + 2:].split()
-            ticks += int(fields[11]) + int(fields[12])
-    return ticks / os.sysconf("SC_CLK_TCK")
 
 
 def measure(seconds: float, view: bool) -> dict:
@@ -66,12 +52,12 @@ def measure(seconds: float, view: bool) -> dict:
             cdp.send("Performance.enable")
             names = ("TaskDuration", "ScriptDuration", "LayoutDuration", "LayoutCount")
             before = {m["name"]: m["value"] for m in cdp.send("Performance.getMetrics")["metrics"]}
-            cpu0 = {k: _cpu_s(f"--type={k}") for k in ("renderer", "gpu-process")}
+            cpu0 = {k: cpu_seconds_of(f"--type={k}") for k in ("renderer", "gpu-process")}
             own0, t0 = time.process_time(), time.monotonic()
             time.sleep(seconds)
             wall = time.monotonic() - t0
             own = time.process_time() - own0
-            cpu = {k: _cpu_s(f"--type={k}") - v for k, v in cpu0.items()}
+            cpu = {k: cpu_seconds_of(f"--type={k}") - v for k, v in cpu0.items()}
             after = {m["name"]: m["value"] for m in cdp.send("Performance.getMetrics")["metrics"]}
             browser.close()
     finally:

@@ -86,7 +86,7 @@ function renderLink(s) {
     }
     const cells = [x.sysid + (x.sysid === v.selected ? " ●" : ""), x.kind, x.type || "—", x.autopilot || "—",
       fmt(x.rate_hz, 0, " /s"), fmt(x.loss_pct, 1, " %"), fmt(x.last_seen_s, 1, " s ago")];
-    cells.forEach((text, i) => { if (tr.cells[i].textContent !== text) tr.cells[i].textContent = text; });
+    cells.forEach((text, i) => setText(tr.cells[i], text));
     tr.cells[7].firstChild.hidden = !(x.kind === "vehicle" && x.sysid !== v.selected);
   }
   const extra = [];
@@ -268,7 +268,7 @@ function guarded(errId, fn) {
 $("upload").onchange = guarded("source-error", async () => {
   const file = $("upload").files[0];
   if (!file) return;
-  setText($("upload-status"), "uploading " + file.name + "…");
+  $("upload-status").textContent = "uploading " + file.name + "…";
   try {
     const res = await fetch("/api/recordings/upload?filename=" + encodeURIComponent(file.name),
       { method: "POST", credentials: "same-origin", body: file,
@@ -276,7 +276,7 @@ $("upload").onchange = guarded("source-error", async () => {
     const data = await res.json().catch(() => ({}));
     if (!res.ok) throw new Error(data.detail || res.statusText);
     selected = data.name;
-    setText($("upload-status"), "stored as " + data.name);
+    $("upload-status").textContent = "stored as " + data.name;
     $("upload-status").title = data.name;
     await loadRecordings();
   } catch (e) { $("upload-status").textContent = ""; throw e; } finally { $("upload").value = ""; }
@@ -323,7 +323,7 @@ $("cal-use").onclick = guarded("cal-error", async () => {
   const v = $("cal-choice").value, i = v.indexOf(":");
   const body = i < 0 ? { source: v } : { source: v.slice(0, i), name: v.slice(i + 1) };
   choiceTouched = false;
-  setText($("cal-in-use"), "fitting / applying…");
+  $("cal-in-use").textContent = "fitting / applying…";
   await api("POST", "/api/calibration/in-use", body);
 });
 $("cal-upload").onchange = guarded("cal-error", async () => {
