@@ -89,6 +89,32 @@ def test_a_state_that_changes_nothing_writes_nothing(shared_station, new_page):
     assert written == [], sorted(set(written))[:20]
 
 
+def test_the_page_draws_at_most_20_states_a_second_and_the_newest_last(shared_station, new_page):
+    """The station pushes up to 50 states a second; the page draws at most one every 50 ms
+    (``DRAW_INTERVAL_MS`` in web/common.js: drawing every push cost the browser 0.4 of a core), always
+    the newest, so once the replay pauses the page shows the station's own time."""
+    st = shared_station
+    page = new_page()
+    pushes: list[float] = []
+    page.on("websocket", lambda ws: ws.on("framereceived", lambda _: pushes.append(time.monotonic()))
+            if ws.url.endswith("/ws") else None)
+    replay(st, "demo.tlog", speed=4.0, seek=100.0, paused=False)
+    open_page(page, st)
+    page.wait_for_selector("#replay-time:not(:has-text('100.0 /'))")
+    page.evaluate("""() => { window.__draws = 0;
+      new MutationObserver(() => { window.__draws += 1; })
+        .observe(document.getElementById('replay-time'), { childList: true, characterData: true, subtree: true }); }""")
+    t0 = time.monotonic()
+    page.wait_for_timeout(3000)
+    draws, window_s = page.evaluate("window.__draws"), time.monotonic() - t0
+    pushed = sum(1 for t in pushes if t >= t0)
+    assert draws <= window_s * 20 * 1.1 + 2, (draws, pushed, window_s)          # at most one draw per 50 ms
+    assert draws >= min(pushed, window_s * 20) / 3, (draws, pushed, window_s)   # and it keeps drawing
+    api(st, "POST", "/api/replay/pause", json={"paused": True})
+    shown_t = api(st, "GET", "/api/state")["replay"]["t_s"]
+    page.wait_for_selector(f"#replay-time:has-text('{shown_t:.1f} /')", timeout=5000)
+
+
 def test_new_source_starts_clean(shared_station, new_page):
     """Defect 4: after the demo (line, alarm), the real log replays with no line and no alarm;
     a connect while it plays waits for its first packet; a new live link shows nothing old."""
