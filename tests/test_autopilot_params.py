@@ -32,6 +32,12 @@ def test_rotation_enums():
     np.testing.assert_allclose(rotation_enum_matrix(28) @ [1, 2, 3], [2, -3, -1], atol=1e-12)
     with pytest.raises(ValueError):
         rotation_enum_matrix(77)
+    # the table's matrices are made once and shared: a caller cannot change them for the next one
+    R = rotation_enum_matrix(2)
+    with pytest.raises(ValueError):
+        R[0, 0] = 5.0
+    np.testing.assert_allclose(rotation_enum_matrix(2) @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(rotation_enum_matrix(100, (0.0, 0.0, 90.0)), rotation_enum_matrix(2), atol=1e-12)
 
 
 def test_ardupilot_round_trip_symmetric():

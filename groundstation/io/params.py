@@ -112,19 +112,30 @@ def trusted_params(params: dict[str, float]) -> tuple[dict[str, float], list[str
     return kept, refused
 
 
-def rotation_enum_matrix(rot: int, custom_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
-    """Rotation matrix of a PX4/ArduPilot ``Rotation`` enum (v' = R v, R = Rz(yaw) Ry(pitch) Rx(roll)).
-    100 = custom roll/pitch/yaw.  Raises ValueError for enums not in the table."""
-    rot = int(rot)
-    if rot == 100:
-        rpy = custom_rpy_deg
-    elif 0 <= rot < len(_ROTATIONS_DEG):
-        rpy = _ROTATIONS_DEG[rot]
-    else:
-        raise ValueError(f"unsupported rotation enum {rot}")
-    r, p, y = np.radians(rpy)
+def _rpy_matrix(rpy_deg) -> np.ndarray:
+    r, p, y = np.radians(rpy_deg)
     R = dcm_body_to_ned(r, p, y)
     return np.where(np.abs(R) < 1e-12, 0.0, R)
+
+
+def _read_only(m: np.ndarray) -> np.ndarray:
+    m.flags.writeable = False
+    return m
+
+
+# the table's matrices, made once: the fake autopilot turns every sample of every compass by one
+_ENUM_MATRICES = tuple(_read_only(_rpy_matrix(rpy)) for rpy in _ROTATIONS_DEG)
+
+
+def rotation_enum_matrix(rot: int, custom_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """Rotation matrix of a PX4/ArduPilot ``Rotation`` enum (v' = R v, R = Rz(yaw) Ry(pitch) Rx(roll)),
+    read-only.  100 = custom roll/pitch/yaw.  Raises ValueError for enums not in the table."""
+    rot = int(rot)
+    if rot == 100:
+        return _read_only(_rpy_matrix(custom_rpy_deg))
+    if 0 <= rot < len(_ENUM_MATRICES):
+        return _ENUM_MATRICES[rot]
+    raise ValueError(f"unsupported rotation enum {rot}")
 
 
 def detect_autopilot(params: dict[str, float]) -> str | None:

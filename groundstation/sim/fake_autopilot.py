@@ -85,6 +85,7 @@ class _CompassCal:
     def __init__(self, tolerance_mG: float, offs_max_mG: float) -> None:
         self.tolerance_mG, self.offs_max_mG = tolerance_mG, offs_max_mG
         self.samples: list[np.ndarray] = []
+        self._stacked: np.ndarray | None = None      # self.samples as one array, made again after a change
         self.status, self.thinned, self.radius = 2, 0, 200.0
         self.offsets, self.softiron = np.zeros(3), np.eye(3)
         self.sections: set[int] = set()
@@ -102,7 +103,9 @@ class _CompassCal:
     def _accept(self, v: np.ndarray) -> bool:
         if not self.samples:
             return True
-        d = np.linalg.norm(np.asarray(self.samples) - v, axis=1)
+        if self._stacked is None or len(self._stacked) != len(self.samples):
+            self._stacked = np.asarray(self.samples)
+        d = np.linalg.norm(self._stacked - v, axis=1)
         return bool(d.min() >= self.radius * 2 * math.sin(_THETA / 2))
 
     def _mark(self, vs: np.ndarray) -> None:
@@ -133,6 +136,7 @@ class _CompassCal:
                     kept.append(v)
             self.thinned = len(self.samples) - len(kept)
             self.samples, self.status, self.sections = kept, 3, set()
+            self._stacked = None
             self._mark(np.asarray(kept))
             return
         residual = self.radius - np.linalg.norm((np.asarray(self.samples) + self.offsets) @ S.T, axis=1)
