@@ -81,12 +81,31 @@ def test_a_state_that_changes_nothing_writes_nothing(shared_station, new_page):
       window.__written = [];
       new MutationObserver((list) => { for (const m of list)
         if (!m.target.closest || !m.target.closest('canvas')) window.__written.push((m.target.id || (m.target.parentElement && m.target.parentElement.id) || m.target.nodeName) + ':' + m.type); })
-        .observe(document.body, { childList: true, characterData: true, subtree: true });
+        .observe(document.body, { childList: true, characterData: true, subtree: true, attributes: true });
     }""")
     assert api(st, "GET", "/api/state")["replay"]["paused"]
     page.wait_for_timeout(5500)                     # 11 or more states pushed, every list reloaded
     written = page.evaluate("window.__written")
     assert written == [], sorted(set(written))[:20]
+
+
+def test_the_calibration_page_writes_nothing_when_nothing_changed(shared_station, new_page):
+    """The calibration page renders every state it draws as the station page does: with the replay
+    paused and the wizard idle, the states it receives change nothing, and it writes nothing."""
+    st = shared_station
+    page = new_page()
+    replay(st, "demo.tlog", seek=150.0)
+    open_page(page, st, "/calibrate.html")
+    page.wait_for_selector("#instruction:has-text('press Start')")
+    page.wait_for_timeout(1500)
+    page.evaluate("""() => { window.__written = [];
+      new MutationObserver((list) => { for (const m of list)
+        if (!m.target.closest || !m.target.closest('canvas')) window.__written.push((m.target.id || (m.target.parentElement && m.target.parentElement.id) || m.target.nodeName) + ':' + m.type); })
+        .observe(document.body, { childList: true, characterData: true, subtree: true, attributes: true }); }""")
+    assert api(st, "GET", "/api/state")["replay"]["paused"]
+    page.wait_for_timeout(4000)                     # 8 or more states pushed
+    written = page.evaluate("window.__written")
+    assert written == [], sorted(set(written))[:60]
 
 
 def test_the_page_draws_at_most_20_states_a_second_and_the_newest_last(shared_station, new_page):

@@ -62,9 +62,9 @@ const CORRECTION_TEXT = { station: "station-corrected", autopilot: "autopilot-co
 // signing counts, forwarding outputs, compass parameters another station changed.
 function renderLink(s) {
   const v = s.vehicles, live = s.source.kind === "live";
-  $("link-panel").hidden = !live || !v;
+  setProp($("link-panel"), "hidden", !live || !v);
   if (!live || !v) return;
-  $("passive-note").hidden = !v.passive;
+  setProp($("passive-note"), "hidden", !v.passive);
   setText($("passive-note"), v.passive ? "Listening only (" + (v.passive_reason || "passive mode") +
     "): MagStation sends nothing to the vehicle. Calibration writes need the active mode, or export the " +
     ".param file and load it with the other ground station." : "");
@@ -87,7 +87,7 @@ function renderLink(s) {
     const cells = [x.sysid + (x.sysid === v.selected ? " ●" : ""), x.kind, x.type || "—", x.autopilot || "—",
       fmt(x.rate_hz, 0, " /s"), fmt(x.loss_pct, 1, " %"), fmt(x.last_seen_s, 1, " s ago")];
     cells.forEach((text, i) => setText(tr.cells[i], text));
-    tr.cells[7].firstChild.hidden = !(x.kind === "vehicle" && x.sysid !== v.selected);
+    setProp(tr.cells[7].firstChild, "hidden", !(x.kind === "vehicle" && x.sysid !== v.selected));
   }
   const extra = [];
   if (v.signing && v.signing.on) extra.push("signing on (key " + v.signing.key_id + "): " + v.signing.good +
@@ -110,21 +110,21 @@ function render(s) {
     " — analysis " + fmt(s.reorder_delay_s, 1) + " s behind (late packets put back in time order)" : ""));
   const b = $("alarm-banner");
   if (s.alarm.active) {
-    b.className = "banner alarm";
+    setProp(b, "className", "banner alarm");
     setText(b, "MAGNETIC INTERFERENCE ALARM" + (s.alarm.evidence_text ? ": " + s.alarm.evidence_text : "") +
       (s.alarm.since_s !== null ? " (since " + fmt(s.alarm.since_s, 1) + " s)" : ""));
-  } else { b.className = "banner ok"; setText(b, s.analysing ? "Analysing the log…" : "No interference alarm"); }
+  } else { setProp(b, "className", "banner ok"); setText(b, s.analysing ? "Analysing the log…" : "No interference alarm"); }
   renderVehicle(s);
   renderTests(s.tests);
   renderReplay(s);
-  $("pending").hidden = !s.source.pending;
+  setProp($("pending"), "hidden", !s.source.pending);
   setText($("pending"), s.source.pending ? "connecting to " + s.source.pending + ": " + s.source.name +
     " goes on until the first packet arrives (Stop cancels)" : "");
   renderLink(s);
   renderInUse(s);
   setText($("line-text"), s.line ? "A " + s.line.a.map((x) => x.toFixed(6)).join(", ") + " → B " +
     s.line.b.map((x) => x.toFixed(6)).join(", ") + " (" + s.line.source + ")" : "none: no path-deviation test");
-  $("line-clear").disabled = !s.line;
+  setProp($("line-clear"), "disabled", !s.line);
   setText($("alarm-count"), s.alarm_count);
   const d = s.downloads;
   setText($("dl-log"), d.log ? "session log (" + d.log + ")" : "session log (none yet)");
@@ -149,10 +149,10 @@ function renderVehicle(s) {
   setText($("v-xt"), fmt(v.cross_track_m, 2, " m"));
   setText($("v-field"), fmt(v.field_mG, 0, " mG") + " / " + fmt(v.inclination_deg, 1, "°"));
   setText($("v-cal"), CORRECTION_TEXT[t.field_correction.kind] || t.field_correction.kind);
-  $("v-cal").title = t.field_correction.note;
+  setProp($("v-cal"), "title", t.field_correction.note);
   setText($("v-pos"), v.lat_deg === null ? "—" : fmt(v.lat_deg, 6) + ", " + fmt(v.lon_deg, 6) + " / " + (v.fix_name || "fix " + v.fix_type));
   const untrusted = t.heading.state === "off" && t.field_correction.kind !== "none" && s.source.kind !== "none";
-  $("heading-caveat").hidden = !untrusted;
+  setProp($("heading-caveat"), "hidden", !untrusted);
   setText($("heading-caveat"), untrusted ? "⚠ Heading test off: " + t.heading.why + "." : "");
   document.querySelector("#vehicle tr.hdg").classList.toggle("untrusted", untrusted);
 }
@@ -161,22 +161,22 @@ function renderTests(tests) {
   for (const row of document.querySelectorAll("#tests tr")) {
     const st = tests[row.dataset.test];
     setText(row.querySelector(".state"), STATE_TEXT[st.state] || st.state);
-    row.querySelector(".state").className = "state " + st.state;
+    setProp(row.querySelector(".state"), "className", "state " + st.state);
     setText(row.querySelector(".why"), st.why);
   }
 }
 
 function renderReplay(s) {
   const r = s.replay;
-  $("replay-controls").hidden = !r;
+  setProp($("replay-controls"), "hidden", !r);
   if (!r) { timelineKey = null; return; }
   if (s.source.name !== lastReplayed) {         // what plays changed: the list selects it
     lastReplayed = selected = s.source.name;
     for (const row of $("recordings").querySelectorAll("tr[data-name]")) row.classList.toggle("selected", row.dataset.name === selected);
   }
   setText($("pause"), r.paused ? "Resume" : "Pause");
-  $("seek").max = r.duration_s;
-  if (!seeking) $("seek").value = r.t_s;
+  setProp($("seek"), "max", String(r.duration_s));
+  if (!seeking) setProp($("seek"), "value", String(r.t_s));
   setText($("replay-time"), fmt(r.t_s, 1) + " / " + fmt(r.duration_s, 1) + " s ×" + r.speed + (r.finished ? " (finished)" : "") + (r.reading ? " (reading the rest of the log…)" : ""));
   const key = s.source.name + "|" + s.analysing + "|" + r.duration_s + "|" + s.alarm_count + "|" + (s.line ? s.line.a + s.line.b : "");
   if (key !== timelineKey && !s.analysing) { timelineKey = key; loadTimeline(); }
@@ -250,7 +250,7 @@ async function loadRecordings() {
     <td>${fmtDate(r.start_unix_s)}</td><td>${fmtSize(r.size_bytes)}</td>
     <td>${escapeHtml(r.error ? "unreadable" : (r.vehicle || "—"))}</td><td>${r.compasses === null ? "—" : r.compasses}</td></tr>`).join("");
   setHtml(tb, html);                 // unchanged: leave the rows (clicks, hover) alone
-  $("replay").disabled = !selected;
+  setProp($("replay"), "disabled", !selected);
 }
 
 $("recordings").onclick = (ev) => {
@@ -258,7 +258,7 @@ $("recordings").onclick = (ev) => {
   if (!tr) return;
   selected = tr.dataset.name;
   for (const row of $("recordings").querySelectorAll("tr[data-name]")) row.classList.toggle("selected", row === tr);
-  $("replay").disabled = false;
+  setProp($("replay"), "disabled", false);
 };
 
 function guarded(errId, fn) {
@@ -315,7 +315,7 @@ function renderInUse(s) {
   setText($("cal-in-use"), c.source === "none" ? "none: the field as the autopilot sent it" +
     (c.airframe ? " (" + c.airframe + ")" : "") : c.label + " — " + c.frame + (c.note ? "; " + c.note : "") +
     " [" + c.source + (c.airframe ? ", " + c.airframe : "") + "]" + (c.applied ? ". " + c.applied : ""));
-  $("cal-in-use").dataset.source = c.source;
+  if ($("cal-in-use").dataset.source !== c.source) $("cal-in-use").dataset.source = c.source;
   const key = s.source.name + "|" + c.source + "|" + c.label + "|" + (s.wizard && s.wizard.state);
   if (key !== inUseKey) { inUseKey = key; loadInUseOptions().catch(() => { inUseKey = null; }); }
 }

@@ -8,7 +8,7 @@ let modeChosen = false;        // the operator picked a mode after a run: the ra
 let discardAsked = null;       // "start" | "reset" | "redo" waiting for the operator's yes
 
 function vec(v, d = 1) { return v ? "[" + v.map((x) => fmt(x, d)).join(", ") + "]" : "—"; }
-function show(id, on) { $(id).hidden = !on; }
+function show(id, on) { setProp($(id), "hidden", !on); }
 function pct(f) { return Math.floor(100 * (f || 0)) + " %"; }     // floored: never shows a target reached early
 function cap(s) { return s ? s[0].toUpperCase() + s.slice(1) : s; }
 
@@ -26,8 +26,8 @@ function renderControl(w) {
   const running = w.state === "running";
   if (running) modeChosen = false;
   document.querySelectorAll("#modes input").forEach((r) => {
-    r.disabled = running;
-    if (w.state !== "idle" && !modeChosen) r.checked = r.value === w.mode;
+    setProp(r, "disabled", running);
+    if (w.state !== "idle" && !modeChosen) setProp(r, "checked", r.value === w.mode);
   });
   const again = w.state !== "idle" && !running;
   setText($("start"), again ? "Start over" : "Start");
@@ -41,12 +41,12 @@ function renderControl(w) {
   $("instruction").classList.toggle("failed", !!hc && hc.verdict === "fail");
   const b = w.banner;
   show("banner", !!b);
-  if (b) { $("banner").className = "cal-banner " + b.level; $("banner").textContent = b.text; }
+  if (b) { setProp($("banner"), "className", "cal-banner " + b.level); setText($("banner"), b.text); }
   show("hint", !!w.hint);
   setText($("hint"), w.hint || "");
   setHtml($("warnings"), w.warnings.map((t) => `<div>⚠ ${escapeHtml(t)}</div>`).join(""));
-  $("start").disabled = w.state === "running";
-  $("finish").disabled = w.state !== "running" || w.mode === "fixed_yaw";
+  setProp($("start"), "disabled", w.state === "running");
+  setProp($("finish"), "disabled", w.state !== "running" || w.mode === "fixed_yaw");
   const primary = w.compasses.find((c) => c.index === 0);
   // the field: fitted (a result), live (a trusted running fit) or preliminary (an early one)
   const fitted = w.result && w.result.status === "ok" && w.result.field_strength_mG;
@@ -79,7 +79,7 @@ function renderSteps(w) {
   const target = w.turn_target_deg - w.settings.turn_tolerance_deg;
   document.querySelectorAll("#steps li").forEach((li) => {
     const step = li.dataset.step, i = ORDER.indexOf(step);
-    li.className = w.state === "idle" || w.waiting_for ? "" : (i < cur ? "done" : (i === cur ? (w.paused ? "current paused" : "current") : ""));
+    setProp(li, "className", w.state === "idle" || w.waiting_for ? "" : (i < cur ? "done" : (i === cur ? (w.paused ? "current paused" : "current") : "")));
     const bar = li.querySelector(".bar"), deg = li.querySelector(".deg");
     if (!bar) return;
     let frac, text;
@@ -92,14 +92,15 @@ function renderSteps(w) {
       text = frac >= 1 ? "✓ full turn (" + fmt(d, 0) + "°, within " + fmt(w.settings.turn_tolerance_deg, 0) + "° of 360°)" :
         fmt(d, 0) + "° of " + fmt(w.turn_target_deg, 0) + "°";
     }
-    bar.className = "bar" + (frac >= 1 ? " done" : "");
-    bar.firstElementChild.style.width = Math.min(100, 100 * frac) + "%";
-    deg.textContent = text;
+    setProp(bar, "className", "bar" + (frac >= 1 ? " done" : ""));
+    const width = Math.min(100, 100 * frac) + "%";
+    if (bar.firstElementChild.style.width !== width) bar.firstElementChild.style.width = width;
+    setText(deg, text);
   });
   const p = w.next_pose;
   show("next-pose", !!p);
-  if (p) $("next-pose").textContent = "That pose fills " + p.fills + " of the " + p.missing +
-    " directions still missing (grey on the sphere).";
+  if (p) setText($("next-pose"), "That pose fills " + p.fills + " of the " + p.missing +
+    " directions still missing (grey on the sphere).");
 }
 
 function compassRow(c, w) {
@@ -168,8 +169,8 @@ function renderOnboard(w) {
       `<td>${r ? fmt(r.fitness_mG, 1) : "—"} / ${cmp ? fmt(cmp.our_fitness_mG, 1) : "—"} mG</td></tr>`);
   });
   setHtml($("onboard-table"), rows.join("") + `<tr><td colspan="4" class="muted small">${escapeHtml(ob.message)}</td></tr>`);
-  $("ob-accept").disabled = ob.state !== "reported";
-  $("ob-cancel").disabled = !["starting", "running", "reported"].includes(ob.state);
+  setProp($("ob-accept"), "disabled", ob.state !== "reported");
+  setProp($("ob-cancel"), "disabled", !["starting", "running", "reported"].includes(ob.state));
 }
 
 function renderResult(w, vehicleAutopilot) {
@@ -177,7 +178,7 @@ function renderResult(w, vehicleAutopilot) {
   show("result-card", !!r);
   if (!r) return;
   setText($("result-status"), r.status);
-  $("result-status").className = r.status === "ok" ? "good" : "error";
+  setProp($("result-status"), "className", r.status === "ok" ? "good" : "error");
   setText($("result-message"), r.status === "ok" ? (r.consistency_warning || "") : (r.message || ""));
   const px4 = (vehicleAutopilot || w.result.autopilot || "ardupilot") === "px4";
   const rows = [`<tr><th>#</th><th>Offsets b (mG)</th><th>${px4 ? "CAL_MAGn_x/y/zOFF (G)" : "COMPASS_OFSn_X/Y/Z"}</th>` +
@@ -194,9 +195,9 @@ function renderResult(w, vehicleAutopilot) {
   });
   setHtml($("result-table"), rows.join(""));
   const pw = w.param_write;
-  $("accept").disabled = r.status !== "ok" || (pw && ["checking", "writing", "written"].includes(pw.state));
+  setProp($("accept"), "disabled", r.status !== "ok" || (pw && ["checking", "writing", "written"].includes(pw.state)));
   setText($("accept"), pw && pw.state === "failed" ? "Retry the write" : "Accept and write");
-  $("export").disabled = r.status !== "ok";
+  setProp($("export"), "disabled", r.status !== "ok");
   const obAcceptable = w.onboard && w.onboard.state === "reported";     // one primary action at a time
   $("accept").classList.toggle("primary", !$("accept").disabled && !obAcceptable);
 }
@@ -208,13 +209,13 @@ function renderAfter(w) {
   show("after-card", on);
   if (!on) return;
   const waiting = rb && ["sent", "waiting"].includes(rb.state);
-  $("reboot").disabled = waiting;
+  setProp($("reboot"), "disabled", waiting);
   show("reboot-confirm", rebootAsked && !waiting);
   setText($("reboot-text"), rb ? rb.message : "");
   const measuring = hc && hc.state === "measuring";
-  $("hc-measure").disabled = measuring || waiting;
-  $("hc-walk").disabled = measuring || waiting;
-  $("hc-walk-stop").disabled = !(measuring && hc.kind === "walk");
+  setProp($("hc-measure"), "disabled", measuring || waiting);
+  setProp($("hc-walk"), "disabled", measuring || waiting);
+  setProp($("hc-walk-stop"), "disabled", !(measuring && hc.kind === "walk"));
   let html = "";
   if (hc && hc.result) {
     const r = hc.result;
@@ -230,8 +231,8 @@ function renderFixed(w) {
   if (w.mode !== "fixed_yaw") return;
   const fy = w.fixed_yaw, hc = w.heading_check;
   const walking = hc && hc.state === "measuring";
-  $("fy-walk").disabled = walking; $("fy-walk-stop").disabled = !walking;
-  $("fy-gps").disabled = !(hc && hc.result && hc.result.reference_deg !== undefined);
+  setProp($("fy-walk"), "disabled", walking); setProp($("fy-walk-stop"), "disabled", !walking);
+  setProp($("fy-gps"), "disabled", !(hc && hc.result && hc.result.reference_deg !== undefined));
   setText($("fy-walk-text"), hc ? (walking ? "walking… " + fmt(hc.distance_m, 1) + " m" :
     (hc.result && hc.result.reference_deg !== undefined ? "GPS course " + fmt(hc.result.reference_deg, 1) + "° over " + fmt(hc.result.distance_m, 1) + " m" :
       (hc.result ? hc.result.message : ""))) : "");

@@ -52,6 +52,12 @@ function setText(el, value) {
   if (el.textContent !== text) el.textContent = text;
 }
 function setHtml(el, html) { if (lastHtml.get(el) !== html) { lastHtml.set(el, html); el.innerHTML = html; } }
+// A property (hidden, disabled, className, checked...) set only when it differs: writing the same
+// value still writes the attribute, and the browser re-styles the element for it.
+function setProp(el, name, value) {
+  if (typeof el[name] === "boolean") value = !!value;
+  if (el[name] !== value) el[name] = value;
+}
 
 // The pages draw a state at most this often. The station pushes up to 50 states a second (the
 // live latency is measured at the push); text and tables drawn 20 times a second read the same to
