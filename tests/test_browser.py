@@ -64,6 +64,15 @@ def test_headings_shown_in_0_360(shared_station, new_page):
         assert values and all(0.0 <= v < 360.0 for v in values), (t, text)
 
 
+def _record_writes(page) -> None:
+    """From now on, ``window.__written`` lists every write to the page outside its canvases (text,
+    markup, attributes) as "id:kind", the id of the element or of its parent."""
+    page.evaluate("""() => { window.__written = [];
+      new MutationObserver((list) => { for (const m of list)
+        if (!m.target.closest || !m.target.closest('canvas')) window.__written.push((m.target.id || (m.target.parentElement && m.target.parentElement.id) || m.target.nodeName) + ':' + m.type); })
+        .observe(document.body, { childList: true, characterData: true, subtree: true, attributes: true }); }""")
+
+
 def test_a_state_that_changes_nothing_writes_nothing(shared_station, new_page):
     """A state arrives up to 50 times a second and each render sets the whole page: text and
     markup that did not change are not written again (rewriting them made the browser lay out and
@@ -77,12 +86,8 @@ def test_a_state_that_changes_nothing_writes_nothing(shared_station, new_page):
     page.wait_for_timeout(1500)                     # the seek's own state and the plots settle
     page.evaluate("""async () => {
       await loadRecordings();       // once with the replayed recording selected, as the timers do
-      await refreshAlarms();
-      window.__written = [];
-      new MutationObserver((list) => { for (const m of list)
-        if (!m.target.closest || !m.target.closest('canvas')) window.__written.push((m.target.id || (m.target.parentElement && m.target.parentElement.id) || m.target.nodeName) + ':' + m.type); })
-        .observe(document.body, { childList: true, characterData: true, subtree: true, attributes: true });
-    }""")
+      await refreshAlarms(); }""")
+    _record_writes(page)
     assert api(st, "GET", "/api/state")["replay"]["paused"]
     page.wait_for_timeout(5500)                     # 11 or more states pushed, every list reloaded
     written = page.evaluate("window.__written")
@@ -98,10 +103,7 @@ def test_the_calibration_page_writes_nothing_when_nothing_changed(shared_station
     open_page(page, st, "/calibrate.html")
     page.wait_for_selector("#instruction:has-text('press Start')")
     page.wait_for_timeout(1500)
-    page.evaluate("""() => { window.__written = [];
-      new MutationObserver((list) => { for (const m of list)
-        if (!m.target.closest || !m.target.closest('canvas')) window.__written.push((m.target.id || (m.target.parentElement && m.target.parentElement.id) || m.target.nodeName) + ':' + m.type); })
-        .observe(document.body, { childList: true, characterData: true, subtree: true, attributes: true }); }""")
+    _record_writes(page)
     assert api(st, "GET", "/api/state")["replay"]["paused"]
     page.wait_for_timeout(4000)                     # 8 or more states pushed
     written = page.evaluate("window.__written")

@@ -315,7 +315,7 @@ function renderInUse(s) {
   setText($("cal-in-use"), c.source === "none" ? "none: the field as the autopilot sent it" +
     (c.airframe ? " (" + c.airframe + ")" : "") : c.label + " — " + c.frame + (c.note ? "; " + c.note : "") +
     " [" + c.source + (c.airframe ? ", " + c.airframe : "") + "]" + (c.applied ? ". " + c.applied : ""));
-  if ($("cal-in-use").dataset.source !== c.source) $("cal-in-use").dataset.source = c.source;
+  setProp($("cal-in-use").dataset, "source", c.source);
   const key = s.source.name + "|" + c.source + "|" + c.label + "|" + (s.wizard && s.wizard.state);
   if (key !== inUseKey) { inUseKey = key; loadInUseOptions().catch(() => { inUseKey = null; }); }
 }

@@ -93,8 +93,7 @@ function renderSteps(w) {
         fmt(d, 0) + "° of " + fmt(w.turn_target_deg, 0) + "°";
     }
     setProp(bar, "className", "bar" + (frac >= 1 ? " done" : ""));
-    const width = Math.min(100, 100 * frac) + "%";
-    if (bar.firstElementChild.style.width !== width) bar.firstElementChild.style.width = width;
+    setProp(bar.firstElementChild.style, "width", Math.min(100, 100 * frac) + "%");
     setText(deg, text);
   });
   const p = w.next_pose;

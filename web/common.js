@@ -52,8 +52,8 @@ function setText(el, value) {
   if (el.textContent !== text) el.textContent = text;
 }
 function setHtml(el, html) { if (lastHtml.get(el) !== html) { lastHtml.set(el, html); el.innerHTML = html; } }
-// A property (hidden, disabled, className, checked...) set only when it differs: writing the same
-// value still writes the attribute, and the browser re-styles the element for it.
+// A property (hidden, disabled, className, a dataset or style entry...) set only when it differs:
+// writing the same value writes the attribute again (a DOM mutation for nothing).
 function setProp(el, name, value) {
   if (typeof el[name] === "boolean") value = !!value;
   if (el[name] !== value) el[name] = value;
