@@ -13,8 +13,9 @@ The binary logs are decoded column-wise with numpy (tlog.py, mavlink_bulk.py, da
 pymavlink defines the messages (MAVLink payload layouts, DataFlash FMT records through DFReader's
 index), every record of a type is one structured array, and the unit conversions are the numpy
 functions the live decoder calls too (decode.py, dataflash_messages.py), so a log read here gives
-the numbers the per-message path gives (tests/test_ingest_vectorised.py).  ``read_log`` returns
-the whole FlightLog; there is no chunked API yet.
+the numbers the per-message path gives (tests/test_ingest_vectorised.py).  The .tlog reader
+frames and decodes a window of the file at a time (its temporaries and the file's pages bounded),
+but ``read_log`` returns the whole FlightLog: no consumer streams yet.
 """
 from __future__ import annotations
 

@@ -49,11 +49,12 @@ _SCALED = {_ID["RAW_IMU"]: 0, _ID["SCALED_IMU"]: 10, _ID["SCALED_IMU2"]: 11, _ID
 
 
 class _Records:
-    """The good records of one .tlog as columns (record order): start offset, message id, payload
-    offset and length, source system, arrival time [s] on the log's time base."""
+    """A run of good records of one .tlog as columns (record order): start offset, message id,
+    payload offset and length, source system, arrival time [s] on the log's time base.  Rows are
+    numbered within the run; ``base`` is the number of its first record in the log."""
 
-    def __init__(self, data: np.ndarray, starts: np.ndarray, arrival: np.ndarray) -> None:
-        self.data, self.start, self.arrival = data, starts, arrival
+    def __init__(self, data: np.ndarray, starts: np.ndarray, arrival: np.ndarray, base: int = 0) -> None:
+        self.data, self.start, self.arrival, self.base = data, starts, arrival, base
         v2 = data[starts + 8] == 0xFD
         self.v2 = v2
         self.id = msg_ids(data, starts, v2).astype(np.int32)
@@ -88,21 +89,36 @@ class _Records:
         return out
 
 
+_NOT_YET = np.iinfo(np.int64).max     # a record number after every record: not seen yet
+
+
 class _ColumnDecoder:
-    """``MavlinkDecoder``'s rules applied to whole columns of one log (its per-message state, the
-    vehicle, the boot clock, the last GPS fix, the units judged, found with searchsorted over the
-    record order).  Tables go to the builder as arrays, events (statuses, parameters, offsets) as
+    """``MavlinkDecoder``'s rules applied to whole columns of a log, one run of records at a time
+    (``run``, in record order; ``finish`` once after the last).  What a rule needs from earlier
+    records is carried from run to run, so any cut gives the same log: the vehicle (its first
+    autopilot heartbeat), the boot clock, the lag of the last boot-timed record, the last GPS fix
+    and position, each magnetometer source's unit (judged at its first non-zero sample).  Tables go to the builder as arrays, events (statuses, parameters, offsets) as
     samples in record order."""
 
-    def __init__(self, rec: _Records, builder: LogBuilder) -> None:
-        self.rec, self.builder = rec, builder
+    def __init__(self, builder: LogBuilder) -> None:
+        self.builder = builder
         self.warnings: Counter = Counter()
+        self.counts: Counter = Counter()
         self.autopilot: str | None = None
         self.events: list[tuple[int, object]] = []
-        self.tables: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {
+        self.tables: dict[str, list[np.ndarray]] = {
             "mag": [], "imu": [], "attitude": [], "gps": [], "battery": [], "throttle": []}
         self.vehicle: int | None = None
-        self.h0 = len(rec.start)
+        self.h0 = _NOT_YET                       # the first autopilot heartbeat's record
+        self.start_row, self.start_unix = _NOT_YET, None      # the first SYSTEM_TIME with a UNIX time
+        self.clock = BootClock()
+        self.lag_before = 0.0                    # the clock's lag after the last boot-timed record
+        self.last_gps: tuple[float, int] | None = None    # (time, fix type) of the last GPS_RAW_INT
+        self.last_place: tuple[float, float, float] | None = None
+        self.mag_scale: dict[int, float] = {}    # magnetometer source -> its judged unit [mG per unit]
+        self.parser = mavlink2.MAVLink(None)
+        self.parser.robust_parsing = True
+        self.packet_decoder = MavlinkDecoder()
 
     # ---------------------------------------------------------------- helpers
     def accepted(self, msg_id: int) -> np.ndarray:
@@ -111,22 +127,27 @@ class _ColumnDecoder:
         rows = self.rec.rows(msg_id)
         if self.vehicle is None:
             return rows
-        return rows[(rows < self.h0) | (self.rec.sysid[rows] == self.vehicle)]
+        return rows[(rows + self.rec.base < self.h0) | (self.rec.sysid[rows] == self.vehicle)]
 
     def table(self, name: str, rows: np.ndarray, *columns) -> None:
         if len(rows):
-            self.tables[name].append(column_table(rows, *columns))
+            self.run_parts[name].append(column_table(rows, *columns))
 
     # ---------------------------------------------------------------- run
-    def run(self) -> None:
-        rec = self.rec
+    def run(self, rec: _Records) -> None:
+        """Decode one run of records (the next after the previous run's)."""
+        self.rec = rec
+        self.run_parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {name: [] for name in self.tables}
+        self.counts.update(rec.counts())
         self._heartbeats()
         self._per_packet()
-        st = self.accepted(_ID["SYSTEM_TIME"])
-        usec = rec.fields(_ID["SYSTEM_TIME"], st)["time_unix_usec"]
-        ok = np.flatnonzero(usec > 1e15)
-        self.start_row = int(st[ok[0]]) if len(ok) else len(rec.start)
-        self.start_unix = float(usec[ok[0]]) * 1e-6 - float(rec.arrival[st[ok[0]]]) if len(ok) else None
+        if self.start_row == _NOT_YET:
+            st = self.accepted(_ID["SYSTEM_TIME"])
+            usec = rec.fields(_ID["SYSTEM_TIME"], st)["time_unix_usec"]
+            ok = np.flatnonzero(usec > 1e15)
+            if len(ok):
+                self.start_row = int(st[ok[0]]) + rec.base
+                self.start_unix = float(usec[ok[0]]) * 1e-6 - float(rec.arrival[st[ok[0]]])
         times = self._clock()
         self._gps_raw()
         self._scaled(times)
@@ -140,44 +161,46 @@ class _ColumnDecoder:
         sys = self.accepted(_ID["SYS_STATUS"])
         amps, valid = dec.sys_status_current_A(rec.fields(_ID["SYS_STATUS"], sys)["current_battery"])
         self.table("battery", sys[valid], self._sent(sys[valid]), amps[valid])
-        self._finish()
+        for name, parts in self.run_parts.items():
+            if parts:
+                self.tables[name].append(in_record_order(parts))
+        del self.rec, self.run_parts, self.parts, self.sent_rows, self.sent_lag, self.usec_rows, self.no_boot_time
 
     def _heartbeats(self) -> None:
         rows = self.rec.rows(_ID["HEARTBEAT"])
         f = self.rec.fields(_ID["HEARTBEAT"], rows)
         autopilot_hb = (f["type"] != dec.MAV_TYPE_GCS) & (f["autopilot"] != 8)     # 8: MAV_AUTOPILOT_INVALID
-        first = np.flatnonzero(autopilot_hb)
-        if not len(first):
-            return
-        self.h0 = int(rows[first[0]])
-        self.vehicle = int(self.rec.sysid[self.h0])
+        if self.vehicle is None:
+            first = np.flatnonzero(autopilot_hb)
+            if not len(first):
+                return
+            self.h0 = int(rows[first[0]]) + self.rec.base
+            self.vehicle = int(self.rec.sysid[rows[first[0]]])
         mine = autopilot_hb & (self.rec.sysid[rows] == self.vehicle)
         names = {dec.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot", dec.MAV_AUTOPILOT_PX4: "px4"}
         for r, ap in zip(rows[mine].tolist(), f["autopilot"][mine].tolist()):
             name = names.get(ap)
             if name and name != self.autopilot:
                 self.autopilot = name
-                self.events.append((r, StatusSample(float(self.rec.arrival[r]), "autopilot", name)))
+                self.events.append((r + self.rec.base, StatusSample(float(self.rec.arrival[r]), "autopilot", name)))
 
     def _per_packet(self) -> None:
         rows = np.sort(np.concatenate([self.rec.rows(i) for i in _PER_PACKET]))
         self.param_rows = self.rec.rows(_ID["PARAM_VALUE"])
-        parser = mavlink2.MAVLink(None)
-        parser.robust_parsing = True
-        decoder = MavlinkDecoder()
+        decoder, base = self.packet_decoder, self.rec.base
         for r in rows.tolist():
-            msg = _decode(parser.decode, self.rec.packet(r))
+            msg = _decode(self.parser.decode, self.rec.packet(r))
             if msg is None:
                 self.warnings[CORRUPT] += 1
                 continue
-            decoder.vehicle_sysid = self.vehicle if r > self.h0 else None
+            decoder.vehicle_sysid = self.vehicle if r + base > self.h0 else None
             for s in decoder.decode(msg, float(self.rec.arrival[r])):
-                self.events.append((r, s))
-        self.warnings.update(decoder.warnings)
+                self.events.append((r + base, s))
 
     def _gps_raw(self) -> None:
         rows = self.accepted(_ID["GPS_RAW_INT"])
         f = self.rec.fields(_ID["GPS_RAW_INT"], rows)
+        self.gps_before, self.place_before_run = self.last_gps, self.last_place
         self.gps_rows, self.gps_fix = rows, f["fix_type"].astype(np.int64)
         use = (f["fix_type"] >= 2) & ~((f["lat"] == 0) & (f["lon"] == 0))
         g = f[use]
@@ -185,6 +208,10 @@ class _ColumnDecoder:
         self.place_rows, self.place = rows[use], np.column_stack([lat, lon, alt]) if len(g) else np.empty((0, 3))
         self.gps_t = self._sent(rows)
         self.table("gps", rows[use], self.gps_t[use], lat, lon, alt, vn, ve, vd, g["fix_type"])
+        if len(rows):
+            self.last_gps = (float(self.gps_t[-1]), int(self.gps_fix[-1]))
+        if len(g):
+            self.last_place = tuple(float(v) for v in self.place[-1])
 
     def _clock(self) -> dict[int, np.ndarray]:
         """Boot-clock times of every message that has them, in record order through one clock
@@ -217,7 +244,7 @@ class _ColumnDecoder:
         t = np.empty(len(rows))
         on_clock_rows = rows[order]
         lag = self.rec.arrival[on_clock_rows]
-        times_in_order = BootClock().times(boot[order], lag)
+        times_in_order = self.clock.times(boot[order], lag)
         t[order] = times_in_order
         lag -= times_in_order                               # MavlinkDecoder's clock.lag_s after each
         del times_in_order, boot, order
@@ -226,7 +253,9 @@ class _ColumnDecoder:
             [self.accepted(_ID[name]) for name in ("GPS_RAW_INT", "SYS_STATUS", "VFR_HUD")]
             + [self.usec_rows[i][self.no_boot_time[i]] for i in self.usec_rows]))
         k = np.searchsorted(on_clock_rows, self.sent_rows) - 1
-        self.sent_lag = np.where(k >= 0, lag[np.maximum(k, 0)] if len(lag) else 0.0, 0.0)
+        self.sent_lag = np.where(k >= 0, lag[np.maximum(k, 0)] if len(lag) else 0.0, self.lag_before)
+        if len(lag):
+            self.lag_before = float(lag[-1])
         del on_clock_rows, lag, k
         out, k = {}, 0
         self.parts = {i: p[0] for i, p in parts.items()}
@@ -237,7 +266,7 @@ class _ColumnDecoder:
 
     def _sent(self, rows: np.ndarray) -> np.ndarray:
         """``MavlinkDecoder._sent`` of each row: its arrival less the lag of the last boot-timed
-        row before it (none yet: 0)."""
+        row before it (none yet: 0; before this run: the last run's)."""
         return self.rec.arrival[rows] - self.sent_lag[np.searchsorted(self.sent_rows, rows)]
 
     def _usec_times(self, msg_id: int, times: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -251,20 +280,24 @@ class _ColumnDecoder:
 
     def _place_before(self, r: int) -> tuple[float, float, float] | None:
         k = int(np.searchsorted(self.place_rows, r)) - 1
-        return None if k < 0 else tuple(float(v) for v in self.place[k])
+        return self.place_before_run if k < 0 else tuple(float(v) for v in self.place[k])
 
     def _judge(self, instance: int, rows: np.ndarray, t: np.ndarray, sent: np.ndarray, units) -> float | None:
-        """The scale of a magnetometer source judged at its first non-zero sample (the decoder's
-        ``judge_first_field``), its warning counted; None when every sample is zero."""
+        """The scale of a magnetometer source, judged at its first non-zero sample (the decoder's
+        ``judge_first_field``; its warning counted) and kept for the later runs; None while every
+        sample is zero."""
+        if instance in self.mag_scale:
+            return self.mag_scale[instance]
         nonzero = np.flatnonzero((sent != 0).any(axis=1))
         if not len(nonzero):
             return None
         k = int(nonzero[0])
         r = int(rows[k])
-        unit = dec.judge_first_field(instance, tuple(float(v) for v in sent[k]), units, float(t[k]),
-                                     self._place_before(r), self.start_unix if self.start_row < r else None)
+        unit = dec.judge_first_field(instance, tuple(float(v) for v in sent[k]), units, float(t[k]), self._place_before(r),
+                                     self.start_unix if self.start_row < r + self.rec.base else None)
         if not unit.plausible:
             self.warnings[f"{unit.source}: implausible magnetometer field ({unit.why})"] += 1
+        self.mag_scale[instance] = unit.scale_to_mG
         return unit.scale_to_mG
 
     def _scaled(self, times: dict[int, np.ndarray]) -> None:
@@ -331,9 +364,9 @@ class _ColumnDecoder:
         rows = self.parts[_ID["GLOBAL_POSITION_INT"]]
         f = self.rec.fields(_ID["GLOBAL_POSITION_INT"], rows)
         k = np.searchsorted(self.gps_rows, rows) - 1            # the last GPS_RAW_INT before each
-        last_t = np.where(k >= 0, self.gps_t[np.maximum(k, 0)] if len(self.gps_rows) else 0.0,
-                          -math.inf)
-        fix = np.where(k >= 0, self.gps_fix[np.maximum(k, 0)] if len(self.gps_rows) else 0, 3)
+        t0, fix0 = self.gps_before if self.gps_before is not None else (-math.inf, 3)
+        last_t = np.where(k >= 0, self.gps_t[np.maximum(k, 0)] if len(self.gps_rows) else 0.0, t0)
+        fix = np.where(k >= 0, self.gps_fix[np.maximum(k, 0)] if len(self.gps_rows) else 0, fix0)
         use = ~(t - last_t < 3.0) & ~((f["lat"] == 0) & (f["lon"] == 0))
         g = f[use]
         cols = dec.global_position_int_to_si(g["lat"], g["lon"], g["alt"], g["vx"], g["vy"], g["vz"])
@@ -342,7 +375,8 @@ class _ColumnDecoder:
     def _offsets(self) -> None:
         """SENSOR_OFFSETS: compass 0's offsets as history entries; a record repeating the previous
         one's values (with no PARAM_VALUE between, which could name the same parameter) adds
-        nothing to the history (``compact_history`` drops such repeats) and is skipped here."""
+        nothing to the history (``compact_history`` drops such repeats) and is skipped here (the
+        first of each run is kept: a repeat across runs is dropped by ``compact_history``)."""
         rows = self.accepted(_ID["SENSOR_OFFSETS"])
         f = self.rec.fields(_ID["SENSOR_OFFSETS"], rows)
         ofs = np.column_stack([f["mag_ofs_x"], f["mag_ofs_y"], f["mag_ofs_z"]])
@@ -350,13 +384,25 @@ class _ColumnDecoder:
         keep = np.ones(len(rows), dtype=bool)
         keep[1:] = (ofs[1:] != ofs[:-1]).any(axis=1) | (group[1:] != group[:-1])
         for r, v in zip(rows[keep].tolist(), ofs[keep].tolist()):
-            self.events.append((r, OffsetsSample(float(self.rec.arrival[r]), 0, tuple(float(x) for x in v), 1.0)))
+            self.events.append((r + self.rec.base,
+                                OffsetsSample(float(self.rec.arrival[r]), 0, tuple(float(x) for x in v), 1.0)))
 
-    def _finish(self) -> None:
-        for name, parts in self.tables.items():
-            if parts:
-                self.builder.set_table(name, in_record_order(parts))
-        self.tables.clear()
+    def finish(self) -> None:
+        """The tables (each run's rows, in record order) and the events to the builder."""
+        for name in list(self.tables):
+            parts = self.tables.pop(name)
+            if not parts:
+                continue
+            table = np.empty((sum(len(p) for p in parts), parts[0].shape[1]))
+            k = 0
+            while parts:                        # each run's rows freed once copied: one table's worth held
+                part = parts.pop(0)
+                table[k:k + len(part)] = part
+                k += len(part)
+            del part
+            self.builder.set_table(name, table)
+            del table
+        self.warnings.update(self.packet_decoder.warnings)
         self.events.sort(key=lambda e: e[0])
         for _, s in self.events:
             self.builder.add(s)

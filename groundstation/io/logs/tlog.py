@@ -1,10 +1,12 @@
 """MAVLink telemetry logs (.tlog): 8-byte big-endian UNIX microseconds + one MAVLink packet per record.
 
-``read_tlog`` (the FlightLog) decodes column-wise: the file is read once, every record is framed
-and CRC-checked in bulk (``frame_records``), each message id's payloads become one numpy
-structured array (``mavlink_bulk``) and the decoder's rules run on whole columns
-(``_ColumnDecoder``); corrupt stamps (``despike_times``) and a clock going back
-(``rebase_backwards``) are handled on the time column.  ``tlog_records`` yields (UNIX time,
+``read_tlog`` (the FlightLog) decodes column-wise with bounded temporaries: the file is mapped,
+its records are framed and CRC-checked in bulk a window at a time (``frame_records``), then
+decoded a run of records at a time (``DECODE_RECORDS``): each message id's payloads one numpy
+structured array (``mavlink_bulk``), the decoder's rules on the run's columns with what they need
+from earlier runs carried (``_ColumnDecoder``); the pages read are released as it goes, so the
+process holds the tables it builds, not the file.  Corrupt stamps (``despike_times``) and a clock
+going back (``rebase_backwards``) are handled on the time column (8 bytes a record).  ``tlog_records`` yields (UNIX time,
 pymavlink message) per record, streaming in bounded chunks (the station's replay and the
 recordings list); both frame the same records with the same resynchronisation after garbage
 (linear: candidate starts are found with numpy) and the same corrupt counts.
@@ -14,6 +16,8 @@ from __future__ import annotations
 import bisect
 import io
 import math
+import mmap
+import os
 import struct
 from collections import Counter
 from pathlib import Path
@@ -35,6 +39,7 @@ _PLAUSIBLE_UNIX_S = (946684800.0, 4102444800.0)  # 2000..2100
 _PLAUSIBLE_US = (int(_PLAUSIBLE_UNIX_S[0] * 1e6), int(_PLAUSIBLE_UNIX_S[1] * 1e6))
 MAX_RECORD = 8 + 10 + 255 + 2 + 13      # stamp + the largest MAVLink 2 packet (signed)
 CHUNK_BYTES = 1 << 18
+DECODE_RECORDS = 1 << 16                 # records decoded at once (read_tlog: bounds the temporaries)
 STAMP_JUMP_S = 60.0                      # a record this far from both neighbours has a corrupt stamp
 SPIKE = "timestamps corrupt (jumped away and back): replaced by the previous record's"
 
@@ -213,40 +218,51 @@ def _judge_block(data: np.ndarray, n: int, a: int, b: int) -> tuple[np.ndarray, 
     return pos, size.astype(np.int16), flags
 
 
-def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
+def frame_records(data: np.ndarray, n: int, warnings: Counter,
+                  release: Callable[[int], None] | None = None) -> np.ndarray:
     """Start offsets of the good records of a .tlog held in ``data[:n]``, the
     records ``tlog_records`` yields, with the same corrupt and truncation counts.
 
-    Every position whose byte 8 is a MAVLink magic is judged at once (``_judge_block``, a block
-    of the file at a time): stamp plausible, packet complete, message id known, X.25 CRC
-    (``mavlink_bulk.x25_crc_rows``, grouped by checked length).  A record chain is then followed:
-    from a good record the next is at start + 8 + size, and while the next good position is
-    exactly that one a whole run is taken at once; only where the chain breaks (garbage, a bad
-    CRC, a false start inside a payload) is it walked position by position with the rules of
-    ``tlog_records``: on the chain an unknown message id is a record (pymavlink decodes it as
-    UNKNOWN_n); after a failure the next candidate (plausible stamp, known id, a payload length
-    it can have) must have a good CRC; a plausible record cut off by the end stops the reading.
+    The file is framed a window (``_BLOCK`` bytes) at a time, so the temporaries are bounded:
+    every position of the window whose byte 8 is a MAVLink magic is judged at once
+    (``_judge_block``: stamp plausible, packet complete, message id known, X.25 CRC, grouped by
+    checked length).  A record chain is then followed: from a good record the next is at
+    start + 8 + size, and while the next good position is exactly that one a whole run is taken
+    at once; only where the chain breaks (garbage, a bad CRC, a false start inside a payload) is
+    it walked position by position with the rules of ``tlog_records``: on the chain an unknown
+    message id is a record (pymavlink decodes it as UNKNOWN_n); after a failure the next
+    candidate (plausible stamp, known id, a payload length it can have) must have a good CRC; a
+    plausible record cut off by the end stops the reading.  ``release(offset)`` is told when the
+    bytes before ``offset`` are no longer read.
     """
-    blocks = [_judge_block(data, n, a, a + _BLOCK) for a in range(0, max(n - 9, 0), _BLOCK)]
-    pos, size, flags = (np.concatenate([b[k] for b in blocks]) if blocks else np.empty(0, int) for k in range(3))
-    del blocks
-    plain = (flags & _PLAIN) != 0
-    chain = pos[plain]
-    after = chain + 8 + size[plain]
-    breaks = np.flatnonzero(after[:-1] != chain[1:])
-    candidates = pos[(flags & _CAND) != 0]
-    runs: list[tuple[int, int]] = []
+    starts: list[np.ndarray] = []
     i, searching, corrupt = 0, False, 0
+    lo = hi = 0                                  # the window judged: positions lo <= p < hi
+    judged_end = max(n - 9, 0)                   # positions judged: p < judged_end
     while True:
         if i + 10 > n:
             if i < n:
                 warnings[TRUNCATED] += 1
             break
+        if not lo <= i < hi:                     # the window holding i
+            lo = i - i % _BLOCK
+            if release is not None:
+                release(lo)
+            hi = lo + _BLOCK
+            pos, size, flags = _judge_block(data, n, lo, hi)
+            plain = (flags & _PLAIN) != 0
+            chain = pos[plain]
+            after = chain + 8 + size[plain]
+            breaks = np.flatnonzero(after[:-1] != chain[1:])
+            candidates = pos[(flags & _CAND) != 0]
         if searching:
             c = int(np.searchsorted(candidates, i))
             if c == len(candidates):
-                warnings[TRUNCATED] += 1
-                break
+                if hi >= judged_end:
+                    warnings[TRUNCATED] += 1
+                    break
+                i = hi                           # none in this window: search on in the next
+                continue
             i = int(candidates[c])
         k = int(np.searchsorted(pos, i))
         flag = int(flags[k]) if k < len(pos) and pos[k] == i else 0
@@ -257,7 +273,7 @@ def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
             j = int(np.searchsorted(chain, i))
             b = int(np.searchsorted(breaks, j))
             e = int(breaks[b]) if b < len(breaks) else len(chain) - 1
-            runs.append((j, e + 1))
+            starts.append(chain[j:e + 1])
             i, searching = int(after[e]), False
             continue
         corrupt += 1
@@ -265,7 +281,7 @@ def frame_records(data: np.ndarray, n: int, warnings: Counter) -> np.ndarray:
         searching = True
     if corrupt:
         warnings[CORRUPT] += corrupt
-    return np.concatenate([chain[a:b] for a, b in runs]) if runs else np.empty(0, dtype=np.int64)
+    return np.concatenate(starts) if starts else np.empty(0, dtype=np.int64)
 
 
 def despike_times(unix: np.ndarray, warnings: Counter, jump_s: float = STAMP_JUMP_S) -> np.ndarray:
@@ -335,10 +351,40 @@ def rebase_backwards(unix: np.ndarray, warnings: Counter) -> np.ndarray:
     return arrival
 
 
-def _read_file(path: Path) -> tuple[np.ndarray, int]:
-    """The file mapped read-only (the page cache holds it; no copy), and its length."""
-    n = path.stat().st_size
-    return (np.memmap(path, dtype=np.uint8, mode="r") if n else np.zeros(0, dtype=np.uint8)), n
+class _MappedFile:
+    """A file mapped read-only as bytes (``data``, its length ``n``; no copy, the page cache holds
+    it).  ``release(offset)`` drops the pages before ``offset`` from this process (they are read
+    again from the page cache if touched), so a reader that goes through the file once holds a
+    window of it, not the whole file."""
+
+    def __init__(self, path: Path) -> None:
+        with open(path, "rb") as f:
+            self.n = os.fstat(f.fileno()).st_size
+            self._map = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if self.n else None
+        self.data = np.frombuffer(self._map, dtype=np.uint8) if self._map is not None else np.zeros(0, np.uint8)
+        self._released = 0
+
+    def rewind(self) -> None:
+        """The next ``release`` counts from the start of the file again (a second pass)."""
+        self._released = 0
+
+    def release(self, offset: int) -> None:
+        end = min(offset, self.n) // mmap.PAGESIZE * mmap.PAGESIZE
+        if self._map is not None and end > self._released and hasattr(mmap, "MADV_DONTNEED"):
+            self._map.madvise(mmap.MADV_DONTNEED, self._released, end - self._released)
+            self._released = end
+
+
+def _stamps_us(mapped: _MappedFile, starts: np.ndarray) -> np.ndarray:
+    """The 8-byte big-endian microsecond stamp of each record, a run of records at a time (the
+    pages read released after each run)."""
+    mapped.rewind()
+    out = np.empty(len(starts), dtype=np.uint64)
+    for a in range(0, len(starts), DECODE_RECORDS):
+        part = starts[a:a + DECODE_RECORDS]
+        out[a:a + len(part)] = rows_at(mapped.data, part, 8).copy().view(">u8").ravel()
+        mapped.release(int(part[-1]))
+    return out
 
 
 def read_tlog(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
@@ -352,25 +398,29 @@ def read_tlog(path: Path, progress: Callable[[float], None] | None) -> FlightLog
     and calibration events (``_PER_PACKET``, a few a second) go through pymavlink and
     ``MavlinkDecoder`` packet by packet.  The same FlightLog as decoding every packet with
     ``MavlinkDecoder`` (tests/test_ingest_vectorised.py)."""
-    data, n = _read_file(path)
+    mapped = _MappedFile(path)
+    data, n = mapped.data, mapped.n
     builder = LogBuilder(str(path))
     log, warnings = builder.log, builder.log.warnings
-    starts = frame_records(data, n, warnings)
+    starts = frame_records(data, n, warnings, mapped.release)
     if progress is not None:
         progress(0.3)
-    stamps = rows_at(data, starts, 8).copy().view(">u8").ravel()
+    stamps = _stamps_us(mapped, starts)
     unix = despike_times(stamps.astype(np.float64) * 1e-6, warnings)
     arrival = rebase_backwards(unix, warnings)
     start_unix = float(unix[0]) if len(unix) else None
     del stamps, unix
-    rec = _Records(data, starts, arrival)
-    del data, starts, arrival
-    log.message_counts.update(rec.counts())
-    decoder = _ColumnDecoder(rec, builder)
-    decoder.run()
-    del rec, decoder.rec, decoder.parts          # the file and its records: only the tables are left
-    if progress is not None:
-        progress(0.9)
+    decoder = _ColumnDecoder(builder)
+    mapped.rewind()
+    for a in range(0, len(starts), DECODE_RECORDS):     # bounded temporaries: a run of records at a time
+        b = a + DECODE_RECORDS
+        decoder.run(_Records(data, starts[a:b], arrival[a:b], base=a))
+        mapped.release(int(starts[min(b, len(starts)) - 1]))
+        if progress is not None:
+            progress(0.3 + 0.6 * min(b, len(starts)) / len(starts))
+    del data, starts, arrival, mapped            # the file and its records: only the tables are left
+    decoder.finish()
+    log.message_counts.update(decoder.counts)
     warnings.update(decoder.warnings)
     log = builder.finish()
     log.start_unix_s = start_unix
