@@ -442,21 +442,20 @@ def test_bin_fuzz_corpus_reads_the_same(tmp_path, monkeypatch):
 _FRAME_PEAK = """
 import sys
 from collections import Counter
-from pathlib import Path
 from groundstation.io.logs import tlog
 def status_mb(field):    # this process's own: ru_maxrss may carry the forking parent's peak
     line = next(l for l in open("/proc/self/status") if l.startswith(field + ":"))
     return int(line.split()[1]) / 1024
 before = status_mb("VmRSS")
-mapped = tlog._MappedFile(Path(sys.argv[1]))
-starts = tlog.frame_records(mapped.data, mapped.n, Counter(), mapped.release)
-stamps = tlog._stamps_us(mapped, starts)
+with open(sys.argv[1], "rb") as f:
+    file = tlog._FileBytes(f)
+    starts, stamps = tlog.frame_records(file.read, file.n, Counter())
 print(len(starts), status_mb("VmHWM") - before)
 """
 
 
 def test_framing_holds_a_window_of_the_file_not_the_file(tmp_path):
-    """Framing a 30-minute 50 Hz tlog (9.7 MB) and reading its stamps: the process grows by its
+    """Framing a 30-minute 50 Hz tlog (9.7 MB) with its stamps: the process grows by its
     record offsets and stamps (16 bytes a record, 32 allowed), not by the file or by temporaries
     of the whole file (before: 2.7x the file); measured in a process of its own (its peak resident set,
     VmHWM)."""

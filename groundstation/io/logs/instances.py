@@ -88,9 +88,9 @@ def split_compasses(rows: np.ndarray, source_names: dict[int, str], params: dict
     sources = _mag_sources(rows, source_names, autopilot, expected_mG)
     out: list[CompassTable] = []
     for k, (src, note) in sorted(sources.items()):
-        sel = rows[rows[:, -1] == src, :-1]
+        sel = rows[rows[:, -1] == src, :-1]                  # a copy: the motor columns zeroed in place
         has_mot = bool(np.isfinite(sel[:, 4:7]).any())
-        sel = np.column_stack([sel[:, :4], np.nan_to_num(sel[:, 4:7])])
+        np.nan_to_num(sel[:, 4:7], copy=False)
         table = clean_table(sel, "mag" if k == 0 else f"mag[{k}]", warnings)
         name = source_names.get(src) or source_name(src)
         out.append(CompassTable(k, np.ascontiguousarray(table[:, :4]), name, ardupilot_device_id(params, k), applied,

@@ -15,7 +15,7 @@ from .. import decode as dec
 from ..boot_clock import BootClock, boot_ms_of_usec
 from ..decode import MavlinkDecoder
 from ..mavlink import mavlink2
-from .builder import LogBuilder, column_table, in_record_order
+from .builder import WIDTHS, LogBuilder, column_table, in_record_order
 from .mavlink_bulk import CORRUPT, byte_at, decode_packet as _decode, decode_payloads
 from ...samples import OffsetsSample, StatusSample
 
@@ -100,14 +100,18 @@ class _ColumnDecoder:
     and position, each magnetometer source's unit (judged at its first non-zero sample).  Tables go to the builder as arrays, events (statuses, parameters, offsets) as
     samples in record order."""
 
-    def __init__(self, builder: LogBuilder) -> None:
+    def __init__(self, builder: LogBuilder, records: int) -> None:
+        """``records``: how many records the log has (at most one row of each table a record)."""
         self.builder = builder
         self.warnings: Counter = Counter()
         self.counts: Counter = Counter()
         self.autopilot: str | None = None
         self.events: list[tuple[int, object]] = []
-        self.tables: dict[str, list[np.ndarray]] = {
-            "mag": [], "imu": [], "attitude": [], "gps": [], "battery": [], "throttle": []}
+        # each table's rows, written in place run by run: room for a row a record, of which only the
+        # pages written are ever resident (no copies of the runs, no table grown and copied)
+        self.tables = {name: np.empty((records, WIDTHS[name])) for name in ("mag", "imu", "attitude", "gps",
+                                                                                "battery", "throttle")}
+        self.filled = dict.fromkeys(self.tables, 0)
         self.vehicle: int | None = None
         self.h0 = _NOT_YET                       # the first autopilot heartbeat's record
         self.start_row, self.start_unix = _NOT_YET, None      # the first SYSTEM_TIME with a UNIX time
@@ -163,7 +167,10 @@ class _ColumnDecoder:
         self.table("battery", sys[valid], self._sent(sys[valid]), amps[valid])
         for name, parts in self.run_parts.items():
             if parts:
-                self.tables[name].append(in_record_order(parts))
+                rows = in_record_order(parts)
+                k = self.filled[name]
+                self.tables[name][k:k + len(rows)] = rows
+                self.filled[name] = k + len(rows)
         del self.rec, self.run_parts, self.parts, self.sent_rows, self.sent_lag, self.usec_rows, self.no_boot_time
 
     def _heartbeats(self) -> None:
@@ -388,20 +395,11 @@ class _ColumnDecoder:
                                 OffsetsSample(float(self.rec.arrival[r]), 0, tuple(float(x) for x in v), 1.0)))
 
     def finish(self) -> None:
-        """The tables (each run's rows, in record order) and the events to the builder."""
-        for name in list(self.tables):
-            parts = self.tables.pop(name)
-            if not parts:
-                continue
-            table = np.empty((sum(len(p) for p in parts), parts[0].shape[1]))
-            k = 0
-            while parts:                        # each run's rows freed once copied: one table's worth held
-                part = parts.pop(0)
-                table[k:k + len(part)] = part
-                k += len(part)
-            del part
-            self.builder.set_table(name, table)
-            del table
+        """The tables (the runs' rows, in record order) and the events to the builder."""
+        for name, table in self.tables.items():
+            if self.filled[name]:
+                self.builder.set_table(name, table[:self.filled[name]])
+        self.tables.clear()
         self.warnings.update(self.packet_decoder.warnings)
         self.events.sort(key=lambda e: e[0])
         for _, s in self.events:

@@ -1,11 +1,11 @@
 """MAVLink telemetry logs (.tlog): 8-byte big-endian UNIX microseconds + one MAVLink packet per record.
 
-``read_tlog`` (the FlightLog) decodes column-wise with bounded temporaries: the file is mapped,
-its records are framed and CRC-checked in bulk a window at a time (``frame_records``), then
-decoded a run of records at a time (``DECODE_RECORDS``): each message id's payloads one numpy
+``read_tlog`` (the FlightLog) decodes column-wise with bounded temporaries: the file is read a
+window at a time (``_FileBytes``), its records framed and CRC-checked in bulk (``frame_records``),
+then decoded a run of records at a time (``DECODE_RECORDS``): each message id's payloads one numpy
 structured array (``mavlink_bulk``), the decoder's rules on the run's columns with what they need
-from earlier runs carried (``_ColumnDecoder``); the pages read are released as it goes, so the
-process holds the tables it builds, not the file.  Corrupt stamps (``despike_times``) and a clock
+from earlier runs carried (``_ColumnDecoder``).  The process holds the tables it builds and 16
+bytes a record, not the file.  Corrupt stamps (``despike_times``) and a clock
 going back (``rebase_backwards``) are handled on the time column (8 bytes a record).  ``tlog_records`` yields (UNIX time,
 pymavlink message) per record, streaming in bounded chunks (the station's replay and the
 recordings list); both frame the same records with the same resynchronisation after garbage
@@ -16,7 +16,6 @@ from __future__ import annotations
 import bisect
 import io
 import math
-import mmap
 import os
 import struct
 from collections import Counter
@@ -178,9 +177,9 @@ _TRUNC, _PLAIN, _RESYNC, _CAND = 1, 2, 4, 8   # frame_records: what a position i
 _BLOCK = 1 << 18                              # file bytes judged at once (bounds the temporaries)
 
 
-def _judge_block(data: np.ndarray, n: int, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(positions, record sizes, flags) of the positions a <= p < b whose byte 8 is a MAVLink magic
-    (p <= n - 10); flags: _TRUNC a plausible record cut off by the end, _PLAIN a record on the
+def _judge_block(data: np.ndarray, n: int, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(positions, record sizes, flags, stamps [us]) of the positions a <= p < b whose byte 8 is a
+    MAVLink magic (p <= n - 10); flags: _TRUNC a plausible record cut off by the end, _PLAIN a record on the
     chain, _CAND a resynchronisation candidate, _RESYNC a candidate that is a record."""
     magic = data[a + 8:min(b, n - 9) + 8]
     pos = np.flatnonzero((magic - np.uint8(0xFD)) < 2) + a        # 0xFD or 0xFE (uint8 wraps the rest)
@@ -215,27 +214,27 @@ def _judge_block(data: np.ndarray, n: int, a: int, b: int) -> tuple[np.ndarray, 
         crc_ok[sel] = x25_crc_rows(rows) == sent
     flags = ((plausible & ~complete) * _TRUNC + (plausible & complete & (~known | crc_ok)) * _PLAIN
              + (cand & plausible & complete & crc_ok) * _RESYNC + cand * _CAND).astype(np.uint8)
-    return pos, size.astype(np.int16), flags
+    return pos, size.astype(np.int16), flags, stamp_us
 
 
-def frame_records(data: np.ndarray, n: int, warnings: Counter,
-                  release: Callable[[int], None] | None = None) -> np.ndarray:
-    """Start offsets of the good records of a .tlog held in ``data[:n]``, the
-    records ``tlog_records`` yields, with the same corrupt and truncation counts.
+def frame_records(read: Callable[[int, int], np.ndarray], n: int, warnings: Counter) -> tuple[np.ndarray, np.ndarray]:
+    """(start offsets, stamps [us]) of the good records of a .tlog of ``n`` bytes, the records
+    ``tlog_records`` yields, with the same corrupt and truncation counts; ``read(lo, hi)`` gives
+    the file's bytes lo..hi (fewer at its end).
 
-    The file is framed a window (``_BLOCK`` bytes) at a time, so the temporaries are bounded:
-    every position of the window whose byte 8 is a MAVLink magic is judged at once
-    (``_judge_block``: stamp plausible, packet complete, message id known, X.25 CRC, grouped by
-    checked length).  A record chain is then followed: from a good record the next is at
-    start + 8 + size, and while the next good position is exactly that one a whole run is taken
-    at once; only where the chain breaks (garbage, a bad CRC, a false start inside a payload) is
-    it walked position by position with the rules of ``tlog_records``: on the chain an unknown
-    message id is a record (pymavlink decodes it as UNKNOWN_n); after a failure the next
-    candidate (plausible stamp, known id, a payload length it can have) must have a good CRC; a
-    plausible record cut off by the end stops the reading.  ``release(offset)`` is told when the
-    bytes before ``offset`` are no longer read.
+    The file is framed a window (``_BLOCK`` bytes and the longest record after them) at a time,
+    so the bytes held and the temporaries are bounded: every position of the window whose byte 8
+    is a MAVLink magic is judged at once (``_judge_block``: stamp plausible, packet complete,
+    message id known, X.25 CRC, grouped by checked length).  A record chain is then followed:
+    from a good record the next is at start + 8 + size, and while the next good position is
+    exactly that one a whole run is taken at once; only where the chain breaks (garbage, a bad
+    CRC, a false start inside a payload) is it walked position by position with the rules of
+    ``tlog_records``: on the chain an unknown message id is a record (pymavlink decodes it as
+    UNKNOWN_n); after a failure the next candidate (plausible stamp, known id, a payload length
+    it can have) must have a good CRC; a plausible record cut off by the end stops the reading.
     """
     starts: list[np.ndarray] = []
+    stamps: list[np.ndarray] = []
     i, searching, corrupt = 0, False, 0
     lo = hi = 0                                  # the window judged: positions lo <= p < hi
     judged_end = max(n - 9, 0)                   # positions judged: p < judged_end
@@ -246,12 +245,12 @@ def frame_records(data: np.ndarray, n: int, warnings: Counter,
             break
         if not lo <= i < hi:                     # the window holding i
             lo = i - i % _BLOCK
-            if release is not None:
-                release(lo)
             hi = lo + _BLOCK
-            pos, size, flags = _judge_block(data, n, lo, hi)
+            data = read(lo, hi + MAX_RECORD + 9)
+            pos, size, flags, stamp_us = _judge_block(data, len(data), 0, hi - lo)
+            pos += lo
             plain = (flags & _PLAIN) != 0
-            chain = pos[plain]
+            chain, chain_us = pos[plain], stamp_us[plain].astype(np.uint64)
             after = chain + 8 + size[plain]
             breaks = np.flatnonzero(after[:-1] != chain[1:])
             candidates = pos[(flags & _CAND) != 0]
@@ -274,6 +273,7 @@ def frame_records(data: np.ndarray, n: int, warnings: Counter,
             b = int(np.searchsorted(breaks, j))
             e = int(breaks[b]) if b < len(breaks) else len(chain) - 1
             starts.append(chain[j:e + 1])
+            stamps.append(chain_us[j:e + 1])
             i, searching = int(after[e]), False
             continue
         corrupt += 1
@@ -281,7 +281,11 @@ def frame_records(data: np.ndarray, n: int, warnings: Counter,
         searching = True
     if corrupt:
         warnings[CORRUPT] += corrupt
-    return np.concatenate(starts) if starts else np.empty(0, dtype=np.int64)
+    if not starts:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.uint64)
+    starts_all = np.concatenate(starts)
+    del starts                                   # one list of pieces held beside its whole at a time
+    return starts_all, np.concatenate(stamps)
 
 
 def despike_times(unix: np.ndarray, warnings: Counter, jump_s: float = STAMP_JUMP_S) -> np.ndarray:
@@ -351,40 +355,31 @@ def rebase_backwards(unix: np.ndarray, warnings: Counter) -> np.ndarray:
     return arrival
 
 
-class _MappedFile:
-    """A file mapped read-only as bytes (``data``, its length ``n``; no copy, the page cache holds
-    it).  ``release(offset)`` drops the pages before ``offset`` from this process (they are read
-    again from the page cache if touched), so a reader that goes through the file once holds a
-    window of it, not the whole file."""
-
-    def __init__(self, path: Path) -> None:
-        with open(path, "rb") as f:
-            self.n = os.fstat(f.fileno()).st_size
-            self._map = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if self.n else None
-        self.data = np.frombuffer(self._map, dtype=np.uint8) if self._map is not None else np.zeros(0, np.uint8)
-        self._released = 0
-
-    def rewind(self) -> None:
-        """The next ``release`` counts from the start of the file again (a second pass)."""
-        self._released = 0
-
-    def release(self, offset: int) -> None:
-        end = min(offset, self.n) // mmap.PAGESIZE * mmap.PAGESIZE
-        if self._map is not None and end > self._released and hasattr(mmap, "MADV_DONTNEED"):
-            self._map.madvise(mmap.MADV_DONTNEED, self._released, end - self._released)
-            self._released = end
+def _arrival(stamps_us: np.ndarray, warnings: Counter) -> tuple[np.ndarray, float | None]:
+    """(arrival time of each record on the log's time base [s], the first record's UNIX time):
+    corrupt stamps replaced (``despike_times``), a clock going back re-based (``rebase_backwards``)."""
+    unix = despike_times(stamps_us.astype(np.float64) * 1e-6, warnings)
+    return rebase_backwards(unix, warnings), (float(unix[0]) if len(unix) else None)
 
 
-def _stamps_us(mapped: _MappedFile, starts: np.ndarray) -> np.ndarray:
-    """The 8-byte big-endian microsecond stamp of each record, a run of records at a time (the
-    pages read released after each run)."""
-    mapped.rewind()
-    out = np.empty(len(starts), dtype=np.uint64)
-    for a in range(0, len(starts), DECODE_RECORDS):
-        part = starts[a:a + DECODE_RECORDS]
-        out[a:a + len(part)] = rows_at(mapped.data, part, 8).copy().view(">u8").ravel()
-        mapped.release(int(part[-1]))
-    return out
+class _FileBytes:
+    """Byte ranges of an open file, read into one reused buffer (the caller copies what it keeps):
+    a reader going through the file holds a window of it, not the file, and a file cut short
+    while it is read gives fewer bytes, never a fault of a mapped page."""
+
+    def __init__(self, f: BinaryIO) -> None:
+        self.f = f
+        self.n = os.fstat(f.fileno()).st_size
+        self._buf = bytearray()
+
+    def read(self, lo: int, hi: int) -> np.ndarray:
+        """The bytes lo..hi as uint8 (fewer at the end of the file); valid until the next read."""
+        size = max(min(hi, self.n) - lo, 0)
+        if len(self._buf) < size:
+            self._buf = bytearray(size)
+        self.f.seek(lo)
+        got = self.f.readinto(memoryview(self._buf)[:size]) or 0
+        return np.frombuffer(self._buf, dtype=np.uint8, count=got)
 
 
 def read_tlog(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
@@ -398,27 +393,24 @@ def read_tlog(path: Path, progress: Callable[[float], None] | None) -> FlightLog
     and calibration events (``_PER_PACKET``, a few a second) go through pymavlink and
     ``MavlinkDecoder`` packet by packet.  The same FlightLog as decoding every packet with
     ``MavlinkDecoder`` (tests/test_ingest_vectorised.py)."""
-    mapped = _MappedFile(path)
-    data, n = mapped.data, mapped.n
     builder = LogBuilder(str(path))
     log, warnings = builder.log, builder.log.warnings
-    starts = frame_records(data, n, warnings, mapped.release)
-    if progress is not None:
-        progress(0.3)
-    stamps = _stamps_us(mapped, starts)
-    unix = despike_times(stamps.astype(np.float64) * 1e-6, warnings)
-    arrival = rebase_backwards(unix, warnings)
-    start_unix = float(unix[0]) if len(unix) else None
-    del stamps, unix
-    decoder = _ColumnDecoder(builder)
-    mapped.rewind()
-    for a in range(0, len(starts), DECODE_RECORDS):     # bounded temporaries: a run of records at a time
-        b = a + DECODE_RECORDS
-        decoder.run(_Records(data, starts[a:b], arrival[a:b], base=a))
-        mapped.release(int(starts[min(b, len(starts)) - 1]))
+    with open(path, "rb") as f:
+        file = _FileBytes(f)
+        starts, stamps = frame_records(file.read, file.n, warnings)
         if progress is not None:
-            progress(0.3 + 0.6 * min(b, len(starts)) / len(starts))
-    del data, starts, arrival, mapped            # the file and its records: only the tables are left
+            progress(0.3)
+        arrival, start_unix = _arrival(stamps, warnings)
+        del stamps
+        decoder, data = _ColumnDecoder(builder, len(starts)), None
+        for a in range(0, len(starts), DECODE_RECORDS):     # bounded temporaries: a run of records at a time
+            run = starts[a:a + DECODE_RECORDS]
+            lo = int(run[0])
+            data = file.read(lo, int(run[-1]) + MAX_RECORD)
+            decoder.run(_Records(data, run - lo, arrival[a:a + DECODE_RECORDS], base=a))
+            if progress is not None:
+                progress(0.3 + 0.6 * (a + len(run)) / len(starts))
+        del data, starts, arrival, file          # the file and its records: only the tables are left
     decoder.finish()
     log.message_counts.update(decoder.counts)
     warnings.update(decoder.warnings)
