@@ -82,15 +82,19 @@ def split_compasses(rows: np.ndarray, source_names: dict[int, str], params: dict
                     expected_mG: float | None = None) -> tuple[list[CompassTable], int]:
     """CompassTables from mag rows [t, mx, my, mz, mox, moy, moz, source] (motor offsets NaN when
     not logged) and the primary compass number (0 when there is none); each compass's source is
-    chosen by ``_mag_sources`` (``expected_mG``: the WMM intensity at the log's place, or None)."""
+    chosen by ``_mag_sources`` (``expected_mG``: the WMM intensity at the log's place, or None).
+    ``rows`` is consumed: with one source its motor columns are zeroed in place (no copy)."""
     if not len(rows):
         return [], 0
     sources = _mag_sources(rows, source_names, autopilot, expected_mG)
     out: list[CompassTable] = []
     for k, (src, note) in sorted(sources.items()):
-        sel = rows[rows[:, -1] == src, :-1]                  # a copy: the motor columns zeroed in place
+        mine = rows[:, -1] == src
+        sel = rows[:, :-1] if mine.all() else rows[mine, :-1]       # one source: no copy of the rows
+        if not sel.flags.writeable:
+            sel = sel.copy()
         has_mot = bool(np.isfinite(sel[:, 4:7]).any())
-        np.nan_to_num(sel[:, 4:7], copy=False)
+        np.nan_to_num(sel[:, 4:7], copy=False)                     # the motor columns zeroed in place
         table = clean_table(sel, "mag" if k == 0 else f"mag[{k}]", warnings)
         name = source_names.get(src) or source_name(src)
         out.append(CompassTable(k, np.ascontiguousarray(table[:, :4]), name, ardupilot_device_id(params, k), applied,

@@ -97,21 +97,20 @@ class _ColumnDecoder:
     (``run``, in record order; ``finish`` once after the last).  What a rule needs from earlier
     records is carried from run to run, so any cut gives the same log: the vehicle (its first
     autopilot heartbeat), the boot clock, the lag of the last boot-timed record, the last GPS fix
-    and position, each magnetometer source's unit (judged at its first non-zero sample).  Tables go to the builder as arrays, events (statuses, parameters, offsets) as
-    samples in record order."""
+    and position, each magnetometer source's unit (judged at its first non-zero sample).  Tables
+    go to the builder as arrays, events (statuses, parameters, offsets) as samples in record
+    order."""
 
     def __init__(self, builder: LogBuilder, records: int) -> None:
-        """``records``: how many records the log has (at most one row of each table a record)."""
-        self.builder = builder
+        """``records``: how many records the log has (to size the tables from the first runs)."""
+        self.builder, self.records, self.decoded = builder, records, 0
         self.warnings: Counter = Counter()
         self.counts: Counter = Counter()
         self.autopilot: str | None = None
         self.events: list[tuple[int, object]] = []
-        # each table's rows, written in place run by run: room for a row a record, of which only the
-        # pages written are ever resident (no copies of the runs, no table grown and copied)
-        self.tables = {name: np.empty((records, WIDTHS[name])) for name in ("mag", "imu", "attitude", "gps",
-                                                                                "battery", "throttle")}
-        self.filled = dict.fromkeys(self.tables, 0)
+        # each table's rows, written in place run by run (``_append``)
+        self.tables: dict[str, np.ndarray] = {}
+        self.filled = dict.fromkeys(WIDTHS, 0)
         self.vehicle: int | None = None
         self.h0 = _NOT_YET                       # the first autopilot heartbeat's record
         self.start_row, self.start_unix = _NOT_YET, None      # the first SYSTEM_TIME with a UNIX time
@@ -141,8 +140,9 @@ class _ColumnDecoder:
     def run(self, rec: _Records) -> None:
         """Decode one run of records (the next after the previous run's)."""
         self.rec = rec
-        self.run_parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {name: [] for name in self.tables}
+        self.run_parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {name: [] for name in WIDTHS}
         self.counts.update(rec.counts())
+        self.decoded += len(rec.start)
         self._heartbeats()
         self._per_packet()
         if self.start_row == _NOT_YET:
@@ -165,13 +165,29 @@ class _ColumnDecoder:
         sys = self.accepted(_ID["SYS_STATUS"])
         amps, valid = dec.sys_status_current_A(rec.fields(_ID["SYS_STATUS"], sys)["current_battery"])
         self.table("battery", sys[valid], self._sent(sys[valid]), amps[valid])
-        for name, parts in self.run_parts.items():
+        del self.rec, rec, self.parts, self.sent_rows, self.sent_lag, self.usec_rows, self.no_boot_time
+        for name in WIDTHS:                     # the run's bytes freed first, each table's parts once appended
+            parts = self.run_parts.pop(name)
             if parts:
-                rows = in_record_order(parts)
-                k = self.filled[name]
-                self.tables[name][k:k + len(rows)] = rows
-                self.filled[name] = k + len(rows)
-        del self.rec, self.run_parts, self.parts, self.sent_rows, self.sent_lag, self.usec_rows, self.no_boot_time
+                self._append(name, in_record_order(parts))
+            del parts
+        del self.run_parts
+
+    def _append(self, name: str, rows: np.ndarray) -> None:
+        """A run's rows at the end of its table.  A table is made with room for the whole log at the
+        rate of the runs so far (+10 %) and made again, larger, only when a later run outgrows it:
+        no run is kept beside its table, and the table is rarely copied."""
+        k = self.filled[name]
+        need = k + len(rows)
+        table = self.tables.get(name)
+        if table is None or need > len(table):
+            room = max(need, int(need * 1.1 * self.records / max(self.decoded, 1)))
+            grown = np.empty((room, WIDTHS[name]))
+            if table is not None:
+                grown[:k] = table[:k]
+            self.tables[name] = table = grown
+        table[k:need] = rows
+        self.filled[name] = need
 
     def _heartbeats(self) -> None:
         rows = self.rec.rows(_ID["HEARTBEAT"])
@@ -300,8 +316,9 @@ class _ColumnDecoder:
             return None
         k = int(nonzero[0])
         r = int(rows[k])
-        unit = dec.judge_first_field(instance, tuple(float(v) for v in sent[k]), units, float(t[k]), self._place_before(r),
-                                     self.start_unix if self.start_row < r + self.rec.base else None)
+        start_unix = self.start_unix if self.start_row < r + self.rec.base else None
+        unit = dec.judge_first_field(instance, tuple(float(v) for v in sent[k]), units, float(t[k]),
+                                     self._place_before(r), start_unix)
         if not unit.plausible:
             self.warnings[f"{unit.source}: implausible magnetometer field ({unit.why})"] += 1
         self.mag_scale[instance] = unit.scale_to_mG
@@ -397,8 +414,7 @@ class _ColumnDecoder:
     def finish(self) -> None:
         """The tables (the runs' rows, in record order) and the events to the builder."""
         for name, table in self.tables.items():
-            if self.filled[name]:
-                self.builder.set_table(name, table[:self.filled[name]])
+            self.builder.set_table(name, table[:self.filled[name]])
         self.tables.clear()
         self.warnings.update(self.packet_decoder.warnings)
         self.events.sort(key=lambda e: e[0])

@@ -5,8 +5,8 @@ window at a time (``_FileBytes``), its records framed and CRC-checked in bulk (`
 then decoded a run of records at a time (``DECODE_RECORDS``): each message id's payloads one numpy
 structured array (``mavlink_bulk``), the decoder's rules on the run's columns with what they need
 from earlier runs carried (``_ColumnDecoder``).  The process holds the tables it builds and 16
-bytes a record, not the file.  Corrupt stamps (``despike_times``) and a clock
-going back (``rebase_backwards``) are handled on the time column (8 bytes a record).  ``tlog_records`` yields (UNIX time,
+bytes a record, not the file.  Corrupt stamps (``despike_times``) and a clock going back
+(``rebase_backwards``) are handled on the time column.  ``tlog_records`` yields (UNIX time,
 pymavlink message) per record, streaming in bounded chunks (the station's replay and the
 recordings list); both frame the same records with the same resynchronisation after garbage
 (linear: candidate starts are found with numpy) and the same corrupt counts.
@@ -38,7 +38,7 @@ _PLAUSIBLE_UNIX_S = (946684800.0, 4102444800.0)  # 2000..2100
 _PLAUSIBLE_US = (int(_PLAUSIBLE_UNIX_S[0] * 1e6), int(_PLAUSIBLE_UNIX_S[1] * 1e6))
 MAX_RECORD = 8 + 10 + 255 + 2 + 13      # stamp + the largest MAVLink 2 packet (signed)
 CHUNK_BYTES = 1 << 18
-DECODE_RECORDS = 1 << 16                 # records decoded at once (read_tlog: bounds the temporaries)
+DECODE_RECORDS = 1 << 15                 # records decoded at once (read_tlog: bounds the temporaries)
 STAMP_JUMP_S = 60.0                      # a record this far from both neighbours has a corrupt stamp
 SPIKE = "timestamps corrupt (jumped away and back): replaced by the previous record's"
 
@@ -177,10 +177,11 @@ _TRUNC, _PLAIN, _RESYNC, _CAND = 1, 2, 4, 8   # frame_records: what a position i
 _BLOCK = 1 << 18                              # file bytes judged at once (bounds the temporaries)
 
 
-def _judge_block(data: np.ndarray, n: int, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _judge_block(data: np.ndarray, n: int, a: int,
+                 b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(positions, record sizes, flags, stamps [us]) of the positions a <= p < b whose byte 8 is a
-    MAVLink magic (p <= n - 10); flags: _TRUNC a plausible record cut off by the end, _PLAIN a record on the
-    chain, _CAND a resynchronisation candidate, _RESYNC a candidate that is a record."""
+    MAVLink magic (p <= n - 10); flags: _TRUNC a plausible record cut off by the end, _PLAIN a
+    record on the chain, _CAND a resynchronisation candidate, _RESYNC a candidate that is a record."""
     magic = data[a + 8:min(b, n - 9) + 8]
     pos = np.flatnonzero((magic - np.uint8(0xFD)) < 2) + a        # 0xFD or 0xFE (uint8 wraps the rest)
     stamp_us = rows_at(data, pos, 8).copy().view(">u8").ravel()
@@ -217,7 +218,8 @@ def _judge_block(data: np.ndarray, n: int, a: int, b: int) -> tuple[np.ndarray, 
     return pos, size.astype(np.int16), flags, stamp_us
 
 
-def frame_records(read: Callable[[int, int], np.ndarray], n: int, warnings: Counter) -> tuple[np.ndarray, np.ndarray]:
+def frame_records(read: Callable[[int, int], np.ndarray], n: int,
+                  warnings: Counter) -> tuple[np.ndarray, np.ndarray]:
     """(start offsets, stamps [us]) of the good records of a .tlog of ``n`` bytes, the records
     ``tlog_records`` yields, with the same corrupt and truncation counts; ``read(lo, hi)`` gives
     the file's bytes lo..hi (fewer at its end).
@@ -363,23 +365,18 @@ def _arrival(stamps_us: np.ndarray, warnings: Counter) -> tuple[np.ndarray, floa
 
 
 class _FileBytes:
-    """Byte ranges of an open file, read into one reused buffer (the caller copies what it keeps):
-    a reader going through the file holds a window of it, not the file, and a file cut short
-    while it is read gives fewer bytes, never a fault of a mapped page."""
+    """Byte ranges of an open file of ``n`` bytes (its size when opened), read when asked: a reader
+    going through the file holds a window of it, not the file, and a file cut short while it is
+    read gives fewer bytes, never a fault of a mapped page."""
 
     def __init__(self, f: BinaryIO) -> None:
         self.f = f
         self.n = os.fstat(f.fileno()).st_size
-        self._buf = bytearray()
 
     def read(self, lo: int, hi: int) -> np.ndarray:
-        """The bytes lo..hi as uint8 (fewer at the end of the file); valid until the next read."""
-        size = max(min(hi, self.n) - lo, 0)
-        if len(self._buf) < size:
-            self._buf = bytearray(size)
+        """The bytes lo..hi as read-only uint8 (fewer at the end of the file)."""
         self.f.seek(lo)
-        got = self.f.readinto(memoryview(self._buf)[:size]) or 0
-        return np.frombuffer(self._buf, dtype=np.uint8, count=got)
+        return np.frombuffer(self.f.read(max(min(hi, self.n) - lo, 0)), dtype=np.uint8)
 
 
 def read_tlog(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
@@ -402,15 +399,15 @@ def read_tlog(path: Path, progress: Callable[[float], None] | None) -> FlightLog
             progress(0.3)
         arrival, start_unix = _arrival(stamps, warnings)
         del stamps
-        decoder, data = _ColumnDecoder(builder, len(starts)), None
+        decoder = _ColumnDecoder(builder, len(starts))
         for a in range(0, len(starts), DECODE_RECORDS):     # bounded temporaries: a run of records at a time
             run = starts[a:a + DECODE_RECORDS]
-            lo = int(run[0])
-            data = file.read(lo, int(run[-1]) + MAX_RECORD)
-            decoder.run(_Records(data, run - lo, arrival[a:a + DECODE_RECORDS], base=a))
+            lo = int(run[0])     # the run's bytes are held by its _Records only: freed before its rows are kept
+            decoder.run(_Records(file.read(lo, int(run[-1]) + MAX_RECORD), run - lo, arrival[a:a + DECODE_RECORDS],
+                                 base=a))
             if progress is not None:
                 progress(0.3 + 0.6 * (a + len(run)) / len(starts))
-        del data, starts, arrival, file          # the file and its records: only the tables are left
+        del starts, arrival, file                # the records: only the tables are left
     decoder.finish()
     log.message_counts.update(decoder.counts)
     warnings.update(decoder.warnings)
