@@ -374,3 +374,19 @@ def test_damaged_dataflash_logs_leave_no_file_open(tmp_path):
     leaks = [str(w.message) for w in caught if issubclass(w.category, ResourceWarning)]
     ours = [m for m in leaks if str(tmp_path) in m]      # a file of this test's cases, by its name
     assert not ours, ours[:3]
+
+
+def test_clean_table_counts_non_finite_and_absurd_rows_apart():
+    from collections import Counter
+    from groundstation.io.logs.builder import clean_table
+
+    t = np.arange(8, dtype=float)
+    rows = np.column_stack([t, np.ones(8), np.ones(8), np.ones(8)])
+    rows[1, 1], rows[2, 2], rows[3, 3], rows[5, 1] = np.nan, np.inf, 1e16, -np.inf
+    rows[6, 2] = -2e15
+    warnings: Counter = Counter()
+    kept = clean_table(rows, "attitude", warnings)
+    assert kept[:, 0].tolist() == [0.0, 4.0, 7.0]
+    assert warnings == Counter({"attitude: rows with NaN/inf dropped": 3,
+                                "attitude: rows with absurd values (beyond 1e+15) dropped": 2})
+    assert clean_table(rows[[0, 4, 7]], "attitude", warnings := Counter()).shape == (3, 4) and not warnings

@@ -175,13 +175,13 @@ def clean_table(arr: np.ndarray, name: str, warnings: Counter) -> np.ndarray:
     """Drop rows with non-finite time or values (GPS velocity may be NaN) or outlier times
     (``drop_time_outliers``), sort by time."""
     check = arr[:, :4] if name == "gps" else arr
-    good = np.all(np.isfinite(check), axis=1)
-    if not good.all():
-        warnings[f"{name}: rows with NaN/inf dropped"] += int((~good).sum())
-        arr, check = arr[good], check[good]
-    sane = np.all((check > -ABSURD_VALUE) & (check < ABSURD_VALUE), axis=1)   # no float temporary
-    if not sane.all():
-        warnings[f"{name}: rows with absurd values (beyond {ABSURD_VALUE:g}) dropped"] += int((~sane).sum())
+    sane = np.all((check > -ABSURD_VALUE) & (check < ABSURD_VALUE), axis=1)   # no float temporary; NaN fails too
+    if not sane.all():                  # the usual log is all sane: one pass, no finite check
+        good = np.all(np.isfinite(check), axis=1)
+        if not good.all():
+            warnings[f"{name}: rows with NaN/inf dropped"] += int((~good).sum())
+        if not (sane == good).all():
+            warnings[f"{name}: rows with absurd values (beyond {ABSURD_VALUE:g}) dropped"] += int((good & ~sane).sum())
         arr = arr[sane]
     arr = drop_time_outliers(arr, name, warnings)
     if len(arr) > 1:
