@@ -27,7 +27,7 @@ from typing import Callable, Iterator
 from .quiet import counting, quiet, record
 from ..errors import IngestError
 from .builder import LogBuilder
-from .dataflash_columns import read_bulk as _read_bulk
+from .dataflash_columns import build_log as _build_bulk_log, decode_bulk as _decode_bulk
 from .dataflash_messages import WANTED, DataFlashDecoder
 from ...samples import FlightLog
 
@@ -128,11 +128,13 @@ def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Flig
     with counting(counts):
         reader = _open_reader(path)
         try:
-            log = _read_bulk(path, progress, reader)
-            if log is None:
-                log = _read_messages_per_record(path, progress, reader)
+            decoded = _decode_bulk(reader)
+            log = _read_messages_per_record(path, progress, reader) if decoded is None else None
         finally:
             _close_reader(reader)
+        del reader              # its index (a list of offsets a message type) and map, before the log is built
+        if log is None:
+            log = _build_bulk_log(path, progress, decoded)
     log.warnings.update(counts)
     return log
 

@@ -11,7 +11,7 @@ import math
 import re
 import struct
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from .dataflash_messages import (_SPLIT, THROTTLE_PRIORITY, WANTED, att_rad, cur
 from ..decode import MAG_CAL_COMMANDS, MAV_CMD_NAV_WAYPOINT
 from ...samples import FlightLog, MagCalSample, MissionSample, ParamSample, StatusSample
 
-__all__ = ["read_bulk"]
+__all__ = ["Decoded", "build_log", "decode_bulk"]
 
 
 class _Fallback(Exception):
@@ -342,9 +342,17 @@ class _BulkDecoder:
         return [e[2] for e in out]
 
 
-def read_bulk(path: Path, progress: Callable[[float], None] | None, reader) -> FlightLog | None:
+class Decoded(NamedTuple):
+    """What ``decode_bulk`` took from a DataFlash reader; the reader itself is no longer needed."""
+    bulk: "_BulkDecoder"
+    events: list
+    counts: list[tuple[int, str, int]]      # (first record, message type, records) of each type read
+    unread_bytes: int                       # bytes after the last whole record
+
+
+def decode_bulk(reader) -> Decoded | None:
     """The records recv_match(type=WANTED) returns, decoded column-wise (None: use the per-record
-    path, see the module docstring)."""
+    path, see the module docstring).  Holds none of the reader's index or map: close it after."""
     try:
         types, visited, end = _records(reader)
         bulk = _BulkDecoder(types, visited)
@@ -352,15 +360,24 @@ def read_bulk(path: Path, progress: Callable[[float], None] | None, reader) -> F
         events = bulk.history_and_events()
     except _Fallback:
         return None
+    counts = sorted((int(tp.order[0]), name, len(tp.order)) for name, tp in types.items() if len(tp.order))
+    bulk.types, bulk.t = {}, np.empty(0)      # the records' columns and times: decoded, not needed
+    return Decoded(bulk, events, counts, reader.data_len - end)
+
+
+def build_log(path: Path, progress: Callable[[float], None] | None, decoded: Decoded) -> FlightLog:
+    """The FlightLog of what ``decode_bulk`` decoded."""
+    bulk, events = decoded.bulk, decoded.events
     builder = LogBuilder(str(path))
     log = builder.log
     log.autopilot = "ardupilot"
-    first = sorted((int(tp.order[0]), name, len(tp.order)) for name, tp in types.items() if len(tp.order))
-    for _, name, count in first:
+    for _, name, count in decoded.counts:
         log.message_counts[name] += count
-    for name, parts in bulk.tables.items():
+    for name in list(bulk.tables):          # each table's parts freed once it is set
+        parts = bulk.tables.pop(name)
         if parts:
             builder.set_table(name, in_record_order(parts))
+        del parts
     for kind, *item in events:
         if kind == "add":
             builder.add(item[0])
@@ -370,8 +387,8 @@ def read_bulk(path: Path, progress: Callable[[float], None] | None, reader) -> F
             bulk.source_names.setdefault(item[0], item[1])
     if progress is not None:
         progress(0.9)
-    if reader.data_len - end > 0:
-        log.warnings[f"log truncated: last {reader.data_len - end} bytes unreadable"] += 1
+    if decoded.unread_bytes > 0:
+        log.warnings[f"log truncated: last {decoded.unread_bytes} bytes unreadable"] += 1
     throttle_source = next((k for k in THROTTLE_PRIORITY if bulk.throttle[k]), None)
     if throttle_source:
         table = in_record_order(bulk.throttle[throttle_source])
