@@ -198,6 +198,15 @@ def artifacts() -> Path:
     return ARTIFACTS
 
 
+# the start of a child script that measures its own memory: status_mb("VmRSS") now, status_mb("VmHWM")
+# its peak (ru_maxrss may carry the forking parent's peak, these are the child's own)
+STATUS_MB = """
+def status_mb(field):
+    line = next(l for l in open("/proc/self/status") if l.startswith(field + ":"))
+    return int(line.split()[1]) / 1024
+"""
+
+
 def wait_until(cond, timeout: float = 20.0, step: float = 0.05) -> bool:
     """Poll ``cond`` every ``step`` s until it is true (True) or ``timeout`` s pass (False)."""
     deadline = time.monotonic() + timeout

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, STATUS_MB
 from groundstation.io.boot_clock import BootClock
 from groundstation.io.decode import MavlinkDecoder
 from groundstation.io.logs import read_log
@@ -273,7 +273,7 @@ def _damage(path: Path, seed: int) -> None:
 def test_framed_a_window_and_decoded_a_run_at_a_time_it_reads_the_same(tmp_path, monkeypatch):
     """The reader frames a window of the file and decodes a run of records at a time, carrying
     from run to run what the rules need (the vehicle, the boot clock and its lag, the last GPS
-    fix and position, each compass's unit, the last offsets).  Cut small (windows of 4096 bytes,
+    fix and position, each compass's unit).  Cut small (windows of 4096 bytes,
     runs of 211 records: tens of cuts in each file), the mixed logs whole and damaged, the logs of
     tests/data (real and SITL ones among them) and a fifth of the fuzz corpus read as packet by
     packet."""
@@ -439,13 +439,10 @@ def test_bin_fuzz_corpus_reads_the_same(tmp_path, monkeypatch):
 
 # ------------------------------------------------------------------ memory
 
-_FRAME_PEAK = """
+_FRAME_PEAK = STATUS_MB + """
 import sys
 from collections import Counter
 from groundstation.io.logs import tlog
-def status_mb(field):    # this process's own: ru_maxrss may carry the forking parent's peak
-    line = next(l for l in open("/proc/self/status") if l.startswith(field + ":"))
-    return int(line.split()[1]) / 1024
 before = status_mb("VmRSS")
 with open(sys.argv[1], "rb") as f:
     file = tlog._FileBytes(f)

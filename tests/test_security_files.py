@@ -18,6 +18,7 @@ from groundstation.io.errors import IngestError
 from groundstation.io.logs import read_log
 from groundstation.io.logs.tlog import tlog_records
 from groundstation.io.mission import read_mission
+from conftest import STATUS_MB
 
 DATA = Path(__file__).parent / "data"
 sys.path.insert(0, str(DATA))
@@ -70,13 +71,10 @@ def test_tlog_flipped_timestamp_bit_is_dropped_and_counted(tmp_path):
         assert 45 < rates["SCALED_IMU"] < 55
 
 
-_READ_PEAK = """
+_READ_PEAK = STATUS_MB + """
 import sys
 from pathlib import Path
 from groundstation.io.logs import read_log
-def status_mb(field):    # this process's own: ru_maxrss may carry the forking parent's peak
-    line = next(l for l in open("/proc/self/status") if l.startswith(field + ":"))
-    return int(line.split()[1]) / 1024
 read_log(Path(sys.argv[2]))          # the reader's imports and one-time tables are not the file's memory
 before = status_mb("VmRSS")
 log = read_log(Path(sys.argv[1]))
