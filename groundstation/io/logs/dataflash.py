@@ -27,7 +27,7 @@ from typing import Callable, Iterator
 from .quiet import counting, quiet, record
 from ..errors import IngestError
 from .builder import LogBuilder
-from .dataflash_columns import build_log as _build_bulk_log, decode_bulk as _decode_bulk
+from .dataflash_columns import build_log as _build_bulk_log, decode_records, take_records
 from .dataflash_messages import WANTED, DataFlashDecoder
 from ...samples import FlightLog
 
@@ -110,6 +110,11 @@ def _open_reader(path: Path):
         raise IngestError(f"{path.name}: not a readable DataFlash log ({type(err).__name__})") from err
 
 
+def _decode_bulk(taken):
+    """The records decoded column-wise, None when they must be read record by record."""
+    return decode_records(taken) if taken is not None else None
+
+
 def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
     """ArduPilot DataFlash .bin of any generation (TimeMS or TimeUS, MAG/MAG2/MAG3 or MAG with an
     instance column): every compass and IMU, ATT, GPS, current (CURR/BAT/BATT), throttle
@@ -128,12 +133,19 @@ def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Flig
     with counting(counts):
         reader = _open_reader(path)
         try:
-            decoded = _decode_bulk(reader)
-            log = _read_messages_per_record(path, progress, reader) if decoded is None else None
+            taken = take_records(reader)
         finally:
             _close_reader(reader)
-        del reader              # its index (a list of offsets a message type) and map, before the log is built
-        if log is None:
+        del reader              # its index (a list of offsets a message type) and map, before decoding
+        decoded = _decode_bulk(taken)
+        if decoded is None:     # a structure read record by record: indexed again, its complaints once
+            counts.clear()
+            reader = _open_reader(path)
+            try:
+                log = _read_messages_per_record(path, progress, reader)
+            finally:
+                _close_reader(reader)
+        else:
             log = _build_bulk_log(path, progress, decoded)
     log.warnings.update(counts)
     return log

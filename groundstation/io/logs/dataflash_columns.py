@@ -21,7 +21,7 @@ from .dataflash_messages import (_SPLIT, THROTTLE_PRIORITY, WANTED, att_rad, cur
 from ..decode import MAG_CAL_COMMANDS, MAV_CMD_NAV_WAYPOINT
 from ...samples import FlightLog, MagCalSample, MissionSample, ParamSample, StatusSample
 
-__all__ = ["Decoded", "build_log", "decode_bulk"]
+__all__ = ["Decoded", "Taken", "build_log", "decode_records", "take_records"]
 
 
 class _Fallback(Exception):
@@ -342,31 +342,47 @@ class _BulkDecoder:
         return [e[2] for e in out]
 
 
-class Decoded(NamedTuple):
-    """What ``decode_bulk`` took from a DataFlash reader; the reader itself is no longer needed."""
-    bulk: "_BulkDecoder"
-    events: list
-    counts: list[tuple[int, str, int]]      # (first record, message type, records) of each type read
+class Taken(NamedTuple):
+    """The records ``take_records`` copied out of a DataFlash reader (none of its index or map)."""
+    types: dict[str, "_Type"]
+    visited: int
     unread_bytes: int                       # bytes after the last whole record
 
 
-def decode_bulk(reader) -> Decoded | None:
-    """The records recv_match(type=WANTED) returns, decoded column-wise (None: use the per-record
-    path, see the module docstring).  Holds none of the reader's index or map: close it after."""
+class Decoded(NamedTuple):
+    """What ``decode_records`` made of them."""
+    bulk: "_BulkDecoder"
+    events: list
+    counts: list[tuple[int, str, int]]      # (first record, message type, records) of each type read
+    unread_bytes: int
+
+
+def take_records(reader) -> Taken | None:
+    """The records recv_match(type=WANTED) returns, each type's as columns copied out of the
+    reader, which can be closed after (None: use the per-record path, see the module docstring)."""
     try:
         types, visited, end = _records(reader)
-        bulk = _BulkDecoder(types, visited)
+    except _Fallback:
+        return None
+    return Taken(types, visited, reader.data_len - end)
+
+
+def decode_records(taken: Taken) -> Decoded | None:
+    """``DataFlashDecoder``'s rules on the records taken (None: use the per-record path)."""
+    types = taken.types
+    try:
+        bulk = _BulkDecoder(types, taken.visited)
         bulk.run()
         events = bulk.history_and_events()
     except _Fallback:
         return None
     counts = sorted((int(tp.order[0]), name, len(tp.order)) for name, tp in types.items() if len(tp.order))
     bulk.types, bulk.t = {}, np.empty(0)      # the records' columns and times: decoded, not needed
-    return Decoded(bulk, events, counts, reader.data_len - end)
+    return Decoded(bulk, events, counts, taken.unread_bytes)
 
 
 def build_log(path: Path, progress: Callable[[float], None] | None, decoded: Decoded) -> FlightLog:
-    """The FlightLog of what ``decode_bulk`` decoded."""
+    """The FlightLog of what ``decode_records`` decoded."""
     bulk, events = decoded.bulk, decoded.events
     builder = LogBuilder(str(path))
     log = builder.log
