@@ -14,7 +14,7 @@ pymavlink defines the messages (MAVLink payload layouts, DataFlash FMT records t
 index), every record of a type is one structured array, and the unit conversions are the numpy
 functions the live decoder calls too (decode.py, dataflash_messages.py), so a log read here gives
 the numbers the per-message path gives (tests/test_ingest_vectorised.py).  The .tlog reader
-frames and decodes a window of the file at a time (its temporaries and the file's pages bounded),
+frames and decodes a window of the file at a time (the bytes it holds and its temporaries bounded),
 but ``read_log`` returns the whole FlightLog: no consumer streams yet.
 """
 from __future__ import annotations
