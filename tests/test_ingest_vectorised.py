@@ -372,7 +372,7 @@ def _read_both_bin(path: Path, monkeypatch):
     out = []
     for force_per_record in (True, False):
         if force_per_record:
-            monkeypatch.setattr(dataflash, "_decode_bulk", lambda *a: None)
+            monkeypatch.setattr(dataflash, "decode_records", lambda *a: None)
         else:
             monkeypatch.undo()
         try:

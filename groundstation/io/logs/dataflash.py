@@ -110,11 +110,6 @@ def _open_reader(path: Path):
         raise IngestError(f"{path.name}: not a readable DataFlash log ({type(err).__name__})") from err
 
 
-def _decode_bulk(taken):
-    """The records decoded column-wise, None when they must be read record by record."""
-    return decode_records(taken) if taken is not None else None
-
-
 def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> FlightLog:
     """ArduPilot DataFlash .bin of any generation (TimeMS or TimeUS, MAG/MAG2/MAG3 or MAG with an
     instance column): every compass and IMU, ATT, GPS, current (CURR/BAT/BATT), throttle
@@ -137,7 +132,8 @@ def read_dataflash(path: Path, progress: Callable[[float], None] | None) -> Flig
         finally:
             _close_reader(reader)
         del reader              # its index (a list of offsets a message type) and map, before decoding
-        decoded = _decode_bulk(taken)
+        decoded = decode_records(taken) if taken is not None else None
+        del taken               # the records' columns: freed once decoded
         if decoded is None:     # a structure read record by record: indexed again, its complaints once
             counts.clear()
             reader = _open_reader(path)
