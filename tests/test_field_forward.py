@@ -67,6 +67,19 @@ def test_a_held_reading_is_turned_to_the_step_by_the_gyro():
     np.testing.assert_array_equal(out[5:], read[5:])                        # too old, no age: as held
     np.testing.assert_array_equal(field_at_steps(read[:1], [0.05], [[np.nan, 0, 0]]), read[:1])
 
+    # turned a block of rows at a time: the same numbers as in one block, across block edges
+    from groundstation.jobs import field_forward
+    rng = np.random.default_rng(5)
+    many = rng.normal(0.0, 300.0, (1000, 3))
+    many_ages = np.where(rng.random(1000) < 0.1, np.nan, rng.uniform(0.0, 0.3, 1000))
+    many_w = rng.normal(0.0, 1.0, (1000, 3))
+    whole = field_at_steps(many, many_ages, many_w)
+    field_forward.TURN_ROWS = 97
+    try:
+        np.testing.assert_array_equal(field_at_steps(many, many_ages, many_w), whole)
+    finally:
+        field_forward.TURN_ROWS = 1 << 16
+
 
 def _rolling_flight(resend: int):
     """A FlightLog of ArduPilot-like data at 50 Hz: 40 s of slow yaw turns (the field test

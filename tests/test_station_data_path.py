@@ -186,3 +186,13 @@ def test_rolling_imu_rate_live_chunks_equal_batch():
         live += list(imu_rate_hz(np.r_[h, t[k:k + 7]], start=len(h)))
         hist += list(t[k:k + 7])
     np.testing.assert_array_equal(live, batch)
+
+
+def test_rolling_imu_rate_in_blocks_is_np_median(monkeypatch):
+    """The batch form takes each window's middle interval a block of windows at a time: every
+    step's rate is 1 / np.median of its RATE_WINDOW intervals, across block edges too."""
+    from groundstation.jobs import inputs
+    t = np.cumsum(np.random.default_rng(1).uniform(0.01, 0.4, 3000))
+    med = np.median(np.lib.stride_tricks.sliding_window_view(np.diff(t), inputs.RATE_WINDOW), axis=1)
+    monkeypatch.setattr(inputs, "MEDIAN_ROWS", 97)
+    np.testing.assert_array_equal(inputs.imu_rate_hz(t)[inputs.RATE_WINDOW + 1:], np.round(1.0 / med[1:], 2))

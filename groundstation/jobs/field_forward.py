@@ -26,6 +26,7 @@ __all__ = ["FIELD_FORWARD_S", "reading_times", "field_at_steps"]
 
 FIELD_FORWARD_S = 0.25   # a reading up to this old is turned by the step's gyro (a 4 Hz compass);
                          # an older one is used as held (the rate over that long is not the step's)
+TURN_ROWS = 1 << 16      # rows turned at a time (the temporaries of a 2-hour log's steps stay a few MB)
 
 
 def reading_times(t_s, mag) -> np.ndarray:
@@ -51,6 +52,15 @@ def field_at_steps(mag_mG, age_s, gyro_rad_s) -> np.ndarray:
     m = np.asarray(mag_mG, dtype=float).reshape(-1, 3)
     a = np.asarray(age_s, dtype=float).reshape(len(m))
     w = np.asarray(gyro_rad_s, dtype=float).reshape(len(m), 3)
+    out = np.empty_like(m)
+    for lo in range(0, len(m), TURN_ROWS):        # row by row math: its temporaries a block at a time
+        rows = slice(lo, lo + TURN_ROWS)
+        out[rows] = _turned(m[rows], a[rows], w[rows])
+    return out
+
+
+def _turned(m: np.ndarray, a: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``field_at_steps`` on a block of rows."""
     with np.errstate(invalid="ignore"):
         use = np.isfinite(a) & (a >= 0.0) & (a <= FIELD_FORWARD_S) & np.all(np.isfinite(w), axis=1)
     phi = -w * np.where(use, a, 0.0)[:, None]
