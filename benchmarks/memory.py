@@ -6,7 +6,10 @@
     .venv/bin/python benchmarks/memory.py --log FILE.tlog # an existing log
 
 Each command runs in its own child process, as a user runs it; the wall time is the child's, the
-peak memory its maximum resident set (``os.wait4``'s ``ru_maxrss``).  The interpreter with the
+peak memory its maximum resident set, read by the child itself as it exits (``VmHWM`` in
+/proc/self/status).  Not ``os.wait4``'s ``ru_maxrss``: a child started by vfork and exec carries
+the parent's peak into it (Linux records the old memory's high-water mark at exec), so every row
+would be at least the parent's peak, e.g. the writing of the generated log.  The interpreter with the
 command's imports already holds tens of MB before the first byte is read, so the table also prints
 the peak above that (``imports`` row: the same child importing the command's modules and exiting).
 Targets (issue 29, one run, same file): each consumer's wall time <= 0.25x the bare parse and
@@ -41,19 +44,29 @@ IMPORTS = ("import groundstation.cli, groundstation.io.logs, groundstation.jobs.
            "groundstation.jobs.report, groundstation.jobs.calibrate, groundstation.io.mission\n")
 
 
+PEAK_AT_EXIT = """
+import atexit, os
+def _write_peak():
+    with open(os.environ["MAGSTATION_PEAK_FILE"], "w") as out, open("/proc/self/status") as status:
+        out.write(next(line for line in status if line.startswith("VmHWM:")).split()[1])
+atexit.register(_write_peak)
+"""
+
+
 def measure(code: str, *args: str) -> tuple[float, float, int]:
-    """(wall s, peak RSS MB, exit code) of ``python -c code args`` in a child of its own."""
-    t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-c", code, *args], cwd=ROOT, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
-    proc.stderr.close()
+    """(wall s, peak RSS MB, exit code) of ``python -c code args`` in a child of its own; the peak
+    is the child's VmHWM as it exits (module docstring)."""
+    with tempfile.NamedTemporaryFile("r", suffix=".peak") as peak:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([sys.executable, "-c", PEAK_AT_EXIT + code, *args], cwd=ROOT,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                env={**os.environ, "MAGSTATION_PEAK_FILE": peak.name})
+        _, err = proc.communicate()
+        wall = time.perf_counter() - t0
+        text = peak.read().strip()
     if proc.returncode not in (0, 1):       # calibrate exits 1 when a compass has no usable fit
-        print(f"  child failed ({proc.returncode}): {err.strip()[-400:]}", file=sys.stderr)
-    return wall, usage.ru_maxrss / 1024.0, proc.returncode
+        print(f"  child failed ({proc.returncode}): {err.decode(errors='replace').strip()[-400:]}", file=sys.stderr)
+    return wall, int(text) / 1024.0 if text else float("nan"), proc.returncode
 
 
 def run(log: Path, tmp: Path) -> list[tuple[str, float, float, int]]:

@@ -151,6 +151,23 @@ def test_memory_benchmark_small_log():
     assert re.search(r"^\| imports only \(no log\) \| [\d.]+ \| \| \d+ \|", out, re.M), out
 
 
+def test_memory_benchmark_measures_the_child_not_the_parent():
+    """benchmarks/memory.py's peak is the child's own: after this process held 300 MB, a child
+    that only starts Python reads tens of MB (wait4's ru_maxrss would read 300+ MB: the parent's
+    peak carried into a vfork-and-exec child)."""
+    import numpy as np
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import memory
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    held = np.ones(300 * 2**20 // 8)          # 300 MB resident in this process
+    held[::512] += 1.0
+    del held
+    wall, peak_mb, code = memory.measure("import sys\nsys.exit(0)\n")
+    assert code == 0 and 1.0 < peak_mb < 100.0, peak_mb
+
+
 def test_field_vector_benchmark_smoke():
     """benchmarks/field_vector.py on one mission and one fleet flight: the loop ran over the
     mission's IMU steps and review_log reviewed the flight, both timed in CPU seconds."""
