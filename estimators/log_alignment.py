@@ -45,16 +45,18 @@ def interp_series(t_s: np.ndarray, table_t_s: np.ndarray, values: np.ndarray,
     t = np.asarray(t_s, float).ravel()
     tt, v = _sorted_finite(table_t_s, values)
     d = v.shape[1] if v.ndim == 2 else 1
-    out = np.full((len(t), d), np.nan)
     if len(tt) < 2:
-        return out, np.zeros(len(t), bool)
+        return np.full((len(t), d), np.nan), np.zeros(len(t), bool)
     j = np.clip(np.searchsorted(tt, t, side="right") - 1, 0, len(tt) - 2)
     with np.errstate(invalid="ignore"):
         gap = tt[j + 1] - tt[j]
         inside = np.isfinite(t) & (t >= tt[0]) & (t <= tt[-1]) & (gap <= max_gap_s)
     tc = np.where(inside, t, tt[j])
     w = np.where(gap > 0, (tc - tt[j]) / np.where(gap > 0, gap, 1.0), 0.0)
-    out[inside] = (v[j] + (v[j + 1] - v[j]) * w[:, None])[inside]
+    lo = v[j]                                # v is (K, d) (``_sorted_finite``)
+    out = (v[j + 1] - lo) * w[:, None]
+    out += lo                                # v[j] + (v[j+1] - v[j]) w on every row, then NaN outside
+    out[~inside] = np.nan
     return out, inside
 
 
