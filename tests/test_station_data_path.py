@@ -196,3 +196,8 @@ def test_rolling_imu_rate_in_blocks_is_np_median(monkeypatch):
     med = np.median(np.lib.stride_tricks.sliding_window_view(np.diff(t), inputs.RATE_WINDOW), axis=1)
     monkeypatch.setattr(inputs, "MEDIAN_ROWS", 97)
     np.testing.assert_array_equal(inputs.imu_rate_hz(t)[inputs.RATE_WINDOW + 1:], np.round(1.0 / med[1:], 2))
+    t[1500] = np.nan                              # a NaN time: its windows' medians NaN, as np.median's
+    with np.errstate(invalid="ignore"):
+        med = np.median(np.lib.stride_tricks.sliding_window_view(np.diff(t), inputs.RATE_WINDOW), axis=1)
+        expect = np.round(np.where(med > 0, 1.0 / med, np.inf), 2)
+    np.testing.assert_array_equal(inputs.imu_rate_hz(t)[inputs.RATE_WINDOW + 1:], expect[1:])
