@@ -6,10 +6,11 @@
     .venv/bin/python benchmarks/memory.py --log FILE.tlog # an existing log
 
 Each command runs in its own child process, as a user runs it; the wall time is the child's, the
-peak memory its maximum resident set, read by the child itself as it exits (``VmHWM`` in
-/proc/self/status).  Not ``os.wait4``'s ``ru_maxrss``: a child started by vfork and exec carries
-the parent's peak into it (Linux records the old memory's high-water mark at exec), so every row
-would be at least the parent's peak, e.g. the writing of the generated log.  The interpreter with the
+peak memory its maximum resident set, read by the child itself as it exits
+(``groundstation.process_memory.peak_rss_MB``: VmHWM).  Not ``os.wait4``'s ``ru_maxrss``: a child
+started by vfork and exec carries the parent's peak into it (Linux records the old memory's
+high-water mark at exec), so every row would be at least the parent's peak, e.g. the writing of
+the generated log.  The interpreter with the
 command's imports already holds tens of MB before the first byte is read, so the table also prints
 the peak above that (``imports`` row: the same child importing the command's modules and exiting).
 Targets (issue 29, one run, same file): each consumer's wall time <= 0.25x the bare parse and
@@ -47,8 +48,9 @@ IMPORTS = ("import groundstation.cli, groundstation.io.logs, groundstation.jobs.
 PEAK_AT_EXIT = """
 import atexit, os
 def _write_peak():
-    with open(os.environ["MAGSTATION_PEAK_FILE"], "w") as out, open("/proc/self/status") as status:
-        out.write(next(line for line in status if line.startswith("VmHWM:")).split()[1])
+    from groundstation.process_memory import peak_rss_MB
+    with open(os.environ["MAGSTATION_PEAK_FILE"], "w") as out:
+        out.write(repr(peak_rss_MB()))
 atexit.register(_write_peak)
 """
 
@@ -66,7 +68,8 @@ def measure(code: str, *args: str) -> tuple[float, float, int]:
         text = peak.read().strip()
     if proc.returncode not in (0, 1):       # calibrate exits 1 when a compass has no usable fit
         print(f"  child failed ({proc.returncode}): {err.decode(errors='replace').strip()[-400:]}", file=sys.stderr)
-    return wall, int(text) / 1024.0 if text else float("nan"), proc.returncode
+    peak_mb = float(text) if text and text != "None" else float("nan")
+    return wall, peak_mb, proc.returncode
 
 
 def run(log: Path, tmp: Path) -> list[tuple[str, float, float, int]]:

@@ -1,7 +1,8 @@
 """MagStation ground station, in four wings around one sample vocabulary.
 
 * ``samples`` — the typed sample stream and ``FlightLog`` tables, in the internal units every
-  wing shares (mG, rad/s, m/s², rad, NED/FRD, t_s).  ``paths``, ``jsonsafe``: small shared helpers.
+  wing shares (mG, rad/s, m/s², rad, NED/FRD, t_s).  ``paths``, ``jsonsafe``,
+  ``process_memory``: small shared helpers.
 * ``io`` — the outside world's formats: log readers (one module per format), the MAVLink decoder,
   live links, the tlog writer, missions, the replay clock, autopilot parameter conventions.
 * ``jobs`` — offline work on whole logs: calibrate, analyze (and its live twin), reports.

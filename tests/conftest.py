@@ -199,11 +199,9 @@ def artifacts() -> Path:
 
 
 # the start of a child script that measures its own memory: status_mb("VmRSS") now, status_mb("VmHWM")
-# its peak (ru_maxrss may carry the forking parent's peak, these are the child's own)
+# its peak (groundstation.process_memory: ru_maxrss may carry the forking parent's peak)
 STATUS_MB = """
-def status_mb(field):
-    line = next(l for l in open("/proc/self/status") if l.startswith(field + ":"))
-    return int(line.split()[1]) / 1024
+from groundstation.process_memory import status_MB as status_mb
 """
 
 

@@ -43,6 +43,7 @@ from groundstation.jobs.calibrate.context import attitude_for, log_context
 from groundstation.jobs.calibrate.reference import refine_reference
 from groundstation.jobs.compass_raw import CompassField, compass_fields, motor_signals
 from groundstation.jobs.inputs import field_reference, rounded
+from groundstation.process_memory import peak_rss_MB
 from groundstation.samples import FlightLog
 
 __all__ = ["ReviewSettings", "REVIEW_CALIBRATE", "review_log", "file_hash", "vehicle_identity", "compass_row",
@@ -119,17 +120,9 @@ def _finish(row: dict, t0: tuple[float, float]) -> dict:
     how much CPU the worker got); numpy scalars made plain Python (SQLite, pickling, Parquet)."""
     row["review_s"] = round(time.perf_counter() - t0[0], 4)
     row["review_cpu_s"] = round(time.thread_time() - t0[1], 4)
-    row["worker_peak_rss_MB"] = _peak_rss_MB()
+    peak = peak_rss_MB()
+    row["worker_peak_rss_MB"] = None if peak is None else round(peak, 1)
     return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in row.items()}
-
-
-def _peak_rss_MB() -> float | None:
-    """High-water mark of this process's resident memory (a worker's, when run on Dask)."""
-    try:
-        import resource
-        return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)   # kB on Linux
-    except (ImportError, OSError):
-        return None
 
 
 # ------------------------------------------------------------------------------ per log
