@@ -277,7 +277,6 @@ def test_framed_a_window_and_decoded_a_run_at_a_time_it_reads_the_same(tmp_path,
     runs of 211 records: tens of cuts in each file), the mixed logs whole and damaged, the logs of
     tests/data (real and SITL ones among them) and a fifth of the fuzz corpus read as packet by
     packet."""
-    from groundstation.io.logs import READERS, IngestError
     from fuzz import make_cases
 
     monkeypatch.setattr(tlog_module, "_BLOCK", 4096)
@@ -293,19 +292,10 @@ def test_framed_a_window_and_decoded_a_run_at_a_time_it_reads_the_same(tmp_path,
     for k, case in enumerate(cases):
         paths.append(tmp_path / f"case{k}.tlog")
         paths[-1].write_bytes(case.data)
-
-    def read(path):
-        try:
-            return read_log(path)
-        except IngestError as err:
-            return str(err).replace(path.name, "<file>")
-
     for path in paths:
-        monkeypatch.setitem(READERS, ".tlog", _reference_read_tlog)
-        ref = read(path)
-        monkeypatch.setitem(READERS, ".tlog", tlog_module.read_tlog)
+        ref, new = _read_both(path, monkeypatch)
         try:
-            assert_same_log(ref, read(path))
+            assert_same_log(ref, new)
         except AssertionError as err:
             raise AssertionError(f"{path.name}: {err}") from err
 
