@@ -198,13 +198,6 @@ def artifacts() -> Path:
     return ARTIFACTS
 
 
-# the start of a child script that measures its own memory: status_mb("VmRSS") now, status_mb("VmHWM")
-# its peak (groundstation.process_memory: ru_maxrss may carry the forking parent's peak)
-STATUS_MB = """
-from groundstation.process_memory import status_MB as status_mb
-"""
-
-
 def wait_until(cond, timeout: float = 20.0, step: float = 0.05) -> bool:
     """Poll ``cond`` every ``step`` s until it is true (True) or ``timeout`` s pass (False)."""
     deadline = time.monotonic() + timeout

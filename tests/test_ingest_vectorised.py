@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA, STATUS_MB
+from conftest import SHARED_DATA
 from groundstation.io.boot_clock import BootClock
 from groundstation.io.decode import MavlinkDecoder
 from groundstation.io.logs import read_log
@@ -429,15 +429,16 @@ def test_bin_fuzz_corpus_reads_the_same(tmp_path, monkeypatch):
 
 # ------------------------------------------------------------------ memory
 
-_FRAME_PEAK = STATUS_MB + """
+_FRAME_PEAK = """
+from groundstation.process_memory import status_MB
 import sys
 from collections import Counter
 from groundstation.io.logs import tlog
-before = status_mb("VmRSS")
+before = status_MB("VmRSS")
 with open(sys.argv[1], "rb") as f:
     file = tlog._FileBytes(f)
     starts, stamps = tlog.frame_records(file.read, file.n, Counter())
-print(len(starts), status_mb("VmHWM") - before)
+print(len(starts), status_MB("VmHWM") - before)
 """
 
 

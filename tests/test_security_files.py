@@ -18,7 +18,6 @@ from groundstation.io.errors import IngestError
 from groundstation.io.logs import read_log
 from groundstation.io.logs.tlog import tlog_records
 from groundstation.io.mission import read_mission
-from conftest import STATUS_MB
 
 DATA = Path(__file__).parent / "data"
 sys.path.insert(0, str(DATA))
@@ -71,14 +70,15 @@ def test_tlog_flipped_timestamp_bit_is_dropped_and_counted(tmp_path):
         assert 45 < rates["SCALED_IMU"] < 55
 
 
-_READ_PEAK = STATUS_MB + """
+_READ_PEAK = """
+from groundstation.process_memory import status_MB
 import sys
 from pathlib import Path
 from groundstation.io.logs import read_log
 read_log(Path(sys.argv[2]))          # the reader's imports and one-time tables are not the file's memory
-before = status_mb("VmRSS")
+before = status_MB("VmRSS")
 log = read_log(Path(sys.argv[1]))
-print(len(log.mag), status_mb("VmHWM") - before)
+print(len(log.mag), status_MB("VmHWM") - before)
 """
 
 
